@@ -1,0 +1,1 @@
+"""atlas stage of the PointGT core (see core/__init__.py)."""

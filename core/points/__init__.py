@@ -1,0 +1,1 @@
+"""points stage of the PointGT core (see core/__init__.py)."""

@@ -1,0 +1,1 @@
+"""Command-line tools: the `pointgt` CLI, Blender scene generation, benchmarks and evaluations."""
