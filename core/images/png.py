@@ -7,8 +7,11 @@ Writing is 8-bit RGB/RGBA, atomic, and keeps a `.bak` of the file it replaces.
 """
 from __future__ import annotations
 
+import io
 import os
+import struct
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +23,7 @@ from core.util.errors import DataError, InputError
 _TO_RGB = {"1", "L", "P", "RGB", "CMYK", "YCbCr", "LAB", "HSV"}
 _TO_RGBA = {"LA", "La", "PA", "RGBA", "RGBa"}
 _SIXTEEN_BIT_GREY = {"I;16", "I;16B", "I;16L", "I;16N", "I"}
+_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:
@@ -33,10 +37,15 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
     if not path.is_file():
         what = "is a folder, not an image file" if path.is_dir() else "does not exist"
         raise DataError(f"{path}: image {what}; check the path (frames' file_path are relative to the dataset folder)")
+    data = path.read_bytes()
+    if data.startswith(_SIGNATURE):
+        problem = _png_structure_problem(data)
+        if problem:
+            raise DataError(f"{path}: PNG is truncated or corrupt ({problem}); re-export or re-copy the file")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
-            with Image.open(path) as img:
+            with Image.open(io.BytesIO(data)) as img:
                 img.load()  # decode now so truncation/corruption surfaces here, inside the try
                 return _to_float(img, path)
     except UnidentifiedImageError as exc:
@@ -46,6 +55,25 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
     except (OSError, SyntaxError, ValueError) as exc:
         # Pillow reports truncated data and bad CRC/zlib streams as OSError/SyntaxError/ValueError.
         raise DataError(f"{path}: image is truncated or corrupt ({exc}); re-export or re-copy the file") from exc
+
+
+def _png_structure_problem(data: bytes) -> str | None:
+    """Walk the PNG chunks and check every CRC and the final IEND. Pillow decodes a file whose tail
+    (zlib checksum, IEND) is cut off without complaint, so truncation is caught here."""
+    pos, view = len(_SIGNATURE), memoryview(data)  # view: CRC over slices without copying
+    while True:
+        if pos + 8 > len(data):
+            return "file ends before its IEND chunk"
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        end = pos + 12 + length
+        if end > len(data):
+            return f"chunk {kind!r} runs past the end of the file"
+        crc = struct.unpack(">I", data[end - 4:end])[0]
+        if zlib.crc32(view[pos + 4:end - 4]) & 0xFFFFFFFF != crc:
+            return f"CRC mismatch in chunk {kind!r} at byte {pos}"
+        if kind == b"IEND":
+            return None
+        pos = end
 
 
 def _to_float(img, path: Path) -> np.ndarray:
@@ -61,7 +89,7 @@ def _to_float(img, path: Path) -> np.ndarray:
     if mode not in _TO_RGB and mode not in _TO_RGBA:
         raise DataError(f"{path}: unsupported image mode {mode!r}; re-export it as 8-bit RGB or RGBA PNG")
     arr = np.asarray(img.convert("RGBA" if has_alpha else "RGB"))
-    return arr.astype(np.float32) * np.float32(1.0 / 255.0)
+    return arr.astype(np.float32) / np.float32(255.0)  # division, not * (1/255): exact inverse of write_png
 
 
 def write_png(path: str | os.PathLike, image, backup: bool = True, strict: bool = False) -> Path:
@@ -93,7 +121,8 @@ def write_png(path: str | os.PathLike, image, backup: bool = True, strict: bool 
     u8 = np.rint(arr * 255.0).astype(np.uint8)
     with atomic_path(path, backup=backup) as tmp:
         with open(tmp, "wb") as fh:
-            Image.fromarray(u8)  # [H,W] -> L, [H,W,3] -> RGB, [H,W,4] -> RGBA.save(fh, format="PNG")
+            # Mode follows the shape: [H, W] -> L, [H, W, 3] -> RGB, [H, W, 4] -> RGBA.
+            Image.fromarray(u8).save(fh, format="PNG")
             fh.flush()
             os.fsync(fh.fileno())
     return path
