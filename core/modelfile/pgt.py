@@ -89,12 +89,14 @@ def _prepare_arrays(path: Path, arrays: dict, allow_nonfinite: list[str]) -> dic
     """Validate names/dtypes/values; return C-contiguous little-endian arrays in a stable (sorted) order."""
     if not isinstance(arrays, dict):
         raise InputError(f"{path}: arrays must be a dict of name -> numpy array, got {type(arrays).__name__}")
+    for name in arrays:
+        if not isinstance(name, str) or not _NAME.match(name) or len(name) > 256 \
+                or any(part in (".", "..") for part in name.split("/")):
+            raise InputError(f"{path}: array name {name!r} is invalid; use slash-separated parts of "
+                             "letters, digits, '_', '.', '-' (e.g. 'net/attn.0.weight')")
     out = {}
     for name in sorted(arrays):
         arr = arrays[name]
-        if not isinstance(name, str) or not _NAME.match(name) or len(name) > 256:
-            raise InputError(f"{path}: array name {name!r} is invalid; use slash-separated parts of "
-                             "letters, digits, '_', '.', '-' (e.g. 'net/attn.0.weight')")
         if not isinstance(arr, np.ndarray):
             raise InputError(f"{path}: array {name!r} is a {type(arr).__name__}, not a numpy array; "
                              "convert tensors with .detach().cpu().numpy()")
