@@ -1,9 +1,10 @@
 """PNG read/write as float arrays in [0, 1] (display space, row 0 = top), via Pillow.
 
 Reading converts every PNG flavour to RGB or RGBA float32: palette (with or without a transparency entry),
-greyscale, greyscale+alpha, 1-bit, 8-bit and 16-bit. 16-bit greyscale keeps its full precision; Pillow hands
-16-bit *colour* PNGs over already reduced to 8 bits per channel, so those come back with 1/255 steps.
-Writing is 8-bit RGB/RGBA, atomic, and keeps a `.bak` of the file it replaces.
+greyscale, greyscale+alpha, 1-bit, 8-bit and 16-bit, all at full precision. Pillow would reduce 16-bit colour
+and grey+alpha PNGs to 8 bits, so those (non-interlaced) are decoded here with zlib + numpy. Every chunk CRC is
+checked, which also catches files cut off after the pixel data. Writing is 8-bit RGB/RGBA, atomic, and keeps a
+`.bak` of the file it replaces.
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ _TO_RGB = {"1", "L", "P", "RGB", "CMYK", "YCbCr", "LAB", "HSV"}
 _TO_RGBA = {"LA", "La", "PA", "RGBA", "RGBa"}
 _SIXTEEN_BIT_GREY = {"I;16", "I;16B", "I;16L", "I;16N", "I"}
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_MAX_PIXELS = 1 << 28  # 16k x 16k; larger 16-bit PNGs are taken as corrupt headers
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:
@@ -39,9 +41,12 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
         raise DataError(f"{path}: image {what}; check the path (frames' file_path are relative to the dataset folder)")
     data = path.read_bytes()
     if data.startswith(_SIGNATURE):
-        problem = _png_structure_problem(data)
-        if problem:
-            raise DataError(f"{path}: PNG is truncated or corrupt ({problem}); re-export or re-copy the file")
+        try:
+            deep = _decode_16bit_colour(_png_chunks(data))
+        except (ValueError, zlib.error) as exc:
+            raise DataError(f"{path}: PNG is truncated or corrupt ({exc}); re-export or re-copy the file") from exc
+        if deep is not None:
+            return deep
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
@@ -57,23 +62,83 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
         raise DataError(f"{path}: image is truncated or corrupt ({exc}); re-export or re-copy the file") from exc
 
 
-def _png_structure_problem(data: bytes) -> str | None:
-    """Walk the PNG chunks and check every CRC and the final IEND. Pillow decodes a file whose tail
-    (zlib checksum, IEND) is cut off without complaint, so truncation is caught here."""
-    pos, view = len(_SIGNATURE), memoryview(data)  # view: CRC over slices without copying
+def _png_chunks(data: bytes) -> list[tuple[bytes, memoryview]]:
+    """[(chunk type, payload)] up to IEND, every CRC checked; ValueError on truncation or corruption.
+    (Pillow decodes a file whose tail - zlib checksum, IEND - is cut off without complaint.)"""
+    pos, view, chunks = len(_SIGNATURE), memoryview(data), []
     while True:
         if pos + 8 > len(data):
-            return "file ends before its IEND chunk"
+            raise ValueError("file ends before its IEND chunk")
         length, kind = struct.unpack(">I4s", data[pos:pos + 8])
         end = pos + 12 + length
         if end > len(data):
-            return f"chunk {kind!r} runs past the end of the file"
-        crc = struct.unpack(">I", data[end - 4:end])[0]
-        if zlib.crc32(view[pos + 4:end - 4]) & 0xFFFFFFFF != crc:
-            return f"CRC mismatch in chunk {kind!r} at byte {pos}"
+            raise ValueError(f"chunk {kind.decode('latin-1')} runs past the end of the file")
+        if zlib.crc32(view[pos + 4:end - 4]) & 0xFFFFFFFF != struct.unpack(">I", data[end - 4:end])[0]:
+            raise ValueError(f"CRC mismatch in chunk {kind.decode('latin-1')} at byte {pos}")
+        chunks.append((kind, view[pos + 8:end - 4]))
         if kind == b"IEND":
-            return None
+            return chunks
         pos = end
+
+
+def _decode_16bit_colour(chunks) -> np.ndarray | None:
+    """Full-precision float32 [H, W, 3|4] for 16-bit RGB / RGBA / grey+alpha non-interlaced PNGs, else None."""
+    if not chunks or chunks[0][0] != b"IHDR" or len(chunks[0][1]) != 13:
+        raise ValueError("first chunk is not a valid IHDR")
+    width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", chunks[0][1])
+    channels = {2: 3, 4: 2, 6: 4}.get(colour)
+    if depth != 16 or channels is None or interlace != 0:
+        return None  # Pillow reads these at full precision (or interlaced: 8-bit, rare)
+    bpp = 2 * channels
+    if width * height > _MAX_PIXELS or width == 0 or height == 0:
+        raise ValueError(f"implausible image size {width}x{height}")
+    expected = height * (1 + width * bpp)
+    # max_length caps memory if the stream inflates to more than the header promises.
+    raw = zlib.decompressobj().decompress(b"".join(bytes(p) for k, p in chunks if k == b"IDAT"), expected + 1)
+    if len(raw) != expected:
+        raise ValueError(f"pixel data holds {len(raw)} bytes, expected {expected}")
+    rows = np.frombuffer(raw, np.uint8).reshape(height, 1 + width * bpp)
+    pixels = _unfilter(rows[:, 0], rows[:, 1:].reshape(height, width, bpp))
+    values = pixels.view(">u2").reshape(height, width, channels).astype(np.float32) / np.float32(65535.0)
+    if channels == 2:  # grey + alpha
+        return np.concatenate([np.repeat(values[..., :1], 3, axis=-1), values[..., 1:]], axis=-1)
+    trns = next((p for k, p in chunks if k == b"tRNS"), None)
+    if channels == 3 and trns is not None and len(trns) == 6:  # one fully transparent RGB colour
+        key = np.frombuffer(bytes(trns), ">u2").astype(np.float32) / np.float32(65535.0)
+        alpha = (~np.all(values == key, axis=-1)).astype(np.float32)
+        return np.concatenate([values, alpha[..., None]], axis=-1)
+    return values
+
+
+def _unfilter(ftype: np.ndarray, filt: np.ndarray) -> np.ndarray:
+    """Undo PNG row filters: ftype [H] in 0..4, filtered bytes [H, W, bpp] -> raw bytes [H, W, bpp] uint8.
+
+    Each pixel depends on its left, upper and upper-left neighbours, so the pixels of one anti-diagonal
+    (r + x = d) are independent: H + W - 1 vectorised steps instead of a loop over pixels. The work array is
+    stored skewed, diag[d + 1, r + 1] = pixel (r, d - r), so each step reads and writes contiguous slices;
+    row/column 0 and never-written cells are PNG's zero "outside the image" neighbours.
+    """
+    h, w, bpp = filt.shape
+    if np.any(ftype > 4):
+        raise ValueError(f"unknown row filter type {int(ftype.max())}")
+    r_idx = np.arange(h)[:, None]
+    d_idx = r_idx + np.arange(w)[None, :]  # [H, W] diagonal of each pixel
+    f_skew = np.zeros((h + w - 1, h, bpp), np.int16)
+    f_skew[d_idx, r_idx] = filt
+    diag = np.zeros((h + w, h + 1, bpp), np.int16)
+    # One 0/1 weight per row and filter type: pred = sum_k use[k] * predictor_k (cheaper than np.select).
+    use = [(ftype == k).astype(np.int16)[:, None] for k in range(1, 5)]
+    for d in range(h + w - 1):
+        lo, hi = max(0, d - w + 1), min(h, d + 1)  # rows that have a pixel on this diagonal
+        a = diag[d, lo + 1:hi + 1]
+        b = diag[d, lo:hi]
+        c = diag[d - 1, lo:hi] if d else diag[0, lo:hi]
+        p = a + b - c
+        pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
+        paeth = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))
+        pred = use[0][lo:hi] * a + use[1][lo:hi] * b + use[2][lo:hi] * ((a + b) >> 1) + use[3][lo:hi] * paeth
+        diag[d + 1, lo + 1:hi + 1] = (f_skew[d, lo:hi] + pred) & 0xFF
+    return diag[d_idx + 1, r_idx + 1].astype(np.uint8)
 
 
 def _to_float(img, path: Path) -> np.ndarray:

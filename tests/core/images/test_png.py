@@ -1,3 +1,6 @@
+import struct
+import zlib
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -71,21 +74,66 @@ def test_16bit_greyscale_keeps_full_precision(tmp_path):
     np.testing.assert_allclose(out[..., 0], g / 65535.0, rtol=0, atol=1e-7)
 
 
-def test_16bit_colour_reads_to_eight_bit_precision(tmp_path):
-    # Pillow cannot write 16-bit colour, so build the PNG by hand (filter type 0 rows).
-    import struct
-    import zlib
-    vals = (np.arange(2 * 3 * 4).reshape(2, 3, 4) * 2700 + 5).astype(">u2")
-    raw = b"".join(b"\x00" + row.tobytes() for row in vals)
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
 
-    def chunk(kind, data):
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 3, 2, 16, 6, 0, 0, 0))
-           + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
-    (tmp_path / "c16.png").write_bytes(png)
+
+def encode_png16(values: np.ndarray, colour_type: int, filters, extra: bytes = b"") -> bytes:
+    """Reference encoder: uint16 [H, W, C] -> PNG bytes, row r filtered with filters[r % len(filters)].
+
+    Filtering uses only the raw bytes, so unlike decoding it needs no sequential pass."""
+    h, w, c = values.shape
+    bpp = 2 * c
+    raw = values.astype(">u2").view(np.uint8).reshape(h, w * bpp).astype(np.int32)
+    a = np.pad(raw, ((0, 0), (bpp, 0)))[:, :-bpp]                 # left neighbour
+    b = np.pad(raw, ((1, 0), (0, 0)))[:-1]                        # upper neighbour
+    cc = np.pad(raw, ((1, 0), (bpp, 0)))[:-1, :-bpp]               # upper-left neighbour
+    p = a + b - cc
+    pa, pb, pc = abs(p - a), abs(p - b), abs(p - cc)
+    paeth = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, cc))
+    preds = [np.zeros_like(raw), a, b, (a + b) // 2, paeth]
+    types = np.array([filters[r % len(filters)] for r in range(h)])
+    filtered = ((raw - np.stack(preds)[types, np.arange(h)]) % 256).astype(np.uint8)
+    rows = np.concatenate([types[:, None].astype(np.uint8), filtered], axis=1)
+    return (b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, colour_type, 0, 0, 0))
+            + extra + _chunk(b"IDAT", zlib.compress(rows.tobytes())) + _chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("colour_type,channels", [(2, 3), (6, 4), (4, 2)])
+@pytest.mark.parametrize("filters", [[0], [1], [2], [3], [4], [0, 1, 2, 3, 4, 4, 3]])
+def test_16bit_colour_is_read_at_full_precision(tmp_path, colour_type, channels, filters):
+    vals = np.random.default_rng(colour_type).integers(0, 65536, size=(9, 6, channels), dtype=np.uint16)
+    vals[0, 0] = 65535
+    (tmp_path / "c16.png").write_bytes(encode_png16(vals, colour_type, filters))
     out = read_png(tmp_path / "c16.png")
-    assert out.shape == (2, 3, 4)
-    np.testing.assert_allclose(out, vals.astype(np.float64) / 65535.0, atol=1.0 / 255.0)
+    expect = vals.astype(np.float64) / 65535.0
+    if channels == 2:
+        expect = np.concatenate([expect[..., :1].repeat(3, -1), expect[..., 1:]], axis=-1)
+    assert out.dtype == np.float32 and out.shape == (9, 6, 4 if channels != 3 else 3)
+    np.testing.assert_allclose(out, expect, rtol=0, atol=1e-7)
+    # Pillow (8-bit) agrees to within one 8-bit step, a cross-check of the decoder on real filter data.
+    np.testing.assert_allclose(np.asarray(Image.open(tmp_path / "c16.png").convert("RGBA" if channels != 3 else "RGB"))
+                               / 255.0, out, atol=1.0 / 255 + 1e-6)
+
+
+def test_16bit_rgb_with_transparent_colour_gets_alpha(tmp_path):
+    vals = np.full((2, 3, 3), 1000, dtype=np.uint16)
+    vals[1, 2] = (7, 8, 9)
+    trns = _chunk(b"tRNS", struct.pack(">HHH", 7, 8, 9))
+    (tmp_path / "t16.png").write_bytes(encode_png16(vals, 2, [4], extra=trns))
+    out = read_png(tmp_path / "t16.png")
+    assert out.shape == (2, 3, 4) and out[..., 3].sum() == 5 and out[1, 2, 3] == 0
+
+
+def test_16bit_colour_with_bad_pixel_data_is_rejected(tmp_path):
+    vals = np.zeros((4, 4, 3), dtype=np.uint16)
+    good = encode_png16(vals, 2, [0])
+    short = good.replace(struct.pack(">II", 4, 4), struct.pack(">II", 4, 5), 1)  # header promises 5 rows
+    ihdr_end = 8 + 8 + 13
+    short = short[:8] + _chunk(b"IHDR", short[16:ihdr_end]) + short[ihdr_end + 4:]
+    (tmp_path / "short.png").write_bytes(short)
+    with pytest.raises(DataError, match=r"short\.png.*pixel data holds"):
+        read_png(tmp_path / "short.png")
 
 
 def test_write_clips_and_zeroes_nan_unless_strict(tmp_path):
