@@ -1,0 +1,47 @@
+"""PointGT for Blender: import neural point-cloud models, pose them with Blender rigs, paint their atlas.
+
+Registers without PyTorch: importing, rigging and exporting points need only Blender's numpy; features that
+run the network check for torch in their poll(). When packaged (`pointgt package-addon`), `core` is vendored
+as a subpackage of this add-on and its imports are made relative; see docs/addon.md.
+
+Module layout (one job each): deps (torch detection, pip), preferences (status + install), properties
+(per-object settings), model_import, atlas_image, rig (lattice, armature), reset, evaluated (deformed points +
+checks), export, device_check, view3d_panel.
+"""
+from __future__ import annotations
+
+import importlib
+
+_MODULES = ("properties", "preferences", "model_import", "rig", "reset", "export", "device_check", "view3d_panel")
+_registered: list = []
+
+
+def _modules():
+    return [importlib.import_module(f"{__name__}.{name}") for name in _MODULES]
+
+
+def register():
+    import bpy  # only here, so `pointgt_blender.deps` and friends import without Blender in plain tests
+
+    for mod in _modules():
+        for cls in getattr(mod, "CLASSES", ()):
+            bpy.utils.register_class(cls)
+            _registered.append(cls)
+    from . import model_import, preferences, properties
+
+    properties.register_properties()
+    model_import.register_menus()
+    preferences.update_sys_path()
+
+
+def unregister():
+    import bpy
+
+    from . import model_import, preferences, properties
+
+    preferences.remove_sys_path()
+    model_import.unregister_menus()
+    properties.unregister_properties()
+    for cls in reversed(_registered):
+        bpy.utils.unregister_class(cls)
+    _registered.clear()

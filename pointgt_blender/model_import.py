@@ -1,0 +1,176 @@
+"""Import a .pgt model as a vertex-only mesh (point ids as an attribute) plus its packed atlas image."""
+from __future__ import annotations
+
+import os
+
+import bpy
+import numpy as np
+from bpy_extras.io_utils import ImportHelper
+
+from core.modelfile.pgt import PgtFile
+from core.util.errors import ModelFileError, PointGTError
+
+from . import atlas_image
+from .properties import ID_ATTRIBUTE
+
+POINTS = "points/xyz"
+ATLAS = "atlas/image"
+
+
+def read_model(path: str) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """Canonical points [N, 3] float32, atlas [H, W, 3] float32 display space (None if the model has none yet)
+    and meta, all checked before anything is created in Blender."""
+    with PgtFile(path) as f:
+        if POINTS not in f.names:
+            raise ModelFileError(f"{path}: has no '{POINTS}' array, so it holds no points; fit the model first")
+        xyz = f.read(POINTS)
+        atlas = f.read(ATLAS) if ATLAS in f.names else None
+        meta = f.meta
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or xyz.shape[0] == 0 or xyz.dtype.kind != 'f':
+        raise ModelFileError(f"{path}: '{POINTS}' must be float [N, 3] with N > 0, got {xyz.dtype} "
+                             f"{list(xyz.shape)}; re-export the model")
+    if not np.isfinite(xyz).all():
+        raise ModelFileError(f"{path}: '{POINTS}' holds NaN or infinite coordinates; re-export the model")
+    if atlas is not None:
+        if atlas.ndim != 3 or atlas.shape[2] not in (3, 4) or 0 in atlas.shape or atlas.dtype.kind != 'f':
+            raise ModelFileError(f"{path}: '{ATLAS}' must be float [H, W, 3], got {atlas.dtype} "
+                                 f"{list(atlas.shape)}; re-export the model")
+        if not np.isfinite(atlas).all():
+            raise ModelFileError(f"{path}: '{ATLAS}' holds NaN or infinite texels; re-export the model")
+    return xyz.astype(np.float32, copy=False), atlas, meta
+
+
+def stored_path(path: str) -> str:
+    """The model path as stored in the object: relative to the saved .blend ('//...') when possible."""
+    path = os.path.abspath(path)
+    if bpy.data.filepath:
+        try:
+            return bpy.path.relpath(path)
+        except ValueError:  # another drive on Windows
+            pass
+    return path
+
+
+def new_points_mesh(name: str, xyz: np.ndarray):
+    """A mesh with one vertex per point (no edges or faces) and an INT point attribute `pointgt_id` = 0..N-1."""
+    n = xyz.shape[0]
+    mesh = bpy.data.meshes.new(name)
+    mesh.vertices.add(n)
+    mesh.vertices.foreach_set("co", np.ascontiguousarray(xyz, dtype=np.float32).reshape(-1))
+    attr = mesh.attributes.new(ID_ATTRIBUTE, 'INT', 'POINT')
+    attr.data.foreach_set("value", np.arange(n, dtype=np.int32))
+    mesh.update()
+    return mesh
+
+
+def import_model(context, path: str, name: str = "", **settings):
+    """Create the points object (+ packed atlas image) for the model at `path` and make it active.
+    `settings`: preview_resolution, neighbors, correspondence, device. Raises PointGTError; on any error nothing
+    is left behind."""
+    path = bpy.path.abspath(path)
+    if not os.path.isfile(path):
+        raise ModelFileError(f"{path}: file not found; choose an existing .pgt model")
+    xyz, atlas, _meta = read_model(path)
+    name = name or os.path.splitext(os.path.basename(path))[0]
+    created = []
+    try:
+        mesh = new_points_mesh(name, xyz)
+        created.append(mesh)
+        image = None
+        if atlas is not None:
+            image = atlas_image.new_atlas_image(f"{name} atlas", atlas)
+            created.append(image)
+        obj = bpy.data.objects.new(name, mesh)
+        created.append(obj)
+        s = obj.pointgt
+        s.is_model = True
+        s.model_path = stored_path(path)
+        s.point_count = xyz.shape[0]
+        s.atlas = image
+        for key, value in settings.items():
+            setattr(s, key, value)
+        (context.collection or context.scene.collection).objects.link(obj)
+        for other in context.selected_objects:
+            other.select_set(False)
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+    except Exception:
+        for block in reversed(created):
+            collection = {bpy.types.Object: bpy.data.objects, bpy.types.Mesh: bpy.data.meshes,
+                          bpy.types.Image: bpy.data.images}[type(block)]
+            collection.remove(block)
+        raise
+    return obj
+
+
+class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
+    """Import a PointGT model (.pgt) as points you can rig, with its paintable atlas"""
+    bl_idname = "pointgt.import_model"
+    bl_label = "Import PointGT Model"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    filename_ext = ".pgt"
+    filter_glob: bpy.props.StringProperty(default="*.pgt", options={'HIDDEN'})
+    preview_resolution: bpy.props.IntProperty(name="Preview resolution", default=256, min=16, max=4096)
+    neighbors: bpy.props.IntProperty(name="K", default=20, min=1, max=256)
+    correspondence: bpy.props.EnumProperty(
+        name="Correspondence", default='DEFORM_AWARE',
+        items=[('DEFORM_AWARE', "Deform-aware", ""), ('NAIVE', "Naive", "")])
+    device: bpy.props.EnumProperty(name="Device", default='CPU', items=[('CPU', "CPU", ""), ('CUDA', "CUDA", "")])
+
+    def execute(self, context):
+        try:
+            obj = import_model(context, self.filepath, preview_resolution=self.preview_resolution,
+                               neighbors=self.neighbors, correspondence=self.correspondence, device=self.device)
+        except PointGTError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
+        except Exception as exc:  # never let an unexpected error take Blender down
+            self.report({'ERROR'}, f"Importing {self.filepath} failed: {type(exc).__name__}: {exc}")
+            return {'CANCELLED'}
+        atlas = obj.pointgt.atlas
+        extra = f", atlas {atlas.size[0]}x{atlas.size[1]}" if atlas else " (the model has no atlas yet)"
+        self.report({'INFO'}, f"Imported '{obj.name}': {obj.pointgt.point_count} points{extra}")
+        return {'FINISHED'}
+
+
+def relative_to(path: str, blend_path: str) -> str:
+    """`path` ('//'-relative to the current .blend, or absolute) re-expressed relative to `blend_path`."""
+    absolute = os.path.normpath(bpy.path.abspath(path))
+    try:
+        return "//" + os.path.relpath(absolute, os.path.dirname(os.path.abspath(blend_path)))
+    except ValueError:  # another drive on Windows: keep it absolute
+        return absolute
+
+
+@bpy.app.handlers.persistent
+def _relative_model_paths(filepath, *_args):
+    """save_pre handler: models imported before the .blend had a location get paths relative to where it is
+    saved now (when Blender's 'Default relative paths' preference is on), so a project folder can move."""
+    try:
+        if not filepath or not bpy.context.preferences.filepaths.use_relative_paths:
+            return
+        for obj in bpy.data.objects:
+            s = getattr(obj, "pointgt", None)
+            if s is not None and s.is_model and s.model_path:
+                s.model_path = relative_to(s.model_path, filepath)
+    except Exception as exc:  # a save must never fail because of the add-on
+        print(f"PointGT: could not make model paths relative: {exc}")
+
+
+def menu_import(self, context):
+    self.layout.operator(POINTGT_OT_import_model.bl_idname, text="PointGT Model (.pgt)")
+
+
+CLASSES = (POINTGT_OT_import_model,)
+
+
+def register_menus():
+    bpy.types.TOPBAR_MT_file_import.append(menu_import)
+    bpy.app.handlers.save_pre.append(_relative_model_paths)
+
+
+def unregister_menus():
+    bpy.types.TOPBAR_MT_file_import.remove(menu_import)
+    if _relative_model_paths in bpy.app.handlers.save_pre:
+        bpy.app.handlers.save_pre.remove(_relative_model_paths)

@@ -1,0 +1,45 @@
+"""Per-object PointGT settings (`object.pointgt`): where the model lives and how to preview/render it."""
+from __future__ import annotations
+
+import bpy
+
+from .evaluated import ID_ATTRIBUTE
+
+
+class PointGTObjectSettings(bpy.types.PropertyGroup):
+    is_model: bpy.props.BoolProperty(name="PointGT model", default=False,
+                                     description="This object holds the points of a PointGT model")
+    model_path: bpy.props.StringProperty(name="Model", subtype='FILE_PATH',
+                                         description="The .pgt model file (relative to the .blend when possible)")
+    point_count: bpy.props.IntProperty(name="Points", min=0, description="Number of points in the model")
+    atlas: bpy.props.PointerProperty(name="Atlas", type=bpy.types.Image,
+                                     description="The paintable texture atlas of the model (packed in the .blend)")
+    preview_resolution: bpy.props.IntProperty(name="Preview resolution", default=256, min=16, max=4096,
+                                              description="Long side in pixels of the live preview")
+    neighbors: bpy.props.IntProperty(name="K", default=20, min=1, max=256,
+                                     description="Neighbour points per ray (the model was trained with its own K)")
+    correspondence: bpy.props.EnumProperty(
+        name="Correspondence", default='DEFORM_AWARE',
+        items=[('DEFORM_AWARE', "Deform-aware", "Map deformed surface points back through their neighbours' "
+                                                "displacements (keeps painted texture glued to the surface)"),
+               ('NAIVE', "Naive", "Attention-weighted canonical neighbours (ablation: texture drifts)")])
+    device: bpy.props.EnumProperty(
+        name="Device", default='CPU',
+        items=[('CPU', "CPU", "Run the network on the processor"),
+               ('CUDA', "CUDA", "Run the network on an NVIDIA GPU (needs a CUDA build of PyTorch)")])
+
+
+def is_pointgt_object(obj) -> bool:
+    return (obj is not None and obj.type == 'MESH' and obj.pointgt.is_model
+            and ID_ATTRIBUTE in obj.data.attributes)
+
+
+CLASSES = (PointGTObjectSettings,)
+
+
+def register_properties():
+    bpy.types.Object.pointgt = bpy.props.PointerProperty(type=PointGTObjectSettings)
+
+
+def unregister_properties():
+    del bpy.types.Object.pointgt

@@ -1,0 +1,48 @@
+"""The PointGT tab in the 3D Viewport sidebar: dependency status, import, model settings, rig and export."""
+from __future__ import annotations
+
+import bpy
+
+from .preferences import draw_dependency_status
+from .properties import is_pointgt_object
+
+
+class POINTGT_PT_main(bpy.types.Panel):
+    bl_label = "PointGT"
+    bl_idname = "POINTGT_PT_main"
+    bl_space_type = 'VIEW_3D'
+    bl_region_type = 'UI'
+    bl_category = "PointGT"
+
+    def draw(self, context):
+        layout = self.layout
+        draw_dependency_status(layout)
+        layout.operator("pointgt.import_model", icon='IMPORT')
+        obj = context.active_object
+        if not is_pointgt_object(obj):
+            layout.label(text="Select an imported model for more", icon='INFO')
+            return
+        s = obj.pointgt
+        col = layout.column()
+        col.prop(s, "model_path")
+        col.label(text=f"{s.point_count} points")
+        col.prop(s, "atlas")
+        col.prop(s, "preview_resolution")
+        col.prop(s, "neighbors")
+        col.prop(s, "correspondence")
+        row = col.row(align=True)
+        row.prop(s, "device")
+        row.operator("pointgt.check_device", text="", icon='CHECKMARK')
+
+        layout.label(text="Rig")
+        col = layout.column(align=True)
+        col.operator("pointgt.add_lattice", icon='OUTLINER_OB_LATTICE')
+        col.operator("pointgt.bind_armature", text="Bind to Armature (envelopes)",
+                     icon='OUTLINER_OB_ARMATURE').mode = 'ENVELOPE'
+        col.operator("pointgt.bind_armature", text="Bind to Armature (proxy weights)",
+                     icon='MOD_DATA_TRANSFER').mode = 'PROXY'
+        col.operator("pointgt.reset_canonical", icon='LOOP_BACK')
+        layout.operator("pointgt.export_deformed", icon='EXPORT')
+
+
+CLASSES = (POINTGT_PT_main,)

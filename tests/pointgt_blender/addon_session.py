@@ -1,0 +1,286 @@
+"""Run inside a fresh Blender (bpy) subprocess by test_addon_blender.py; prints one JSON line "RESULTS: {...}".
+
+argv after "--": zip model.pgt corrupt.pgt workdir wheel_dir
+Each step records what it observed (or the error) so that one failure does not hide the others.
+torch is blocked (a sys.meta_path finder) until the "torch_unblocked" step, to prove the add-on works without it.
+"""
+import importlib
+import json
+import os
+import sys
+import traceback
+
+import numpy as np
+
+
+class BlockTorch:
+    """Makes `import torch` fail as it would in a Blender without PyTorch."""
+
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch" or name.startswith("torch."):
+            raise ImportError(f"No module named '{name}' (blocked by the test)")
+        return None
+
+
+BLOCKER = BlockTorch()
+sys.meta_path.insert(0, BLOCKER)
+
+import bpy  # noqa: E402
+
+zip_path, model, corrupt, work, wheels = sys.argv[sys.argv.index("--") + 1:]
+R = {}
+PKG = "bl_ext.user_default.pointgt"
+
+
+def step(name):
+    def deco(fn):
+        try:
+            R[name] = fn()
+        except Exception as exc:  # recorded, the test asserts on it
+            R[name] = {"error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc()[-1500:]}
+        return fn
+    return deco
+
+
+def evaluated(obj):
+    ev = importlib.import_module(PKG + ".evaluated")
+    return ev.evaluated_points(obj, bpy.context.evaluated_depsgraph_get(), 'WORLD')
+
+
+def make_active(obj, *others):
+    for o in bpy.context.view_layer.objects:
+        o.select_set(False)
+    for o in (obj, *others):
+        o.select_set(True)
+    bpy.context.view_layer.objects.active = obj
+
+
+def op_error(fn, **kw):
+    """Run an operator that should fail; return its error text ('' if it did not fail)."""
+    try:
+        res = fn(**kw)
+    except RuntimeError as exc:
+        return str(exc)
+    return "" if 'CANCELLED' not in res else "CANCELLED without message"
+
+
+@step("install")
+def _():
+    res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
+    return {"result": sorted(res), "enabled": PKG in bpy.context.preferences.addons,
+            "torch_loaded": "torch" in sys.modules,
+            "import_op": hasattr(bpy.types, "POINTGT_OT_import_model")}
+
+
+@step("torch_missing")
+def _():
+    deps = importlib.import_module(PKG + ".deps")
+    st = deps.torch_status(refresh=True)
+    return {"available": st.available, "message": st.message}
+
+
+@step("import")
+def _():
+    before = len(bpy.data.objects)
+    res = bpy.ops.pointgt.import_model(filepath=model, neighbors=12, device='CPU')
+    obj = bpy.context.active_object
+    mesh = obj.data
+    ids = np.empty(len(mesh.vertices), np.int32)
+    mesh.attributes["pointgt_id"].data.foreach_get("value", ids)
+    co = np.empty(len(mesh.vertices) * 3, np.float32)
+    mesh.vertices.foreach_get("co", co)
+    img = obj.pointgt.atlas
+    atlas = importlib.import_module(PKG + ".atlas_image").read_atlas_image(img)
+    attr = mesh.attributes["pointgt_id"]
+    return {"result": sorted(res), "new_objects": len(bpy.data.objects) - before, "name": obj.name,
+            "verts": len(mesh.vertices), "edges": len(mesh.edges), "faces": len(mesh.polygons),
+            "ids": ids.tolist(), "co": co.tolist(), "attr": [attr.domain, attr.data_type],
+            "image_size": list(img.size), "packed": img.packed_file is not None, "image_float": img.is_float,
+            "atlas": atlas.tolist(), "k": obj.pointgt.neighbors, "model_path": obj.pointgt.model_path,
+            "point_count": obj.pointgt.point_count,
+            "torch_poll_error": op_error(bpy.ops.pointgt.check_device)}  # active model, torch still blocked
+
+
+@step("import_corrupt")
+def _():
+    counts = (len(bpy.data.objects), len(bpy.data.meshes), len(bpy.data.images))
+    err = op_error(bpy.ops.pointgt.import_model, filepath=corrupt)
+    missing = op_error(bpy.ops.pointgt.import_model, filepath=os.path.join(work, "nope.pgt"))
+    after = (len(bpy.data.objects), len(bpy.data.meshes), len(bpy.data.images))
+    return {"error": err, "missing": missing, "unchanged": counts == after}
+
+
+@step("lattice")
+def _():
+    obj = bpy.data.objects[R["import"]["name"]]
+    make_active(obj)
+    rest, _ = evaluated(obj)
+    bpy.ops.pointgt.add_lattice(resolution=(3, 3, 3))
+    lat = obj.modifiers["PointGT Lattice"].object
+    same, _ = evaluated(obj)
+    pts = lat.data.points
+    top = max(range(len(pts)), key=lambda i: pts[i].co[2])
+    pts[top].co_deform.z += 1.0  # pull one top corner up
+    bpy.context.view_layer.update()
+    moved, ids = evaluated(obj)
+    return {"identity_err": float(np.abs(same - rest).max()), "max_move": float(np.abs(moved - rest).max()),
+            "finite": bool(np.isfinite(moved).all()), "ids_ok": ids.tolist() == list(range(len(rest))),
+            "lattice_type": lat.type}
+
+
+@step("reset")
+def _():
+    obj = bpy.data.objects[R["import"]["name"]]
+    make_active(obj)
+    co = np.empty(len(obj.data.vertices) * 3, np.float32)
+    obj.data.vertices.foreach_get("co", co)
+    obj.data.vertices.foreach_set("co", co + 0.25)  # an edit-mode style change of the mesh itself
+    obj.data.update()
+    bpy.ops.pointgt.reset_canonical(action='DISABLE', restore_positions=True)
+    pos, _ = evaluated(obj)
+    canon = np.asarray(R["import"]["co"], np.float32).reshape(-1, 3)
+    disabled = [m.show_viewport for m in obj.modifiers]
+    bpy.ops.pointgt.reset_canonical(action='REMOVE')
+    return {"err": float(np.abs(pos - canon).max()), "disabled": disabled, "left": len(obj.modifiers)}
+
+
+@step("armature_envelope")
+def _():
+    obj = bpy.data.objects[R["import"]["name"]]
+    bpy.ops.object.armature_add(location=(0.0, 0.0, -1.0))  # one bone from z=-1 to z=0
+    arm = bpy.context.active_object
+    bone = arm.data.bones[0]
+    bone.head_radius = bone.tail_radius = 0.6
+    bone.envelope_distance = 0.5
+    make_active(obj, arm)
+    rest, _ = evaluated(obj)
+    bpy.ops.pointgt.bind_armature(mode='ENVELOPE')
+    pb = arm.pose.bones[0]
+    pb.rotation_mode = 'XYZ'
+    pb.rotation_euler = (0.6, 0.0, 0.0)
+    bpy.context.view_layer.update()
+    posed, _ = evaluated(obj)
+    R["_arm"] = arm.name
+    return {"max_move": float(np.abs(posed - rest).max()), "finite": bool(np.isfinite(posed).all()),
+            "modifier": [m.type for m in obj.modifiers]}
+
+
+@step("export")
+def _():
+    obj = bpy.data.objects[R["import"]["name"]]
+    make_active(obj)
+    base = os.path.join(work, "posed.npy")
+    bpy.ops.pointgt.export_deformed(filepath=base)
+    pos = np.load(os.path.join(work, "posed_positions.npy"), allow_pickle=False)
+    ids = np.load(os.path.join(work, "posed_ids.npy"), allow_pickle=False)
+    want, want_ids = evaluated(obj)
+    bpy.ops.pointgt.export_deformed(filepath=base)  # again: the first files become .bak
+    return {"shape": list(pos.shape), "dtype": str(pos.dtype), "ids_dtype": str(ids.dtype),
+            "equal": bool(np.array_equal(pos, want) and np.array_equal(ids, want_ids)),
+            "bak": os.path.exists(os.path.join(work, "posed_positions.npy.bak"))
+            and os.path.exists(os.path.join(work, "posed_ids.npy.bak"))}
+
+
+@step("armature_proxy")
+def _():
+    bpy.ops.pointgt.import_model(filepath=model)
+    obj = bpy.context.active_object
+    arm = bpy.data.objects[R["_arm"]]
+    bpy.ops.mesh.primitive_cube_add(size=3.0)
+    proxy = bpy.context.active_object
+    group = proxy.vertex_groups.new(name=arm.data.bones[0].name)
+    group.add(list(range(len(proxy.data.vertices))), 1.0, 'REPLACE')
+    make_active(obj, arm, proxy)
+    err_no_groups = op_error(bpy.ops.pointgt.bind_armature, mode='PROXY', proxy=R["import"]["name"])
+    rest, _ = evaluated(obj)
+    bpy.ops.pointgt.bind_armature(mode='PROXY', armature=arm.name, proxy=proxy.name)
+    posed, _ = evaluated(obj)
+    weights = [v.groups[0].weight if len(v.groups) else 0.0 for v in obj.data.vertices]
+    return {"groups": [g.name for g in obj.vertex_groups], "min_weight": float(min(weights)),
+            "max_move": float(np.abs(posed - rest).max()), "modifiers": [m.type for m in obj.modifiers],
+            "err_no_groups": err_no_groups}
+
+
+@step("nan_positions")
+def _():
+    bpy.ops.pointgt.import_model(filepath=model)
+    obj = bpy.context.active_object
+    co = np.empty(len(obj.data.vertices) * 3, np.float32)
+    obj.data.vertices.foreach_get("co", co)
+    co[3:6] = np.nan  # point id 1
+    obj.data.vertices.foreach_set("co", co)
+    obj.data.update()
+    return {"error": op_error(bpy.ops.pointgt.export_deformed, filepath=os.path.join(work, "nan.npy")),
+            "written": os.path.exists(os.path.join(work, "nan_positions.npy"))}
+
+
+@step("count_changed")
+def _():
+    bpy.ops.pointgt.import_model(filepath=model)
+    obj = bpy.context.active_object
+    obj.data.attributes.remove(obj.data.attributes["pointgt_id"])
+    obj.data.vertices.add(3)
+    obj.data.update()
+    ev = importlib.import_module(PKG + ".evaluated")
+    try:
+        ev.evaluated_points(obj, bpy.context.evaluated_depsgraph_get())
+        direct = ""
+    except Exception as exc:
+        direct = f"{type(exc).__name__}: {exc}"
+    # realistic: a Geometry Nodes modifier drops the id attribute and merges points
+    bpy.ops.pointgt.import_model(filepath=model)
+    obj = bpy.context.active_object
+    ng = bpy.data.node_groups.new("drop ids", 'GeometryNodeTree')
+    ng.interface.new_socket("Geometry", in_out='INPUT', socket_type='NodeSocketGeometry')
+    ng.interface.new_socket("Geometry", in_out='OUTPUT', socket_type='NodeSocketGeometry')
+    gin, gout = ng.nodes.new('NodeGroupInput'), ng.nodes.new('NodeGroupOutput')
+    remove = ng.nodes.new('GeometryNodeRemoveAttribute')
+    remove.inputs["Name"].default_value = "pointgt_id"
+    merge = ng.nodes.new('GeometryNodeMergeByDistance')
+    merge.inputs["Distance"].default_value = 0.3
+    ng.links.new(gin.outputs[0], remove.inputs[0])
+    ng.links.new(remove.outputs[0], merge.inputs[0])
+    ng.links.new(merge.outputs[0], gout.inputs[0])
+    obj.modifiers.new("drop", 'NODES').node_group = ng
+    make_active(obj)
+    n_eval = len(obj.evaluated_get(bpy.context.evaluated_depsgraph_get()).data.vertices)
+    err = op_error(bpy.ops.pointgt.export_deformed, filepath=os.path.join(work, "merged.npy"))
+    return {"direct": direct, "n_eval": n_eval, "op_error": err}
+
+
+@step("reload_blend")
+def _():
+    path = os.path.join(work, "scene.blend")
+    name = R["import"]["name"]
+    bpy.ops.wm.save_as_mainfile(filepath=path)
+    bpy.ops.wm.open_mainfile(filepath=path)
+    obj = bpy.data.objects[name]
+    atlas = importlib.import_module(PKG + ".atlas_image").read_atlas_image(obj.pointgt.atlas)
+    return {"atlas": atlas.tolist(), "k": obj.pointgt.neighbors, "model_path": obj.pointgt.model_path,
+            "resolved": os.path.samefile(bpy.path.abspath(obj.pointgt.model_path), model)}
+
+
+@step("install_offline_wheel")
+def _():
+    res = bpy.ops.pointgt.install_torch(synchronous=True, requirement="pointgt-probe", index_url="",
+                                        find_links=wheels)
+    probe = importlib.import_module("pointgt_probe")
+    site = importlib.import_module(PKG + ".preferences").user_site_dir(create=False)
+    return {"result": sorted(res), "value": probe.VALUE, "in_site": probe.__file__.startswith(site)}
+
+
+@step("torch_unblocked")
+def _():
+    sys.meta_path.remove(BLOCKER)
+    bpy.ops.pointgt.check_dependencies()
+    obj = bpy.data.objects[R["import"]["name"]]
+    make_active(obj)
+    res = bpy.ops.pointgt.check_device()
+    obj.pointgt.device = 'CUDA'
+    import torch
+    cuda_err = "" if torch.cuda.is_available() else op_error(bpy.ops.pointgt.check_device)
+    return {"result": sorted(res), "cuda_err": cuda_err}
+
+
+R.pop("_arm", None)
+print("RESULTS: " + json.dumps(R))

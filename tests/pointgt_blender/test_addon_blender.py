@@ -1,0 +1,161 @@
+"""The packaged add-on inside a real Blender (bpy in a subprocess, its own BLENDER_USER_RESOURCES): install the
+zip, register without torch, import a .pgt, rig it with a lattice and armatures, export, and the error cases.
+One Blender session runs every step (tests/pointgt_blender/addon_session.py); the tests below check its record."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.modelfile.pgt import save_pgt
+from tools.package_addon import build_addon
+
+pytestmark = pytest.mark.blender
+SESSION = Path(__file__).with_name("addon_session.py")
+N = 60
+
+
+def _model_arrays():
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(-0.5, 0.5, size=(N, 3)).astype(np.float32)
+    atlas = rng.uniform(0.0, 1.0, size=(6, 8, 3)).astype(np.float32)  # H != W catches transposes and flips
+    atlas[0, 0] = (1.0, 0.0, 0.0)  # top-left texel (row 0 = top in the file)
+    return xyz, atlas
+
+
+def _probe_wheel(folder: Path) -> None:
+    """A tiny pure-Python wheel: lets the install button run real pip offline, without downloading torch."""
+    files = {"pointgt_probe/__init__.py": "VALUE = 42\n",
+             "pointgt_probe-1.0.dist-info/METADATA": "Metadata-Version: 2.1\nName: pointgt-probe\nVersion: 1.0\n",
+             "pointgt_probe-1.0.dist-info/WHEEL": "Wheel-Version: 1.0\nGenerator: test\nRoot-Is-Purelib: true\n"
+                                                  "Tag: py3-none-any\n"}
+    files["pointgt_probe-1.0.dist-info/RECORD"] = "".join(f"{k},,\n" for k in files) + \
+        "pointgt_probe-1.0.dist-info/RECORD,,\n"
+    with zipfile.ZipFile(folder / "pointgt_probe-1.0-py3-none-any.whl", "w") as zf:
+        for name, text in files.items():
+            zf.writestr(name, text)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("addon")
+    zip_path = build_addon(tmp / "dist")
+    xyz, atlas = _model_arrays()
+    model = tmp / "bunny.pgt"
+    save_pgt(model, {"points/xyz": xyz, "atlas/image": atlas}, {"scene": "test"})
+    data = model.read_bytes()
+    corrupt = tmp / "broken.pgt"
+    corrupt.write_bytes(data[: len(data) // 2])  # cut in half, as an interrupted copy would
+    work = tmp / "work"
+    work.mkdir()
+    wheels = tmp / "wheels"
+    wheels.mkdir()
+    _probe_wheel(wheels)
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), PIP_NO_INDEX="1")
+    proc = subprocess.run([sys.executable, str(SESSION), "--", str(zip_path), str(model), str(corrupt), str(work),
+                           str(wheels)], capture_output=True, text=True, env=env, timeout=300, cwd=tmp)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
+    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    results = json.loads(lines[-1][len("RESULTS: "):])
+    return {"r": results, "xyz": xyz, "atlas": atlas, "model": model, "corrupt": corrupt, "work": work}
+
+
+def _get(session, step):
+    res = session["r"][step]
+    assert "error" not in res or not isinstance(res.get("trace"), str), f"{step} failed: {res.get('trace')}"
+    return res
+
+
+def test_installs_and_registers_without_torch(session):
+    r = _get(session, "install")
+    assert r["result"] == ["FINISHED"] and r["enabled"] and r["import_op"]
+    assert r["torch_loaded"] is False
+    t = _get(session, "torch_missing")
+    assert t["available"] is False and "PyTorch is missing" in t["message"]
+    # the torch-only operator refuses to run on an imported model and says why
+    assert "PyTorch is missing" in _get(session, "import")["torch_poll_error"]
+
+
+def test_import_builds_points_mesh_with_ids_and_packed_atlas(session):
+    r = _get(session, "import")
+    assert r["result"] == ["FINISHED"] and r["new_objects"] == 1 and r["name"] == "bunny"
+    assert (r["verts"], r["edges"], r["faces"]) == (N, 0, 0)
+    assert r["ids"] == list(range(N)) and r["attr"] == ["POINT", "INT"]
+    np.testing.assert_allclose(np.asarray(r["co"]).reshape(N, 3), session["xyz"], atol=1e-7)
+    assert r["image_size"] == [8, 6] and r["packed"] and r["image_float"]
+    atlas = np.asarray(r["atlas"], np.float32)
+    np.testing.assert_allclose(atlas, session["atlas"], atol=2e-5)  # same orientation: row 0 = top
+    assert r["k"] == 12 and r["point_count"] == N
+    assert os.path.samefile(r["model_path"], session["model"])  # absolute while the .blend is unsaved
+
+
+def test_atlas_and_settings_survive_save_and_reload(session):
+    r = _get(session, "reload_blend")
+    np.testing.assert_allclose(np.asarray(r["atlas"], np.float32), session["atlas"], atol=2e-5)
+    assert r["k"] == 12 and r["resolved"]
+    assert r["model_path"] == "//../bunny.pgt"  # made relative when the .blend got a location (work/scene.blend)
+
+
+def test_corrupt_or_missing_model_reports_and_creates_nothing(session):
+    r = _get(session, "import_corrupt")
+    assert "broken.pgt" in r["error"] and r["unchanged"]
+    assert "nope.pgt" in r["missing"] and "not found" in r["missing"]
+
+
+def test_lattice_wraps_points_and_deforms_them(session):
+    r = _get(session, "lattice")
+    assert r["lattice_type"] == "LATTICE"
+    assert r["identity_err"] < 1e-4  # an untouched lattice leaves the points where they were
+    assert r["max_move"] > 0.05 and r["finite"] and r["ids_ok"]
+
+
+def test_reset_restores_canonical_positions(session):
+    r = _get(session, "reset")
+    assert r["err"] < 1e-6 and r["disabled"] == [False] and r["left"] == 0
+
+
+def test_armature_envelopes_move_points(session):
+    r = _get(session, "armature_envelope")
+    assert r["modifier"] == ["ARMATURE"] and r["max_move"] > 0.05 and r["finite"]
+
+
+def test_armature_weights_from_proxy_mesh(session):
+    r = _get(session, "armature_proxy")
+    assert r["groups"] == ["Bone"] and r["min_weight"] == pytest.approx(1.0)
+    assert r["modifiers"] == ["ARMATURE"] and r["max_move"] > 0.05
+    assert "vertex groups" in r["err_no_groups"]
+
+
+def test_export_writes_npy_pair_with_backups(session):
+    r = _get(session, "export")
+    assert r["shape"] == [N, 3] and r["dtype"] == "float32" and r["ids_dtype"] == "int64"
+    assert r["equal"] and r["bak"]
+
+
+def test_nan_positions_are_reported_not_exported(session):
+    r = _get(session, "nan_positions")
+    assert "NaN" in r["error"] and "ids 1" in r["error"] and not r["written"]
+
+
+def test_point_count_change_without_ids_is_reported(session):
+    r = _get(session, "count_changed")
+    assert "changed the point count" in r["direct"] and f"from {N} to {N + 3}" in r["direct"]
+    assert r["n_eval"] < N
+    assert "changed the point count" in r["op_error"]
+
+
+def test_install_button_runs_pip_into_the_addon_folder(session):
+    r = _get(session, "install_offline_wheel")
+    assert r["result"] == ["FINISHED"] and r["value"] == 42 and r["in_site"]
+
+
+def test_torch_features_work_once_torch_imports(session):
+    r = _get(session, "torch_unblocked")
+    assert r["result"] == ["FINISHED"]
+    assert r["cuda_err"] == "" or "CUDA is not available" in r["cuda_err"]
