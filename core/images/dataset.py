@@ -15,6 +15,7 @@ import json
 import math
 import os
 import re
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -98,15 +99,17 @@ def load_split(root: str | os.PathLike, split: str = "train", downscale: int = 1
         divisors = [d for d in range(2, 17) if height % d == 0 and width % d == 0]
         raise DataError(f"{json_path}: images are {width}x{height}, which downscale={downscale} does not divide; "
                         f"use one of {divisors or [1]}")
-    premult = rgb * alpha[..., None]
+    # In place where possible: a full-size split is V x 800 x 800 x 3 floats.
+    images = np.multiply(rgb, alpha[..., None], out=rgb)  # premultiplied colour
     if downscale > 1:
-        premult = _area_mean(premult, downscale)
+        images = _area_mean(images, downscale)
         alpha = _area_mean(alpha[..., None], downscale)[..., 0]
-    images = premult + bg * (1.0 - alpha[..., None])
+    images += (1.0 - alpha[..., None]) * bg  # composite: rgb * a + bg * (1 - a)
+    np.clip(images, 0.0, 1.0, out=images)
     h, w = height // downscale, width // downscale
     return SplitData(split=split,
-                     images=torch.from_numpy(np.clip(images, 0.0, 1.0).astype(np.float32, copy=False)),
-                     alphas=torch.from_numpy(alpha.astype(np.float32, copy=False)),
+                     images=torch.from_numpy(images),
+                     alphas=torch.from_numpy(alpha),
                      c2w=torch.from_numpy(c2w.astype(np.float32)),
                      focal=focal_from_fov(w, angle), height=h, width=w, camera_angle_x=angle, files=files)
 
@@ -270,12 +273,18 @@ def _read_images(files: list[Path], json_path: Path) -> tuple[np.ndarray, np.nda
     v, (h, w) = len(files), first.shape[:2]
     rgb = np.empty((v, h, w, 3), dtype=np.float32)
     alpha = np.ones((v, h, w), dtype=np.float32)
-    for i, path in enumerate(files):
-        img = first if i == 0 else read_png(path)
+
+    def fill(i: int) -> None:  # each call writes only its own slot, so threads never overlap
+        img = first if i == 0 else read_png(files[i])
         if img.shape[:2] != (h, w):
-            raise DataError(f"{path}: image is {img.shape[1]}x{img.shape[0]} but {files[0].name} is {w}x{h}; "
+            raise DataError(f"{files[i]}: image is {img.shape[1]}x{img.shape[0]} but {files[0].name} is {w}x{h}; "
                             f"all images of {json_path.name} must have one size")
         rgb[i] = img[..., :3]
         if img.shape[2] == 4:
             alpha[i] = img[..., 3]
+
+    # zlib and Pillow's decoder release the GIL, so a few threads overlap decoding with file reads.
+    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+        for _ in pool.map(fill, range(v)):  # re-raises the first error in frame order
+            pass
     return rgb, alpha
