@@ -150,8 +150,8 @@ def _():
     bpy.ops.object.armature_add(location=(0.0, 0.0, -1.0))  # one bone from z=-1 to z=0
     arm = bpy.context.active_object
     bone = arm.data.bones[0]
-    bone.head_radius = bone.tail_radius = 0.6
-    bone.envelope_distance = 0.5
+    bone.head_radius = bone.tail_radius = 0.3  # small: some points end up outside the envelope
+    bone.envelope_distance = 0.2
     make_active(obj, arm)
     rest, _ = evaluated(obj)
     bpy.ops.pointgt.bind_armature(mode='ENVELOPE')
@@ -161,7 +161,11 @@ def _():
     bpy.context.view_layer.update()
     posed, _ = evaluated(obj)
     R["_arm"] = arm.name
+    cover = importlib.import_module(PKG + ".rig").envelope_coverage(obj, arm)
+    move = np.abs(posed - rest).max(axis=1)
     return {"max_move": float(np.abs(posed - rest).max()), "finite": bool(np.isfinite(posed).all()),
+            "uncovered": int((cover <= 0).sum()), "uncovered_move": float(move[cover <= 0].max(initial=0.0)),
+            "covered_still": int((move[cover > 1e-3] < 1e-6).sum()),
             "modifier": [m.type for m in obj.modifiers]}
 
 
@@ -258,6 +262,56 @@ def _():
     atlas = importlib.import_module(PKG + ".atlas_image").read_atlas_image(obj.pointgt.atlas)
     return {"atlas": atlas.tolist(), "k": obj.pointgt.neighbors, "model_path": obj.pointgt.model_path,
             "resolved": os.path.samefile(bpy.path.abspath(obj.pointgt.model_path), model)}
+
+
+@step("site_packages_pref")
+def _():
+    folder = os.path.join(work, "other_env_site")
+    os.makedirs(os.path.join(folder, "pointgt_probe_env"), exist_ok=True)
+    with open(os.path.join(folder, "pointgt_probe_env", "__init__.py"), "w") as fh:
+        fh.write("VALUE = 7\n")
+    prefs = bpy.context.preferences.addons[PKG].preferences
+    prefs.site_packages = folder  # the update callback puts it on sys.path
+    value = importlib.import_module("pointgt_probe_env").VALUE
+    on_path = folder in sys.path
+    prefs.site_packages = ""
+    return {"value": value, "on_path": on_path, "removed": folder not in sys.path}
+
+
+@step("degenerate_lattice")
+def _():
+    pgt = importlib.import_module(PKG + ".core.modelfile.pgt")  # the vendored core, as the add-on uses it
+    out = {}
+    for name, xyz in (("flat", np.c_[np.random.default_rng(0).uniform(-1, 1, (20, 2)), np.zeros(20)]),
+                      ("single", np.array([[0.3, -0.2, 1.5]]))):
+        path = os.path.join(work, f"{name}.pgt")
+        pgt.save_pgt(path, {"points/xyz": xyz.astype(np.float32)}, {})
+        bpy.ops.pointgt.import_model(filepath=path)
+        obj = bpy.context.active_object
+        rest, _ = evaluated(obj)
+        bpy.ops.pointgt.add_lattice()
+        pos, _ = evaluated(obj)
+        scale = list(obj.modifiers["PointGT Lattice"].object.scale)
+        out[name] = {"finite": bool(np.isfinite(pos).all()), "err": float(np.abs(pos - rest).max()),
+                     "scale_ok": all(np.isfinite(scale)) and min(scale) > 0, "atlas": obj.pointgt.atlas is None}
+    return out
+
+
+@step("envelope_outside")
+def _():
+    rig = importlib.import_module(PKG + ".rig")
+    bpy.ops.pointgt.import_model(filepath=model)
+    obj = bpy.context.active_object
+    bpy.ops.object.armature_add(location=(10.0, 0.0, 0.0))  # far away: no point inside its envelope
+    arm = bpy.context.active_object
+    far = rig.bind_envelopes(obj, arm)
+    arm.location = (0.0, 0.0, -1.0)
+    bone = arm.data.bones[0]
+    bone.head_radius = bone.tail_radius = 0.6
+    bone.envelope_distance = 0.5
+    bpy.context.view_layer.update()
+    cover = rig.envelope_coverage(obj, arm)
+    return {"outside_far": far, "outside_near": int((cover <= 0).sum())}
 
 
 @step("install_offline_wheel")

@@ -123,6 +123,8 @@ def test_reset_restores_canonical_positions(session):
 def test_armature_envelopes_move_points(session):
     r = _get(session, "armature_envelope")
     assert r["modifier"] == ["ARMATURE"] and r["max_move"] > 0.05 and r["finite"]
+    # our envelope estimate (used for the "points outside every envelope" warning) agrees with Blender
+    assert r["uncovered"] > 0 and r["uncovered_move"] < 1e-6 and r["covered_still"] == 0
 
 
 def test_armature_weights_from_proxy_mesh(session):
@@ -159,3 +161,20 @@ def test_torch_features_work_once_torch_imports(session):
     r = _get(session, "torch_unblocked")
     assert r["result"] == ["FINISHED"]
     assert r["cuda_err"] == "" or "CUDA is not available" in r["cuda_err"]
+
+
+def test_existing_site_packages_folder_is_used_and_released(session):
+    r = _get(session, "site_packages_pref")
+    assert r["value"] == 7 and r["on_path"] and r["removed"]
+
+
+def test_lattice_on_flat_and_single_point_models_stays_finite(session):
+    r = _get(session, "degenerate_lattice")
+    for name in ("flat", "single"):
+        assert r[name]["finite"] and r[name]["scale_ok"] and r[name]["err"] < 1e-4, (name, r[name])
+        assert r[name]["atlas"]  # models without an atlas import as points only
+
+
+def test_points_outside_every_envelope_are_counted(session):
+    r = _get(session, "envelope_outside")
+    assert r["outside_far"] == N and r["outside_near"] < N
