@@ -12,6 +12,18 @@ from __future__ import annotations
 
 import importlib
 
+# Read only when installed as a legacy add-on (`pointgt package-addon --legacy`); as an extension Blender uses
+# blender_manifest.toml instead. `pointgt package-addon` checks that both carry the same version.
+bl_info = {
+    "name": "PointGT",
+    "author": "PointGT developers",
+    "version": (0, 1, 0),
+    "blender": (4, 2, 0),
+    "location": "View3D > Sidebar > PointGT; File > Import > PointGT Model (.pgt)",
+    "description": "Pose and paint neural point clouds reconstructed from photos",
+    "category": "Render",
+}
+
 _MODULES = ("properties", "preferences", "model_import", "rig", "reset", "export", "device_check", "view3d_panel")
 _registered: list = []
 

@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import tomllib
+import zipfile
 from pathlib import Path
 
 from core.util.errors import InputError
@@ -95,13 +96,23 @@ def _copy_tree(src: Path, dst: Path, depth0: int) -> int:
     return count
 
 
+def _bl_info_version() -> str:
+    """`bl_info["version"]` of the add-on's __init__.py as "x.y.z" (read with ast, never executed)."""
+    init = ADDON_SOURCE / "__init__.py"
+    for node in ast.parse(init.read_text(encoding="utf-8")).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", "") == "bl_info" for t in node.targets):
+            return ".".join(str(v) for v in ast.literal_eval(node.value)["version"])
+    raise InputError(f"{init}: no bl_info dict (needed for the legacy add-on zip)")
+
+
 def check_versions() -> str:
-    """The manifest's version must equal the Python package's (pyproject.toml); returns it."""
+    """The manifest's version must equal the Python package's (pyproject.toml) and bl_info's; returns it."""
     manifest = tomllib.loads(MANIFEST.read_text(encoding="utf-8"))
     project = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))["project"]
-    if manifest.get("version") != project.get("version"):
-        raise InputError(f"{MANIFEST}: version {manifest.get('version')!r} differs from pyproject.toml's "
-                         f"{project.get('version')!r}; make them equal")
+    versions = {"addon_manifest.toml": manifest.get("version"), "pyproject.toml": project.get("version"),
+                "pointgt_blender bl_info": _bl_info_version()}
+    if len(set(versions.values())) != 1:
+        raise InputError(f"the add-on versions differ ({versions}); make them equal")
     return manifest["version"]
 
 
@@ -130,20 +141,32 @@ def stage(dest: Path) -> Path:
     return dest
 
 
-def build_addon(out_dir: str | Path) -> Path:
+def _legacy_zip(src: Path, dest: Path) -> None:
+    """The same files under one top folder `pointgt/`, the layout legacy add-on installs expect (without the
+    manifest, which would make Blender treat it as an extension)."""
+    with zipfile.ZipFile(dest, "w", zipfile.ZIP_DEFLATED) as zf:
+        for path in sorted(p for p in src.rglob("*") if p.is_file() and p.name != "blender_manifest.toml"):
+            zf.write(path, f"pointgt/{path.relative_to(src).as_posix()}")
+
+
+def build_addon(out_dir: str | Path, legacy: bool = False) -> Path:
     """Stage, validate and build `pointgt-<version>.zip` in `out_dir` (created); returns the zip's path.
-    An existing zip of the same name is kept as `<name>.bak`."""
+    `legacy=True` builds `pointgt-<version>-legacy.zip` (top folder `pointgt/`, for Install from Disk as a
+    legacy add-on). An existing zip of the same name is kept as `<name>.bak`."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     version = check_versions()
-    target = out_dir / f"pointgt-{version}.zip"
+    target = out_dir / f"pointgt-{version}{'-legacy' if legacy else ''}.zip"
     with tempfile.TemporaryDirectory(prefix="pointgt-addon-") as tmp:
         src = stage(Path(tmp) / "pointgt")
         validate(src)
         built = Path(tmp) / "built.zip"
-        _run_cli(["build", "--source-dir", str(src), "--output-filepath", str(built),
-                  "--valid-tags", str(blender_valid_tags())], str(src))
-        validate(built)
+        if legacy:
+            _legacy_zip(src, built)
+        else:
+            _run_cli(["build", "--source-dir", str(src), "--output-filepath", str(built),
+                      "--valid-tags", str(blender_valid_tags())], str(src))
+            validate(built)
         if target.exists():
             shutil.copy2(target, target.with_name(target.name + ".bak"))
         shutil.move(str(built), target)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import ast
+import os
 import subprocess
 import sys
 import zipfile
@@ -71,3 +72,42 @@ def test_validator_rejects_a_bad_manifest(tmp_path):
     (tmp_path / "blender_manifest.toml").write_text(text)
     with pytest.raises(InputError, match="Rendering"):
         validate(tmp_path)
+
+
+LEGACY_SESSION = """
+import sys, bpy
+import addon_utils
+zip_path, model = sys.argv[-2:]
+bpy.ops.preferences.addon_install(filepath=zip_path)
+addon_utils.enable("pointgt", default_set=True)
+print("RESULT", "pointgt" in bpy.context.preferences.addons, sorted(bpy.ops.pointgt.import_model(filepath=model)),
+      len(bpy.context.active_object.data.vertices))
+"""
+
+
+@pytest.mark.blender
+def test_legacy_zip_installs_as_a_legacy_addon(tmp_path):
+    import numpy as np
+
+    from core.modelfile.pgt import save_pgt
+    from tools.package_addon import build_addon
+
+    path = build_addon(tmp_path / "dist", legacy=True)
+    with zipfile.ZipFile(path) as zf:
+        names = zf.namelist()
+    assert "pointgt/__init__.py" in names and "pointgt/core/modelfile/pgt.py" in names
+    assert not any(n.endswith("blender_manifest.toml") for n in names)
+    model = tmp_path / "m.pgt"
+    save_pgt(model, {"points/xyz": np.zeros((5, 3), np.float32)}, {})
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp_path / "user"))
+    proc = subprocess.run([sys.executable, "-c", LEGACY_SESSION, str(path), str(model)], capture_output=True,
+                          text=True, env=env, timeout=120)
+    assert "RESULT True ['FINISHED'] 5" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
+
+
+def test_versions_must_agree(monkeypatch):
+    import tools.package_addon as pa
+
+    monkeypatch.setattr(pa, "_bl_info_version", lambda: "9.9.9")
+    with pytest.raises(InputError, match="versions differ"):
+        pa.check_versions()
