@@ -1,0 +1,189 @@
+"""The Atlas: learned charts + texture maps + packed image + texel->surface map, and its plain-array form
+for the .pgt file (no pickle: only named float32 arrays and a JSON-able meta dict)."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import nn
+
+from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet
+from core.atlas.packing import GridLayout, pack, sample_charts, texel_uv, unpack, uv_to_pixel
+from core.util.errors import InputError, ModelFileError
+
+FORMAT_VERSION = 1
+_CHUNK = 65536
+
+
+def check_points(x, name: str = "points") -> torch.Tensor:
+    """Validate a point array [M, 3] of finite numbers and return it as a float32 tensor."""
+    x = torch.as_tensor(x)
+    if x.dim() != 2 or x.shape[1] != 3:
+        raise InputError(f"{name}: expected shape [M, 3], got {tuple(x.shape)}")
+    x = x.float()
+    if not torch.isfinite(x).all():
+        raise InputError(f"{name}: contains NaN or infinite values")
+    return x
+
+
+class Atlas(nn.Module):
+    """n charts with R x R texels each; points are normalised as (x - centre) / half before the networks.
+
+    Shapes: chart_uv(x [M, 3]) -> (probs [M, n], uv [M, n, 2]); lookup(x [M, 3], image [H, W, 3] | None) -> [M, 3];
+    atlas_pixel_coords(x [M, 3]) -> (chart [M] long, pixel [M, 2] (col, row)); packed_image() -> [H, W, 3];
+    texel_points() -> [H, W, 3] (NaN where no surface).
+    """
+
+    def __init__(self, n: int, R: int, pad: int, centre, half: float, width_chart: int = 64, depth_chart: int = 3,
+                 width_map: int = 128, depth_map: int = 4, fourier_chart: int = 1, fourier_map: int = 4):
+        super().__init__()
+        if n < 1 or R < 2 or pad < 0 or not half > 0:
+            raise InputError(f"atlas: invalid sizes n={n} R={R} pad={pad} half={half}")
+        self.layout = GridLayout(n, R, pad)
+        self.arch = dict(width_chart=width_chart, depth_chart=depth_chart, width_map=width_map, depth_map=depth_map,
+                         fourier_chart=fourier_chart, fourier_map=fourier_map)
+        self.half = float(half)
+        self.register_buffer("centre", torch.as_tensor(centre, dtype=torch.float32).reshape(3).clone())
+        self.chart = ChartNet(n, width_chart, depth_chart, fourier_chart)
+        self.tex = TexCoordNet(n, width_map, depth_map, fourier_map)
+        self.surf = SurfaceNet(n, width_map, depth_map, fourier_map)
+        self.textures = nn.Parameter(torch.full((n, 3, R, R), 0.5))
+        self.register_buffer("texel_xyz", torch.full((*self.layout.shape, 3), float("nan")))
+
+    @property
+    def n(self) -> int:
+        return self.layout.n
+
+    @property
+    def device(self) -> torch.device:
+        return self.centre.device
+
+    def normalise(self, x: torch.Tensor) -> torch.Tensor:
+        """World points [M, 3] -> network frame [M, 3]."""
+        return (x - self.centre) / self.half
+
+    def denormalise(self, xn: torch.Tensor) -> torch.Tensor:
+        return xn * self.half + self.centre
+
+    # --- queries (no gradients, chunked) -------------------------------------------------------------
+    @torch.no_grad()
+    def chart_uv(self, x) -> tuple[torch.Tensor, torch.Tensor]:
+        """x [M, 3] world -> (probs [M, n] chart probabilities, uv [M, n, 2] per-chart texture coordinates)."""
+        x = check_points(x).to(self.device)
+        ps, uvs = [], []
+        for s in range(0, len(x), _CHUNK):
+            xn = self.normalise(x[s:s + _CHUNK])
+            ps.append(torch.softmax(self.chart(xn), dim=-1))
+            uvs.append(self.tex(xn))
+        if not ps:
+            return torch.zeros(0, self.n, device=self.device), torch.zeros(0, self.n, 2, device=self.device)
+        return torch.cat(ps), torch.cat(uvs)
+
+    @torch.no_grad()
+    def lookup(self, x, image=None) -> torch.Tensor:
+        """Colour at surface points x [M, 3]: sum_c P(c|x) bilinear(T_c, t_c(x)) -> rgb [M, 3].
+
+        image: an (edited) packed atlas [H, W, 3] (numpy or torch); None = the fitted one.
+        """
+        tex = self.textures if image is None else unpack(torch.as_tensor(image).float().to(self.device), self.layout)
+        probs, uv = self.chart_uv(x)
+        return (probs[..., None] * sample_charts(tex, uv)).sum(1)
+
+    @torch.no_grad()
+    def atlas_pixel_coords(self, x) -> tuple[torch.Tensor, torch.Tensor]:
+        """Where x [M, 3] lands in the packed image, in its most probable chart:
+        (chart [M] long, pixel [M, 2] as continuous (col, row); pixel (r, c) is centred at (c + 0.5, r + 0.5))."""
+        probs, uv = self.chart_uv(x)
+        chart = probs.argmax(-1)
+        uv_best = uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0]
+        return chart, uv_to_pixel(uv_best, chart, self.layout)
+
+    @torch.no_grad()
+    def packed_image(self) -> torch.Tensor:
+        """The fitted atlas as one image [H, W, 3] float32 in [0, 1], row 0 = top."""
+        return pack(self.textures.detach().clamp(0, 1), self.layout)
+
+    def texel_points(self) -> torch.Tensor:
+        """Canonical 3-D point of every packed-image pixel [H, W, 3]; NaN where no surface (padding, unused)."""
+        return self.texel_xyz
+
+    @torch.no_grad()
+    def compute_texel_points(self, samples, max_dist: float, max_cycle: float = 0.05) -> torch.Tensor:
+        """Fill the texel map from s_c at texel centres. samples [S, 3] world; max_dist in world units.
+
+        A texel keeps its point only where the chart net picks chart c there, s_c(u) lies within max_dist of
+        some sample, and t_c(s_c(u)) returns to within max_cycle of u. Returns [H, W, 3].
+        """
+        L, R = self.layout, self.layout.R
+        u = texel_uv(R, self.device)  # [R*R, 2]
+        xn = self.surf(u[None].expand(self.n, -1, -1).contiguous())  # [n, R*R, 3]
+        out = torch.full((*L.shape, 3), float("nan"), device=self.device)
+        tree = cKDTree(check_points(samples, "surface samples").cpu().numpy())
+        for c in range(self.n):
+            pick = torch.softmax(self.chart(xn[c]), -1).argmax(-1) == c
+            cyc = (self.tex(xn[c])[:, c] - u).norm(dim=-1) < max_cycle
+            xw = self.denormalise(xn[c])
+            dist, _ = tree.query(xw.cpu().numpy(), k=1)
+            near = torch.from_numpy(dist <= max_dist).to(self.device)
+            pts = torch.where((pick & cyc & near)[:, None], xw, torch.full_like(xw, float("nan")))
+            r0, c0 = L.origin(c)
+            out[r0:r0 + R, c0:c0 + R] = pts.reshape(R, R, 3)
+        self.texel_xyz.copy_(out)
+        return out
+
+    # --- serialisation ------------------------------------------------------------------------------
+    def meta(self) -> dict:
+        """JSON-able description needed to rebuild the atlas from its arrays."""
+        L = self.layout
+        return dict(version=FORMAT_VERSION, n=L.n, R=L.R, pad=L.pad, half=self.half, height=L.shape[0],
+                    width=L.shape[1], layout="grid", uv_convention="u->col, v->row, row 0 = top", **self.arch)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """All state as named float32 arrays: 'atlas/image' [H, W, 3], 'atlas/texel_points' [H, W, 3],
+        'atlas/centre' [3] and the network weights under 'atlas/net/...'."""
+        arrays = {"atlas/image": pack(self.textures.detach(), self.layout).cpu().numpy().astype(np.float32),
+                  "atlas/texel_points": self.texel_xyz.cpu().numpy().astype(np.float32),
+                  "atlas/centre": self.centre.cpu().numpy().astype(np.float32)}
+        for name, p in self.named_parameters():
+            if name != "textures":
+                arrays[f"atlas/net/{name}"] = p.detach().cpu().numpy().astype(np.float32)
+        return arrays
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, meta: dict, device="cpu") -> "Atlas":
+        """Rebuild from `to_arrays()` / `meta()` output; missing or mis-shaped arrays raise ModelFileError."""
+        try:
+            if int(meta.get("version", -1)) != FORMAT_VERSION:
+                raise ModelFileError(f"atlas: unsupported format version {meta.get('version')!r} "
+                                     f"(this build reads version {FORMAT_VERSION})")
+            keys = ("width_chart", "depth_chart", "width_map", "depth_map", "fourier_chart", "fourier_map")
+            atlas = cls(int(meta["n"]), int(meta["R"]), int(meta["pad"]), arrays["atlas/centre"], float(meta["half"]),
+                        **{k: int(meta[k]) for k in keys})
+        except KeyError as e:
+            raise ModelFileError(f"atlas: missing entry {e} in the model file") from e
+        except InputError as e:
+            raise ModelFileError(f"atlas: {e}") from e
+        state = {}
+        for name, p in atlas.named_parameters():
+            key = "textures" if name == "textures" else f"atlas/net/{name}"
+            if name == "textures":
+                continue
+            if key not in arrays:
+                raise ModelFileError(f"atlas: missing array '{key}' in the model file")
+            a = np.asarray(arrays[key], dtype=np.float32)
+            if a.shape != tuple(p.shape):
+                raise ModelFileError(f"atlas: array '{key}' has shape {a.shape}, expected {tuple(p.shape)}")
+            state[name] = torch.from_numpy(a.copy())
+        for key, shape in (("atlas/image", atlas.layout.shape + (3,)), ("atlas/texel_points", atlas.layout.shape + (3,))):
+            if key not in arrays or np.asarray(arrays[key]).shape != shape:
+                got = np.asarray(arrays[key]).shape if key in arrays else "nothing"
+                raise ModelFileError(f"atlas: array '{key}' should have shape {shape}, found {got}")
+        try:
+            state["textures"] = unpack(torch.from_numpy(np.asarray(arrays["atlas/image"], dtype=np.float32).copy()),
+                                       atlas.layout, "atlas/image")
+        except InputError as e:
+            raise ModelFileError(str(e)) from e
+        state["centre"] = atlas.centre
+        state["texel_xyz"] = torch.from_numpy(np.asarray(arrays["atlas/texel_points"], dtype=np.float32).copy())
+        atlas.load_state_dict(state)
+        return atlas.to(device)

@@ -1,0 +1,60 @@
+"""AtlasConfig: every knob of stage 2 (UV charts, distortion loss, texture, packing) in one dataclass."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from core.config import opt
+from core.util.errors import InputError
+
+
+@dataclass
+class AtlasConfig:
+    """Stage 2: learn Nuvo-style UV charts and a packed, paintable texture atlas from surface samples."""
+
+    charts: str = opt("auto", "number of charts: auto (from sample complexity), 4 or 8", choices=("auto", "4", "8"))
+    auto_flatness: float = opt(0.3, "auto charts: use 8 when the mean out-of-plane spread of 4 clusters exceeds this")
+    steps: int = opt(1500, "optimisation steps of the UV maps (joint with the texture)")
+    batch: int = opt(512, "surface samples per step")
+    uv_batch: int = opt(128, "random texture coordinates per chart per step (2D->3D->2D cycle, consistency, Chamfer)")
+    distortion_batch: int = opt(128, "samples per step on which the Jacobian distortion loss is evaluated")
+    lr: float = opt(2e-3, "Adam learning rate of the networks (decays x0.1 over the run)")
+    texture_lr: float = opt(3e-2, "Adam learning rate of the chart textures")
+    texture_steps: int = opt(300, "texture-only refinement steps after the maps converge (maps frozen)")
+    width_chart: int = opt(64, "hidden width of the chart-assignment MLP")
+    depth_chart: int = opt(3, "hidden layers of the chart-assignment MLP")
+    width_map: int = opt(96, "hidden width of the texture-coordinate and surface-coordinate MLPs")
+    depth_map: int = opt(3, "hidden layers of the texture-coordinate and surface-coordinate MLPs")
+    fourier_chart: int = opt(1, "Fourier degree of the chart-assignment input encoding")
+    fourier_map: int = opt(4, "Fourier degree of the map input encodings")
+    w_cycle3d: float = opt(1.0, "weight of the 3D->2D->3D cycle loss")
+    w_cycle2d: float = opt(1.0, "weight of the 2D->3D->2D cycle loss")
+    w_consistency: float = opt(0.04, "weight of the chart-consistency loss -log c_c(s_c(u))")
+    w_surface: float = opt(10.0, "weight of the Chamfer surface loss between samples and s_c(u)")
+    w_compact: float = opt(0.5, "weight of the cluster-compactness loss")
+    w_range: float = opt(1.0, "weight of the UV range hinge")
+    w_distortion: float = opt(0.4, "weight of the normal-free distortion loss L_scaling + L_area")
+    w_texture: float = opt(1.0, "weight of the colour MSE in the joint map + texture optimisation")
+    distortion: bool = opt(True, "use the normal-free distortion loss")
+    distortion_weighting: str = opt("prob", "weight each chart's distortion by P(c|x) (prob) or not (uniform, paper formula)",
+                                    choices=("prob", "uniform"))
+    chart_fill: float = opt(0.5, "target fraction of each chart square the surface covers (sets the UV scale)")
+    texture_res: int = opt(0, "texels per chart side; 0 = round(256*sqrt(2/n)) as in the paper")
+    pad: int = opt(4, "padding texels around each chart in the packed image (edge-replicated, no bleeding)")
+    texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings")
+    eval_samples: int = opt(8192, "samples used for the fitting-PSNR history")
+    log_every: int = opt(50, "steps between history entries")
+    device: str = opt("auto", "torch device: auto, cpu, cuda")
+    seed: int = opt(0, "random seed (same seed, same atlas)")
+
+    def n_charts(self) -> int | None:
+        """The forced chart count, or None for auto."""
+        if self.charts == "auto":
+            return None
+        if self.charts not in ("4", "8"):
+            raise InputError(f"AtlasConfig.charts must be 'auto', '4' or '8', got {self.charts!r}")
+        return int(self.charts)
+
+    def resolution(self, n: int) -> int:
+        """Chart texture side R (paper: 256*sqrt(2/n), so the atlas memory is fixed)."""
+        return int(self.texture_res) if self.texture_res > 0 else int(round(256 * math.sqrt(2.0 / n)))

@@ -1,0 +1,262 @@
+"""Stage 2 optimisation: fit_atlas(xyz, rgb, cfg) learns the charts, maps and textures from surface samples."""
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from core.atlas import losses
+from core.atlas.atlas import Atlas, check_points
+from core.atlas.config import AtlasConfig
+from core.atlas.distortion import distortion_terms, uv_jacobian
+from core.atlas.packing import dilate_unused, sample_charts
+from core.util.device import resolve_device
+from core.util.errors import InputError
+from core.util.progress import Progress
+
+MIN_SAMPLES = 64
+
+
+def sample_spacing(xyz: np.ndarray, k: int = 8) -> tuple[float, float]:
+    """(median nearest-neighbour distance, estimated surface area) of samples xyz [S, 3].
+
+    Area: a disc holding k neighbours has area pi r_k^2 ~ k / density, so area ~ S pi mean(r_k^2) / k.
+    """
+    k = min(k, len(xyz) - 1)
+    d, _ = cKDTree(xyz).query(xyz, k=k + 1)
+    return float(np.median(d[:, 1])), float(len(xyz) * math.pi * np.mean(d[:, k] ** 2) / k)
+
+
+def _kmeans(x: torch.Tensor, k: int, iters: int = 15) -> torch.Tensor:
+    """Deterministic k-means (farthest-point initialisation). x [S, 3] -> labels [S]."""
+    centres = [x[0]]
+    d = (x - x[0]).pow(2).sum(-1)
+    for _ in range(k - 1):
+        centres.append(x[d.argmax()])
+        d = torch.minimum(d, (x - centres[-1]).pow(2).sum(-1))
+    c = torch.stack(centres)
+    for _ in range(iters):
+        lab = torch.cdist(x, c).argmin(-1)
+        for j in range(k):
+            if (lab == j).any():
+                c[j] = x[lab == j].mean(0)
+    return torch.cdist(x, c).argmin(-1)
+
+
+def flatness(xyz: torch.Tensor, k: int = 4, max_points: int = 20000) -> float:
+    """Mean out-of-plane spread of k spatial clusters: sqrt(l3 / (l1 + l2)) of each cluster's covariance,
+    weighted by cluster size. ~0 for pieces that are nearly planar, larger for curved or folded pieces."""
+    x = xyz[torch.linspace(0, len(xyz) - 1, min(len(xyz), max_points)).long()].double()
+    lab = _kmeans(x, k)
+    total, acc = 0, 0.0
+    for j in range(k):
+        p = x[lab == j]
+        if len(p) < 4:
+            continue
+        ev = torch.linalg.eigvalsh(torch.cov(p.T))  # ascending
+        acc += len(p) * float(torch.sqrt(ev[0].clamp_min(0) / (ev[1] + ev[2]).clamp_min(1e-30)))
+        total += len(p)
+    return acc / max(total, 1)
+
+
+def choose_chart_count(xyz: torch.Tensor, cfg: AtlasConfig) -> tuple[int, float]:
+    """(n, flatness): the forced count, or 8 when 4 clusters are not flat enough (flatness > cfg.auto_flatness)."""
+    f = flatness(xyz)
+    forced = cfg.n_charts()
+    return (forced if forced is not None else (8 if f > cfg.auto_flatness else 4)), f
+
+
+def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasConfig, jac_scale: float,
+                 gen: torch.Generator) -> dict[str, torch.Tensor]:
+    """All loss terms on one batch. xb [B, 3] normalised points, rgb [B, 3]."""
+    n, dev = atlas.n, xb.device
+    probs = torch.softmax(atlas.chart(xb), -1)  # [B, n]
+    uv = atlas.tex(xb)  # [B, n, 2]
+    x_rec = atlas.surf(uv.permute(1, 0, 2).contiguous()).permute(1, 0, 2)  # [B, n, 3]
+    u = torch.rand(n, cfg.uv_batch, 2, generator=gen).to(dev)
+    xs = atlas.surf(u)  # [n, U, 3]
+    flat = xs.reshape(-1, 3)
+    ar = torch.arange(n, device=dev)
+    u_rec = atlas.tex(flat).view(n, cfg.uv_batch, n, 2)[ar, :, ar]  # [n, U, 2]
+    logits_s = atlas.chart(flat).view(n, cfg.uv_batch, n)
+    pred = (probs[..., None] * sample_charts(atlas.textures, uv)).sum(1)
+    out = {
+        "cycle3d": losses.cycle_3d(xb, x_rec, probs),
+        "cycle2d": losses.cycle_2d(u, u_rec),
+        "consistency": losses.chart_consistency(logits_s),
+        "surface": losses.chamfer(xb, flat),
+        "compact": losses.compactness(xb, probs),
+        "range": losses.uv_range(uv),
+        "texture": (pred - rgb).pow(2).mean(),
+    }
+    if cfg.distortion and cfg.w_distortion > 0:
+        d = min(cfg.distortion_batch, len(xb))
+        J, _ = uv_jacobian(atlas.tex, xb[:d])
+        w = probs[:d] if cfg.distortion_weighting == "prob" else None
+        out["scaling"], out["area"] = distortion_terms(J * jac_scale, w)
+    return out
+
+
+def _total(terms: dict[str, torch.Tensor], cfg: AtlasConfig) -> torch.Tensor:
+    w = {"cycle3d": cfg.w_cycle3d, "cycle2d": cfg.w_cycle2d, "consistency": cfg.w_consistency,
+         "surface": cfg.w_surface, "compact": cfg.w_compact, "range": cfg.w_range, "texture": cfg.w_texture,
+         "scaling": cfg.w_distortion, "area": cfg.w_distortion}
+    return sum(w[k] * v for k, v in terms.items())
+
+
+@torch.no_grad()
+def _predict(atlas: Atlas, xn: torch.Tensor, chunk: int = 32768) -> tuple[torch.Tensor, torch.Tensor]:
+    """Chart probabilities [M, n] and uv [M, n, 2] for normalised points xn [M, 3]."""
+    ps, uvs = [], []
+    for s in range(0, len(xn), chunk):
+        ps.append(torch.softmax(atlas.chart(xn[s:s + chunk]), -1))
+        uvs.append(atlas.tex(xn[s:s + chunk]))
+    return torch.cat(ps), torch.cat(uvs)
+
+
+def fit_atlas(xyz, rgb, cfg: AtlasConfig | None = None, progress: Optional[Callable[[float, str], None]] = None,
+              quiet: bool = False) -> tuple[Atlas, dict]:
+    """Learn an atlas from surface samples xyz [S, 3] and colours rgb [S, 3] in [0, 1].
+
+    progress: optional callback(fraction, info) (e.g. Blender's UI); a text bar goes to stderr unless quiet.
+    Returns (atlas, history) with history = {"n": charts, "flatness": f, "seconds": [...], "step": [...],
+    "psnr": [...] (fitting PSNR on up to cfg.eval_samples samples), "phase": [...], "total_seconds": t}.
+    """
+    cfg = cfg or AtlasConfig()
+    xyz = check_points(xyz, "surface samples xyz")
+    rgb = torch.as_tensor(rgb).float()
+    if rgb.shape != xyz.shape or not torch.isfinite(rgb).all():
+        raise InputError(f"surface colours rgb: expected finite [S, 3] matching xyz {tuple(xyz.shape)}, "
+                         f"got {tuple(rgb.shape)}")
+    if len(xyz) < MIN_SAMPLES:
+        raise InputError(f"surface samples: need at least {MIN_SAMPLES} samples, got {len(xyz)}")
+    rgb = rgb.clamp(0, 1)
+    dev = resolve_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    t0 = time.perf_counter()
+
+    n, flat = choose_chart_count(xyz, cfg)
+    R = cfg.resolution(n)
+    lo, hi = xyz.min(0).values, xyz.max(0).values
+    centre, half = 0.5 * (lo + hi), float(0.5 * (hi - lo).max().clamp_min(1e-6))
+    spacing, area = sample_spacing(xyz.numpy().astype(np.float64))
+    # UV scale: the distortion loss pulls sigma1*sigma2 to 1 in a frame where the whole surface covers
+    # chart_fill of the n unit squares, i.e. world lengths times sqrt(n * fill / area).
+    k_area = math.sqrt(n * cfg.chart_fill / max(area, 1e-12))
+    jac_scale = 1.0 / (half * k_area)  # d(normalised x)/d(area frame): J_area = J_norm * jac_scale
+
+    atlas = Atlas(n, R, cfg.pad, centre, half, cfg.width_chart, cfg.depth_chart, cfg.width_map, cfg.depth_map,
+                  cfg.fourier_chart, cfg.fourier_map).to(dev)
+    xn, rgb = atlas.normalise(xyz.to(dev)), rgb.to(dev)
+    ev = torch.randperm(len(xn), generator=gen)[:cfg.eval_samples].to(dev)
+    hist = {"n": n, "flatness": flat, "R": R, "steps": [], "seconds": [], "psnr": [], "phase": []}
+
+    def log(step: int, phase: str) -> float:
+        probs, uv = _predict(atlas, xn[ev])
+        with torch.no_grad():
+            p = losses.psnr((probs[..., None] * sample_charts(atlas.textures, uv)).sum(1), rgb[ev])
+        hist["steps"].append(step)
+        hist["seconds"].append(time.perf_counter() - t0)
+        hist["psnr"].append(p)
+        hist["phase"].append(phase)
+        return p
+
+    nets = [p for name, p in atlas.named_parameters() if name != "textures"]
+    opt = torch.optim.Adam([{"params": nets, "lr": cfg.lr}, {"params": [atlas.textures], "lr": cfg.texture_lr}])
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** (s / max(cfg.steps, 1)))
+    total = cfg.steps + cfg.texture_steps
+    bar = Progress(total, f"atlas ({n} charts)", callback=progress, enabled=not quiet)
+    p = float("nan")
+    for step in range(cfg.steps):
+        idx = torch.randint(len(xn), (min(cfg.batch, len(xn)),), generator=gen).to(dev)
+        terms = _step_losses(atlas, xn[idx], rgb[idx], cfg, jac_scale, gen)
+        opt.zero_grad(set_to_none=True)
+        _total(terms, cfg).backward()
+        opt.step()
+        sched.step()
+        if step % cfg.log_every == 0 or step == cfg.steps - 1:
+            p = log(step + 1, "maps")
+        bar.update(1, psnr=p)
+
+    # Texture refinement with the maps frozen: chart probabilities and uv of every sample are fixed, so each
+    # step is one bilinear lookup per chart.
+    probs_all, uv_all = _predict(atlas, xn)
+    topt = torch.optim.Adam([atlas.textures], lr=cfg.texture_lr)
+    for step in range(cfg.texture_steps):
+        idx = torch.randint(len(xn), (min(8 * cfg.batch, len(xn)),), generator=gen).to(dev)
+        pred = (probs_all[idx, :, None] * sample_charts(atlas.textures, uv_all[idx])).sum(1)
+        loss = (pred - rgb[idx]).pow(2).mean()
+        topt.zero_grad(set_to_none=True)
+        loss.backward()
+        topt.step()
+        if step % cfg.log_every == 0 or step == cfg.texture_steps - 1:
+            p = log(cfg.steps + step + 1, "texture")
+        bar.update(1, psnr=p)
+
+    with torch.no_grad():
+        used = _used_texels(probs_all, uv_all, R)
+        atlas.textures.copy_(dilate_unused(atlas.textures.clamp(0, 1), used))
+        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing)
+    p = log(total, "final")
+    bar.close()
+    hist["total_seconds"] = time.perf_counter() - t0
+    hist["spacing"], hist["area"] = spacing, area
+    return atlas, hist
+
+
+def _used_texels(probs: torch.Tensor, uv: torch.Tensor, R: int, min_prob: float = 1e-3) -> torch.Tensor:
+    """Texels inside the bilinear footprint of some sample with P(c|x) > min_prob. probs [S, n], uv [S, n, 2]
+    -> used [n, R, R] bool."""
+    n = probs.shape[1]
+    used = torch.zeros(n, R * R, dtype=torch.bool, device=probs.device)
+    f = uv.clamp(0, 1) * R - 0.5  # continuous texel index of the sample
+    base = f.floor().long()
+    for dr in (0, 1):
+        for dc in (0, 1):
+            col = (base[..., 0] + dc).clamp(0, R - 1)
+            row = (base[..., 1] + dr).clamp(0, R - 1)
+            flat = row * R + col  # [S, n]
+            for c in range(n):
+                sel = probs[:, c] > min_prob
+                used[c, flat[sel, c]] = True
+    return used.view(n, R, R)
+
+
+@torch.no_grad()
+def quality_report(atlas: Atlas, xyz, rgb, area: float, chart_fill: float = 0.5, max_points: int = 4096) -> dict:
+    """Measured atlas quality on samples xyz [S, 3] / rgb [S, 3]:
+    PSNR of lookup, utilisation of the packed image, share of valid texels, and the median / 95th percentile of
+    sigma1/sigma2 (anisotropy, 1 = conformal) and of sigma1*sigma2 in the area frame (1 = the intended texel
+    density) for each sample's most probable chart."""
+    from core.atlas.packing import utilisation
+
+    xyz, rgb = check_points(xyz).to(atlas.device), torch.as_tensor(rgb).float().to(atlas.device)
+    chart, pix = atlas.atlas_pixel_coords(xyz)
+    sel = torch.linspace(0, len(xyz) - 1, min(len(xyz), max_points)).long().to(atlas.device)
+    jac_scale = 1.0 / (atlas.half * math.sqrt(atlas.n * chart_fill / max(area, 1e-12)))
+    with torch.enable_grad():
+        J, _ = uv_jacobian(atlas.tex, atlas.normalise(xyz[sel]))
+    from core.atlas.distortion import singular_values_2x3
+
+    J = J.detach()[torch.arange(len(sel)), chart[sel]] * jac_scale  # [P, 2, 3]
+    s1, s2, log_area = singular_values_2x3(J)
+    aniso = (s1 / s2.clamp_min(1e-12)).cpu().numpy()
+    areas = torch.exp(log_area).cpu().numpy()
+    tp = atlas.texel_points()
+    L = atlas.layout
+    interior = L.n * L.R * L.R
+    return {
+        "psnr": losses.psnr(atlas.lookup(xyz), rgb),
+        "utilisation": utilisation(pix.cpu().numpy(), L.shape),
+        "utilisation_interior": utilisation(pix.cpu().numpy(), L.shape) * L.shape[0] * L.shape[1] / interior,
+        "texel_valid": float(torch.isfinite(tp).all(-1).sum()) / interior,
+        "aniso_median": float(np.median(aniso)), "aniso_p95": float(np.percentile(aniso, 95)),
+        "area_median": float(np.median(areas)), "area_p95": float(np.percentile(areas, 95)),
+        "area_p5": float(np.percentile(areas, 5)),
+        "chart_share": torch.bincount(chart, minlength=atlas.n).float().div(len(chart)).tolist(),
+    }

@@ -1,0 +1,49 @@
+"""The Nuvo loss terms (method.md Sec. 2), each a plain function of tensors with documented shapes.
+The normal-free distortion term lives in distortion.py."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def cycle_3d(x: torch.Tensor, x_rec: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+    """3D->2D->3D: mean_i sum_c P(c|x_i) |x_i - s_c(t_c(x_i))|^2. x [B, 3], x_rec [B, n, 3], probs [B, n]."""
+    return (probs * (x[:, None] - x_rec).pow(2).sum(-1)).sum(-1).mean()
+
+
+def cycle_2d(u: torch.Tensor, u_rec: torch.Tensor) -> torch.Tensor:
+    """2D->3D->2D: mean |u - t_c(s_c(u))|^2. u, u_rec [n, U, 2] (chart c in row c)."""
+    return (u - u_rec).pow(2).sum(-1).mean()
+
+
+def chart_consistency(logits: torch.Tensor) -> torch.Tensor:
+    """-log c_c(s_c(u)): logits [n, U, n] of the chart net at s_c(u) for chart c in row c."""
+    n, U, _ = logits.shape
+    target = torch.arange(n, device=logits.device).repeat_interleave(U)
+    return F.cross_entropy(logits.reshape(n * U, n), target)
+
+
+def chamfer(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Symmetric squared Chamfer distance between samples x [B, 3] and generated surface points y [K, 3]."""
+    d = torch.cdist(x, y).pow(2)
+    return d.min(dim=1).values.mean() + d.min(dim=0).values.mean()
+
+
+def compactness(x: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+    """Cluster compactness: mean over charts of the P-weighted spread around the P-weighted centroid.
+    x [B, 3], probs [B, n]."""
+    mass = probs.sum(0).clamp_min(1e-6)  # [n]
+    mu = (probs.T @ x) / mass[:, None]  # [n, 3]
+    spread = (probs * (x[:, None] - mu[None]).pow(2).sum(-1)).sum(0) / mass
+    return spread.mean()
+
+
+def uv_range(uv: torch.Tensor) -> torch.Tensor:
+    """Hinge keeping texture coordinates in [0, 1]^2: mean of squared excess. uv [B, n, 2]."""
+    return (F.relu(-uv) + F.relu(uv - 1)).pow(2).sum(-1).mean()
+
+
+def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
+    """PSNR in dB of colours in [0, 1]. pred, target [M, 3]."""
+    mse = (pred - target).pow(2).mean().clamp_min(1e-12)
+    return float(-10 * torch.log10(mse))

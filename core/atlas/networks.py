@@ -1,0 +1,86 @@
+"""The three Nuvo MLPs: chart assignment c(x), texture coordinates t_c(x), surface coordinates s_c(u).
+
+All take points in the atlas's normalised frame (roughly [-1, 1]). Shapes are documented per forward.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+def fourier_encode(x: torch.Tensor, degree: int) -> torch.Tensor:
+    """x [M, d] -> [M, d * (1 + 2 * degree)]: the raw input plus sin/cos at frequencies 2^k * pi."""
+    if degree <= 0:
+        return x
+    freqs = (2.0 ** torch.arange(degree, device=x.device, dtype=x.dtype)) * math.pi
+    xf = x[..., None] * freqs  # [M, d, degree]
+    return torch.cat([x, torch.sin(xf).flatten(-2), torch.cos(xf).flatten(-2)], dim=-1)
+
+
+def _mlp(d_in: int, width: int, depth: int, d_out: int) -> nn.Sequential:
+    layers, d = [], d_in
+    for _ in range(depth):
+        layers += [nn.Linear(d, width), nn.ReLU()]
+        d = width
+    layers.append(nn.Linear(d, d_out))
+    return nn.Sequential(*layers)
+
+
+class ChartNet(nn.Module):
+    """c(x): logits over n charts. forward(x [M, 3]) -> logits [M, n]."""
+
+    def __init__(self, n: int, width: int, depth: int, fourier: int):
+        super().__init__()
+        self.fourier = fourier
+        self.mlp = _mlp(3 * (1 + 2 * fourier), width, depth, n)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.mlp(fourier_encode(x, self.fourier))
+
+
+class TexCoordNet(nn.Module):
+    """t_c(x) for all charts with one shared trunk and n heads. forward(x [M, 3]) -> uv [M, n, 2].
+
+    Outputs are unbounded (the UV range hinge keeps them in [0, 1]); they start near the chart centre.
+    """
+
+    def __init__(self, n: int, width: int, depth: int, fourier: int):
+        super().__init__()
+        self.n, self.fourier = n, fourier
+        self.mlp = _mlp(3 * (1 + 2 * fourier), width, depth, 2 * n)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return 0.5 + self.mlp(fourier_encode(x, self.fourier)).view(-1, self.n, 2)
+
+
+class BatchedLinear(nn.Module):
+    """n independent linear layers applied in one batched matmul: [n, M, d_in] -> [n, M, d_out]."""
+
+    def __init__(self, n: int, d_in: int, d_out: int):
+        super().__init__()
+        bound = 1.0 / math.sqrt(d_in)  # same initialisation as nn.Linear
+        self.weight = nn.Parameter(torch.empty(n, d_in, d_out).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(n, 1, d_out).uniform_(-bound, bound))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+class SurfaceNet(nn.Module):
+    """s_c(u): one small MLP per chart, evaluated together. forward(u [n, M, 2]) -> x [n, M, 3] (chart c uses u[c])."""
+
+    def __init__(self, n: int, width: int, depth: int, fourier: int):
+        super().__init__()
+        self.n, self.fourier = n, fourier
+        dims = [2 * (1 + 2 * fourier)] + [width] * depth + [3]
+        self.layers = nn.ModuleList(BatchedLinear(n, a, b) for a, b in zip(dims[:-1], dims[1:]))
+
+    def forward(self, u: torch.Tensor) -> torch.Tensor:
+        h = fourier_encode(u, self.fourier)
+        for i, layer in enumerate(self.layers):
+            h = layer(h)
+            if i < len(self.layers) - 1:
+                h = torch.relu(h)
+        return h
