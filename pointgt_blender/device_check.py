@@ -1,6 +1,4 @@
 """Operators that need PyTorch share `NeedsTorch.poll`; the device check is the first of them."""
-from __future__ import annotations
-
 import bpy
 
 from . import deps

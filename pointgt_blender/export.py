@@ -1,6 +1,4 @@
 """Export the deformed points of the current frame: positions [M, 3] float32 and ids [M] int64 as .npy files."""
-from __future__ import annotations
-
 import io
 import os
 

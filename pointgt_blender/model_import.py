@@ -1,6 +1,4 @@
 """Import a .pgt model as a vertex-only mesh (point ids as an attribute) plus its packed atlas image."""
-from __future__ import annotations
-
 import os
 
 import bpy
@@ -72,16 +70,16 @@ def import_model(context, path: str, name: str = "", **settings):
         raise ModelFileError(f"{path}: file not found; choose an existing .pgt model")
     xyz, atlas, _meta = read_model(path)
     name = name or os.path.splitext(os.path.basename(path))[0]
-    created = []
+    created = []  # (collection, datablock): removed again if anything below fails
     try:
         mesh = new_points_mesh(name, xyz)
-        created.append(mesh)
+        created.append((bpy.data.meshes, mesh))
         image = None
         if atlas is not None:
             image = atlas_image.new_atlas_image(f"{name} atlas", atlas)
-            created.append(image)
+            created.append((bpy.data.images, image))
         obj = bpy.data.objects.new(name, mesh)
-        created.append(obj)
+        created.append((bpy.data.objects, obj))
         s = obj.pointgt
         s.is_model = True
         s.model_path = stored_path(path)
@@ -95,9 +93,7 @@ def import_model(context, path: str, name: str = "", **settings):
         obj.select_set(True)
         context.view_layer.objects.active = obj
     except Exception:
-        for block in reversed(created):
-            collection = {bpy.types.Object: bpy.data.objects, bpy.types.Mesh: bpy.data.meshes,
-                          bpy.types.Image: bpy.data.images}[type(block)]
+        for collection, block in reversed(created):
             collection.remove(block)
         raise
     return obj

@@ -1,9 +1,6 @@
 """Add-on preferences: PyTorch status, the Install PyTorch button, and an optional existing site-packages."""
-from __future__ import annotations
-
 import os
 import subprocess
-import sys
 import tempfile
 
 import bpy

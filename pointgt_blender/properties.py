@@ -1,6 +1,4 @@
 """Per-object PointGT settings (`object.pointgt`): where the model lives and how to preview/render it."""
-from __future__ import annotations
-
 import bpy
 
 from .evaluated import ID_ATTRIBUTE

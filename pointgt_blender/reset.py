@@ -1,7 +1,5 @@
 """Back to the canonical pose: switch off (or remove) deform modifiers, optionally restore the point positions
 from the model file (after the mesh itself was edited)."""
-from __future__ import annotations
-
 import bpy
 import numpy as np
 

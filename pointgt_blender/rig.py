@@ -1,7 +1,5 @@
 """Rig helpers: a Lattice around the points, and binding the points to an Armature (bone envelopes, or
 weights transferred from a proxy mesh). Points have no faces, so automatic (heat) weights are not an option."""
-from __future__ import annotations
-
 import bpy
 import numpy as np
 

@@ -1,6 +1,4 @@
 """The PointGT tab in the 3D Viewport sidebar: dependency status, import, model settings, rig and export."""
-from __future__ import annotations
-
 import bpy
 
 from .preferences import draw_dependency_status

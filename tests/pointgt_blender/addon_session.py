@@ -107,7 +107,14 @@ def _():
     err = op_error(bpy.ops.pointgt.import_model, filepath=corrupt)
     missing = op_error(bpy.ops.pointgt.import_model, filepath=os.path.join(work, "nope.pgt"))
     after = (len(bpy.data.objects), len(bpy.data.meshes), len(bpy.data.images))
-    return {"error": err, "missing": missing, "unchanged": counts == after}
+    try:  # a failure half-way (here: a bad setting, after mesh, image and object exist) leaves nothing behind
+        importlib.import_module(PKG + ".model_import").import_model(bpy.context, model, correspondence="BAD")
+        late = ""
+    except Exception as exc:
+        late = f"{type(exc).__name__}: {exc}"
+    after_late = (len(bpy.data.objects), len(bpy.data.meshes), len(bpy.data.images))
+    return {"error": err, "missing": missing, "unchanged": counts == after, "late": late,
+            "unchanged_late": counts == after_late}
 
 
 @step("lattice")

@@ -106,6 +106,7 @@ def test_corrupt_or_missing_model_reports_and_creates_nothing(session):
     r = _get(session, "import_corrupt")
     assert "broken.pgt" in r["error"] and r["unchanged"]
     assert "nope.pgt" in r["missing"] and "not found" in r["missing"]
+    assert "BAD" in r["late"] and r["unchanged_late"]
 
 
 def test_lattice_wraps_points_and_deforms_them(session):
