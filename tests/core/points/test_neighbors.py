@@ -1,0 +1,304 @@
+"""Neighbour search: the fast paths return the same neighbour sets as plain-torch brute force (ties aside)."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from core.config import from_dict, to_dict
+from core.images.cameras import look_at, pixel_rays
+from core.points import neighbors as nb
+from core.util.errors import InputError
+
+H = W = 24
+FOCAL = 1.1 * W
+BACKENDS = ("kdtree", "torch")
+
+
+# ------------------------------------------------------------------------------- plain-torch references (float64)
+def _absent(points):
+    return ~(torch.isfinite(points) & (points.abs() <= 1e18)).all(dim=1)
+
+
+def _topk_ref(d, k):
+    """d [R, N] float64 (inf = not a candidate) -> idx [R, k] (-1 pad), dist [R, k] (inf pad)."""
+    r, n = d.shape
+    vals, ids = torch.topk(d, min(k, n), dim=1, largest=False) if n else (d.new_empty(r, 0), d.new_empty(r, 0).long())
+    idx = torch.full((r, k), -1, dtype=torch.int64)
+    dist = torch.full((r, k), math.inf, dtype=torch.float64)
+    idx[:, :vals.shape[1]], dist[:, :vals.shape[1]] = ids, vals
+    idx[~torch.isfinite(dist)] = -1
+    return idx, dist
+
+
+def ref_perpendicular(points, origins, dirs, k):
+    p, o, d = points.double(), origins.double(), dirs.double()
+    d = d / d.norm(dim=1, keepdim=True)
+    v = p[None] - o[:, None]  # [R, N, 3]
+    along = (v * d[:, None]).sum(-1)
+    perp = (v - along[..., None] * d[:, None]).norm(dim=-1)
+    perp = perp.masked_fill(~(along > 0) | _absent(points)[None] | ~torch.isfinite(perp), math.inf)
+    return _topk_ref(perp, k)
+
+
+def ref_screen(points, c2w, query_px, k, depth_factor):
+    p, m = points.double(), c2w.double()
+    cam = (p - m[:3, 3]) @ m[:3, :3]
+    z = -cam[:, 2]
+    col = FOCAL * cam[:, 0] / z + 0.5 * W
+    row = -FOCAL * cam[:, 1] / z + 0.5 * H
+    keep = (z > 0) & (col >= -1) & (col <= W + 1) & (row >= -1) & (row <= H + 1) & ~_absent(points)
+    px = torch.stack([col, row], -1)
+    d = (query_px.double()[:, None, :] - px[None]).norm(dim=-1)
+    if depth_factor:
+        d = d * (z / FOCAL)[None]
+    d = d.masked_fill(~keep[None] | ~torch.isfinite(d), math.inf)
+    return _topk_ref(d, k)
+
+
+def assert_same(got, ref, rtol=1e-4):
+    """Same sorted distances and the same neighbour sets, except for members tied with the K-th distance."""
+    ref_idx, ref_dist = ref
+    assert got.idx.dtype == torch.int64 and got.dist.dtype == torch.float32
+    assert torch.equal(got.valid, ref_idx >= 0)
+    assert torch.equal(got.idx < 0, ~torch.isfinite(got.dist))
+    fin = torch.isfinite(ref_dist)
+    tol = rtol * (1 + ref_dist[fin].abs())
+    assert torch.all((got.dist.double()[fin] - ref_dist[fin]).abs() <= tol)
+    assert torch.all(got.dist[:, 1:] >= got.dist[:, :-1])  # ascending
+    kth = ref_dist.masked_fill(~fin, -math.inf).max(dim=1, keepdim=True).values
+    sure = fin & (ref_dist < kth - rtol * (1 + kth.abs()))  # strictly inside: not a tie
+    member = (ref_idx[:, :, None] == got.idx[:, None, :]).any(-1)
+    assert torch.all(member[sure])
+    valid_idx = got.idx.masked_fill(~got.valid, -1)
+    for_dupes = valid_idx.sort(dim=1).values
+    assert not torch.any((for_dupes[:, 1:] == for_dupes[:, :-1]) & (for_dupes[:, 1:] >= 0))  # no duplicates
+
+
+# ---------------------------------------------------------------------------------------------------- scenes
+def scene(kind: str, n: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    if kind == "blob":
+        return torch.randn(n, 3, generator=g) * 0.6
+    if kind == "sphere":
+        p = torch.randn(n, 3, generator=g)
+        return p / p.norm(dim=1, keepdim=True)
+    if kind == "plane":  # thin, planar cloud: many near-equal depths
+        p = torch.rand(n, 3, generator=g) * 2 - 1
+        p[:, 2] = 0.0
+        return p
+    if kind == "line":
+        t = torch.rand(n, 1, generator=g) * 2 - 1
+        return t * torch.tensor([[1.0, 0.5, 0.2]]) + 1e-3 * torch.randn(n, 3, generator=g)
+    raise ValueError(kind)
+
+
+def camera(seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed + 100)
+    eye = torch.randn(3, generator=g)
+    eye = 3.5 * eye / eye.norm()
+    return look_at(eye.tolist()).float()
+
+
+def random_px(r: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed + 200)
+    return torch.rand(r, 2, generator=g) * torch.tensor([W + 6.0, H + 6.0]) - 3.0  # some outside the frame
+
+
+def rays(c2w):
+    o, d = pixel_rays(c2w, H, W, FOCAL)
+    return o.reshape(-1, 3), d.reshape(-1, 3)
+
+
+# ---------------------------------------------------------------------------------------------- equality
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("kind", ["blob", "sphere", "plane", "line"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_perpendicular_matches_brute_force(kind, seed, backend):
+    pts = scene(kind, 1500, seed)
+    o, d = rays(camera(seed))
+    d = d * (1 + torch.rand(d.shape[0], 1))  # non-unit directions are normalised
+    got = nb.rays_knn_perpendicular(pts, o, d, 12, backend=backend)
+    assert_same(got, ref_perpendicular(pts, o, d, 12))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("depth_factor", [False, True])
+@pytest.mark.parametrize("kind", ["blob", "sphere", "plane", "line"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_screen_matches_brute_force(kind, seed, depth_factor, backend):
+    pts = scene(kind, 1500, seed)
+    c2w = camera(seed)
+    q = random_px(700, seed)
+    got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 12, depth_factor=depth_factor, backend=backend)
+    assert_same(got, ref_screen(pts, c2w, q, 12, depth_factor))
+
+
+def test_rays_from_several_origins_and_small_groups():
+    pts = scene("blob", 800, 3)
+    o1, d1 = rays(camera(1))
+    o2, d2 = rays(camera(2))
+    o3, d3 = rays(camera(3))
+    o = torch.cat([o1, o2[:200], o3[:5]])  # the 5 rays of camera 3 take the brute-force path
+    d = torch.cat([d1, d2[:200], d3[:5]])
+    perm = torch.randperm(o.shape[0], generator=torch.Generator().manual_seed(0))
+    got = nb.rays_knn_perpendicular(pts, o[perm], d[perm], 9)
+    assert_same(got, ref_perpendicular(pts, o[perm], d[perm], 9))
+
+
+def test_stray_point_next_to_the_camera():
+    """A point almost at the origin makes the search ball huge unless handled apart; results stay exact."""
+    pts = scene("sphere", 1200, 4)
+    c2w = camera(4)
+    o, d = rays(c2w)
+    stray = c2w[:3, 3] - 1e-3 * c2w[:3, 2]  # 1 mm in front of the camera
+    pts = torch.cat([pts, stray[None], stray[None] + 1e-4])
+    assert_same(nb.rays_knn_perpendicular(pts, o, d, 10), ref_perpendicular(pts, o, d, 10))
+    q = random_px(500, 4)
+    assert_same(nb.screen_knn(pts, c2w, H, W, FOCAL, q, 10, True), ref_screen(pts, c2w, q, 10, True))
+
+
+def test_index_reused_across_chunks_equals_one_call():
+    pts = scene("blob", 1000, 5)
+    c2w = camera(5)
+    q = random_px(600, 5)
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor=True)
+    parts = [index.query(q[i:i + 150], 7) for i in range(0, 600, 150)]
+    whole = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 7, depth_factor=True)
+    assert torch.equal(torch.cat([p.idx for p in parts]), whole.idx)
+    o, d = rays(c2w)
+    pidx = nb.PerpendicularIndex(pts, c2w[:3, 3])
+    assert_same(pidx.query(d, 7), ref_perpendicular(pts, o, d, 7))
+
+
+@pytest.mark.parametrize("method", nb.METHODS)
+def test_config_dispatch(method):
+    pts = scene("sphere", 900, 6)
+    c2w = camera(6)
+    rows, cols = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    q = torch.stack([cols.flatten() + 0.5, rows.flatten() + 0.5], -1).float()
+    cfg = nb.NeighborConfig(method=method, k=6)
+    assert from_dict(nb.NeighborConfig, to_dict(cfg)) == cfg
+    got = nb.knn_for_pixels(cfg, pts, c2w, H, W, FOCAL, q)
+    if method == "perpendicular":
+        o, d = rays(c2w)  # the same rays as cameras.pixel_rays
+        ref = ref_perpendicular(pts, o, d, 6)
+    else:
+        ref = ref_screen(pts, c2w, q, 6, method == "screen_depth")
+    assert_same(got, ref)
+
+
+# ------------------------------------------------------------------------------------------- degenerate input
+def _all_methods(pts, k, backend):
+    c2w = camera(0)
+    o, d = rays(c2w)
+    q = random_px(50, 0)
+    return {
+        "perpendicular": (nb.rays_knn_perpendicular(pts, o, d, k, backend=backend), ref_perpendicular(pts, o, d, k)),
+        "screen": (nb.screen_knn(pts, c2w, H, W, FOCAL, q, k, backend=backend), ref_screen(pts, c2w, q, k, False)),
+        "screen_depth": (nb.screen_knn(pts, c2w, H, W, FOCAL, q, k, True, backend=backend),
+                         ref_screen(pts, c2w, q, k, True)),
+    }
+
+
+@pytest.mark.stability
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_empty_point_set(backend):
+    for name, (got, ref) in _all_methods(torch.empty(0, 3), 5, backend).items():
+        assert got.idx.shape == (got.idx.shape[0], 5), name
+        assert not got.valid.any() and torch.isinf(got.dist).all(), name
+        assert_same(got, ref)
+
+
+@pytest.mark.stability
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_k_larger_than_n_pads(backend):
+    pts = scene("blob", 7, 1) * 0.2
+    for name, (got, ref) in _all_methods(pts, 20, backend).items():
+        assert got.idx.shape[1] == 20
+        assert (got.valid.sum(1) <= 7).all() and not got.valid[:, 7:].any(), name
+        assert_same(got, ref)
+
+
+@pytest.mark.stability
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_non_finite_and_diverged_points_are_absent(backend):
+    pts = scene("blob", 300, 2)
+    bad = torch.tensor([[math.nan, 0, 0], [0, math.inf, 0], [-math.inf, 1, 2], [1e30, 1e30, 1e30], [0, 0, -1e30]])
+    pts = torch.cat([pts[:150], bad, pts[150:]])
+    bad_ids = torch.arange(150, 155)
+    for name, (got, ref) in _all_methods(pts, 8, backend).items():
+        assert not torch.isin(got.idx, bad_ids).any(), name
+        assert torch.isfinite(got.dist[got.valid]).all(), name
+        assert_same(got, ref)
+    only_bad = _all_methods(bad, 3, backend)
+    assert all(not got.valid.any() for got, _ in only_bad.values())
+
+
+@pytest.mark.stability
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_everything_behind_the_camera(backend):
+    c2w = camera(0)
+    behind = c2w[:3, 3] + c2w[:3, 2] * 2.0 + 0.3 * torch.randn(100, 3, generator=torch.Generator().manual_seed(0))
+    for name, (got, ref) in _all_methods(behind, 4, backend).items():
+        if name != "perpendicular":  # wide pixel rays may still see a few; the screen path must see none
+            assert not got.valid.any(), name
+        assert_same(got, ref)
+
+
+@pytest.mark.stability
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_coincident_points(backend):
+    pts = torch.zeros(40, 3) + torch.tensor([0.1, -0.2, 0.05])
+    for name, (got, ref) in _all_methods(pts, 10, backend).items():
+        v = got.idx[got.valid].reshape(-1) if got.valid.any() else got.idx[:0]
+        assert ((v >= 0) & (v < 40)).all(), name
+        rowsorted = got.idx.sort(1).values
+        assert not ((rowsorted[:, 1:] == rowsorted[:, :-1]) & (rowsorted[:, 1:] >= 0)).any(), name
+        assert torch.allclose(got.dist[got.valid].double(), ref[1][ref[0] >= 0], rtol=1e-4, atol=1e-5), name
+        assert torch.equal(got.valid, ref[0] >= 0), name
+
+
+@pytest.mark.stability
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_bad_rays_and_queries_get_no_neighbours(backend):
+    pts = scene("blob", 200, 0)
+    o, d = rays(camera(0))
+    o, d = o[:6].clone(), d[:6].clone()
+    d[0] = 0.0
+    d[1, 0] = math.nan
+    o[2, 1] = math.inf
+    got = nb.rays_knn_perpendicular(pts, o, d, 5, backend=backend)
+    assert not got.valid[:3].any() and got.valid[3:].all()
+    q = torch.tensor([[math.nan, 3.0], [12.0, 12.0]])
+    got = nb.screen_knn(pts, camera(0), H, W, FOCAL, q, 5, backend=backend)
+    assert not got.valid[0].any() and torch.isfinite(got.dist[1]).all()
+
+
+def test_outputs_follow_the_input_device_and_backends_agree():
+    dev = torch.device("cpu")
+    pts = scene("sphere", 500, 7).to(dev)
+    c2w = camera(7).to(dev)
+    q = random_px(200, 7).to(dev)
+    a = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 5, True, backend="kdtree")
+    b = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 5, True, backend="torch")
+    c = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 5, True, backend="auto")
+    assert a.idx.device == dev and a.dist.device == dev
+    assert torch.equal(a.idx, c.idx)
+    assert_same(b, (a.idx, a.dist.double()))
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda: nb.screen_knn(torch.zeros(5, 2), camera(0), H, W, FOCAL, torch.zeros(3, 2), 4), "points"),
+    (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, FOCAL, torch.zeros(3, 3), 4), "query_px"),
+    (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, 0.0, torch.zeros(3, 2), 4), "focal"),
+    (lambda: nb.screen_knn(torch.zeros(5, 3), torch.eye(3), H, W, FOCAL, torch.zeros(3, 2), 4), "c2w"),
+    (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, FOCAL, torch.zeros(3, 2), 0), "k must"),
+    (lambda: nb.rays_knn_perpendicular(torch.zeros(5, 3), torch.zeros(4, 3), torch.ones(3, 3), 2), "differ"),
+    (lambda: nb.rays_knn_perpendicular(torch.zeros(5, 3), torch.zeros(4, 3), torch.ones(4, 3), 2, "gpu"),
+     "backend"),
+])
+def test_bad_input_is_a_clear_error(call, match):
+    with pytest.raises(InputError, match=match):
+        call()
