@@ -271,6 +271,46 @@ def _():
             "resolved": os.path.samefile(bpy.path.abspath(obj.pointgt.model_path), model)}
 
 
+class Layout:
+    """Stands in for a UI layout (headless Blender draws no panels); checks every prop and operator named."""
+    calls = []
+
+    def __getattr__(self, name):
+        def call(*args, **kw):
+            if name == "prop":
+                data, prop = args[0], args[1]
+                assert prop in data.bl_rna.properties, f"no property {prop!r} on {data}"
+            if name == "operator":
+                mod, op = args[0].split(".")
+                getattr(getattr(bpy.ops, mod), op).get_rna_type()  # KeyError when it does not exist
+            Layout.calls.append((name, args[1] if name == "prop" else (args[0] if args else kw.get("text", ""))))
+            return Layout()
+        return call
+
+
+@step("draw_ui")
+def _():
+    prefs = importlib.import_module(PKG + ".preferences")
+    panel = importlib.import_module(PKG + ".view3d_panel").POINTGT_PT_main
+    fake = type("Fake", (), {"layout": Layout()})()
+    bpy.context.view_layer.objects.active = None
+    panel.draw(fake, bpy.context)
+    no_model = list(Layout.calls)
+    Layout.calls.clear()
+    make_active(bpy.data.objects[R["import"]["name"]])
+    panel.draw(fake, bpy.context)
+    with_model = list(Layout.calls)
+    Layout.calls.clear()
+    addon_prefs = bpy.context.preferences.addons[PKG].preferences
+    fake_prefs = type("P", (), {"layout": Layout(), "site_packages": "/nonexistent", "bl_rna": addon_prefs.bl_rna})
+    prefs.PointGTPreferences.draw(fake_prefs(), bpy.context)
+    labels = " | ".join(str(c[1]) for c in Layout.calls if c[0] == "label")
+    return {"no_model": " | ".join(str(c[1]) for c in no_model), "with_model": [c[1] for c in with_model],
+            "prefs_labels": labels,
+            "prefs_ops": [c[1] for c in Layout.calls if c[0] == "operator"],
+            "addon_prefs": type(addon_prefs).__name__}
+
+
 @step("site_packages_pref")
 def _():
     folder = os.path.join(work, "other_env_site")

@@ -179,3 +179,13 @@ def test_lattice_on_flat_and_single_point_models_stays_finite(session):
 def test_points_outside_every_envelope_are_counted(session):
     r = _get(session, "envelope_outside")
     assert r["outside_far"] == N and r["outside_near"] < N
+
+
+def test_panel_and_preferences_draw_and_show_what_is_missing(session):
+    r = _get(session, "draw_ui")
+    assert "PyTorch is missing" in r["no_model"] and "Select an imported model" in r["no_model"]
+    for name in ("model_path", "neighbors", "correspondence", "device", "pointgt.add_lattice",
+                 "pointgt.bind_armature", "pointgt.reset_canonical", "pointgt.export_deformed"):
+        assert name in r["with_model"]
+    assert "PyTorch is missing" in r["prefs_labels"] and "folder not found" in r["prefs_labels"]
+    assert "pointgt.install_torch" in r["prefs_ops"] and r["addon_prefs"] == "PointGTPreferences"
