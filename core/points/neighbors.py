@@ -231,6 +231,7 @@ class _WeightedTree:
             cand_i = np.concatenate([cand_i, near_i], axis=1)
             cand_k = np.concatenate([cand_k, nk], axis=1)
             cand_d = np.concatenate([cand_d, self._exact(nk, near_i)], axis=1)
+        extras = []  # (rows, exact [rows, n], cand [rows, n]) of step 3, merged after the base top-k
         if self.layers:
             r_k = np.partition(cand_d, kk - 1, axis=1)[:, kk - 1]  # upper bound on the K-th best
             layer = np.where(cand_i >= 0, self.layer_of[np.maximum(cand_i, 0)], -1)
@@ -244,29 +245,28 @@ class _WeightedTree:
                 if rows.size == 0:
                     continue
                 need = np.minimum(2 ** np.ceil(np.log2(count[rows])).astype(np.int64), ids.size)
-                extra_w = int(need.max())
-                ext_i = np.full((rows.size, extra_w), -1, dtype=np.int64)
-                ext_k = np.full((rows.size, extra_w), np.inf)
                 for n_q in np.unique(need):  # a few power-of-two buckets, not a loop over rays
-                    sel = np.nonzero(need == n_q)[0]
-                    ext_k[sel, :n_q], ext_i[sel, :n_q] = self._tree_query(tree, ids, q[rows[sel]], int(n_q))
+                    sub = rows[need == n_q]
+                    ek, ei = self._tree_query(tree, ids, q[sub], int(n_q))
+                    extras.append((sub, self._exact(ek, ei), ei))
                 drop = layer[rows] == l  # the layer query returns these again: avoid duplicates
-                pad_i = np.full((r, extra_w), -1, dtype=np.int64)
-                pad_k = np.full((r, extra_w), np.inf)
-                pad_i[rows], pad_k[rows] = ext_i, ext_k
-                cand_i[rows] = np.where(drop, -1, cand_i[rows])
                 cand_d[rows] = np.where(drop, np.inf, cand_d[rows])
-                layer[rows] = np.where(drop, -1, layer[rows])
-                cand_i = np.concatenate([cand_i, pad_i], axis=1)
-                cand_k = np.concatenate([cand_k, pad_k], axis=1)
-                cand_d = np.concatenate([cand_d, self._exact(pad_k, pad_i)], axis=1)
-                layer = np.concatenate([layer, np.where(pad_i >= 0, l, -1)], axis=1)
-        if cand_d.shape[1] > kk:
-            part = np.argpartition(cand_d, kk - 1, axis=1)[:, :kk]
-            cand_d, cand_i = np.take_along_axis(cand_d, part, 1), np.take_along_axis(cand_i, part, 1)
-        srt = np.argsort(cand_d, axis=1, kind="stable")
-        best_d, best_i = np.take_along_axis(cand_d, srt, 1), np.take_along_axis(cand_i, srt, 1)
+                cand_i[rows] = np.where(drop, -1, cand_i[rows])
+        best_d, best_i = _smallest(cand_d, cand_i, kk)
+        for rows, ed, ei in extras:
+            best_d[rows], best_i[rows] = _smallest(np.concatenate([best_d[rows], ed], 1),
+                                                   np.concatenate([best_i[rows], ei], 1), kk)
+        srt = np.argsort(best_d, axis=1, kind="stable")
+        best_d, best_i = np.take_along_axis(best_d, srt, 1), np.take_along_axis(best_i, srt, 1)
         return np.where(np.isfinite(best_d), best_i, -1), best_d
+
+
+def _smallest(d: np.ndarray, i: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The k smallest entries per row (unsorted): d, i [r, c] -> [r, min(k, c)]."""
+    if d.shape[1] <= k:
+        return d.copy(), i.copy()
+    part = np.argpartition(d, k - 1, axis=1)[:, :k]
+    return np.take_along_axis(d, part, 1), np.take_along_axis(i, part, 1)
 
 
 def _chord_to_sin(c: np.ndarray) -> np.ndarray:
