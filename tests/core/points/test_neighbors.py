@@ -116,7 +116,7 @@ def rays(c2w):
 @pytest.mark.parametrize("kind", ["blob", "sphere", "plane", "line"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_perpendicular_matches_brute_force(kind, seed, backend):
-    pts = scene(kind, 1500, seed)
+    pts = scene(kind, 800, seed)
     o, d = rays(camera(seed))
     d = d * (1 + torch.rand(d.shape[0], 1))  # non-unit directions are normalised
     got = nb.rays_knn_perpendicular(pts, o, d, 12, backend=backend)
@@ -128,7 +128,7 @@ def test_perpendicular_matches_brute_force(kind, seed, backend):
 @pytest.mark.parametrize("kind", ["blob", "sphere", "plane", "line"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_screen_matches_brute_force(kind, seed, depth_factor, backend):
-    pts = scene(kind, 1500, seed)
+    pts = scene(kind, 800, seed)
     c2w = camera(seed)
     q = random_px(700, seed)
     got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 12, depth_factor=depth_factor, backend=backend)
