@@ -62,3 +62,17 @@ def look_at(eye, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> torch.Tensor:
     m = torch.eye(4, dtype=torch.float64)
     m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, cam_up, -fwd, eye
     return m
+
+
+def rays_for_pixels(c2w: torch.Tensor, px: torch.Tensor, height: int, width: int,
+                    focal: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays through given pixel coordinates px [R, 2] (col, row in pixel units; centres at +0.5).
+
+    Returns origins [R, 3] and unit directions [R, 3].
+    """
+    c2w = c2w.to(px.dtype)
+    d_cam = torch.stack([(px[:, 0] - 0.5 * width) / focal, -(px[:, 1] - 0.5 * height) / focal,
+                         -torch.ones_like(px[:, 0])], dim=-1)
+    d = d_cam @ c2w[:3, :3].T
+    d = d / d.norm(dim=-1, keepdim=True)
+    return c2w[:3, 3].expand_as(d), d

@@ -288,3 +288,54 @@ def _read_images(files: list[Path], json_path: Path) -> tuple[np.ndarray, np.nda
         for _ in pool.map(fill, range(v)):  # re-raises the first error in frame order
             pass
     return rgb, alpha
+
+
+@dataclass
+class Cameras:
+    """Cameras of a transforms JSON without requiring its images: c2w [V, 4, 4] float32, names per frame."""
+    c2w: torch.Tensor
+    camera_angle_x: float
+    names: list[str]
+    height: int
+    width: int
+    focal: float
+
+
+def load_cameras(json_path: str | os.PathLike, size: int | None = None) -> Cameras:
+    """Read the cameras of a transforms_*.json for rendering. The image size comes from `size` (square) or,
+    when not given, from the first frame's image if it exists. Frame names are the file_path stems."""
+    json_path = Path(json_path)
+    doc = _read_json(json_path, json_path.parent)
+    angle = _camera_angle(doc, json_path)
+    frames = doc.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise DataError(f"{json_path}: needs a non-empty 'frames' list with 'transform_matrix' entries")
+    names, mats = [], []
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict) or "transform_matrix" not in frame:
+            raise DataError(f"{json_path}: frame {i} has no 'transform_matrix'")
+        try:
+            mat = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise DataError(f"{json_path}: frame {i}: 'transform_matrix' must be a 4x4 list of numbers ({exc})") from exc
+        if mat.shape != (4, 4):
+            raise DataError(f"{json_path}: frame {i}: 'transform_matrix' must be 4x4, got shape {mat.shape}")
+        mats.append(mat)
+        fp = frame.get("file_path")
+        names.append(Path(fp).stem if isinstance(fp, str) and fp.strip() else f"frame_{i:04d}")
+    c2w = np.stack(mats)
+    _check_rigid(c2w, [Path(n) for n in names], json_path)
+    if size is None:
+        first = frames[0].get("file_path")
+        try:
+            img = read_png(_image_path(json_path.parent, first, f"{json_path}: frame 0"))
+        except (DataError, TypeError, AttributeError) as exc:
+            raise DataError(f"{json_path}: cannot tell the image size (frame 0 has no readable image); "
+                            "pass the size explicitly (--size)") from exc
+        height, width = img.shape[:2]
+    else:
+        if int(size) < 1:
+            raise InputError(f"image size must be positive, got {size}")
+        height = width = int(size)
+    return Cameras(c2w=torch.from_numpy(c2w.astype(np.float32)), camera_angle_x=angle, names=names,
+                   height=height, width=width, focal=focal_from_fov(width, angle))

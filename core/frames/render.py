@@ -1,0 +1,82 @@
+"""Render whole frames from a point model: canonical or deformed points, any pinhole camera.
+
+The edit path (correspondence + atlas lookup) builds on `trace_frame`, which returns everything a frame's rays
+know: attention, surface points, neighbour indices.
+"""
+from __future__ import annotations
+
+import torch
+
+from core.images.cameras import pixel_rays
+from core.points.model import PointModel
+from core.points.select import select_neighbors
+
+
+def pixel_grid(height: int, width: int, device) -> torch.Tensor:
+    """Pixel centres [H*W, 2] as (col, row), row-major, row 0 = top."""
+    r, c = torch.meshgrid(torch.arange(height, device=device, dtype=torch.float32) + 0.5,
+                          torch.arange(width, device=device, dtype=torch.float32) + 0.5, indexing="ij")
+    return torch.stack([c.reshape(-1), r.reshape(-1)], dim=-1)
+
+
+@torch.no_grad()
+def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
+                points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
+                k: int | None = None, temperature: float | None = None, chunk: int = 16384) -> dict:
+    """Neighbours + attention for every pixel of a frame.
+
+    Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points);
+    influence [M] (default: the model's, which requires M == N).
+    Returns dict of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
+    fg_weights [R, K], bg [R], x [R, 3], plus 'shape' (H, W).
+    """
+    dev = model.xyz.device
+    c2w = c2w.to(dev, torch.float32)
+    pts = model.xyz if points is None else points.to(dev, torch.float32)
+    infl = model.influence if influence is None else influence.to(dev, torch.float32)
+    k = k or model.cfg.k
+    o, d = pixel_rays(c2w, height, width, focal)
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    px = pixel_grid(height, width, dev)
+    # Non-finite positions (a broken rig) are treated as absent by the neighbour search; zero them for the maths.
+    finite = torch.isfinite(pts).all(dim=1)
+    pts_search = torch.where(finite[:, None], pts, torch.full_like(pts, float("nan")))
+    pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
+    idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d)
+    out: dict[str, list] = {key: [] for key in ("weights", "fg_weights", "bg", "x")}
+    for s in range(0, o.shape[0], chunk):
+        sl = slice(s, s + chunk)
+        att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature)
+        for key in out:
+            out[key].append(att[key])
+    res = {key: torch.cat(v) for key, v in out.items()}
+    res.update(origins=o, dirs=d, idx=idx, shape=(height, width), non_finite_points=int((~finite).sum()))
+    return res
+
+
+@torch.no_grad()
+def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chunk: int = 16384) -> torch.Tensor:
+    """Colours of a traced frame from the model's own point values: rgb [H, W, 3] in [0, 1]."""
+    h, w = trace["shape"]
+    bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
+    parts = []
+    for s in range(0, trace["idx"].shape[0], chunk):
+        sl = slice(s, s + chunk)
+        att = {"weights": trace["weights"][sl], "bg": trace["bg"][sl]}
+        parts.append(model.shade(att, trace["dirs"][sl], trace["idx"][sl], bg))
+    if model.decoder is None:
+        rgb = torch.cat([p["rgb"] for p in parts]).reshape(h, w, 3)
+    else:
+        feat = torch.cat([p["feature"] for p in parts]).reshape(h, w, -1).permute(2, 0, 1)[None]
+        rgb = model.decode(feat)[0].permute(1, 2, 0)
+    return rgb.clamp(0.0, 1.0)
+
+
+@torch.no_grad()
+def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
+                 background=(1.0, 1.0, 1.0), **kw) -> dict:
+    """Canonical (or re-posed, via points=) render: dict(rgb [H, W, 3], alpha [H, W], x [H, W, 3])."""
+    tr = trace_frame(model, c2w, height, width, focal, **kw)
+    rgb = shade_frame(model, tr, background)
+    h, w = tr["shape"]
+    return {"rgb": rgb, "alpha": (1.0 - tr["bg"]).reshape(h, w), "x": tr["x"].reshape(h, w, 3), "trace": tr}

@@ -1,0 +1,36 @@
+"""Decoders from the ray-feature image to RGB. `none` (values are RGB) needs no module; `unet` is below."""
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+def _block(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, padding=1), nn.ReLU(inplace=True),
+                         nn.Conv2d(c_out, c_out, 3, padding=1), nn.ReLU(inplace=True))
+
+
+class UNetDecoder(nn.Module):
+    """A small two-level UNet: feature image [B, h, H, W] -> RGB logits [B, 3, H, W].
+
+    Any H, W work (odd sizes are padded to even and cropped back), so patches and full frames share it.
+    """
+
+    def __init__(self, c_in: int, width: int = 32):
+        super().__init__()
+        self.enc1 = _block(c_in, width)
+        self.enc2 = _block(width, 2 * width)
+        self.dec1 = _block(3 * width, width)
+        self.out = nn.Conv2d(width, 3, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h, w = x.shape[-2:]
+        ph, pw = h % 2, w % 2
+        if ph or pw:
+            x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+        e1 = self.enc1(x)
+        e2 = self.enc2(F.avg_pool2d(e1, 2))
+        up = F.interpolate(e2, scale_factor=2, mode="bilinear", align_corners=False)
+        y = self.out(self.dec1(torch.cat([e1, up], dim=1)))
+        return y[..., :h, :w]

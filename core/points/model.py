@@ -1,0 +1,174 @@
+"""PAPR point model: learnable points, features and influence, proximity attention with a background slot.
+
+For ray i with K neighbour points p_ij (chosen by `core.points.neighbors`), the attention logit of neighbour j is
+an MLP of rotation-invariant ray-relative geometry (perpendicular distance to the ray, depth behind the ray's
+nearest neighbour, both in units of the point spacing) plus the point's learned influence. One extra background
+slot competes in the softmax. The ray's feature is Σ a_ij v_ij; the surface point is x_i = Σ a_ij p_ij / Σ a_ij
+(background slot dropped). Relative geometry only (no absolute positions in the keys) is what lets attention be
+re-inferred after the points were deformed.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from core.config import opt
+from core.points.decoders import UNetDecoder
+
+
+@dataclass
+class ModelConfig:
+    """The PAPR point model (points, attention, decoder)."""
+
+    num_points: int = opt(4000, "initial number of points (seeded inside the visual hull)")
+    feature_dim: int = opt(32, "per-point feature size h")
+    k: int = opt(20, "neighbours per ray K")
+    neighbors: str = opt("screen_depth", "neighbour search: screen | screen_depth | perpendicular",
+                         choices=("screen", "screen_depth", "perpendicular"))
+    decoder: str = opt("none", "decoder: none (value = RGB) | unet (small UNet on the feature image)",
+                       choices=("none", "unet"))
+    key_width: int = opt(64, "width of the attention key MLP")
+    key_freqs: int = opt(4, "Fourier frequencies of the ray-relative key features")
+    value_width: int = opt(64, "width of the value MLP")
+    view_dependent: bool = opt(False, "let colours depend on the viewing direction (off for emission scenes)")
+    temperature: float = opt(1.0, "softmax temperature at render time (< 1 sharpens attention)")
+
+
+def fourier(x: torch.Tensor, freqs: int) -> torch.Tensor:
+    """x [..., D] -> [..., D * (1 + 2 * freqs)]: raw values plus sin/cos at octave frequencies."""
+    if freqs <= 0:
+        return x
+    scales = 2.0 ** torch.arange(freqs, device=x.device, dtype=x.dtype)
+    xs = (x[..., None] * scales).flatten(-2)
+    return torch.cat([x, torch.sin(xs), torch.cos(xs)], dim=-1)
+
+
+def _mlp(d_in: int, width: int, d_out: int, layers: int = 2) -> nn.Sequential:
+    mods: list[nn.Module] = []
+    d = d_in
+    for _ in range(layers):
+        mods += [nn.Linear(d, width), nn.ReLU(inplace=True)]
+        d = width
+    mods.append(nn.Linear(d, d_out))
+    return nn.Sequential(*mods)
+
+
+def safe_normalize(v: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(eps)
+
+
+class PointModel(nn.Module):
+    """Points + proximity attention. Shapes: N points, R rays, K neighbours, h features."""
+
+    def __init__(self, cfg: ModelConfig, xyz: torch.Tensor, spacing: float):
+        super().__init__()
+        self.cfg = cfg
+        n = xyz.shape[0]
+        self.xyz = nn.Parameter(xyz.detach().clone().float())                       # [N, 3]
+        self.features = nn.Parameter(0.1 * torch.randn(n, cfg.feature_dim))         # [N, h]
+        self.influence = nn.Parameter(torch.zeros(n))                                # [N]
+        # Length unit of the key features: the typical spacing between neighbouring points.
+        self.register_buffer("spacing", torch.tensor(float(spacing)))
+        key_in = 2 * (1 + 2 * cfg.key_freqs)
+        self.key_mlp = _mlp(key_in, cfg.key_width, 1)
+        self.bg_logit = nn.Parameter(torch.tensor(0.0))
+        dir_in = 3 * (1 + 2 * 2) if cfg.view_dependent else 0
+        if cfg.decoder == "none":
+            self.value_mlp = _mlp(cfg.feature_dim + dir_in, cfg.value_width, 3, layers=1)
+            self.bg_value = None
+            self.decoder = None
+        else:
+            self.value_mlp = _mlp(cfg.feature_dim + dir_in, cfg.value_width, cfg.feature_dim, layers=1)
+            self.bg_value = nn.Parameter(torch.zeros(cfg.feature_dim))
+            self.decoder = UNetDecoder(cfg.feature_dim)
+
+    @property
+    def num_points(self) -> int:
+        return self.xyz.shape[0]
+
+    # ---- attention -------------------------------------------------------------------------------------------
+    def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
+               idx: torch.Tensor, temperature: float | None = None) -> dict:
+        """Attention over each ray's neighbours plus the background slot.
+
+        Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
+        idx [R, K] int64 neighbour indices (-1 = empty slot).
+        Returns dict: weights [R, K] (0 on empty slots), bg [R] background weight, x [R, 3] surface point
+        (NaN-free: rays with no neighbour get the ray point at the mean depth 0), t [R, K] depth along the ray.
+        """
+        valid = idx >= 0
+        safe_idx = idx.clamp_min(0)
+        p = points[safe_idx]                                                   # [R, K, 3]
+        rel = p - origins[:, None, :]
+        t = (rel * dirs[:, None, :]).sum(-1)                                   # [R, K]
+        perp = rel - t[..., None] * dirs[:, None, :]
+        rho = perp.norm(dim=-1)
+        s = self.spacing.clamp_min(1e-12)
+        big = torch.finfo(t.dtype).max / 4
+        t_min = torch.where(valid, t.detach(), torch.full_like(t, big)).min(dim=1, keepdim=True).values
+        t_min = torch.where(t_min >= big, torch.zeros_like(t_min), t_min)
+        # Clamp the key features: points sent far away or huge scene scales must not overflow the Fourier terms.
+        feats = torch.stack([(rho / s).clamp(max=64.0), ((t - t_min) / s).clamp(-64.0, 64.0)], dim=-1)
+        logits = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1) + influence[safe_idx]
+        temp = self.cfg.temperature if temperature is None else temperature
+        all_logits = torch.cat([logits, self.bg_logit.expand(logits.shape[0], 1)], dim=1) / max(temp, 1e-3)
+        all_logits = all_logits.masked_fill(torch.cat([~valid, torch.zeros_like(valid[:, :1])], 1), float("-inf"))
+        # The background slot is always valid, so every row has a finite max and softmax never sees all -inf.
+        a = torch.softmax(all_logits, dim=1)
+        w, bg = a[:, :-1], a[:, -1]
+        # x_i = Σ a_ij p_ij / Σ a_ij, computed as a softmax over the neighbour slots alone: identical when the
+        # foreground weight is positive, and still well defined when it underflows to zero (far-away rays).
+        any_valid = valid.any(dim=1, keepdim=True)
+        fg_logits = all_logits[:, :-1].masked_fill(~any_valid, 0.0)
+        a_fg = torch.softmax(fg_logits, dim=1)
+        x = (a_fg[..., None] * p).sum(1)
+        x = torch.where(any_valid, x, origins)  # no neighbour at all: a finite placeholder, marked by bg = 1
+        return {"weights": w, "bg": bg, "x": x, "t": t, "p": p, "valid": valid, "fg_weights": a_fg}
+
+    # ---- values ------------------------------------------------------------------------------------------------
+    def point_values(self, dirs: torch.Tensor | None = None, idx: torch.Tensor | None = None) -> torch.Tensor:
+        """Values per neighbour: [R, K, C] (C = 3 RGB in [0,1] without decoder, else feature size)."""
+        if self.cfg.view_dependent:
+            f = self.features[idx.clamp_min(0)]
+            d = fourier(dirs, 2)[:, None, :].expand(-1, f.shape[1], -1)
+            v = self.value_mlp(torch.cat([f, d], dim=-1))
+        else:  # values depend on the point only: evaluate once per point, then gather (N << R*K)
+            v = self.value_mlp(self.features)[idx.clamp_min(0)]
+        return torch.sigmoid(v) if self.decoder is None else v
+
+    def shade(self, att: dict, dirs: torch.Tensor, idx: torch.Tensor, background: torch.Tensor) -> dict:
+        """Ray colours (no decoder) or ray features (decoder) from attention. background [3] display colour."""
+        v = self.point_values(dirs, idx)
+        fv = (att["weights"][..., None] * v).sum(1)
+        if self.decoder is None:
+            rgb = fv + att["bg"][:, None] * background
+            return {"rgb": rgb, "feature": None}
+        return {"rgb": None, "feature": fv + att["bg"][:, None] * self.bg_value}
+
+    def decode(self, feature_image: torch.Tensor) -> torch.Tensor:
+        """feature_image [B, h, H, W] -> rgb [B, 3, H, W] (UNet decoder only)."""
+        return torch.sigmoid(self.decoder(feature_image))
+
+    # ---- (de)serialisation helpers ---------------------------------------------------------------------------
+    def config_dict(self) -> dict:
+        return dataclasses.asdict(self.cfg)
+
+
+def mean_spacing(xyz: torch.Tensor, sample: int = 2048) -> float:
+    """Median distance from a point to its nearest other point (on a random subset), xyz [N, 3]."""
+    n = xyz.shape[0]
+    if n < 2:
+        return 1.0
+    g = torch.Generator().manual_seed(0)
+    sel = torch.randperm(n, generator=g)[: min(sample, n)].to(xyz.device)
+    d = torch.cdist(xyz[sel].float(), xyz.float())
+    d[torch.arange(len(sel)), sel] = float("inf")
+    nn_d = d.min(dim=1).values
+    nn_d = nn_d[torch.isfinite(nn_d)]
+    med = float(nn_d.median()) if nn_d.numel() else 1.0
+    return med if math.isfinite(med) and med > 0 else 1.0

@@ -1,0 +1,79 @@
+"""Analytic ray-traced scenes for fast tests (no Blender): a textured sphere and a thin textured card.
+
+Colours are emission-like (no lighting) functions of the surface point, images are 2×2 supersampled so that
+alpha is anti-aliased like a Cycles render, cameras sit on a sphere looking at the origin.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import torch
+
+from core.images.cameras import focal_from_fov, look_at, pixel_rays
+from core.images.dataset import SplitData
+
+
+def stripes(x: torch.Tensor) -> torch.Tensor:
+    """A smooth colour field of 3-D position: x [N, 3] -> rgb [N, 3] in [0, 1]."""
+    r = 0.5 + 0.4 * torch.sin(4.0 * x[:, 0] + 1.0)
+    g = 0.5 + 0.4 * torch.sin(5.0 * x[:, 1] + 2.0)
+    b = 0.5 + 0.4 * torch.cos(3.0 * x[:, 2] + 0.5 * x[:, 0])
+    return torch.stack([r, g, b], dim=-1)
+
+
+def fibonacci_cameras(n: int, radius: float = 4.0, seed: int = 0) -> torch.Tensor:
+    """n camera-to-world matrices [n, 4, 4] spread over a sphere, looking at the origin."""
+    g = torch.Generator().manual_seed(seed)
+    off = float(torch.rand(1, generator=g))
+    mats = []
+    for i in range(n):
+        z = 1 - 2 * (i + 0.5) / n
+        z = max(min(z, 0.98), -0.98)
+        phi = math.pi * (3 - math.sqrt(5)) * i + 2 * math.pi * off
+        r = math.sqrt(1 - z * z)
+        eye = (radius * r * math.cos(phi), radius * r * math.sin(phi), radius * z)
+        mats.append(look_at(eye).float())
+    return torch.stack(mats)
+
+
+def _hit(shape: str, o: torch.Tensor, d: torch.Tensor):
+    """Ray hits: returns t [R] (inf = miss) for the analytic shapes."""
+    if shape == "sphere":
+        rad = 0.7
+        b = (o * d).sum(-1)
+        c = (o * o).sum(-1) - rad * rad
+        disc = b * b - c
+        t = -b - torch.sqrt(disc.clamp_min(0))
+        return torch.where((disc > 0) & (t > 0), t, torch.full_like(t, float("inf")))
+    if shape == "card":  # plane z = 0.05 * sin(2x), thin double-sided card |x| < 0.9, |y| < 0.5 (approximately bent)
+        t = -o[:, 2] / torch.where(d[:, 2].abs() > 1e-9, d[:, 2], torch.full_like(d[:, 2], 1e-9))
+        p = o + t[:, None] * d
+        ok = (t > 0) & (p[:, 0].abs() < 0.9) & (p[:, 1].abs() < 0.5)
+        return torch.where(ok, t, torch.full_like(t, float("inf")))
+    raise ValueError(shape)
+
+
+def render_split(shape: str, c2w: torch.Tensor, size: int, fov: float = 0.69, colour=stripes,
+                 background=(1.0, 1.0, 1.0), split: str = "train") -> SplitData:
+    """Render views of an analytic shape into a SplitData (images [V,H,W,3], alphas [V,H,W], ...)."""
+    focal = focal_from_fov(size, fov)
+    ss = 2
+    bg = torch.tensor(background)
+    ims, als = [], []
+    for m in c2w:
+        o, d = pixel_rays(m, size * ss, size * ss, focal * ss)
+        o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+        t = _hit(shape, o, d)
+        hit = torch.isfinite(t)
+        rgb = torch.zeros_like(o)
+        p = o[hit] + t[hit, None] * d[hit]
+        rgb[hit] = colour(p)
+        a = hit.float()
+        rgb = rgb.reshape(size, ss, size, ss, 3).mean((1, 3))
+        a = a.reshape(size, ss, size, ss).mean((1, 3))
+        ims.append(rgb + (1 - a[..., None]) * bg)
+        als.append(a)
+    files = [Path(f"{split}/r_{i}.png") for i in range(len(c2w))]
+    return SplitData(split=split, images=torch.stack(ims).float(), alphas=torch.stack(als).float(),
+                     c2w=c2w.float(), focal=focal, height=size, width=size, camera_angle_x=fov, files=files)

@@ -1,0 +1,76 @@
+"""`pointgt fit DATA --out MODEL.pgt`: stage 1 (PAPR points) and stage 2 (UV atlas + texture)."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from core.config import add_to_parser, from_args, to_dict
+from core.points.model import ModelConfig
+from core.points.train import TrainConfig
+
+NAME = "fit"
+HELP = "train a model from multi-view images (stage 1 points, stage 2 atlas)"
+ORDER = 20
+
+
+def add_arguments(p):
+    p.add_argument("data", help="dataset folder in the NeRF-synthetic layout (transforms_train.json, ...)")
+    p.add_argument("--out", required=True, help="model file to write (.pgt); an existing file is kept as .bak")
+    p.add_argument("--stage", choices=("papr", "atlas", "all"), default="all",
+                   help="papr = points only; atlas = refit stage 2 on an existing --out model; all = both")
+    p.add_argument("--points", type=int, default=None, help="initial number of points (= --num-points)")
+    p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_to_parser(p, ModelConfig)
+    add_to_parser(p, TrainConfig)
+    try:
+        from core.atlas.config import AtlasConfig
+        add_to_parser(p, AtlasConfig, prefix="atlas")
+    except ImportError:  # stage 2 not installed
+        pass
+
+
+def run(args) -> int:
+    from core.bundle import Bundle, load_bundle, save_bundle
+    from core.frames.report import plot_curves, write_history
+    from core.images.dataset import load_dataset
+    from core.points.train import fit_points
+
+    out = Path(args.out)
+    if out.suffix != ".pgt":
+        from tools.cli import UserError
+        raise UserError(f"--out must end in .pgt, got {out}")
+    model_cfg = from_args(ModelConfig, args)
+    if args.points is not None:
+        model_cfg = from_args(ModelConfig, args, base=model_cfg.__class__(**{**to_dict(model_cfg), "num_points": args.points}))
+    train_cfg = from_args(TrainConfig, args)
+    data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"), downscale=args.downscale)
+    train, test = data["train"], data["test"]
+    print(f"[fit] {args.data}: {len(train)} train / {len(test)} test views at {train.width}x{train.height}")
+    if args.stage in ("papr", "all"):
+        t0 = time.perf_counter()
+        model, history = fit_points(train, test, model_cfg, train_cfg, show_progress=not args.no_progress)
+        seconds = time.perf_counter() - t0
+        final = history[-1]
+        meta = {"scene": {"data": str(Path(args.data).resolve()), "width": train.width, "height": train.height,
+                          "camera_angle_x": train.camera_angle_x},
+                "train": {"config": to_dict(train_cfg), "seconds": round(seconds, 2),
+                          "train_seconds": final["seconds"], "steps": final["step"], "final": final}}
+        bundle = Bundle(model=model, meta=meta)
+        save_bundle(out, bundle)
+        hist_path = write_history(out.with_suffix(".history.json"), history,
+                                  {"model": to_dict(model_cfg), "train": to_dict(train_cfg)})
+        plot_curves(out.with_suffix(".curve.png"), {"stage 1": history},
+                    f"{Path(args.data).name}: test PSNR vs training time")
+        print(f"[fit] stage 1: {final['step']} steps in {final['seconds']:.0f} s, test PSNR {final['psnr']:.2f} dB "
+              f"(object {final['psnr_object']:.2f} dB), {model.num_points} points -> {out}")
+        print(f"[fit] PSNR-vs-time log {hist_path} and plot {out.with_suffix('.curve.png')}")
+    if args.stage in ("atlas", "all"):
+        from core.pipeline import fit_atlas_stage
+
+        bundle = load_bundle(out, device=train_cfg.device)
+        fit_atlas_stage(bundle, train, args, show_progress=not args.no_progress)
+        save_bundle(out, bundle)
+        print(f"[fit] stage 2 atlas saved into {out}")
+    return 0
