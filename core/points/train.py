@@ -119,12 +119,11 @@ class Densifier:
         return torch.topk(score, n).indices
 
 
-def _point_params(model: PointModel):
-    return [model.xyz, model.features, model.influence]
+_POINT_PARAMS = ("xyz", "features", "influence")
 
 
 def build_optimizer(model: PointModel, cfg: TrainConfig) -> torch.optim.Adam:
-    nets = [p for n, p in model.named_parameters() if n not in ("xyz", "features", "influence")]
+    nets = [p for n, p in model.named_parameters() if n not in _POINT_PARAMS]
     return torch.optim.Adam([
         {"params": [model.xyz], "lr": cfg.lr_points * float(model.spacing), "name": "xyz"},
         {"params": [model.features], "lr": cfg.lr_features, "name": "features"},
@@ -134,17 +133,22 @@ def build_optimizer(model: PointModel, cfg: TrainConfig) -> torch.optim.Adam:
 
 
 def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, jitter: torch.Tensor | None = None):
-    """Replace the point parameters by model.<param>[src] (+ jitter on xyz), carrying Adam state along."""
-    for p in _point_params(model):
-        new = p.data[src].clone()
-        if p is model.xyz and jitter is not None:
-            new += jitter
-        state = opt.state.pop(p, None)
-        p.data = new
-        if p.grad is not None:
-            p.grad = None
+    """Replace the point parameters by model.<param>[src] (+ jitter on xyz), carrying Adam state along.
+
+    New Parameter objects are created (changing .data's shape in place confuses autograd)."""
+    groups = {g["name"]: g for g in opt.param_groups}
+    for name in _POINT_PARAMS:
+        old = getattr(model, name)
+        data = old.detach()[src].clone()
+        if name == "xyz" and jitter is not None:
+            data += jitter
+        new = torch.nn.Parameter(data)
+        state = opt.state.pop(old, None)
+        setattr(model, name, new)
+        groups[name]["params"] = [new]
         if state:
-            opt.state[p] = {k: (v[src].clone() if torch.is_tensor(v) and v.dim() > 0 else v) for k, v in state.items()}
+            opt.state[new] = {k: (v[src].clone() if torch.is_tensor(v) and v.dim() > 0 else v)
+                              for k, v in state.items()}
 
 
 @torch.no_grad()
@@ -255,7 +259,7 @@ def fit_points(train, test, model_cfg: ModelConfig, cfg: TrainConfig, background
                         resize_points(model, opt, allidx, jit)
                         dens.reset(model.num_points, dev)
             train_s += time.perf_counter() - t0
-            bar.update(1, loss=float(loss), pts=model.num_points,
+            bar.update(1, loss=float(loss.detach()), pts=model.num_points,
                        psnr=history[-1]["psnr"] if history else float("nan"))
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points,
                     **evaluate(model, test, eval_ids, background)})
