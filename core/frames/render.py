@@ -43,27 +43,34 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     pts_search = torch.where(finite[:, None], pts, torch.full_like(pts, float("nan")))
     pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
     idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d)
-    out: dict[str, list] = {key: [] for key in ("weights", "fg_weights", "bg", "x")}
-    for s in range(0, o.shape[0], chunk):
-        sl = slice(s, s + chunk)
+    r = o.shape[0]
+    # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.
+    active = (idx >= 0).any(dim=1)
+    res = {"weights": torch.zeros(r, k, device=dev), "fg_weights": torch.zeros(r, k, device=dev),
+           "bg": torch.ones(r, device=dev), "x": o.clone()}
+    act = torch.nonzero(active).squeeze(1)
+    for s in range(0, act.shape[0], chunk):
+        sl = act[s:s + chunk]
         att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature)
-        for key in out:
-            out[key].append(att[key])
-    res = {key: torch.cat(v) for key, v in out.items()}
-    res.update(origins=o, dirs=d, idx=idx, shape=(height, width), non_finite_points=int((~finite).sum()))
+        for key in res:
+            res[key][sl] = att[key]
+    res.update(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),
+               non_finite_points=int((~finite).sum()))
     return res
 
 
 @torch.no_grad()
-def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chunk: int = 16384) -> torch.Tensor:
-    """Colours of a traced frame from the model's own point values: rgb [H, W, 3] in [0, 1]."""
+def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chunk: int = 16384,
+                features: torch.Tensor | None = None) -> torch.Tensor:
+    """Colours of a traced frame from the point values: rgb [H, W, 3] in [0, 1].
+    features [M, h]: per-point features of the traced points when they are not the model's own (ids)."""
     h, w = trace["shape"]
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
     for s in range(0, trace["idx"].shape[0], chunk):
         sl = slice(s, s + chunk)
         att = {"weights": trace["weights"][sl], "bg": trace["bg"][sl]}
-        parts.append(model.shade(att, trace["dirs"][sl], trace["idx"][sl], bg))
+        parts.append(model.shade(att, trace["dirs"][sl], trace["idx"][sl], bg, features=features))
     if model.decoder is None:
         rgb = torch.cat([p["rgb"] for p in parts]).reshape(h, w, 3)
     else:

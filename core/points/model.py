@@ -131,19 +131,23 @@ class PointModel(nn.Module):
         return {"weights": w, "bg": bg, "x": x, "t": t, "p": p, "valid": valid, "fg_weights": a_fg}
 
     # ---- values ------------------------------------------------------------------------------------------------
-    def point_values(self, dirs: torch.Tensor | None = None, idx: torch.Tensor | None = None) -> torch.Tensor:
-        """Values per neighbour: [R, K, C] (C = 3 RGB in [0,1] without decoder, else feature size)."""
+    def point_values(self, dirs: torch.Tensor | None = None, idx: torch.Tensor | None = None,
+                     features: torch.Tensor | None = None) -> torch.Tensor:
+        """Values per neighbour: [R, K, C] (C = 3 RGB in [0,1] without decoder, else feature size).
+        features [M, h] overrides the model's (e.g. features gathered by point ids after a part was duplicated)."""
+        feats = self.features if features is None else features
         if self.cfg.view_dependent:
-            f = self.features[idx.clamp_min(0)]
+            f = feats[idx.clamp_min(0)]
             d = fourier(dirs, 2)[:, None, :].expand(-1, f.shape[1], -1)
             v = self.value_mlp(torch.cat([f, d], dim=-1))
         else:  # values depend on the point only: evaluate once per point, then gather (N << R*K)
-            v = self.value_mlp(self.features)[idx.clamp_min(0)]
+            v = self.value_mlp(feats)[idx.clamp_min(0)]
         return torch.sigmoid(v) if self.decoder is None else v
 
-    def shade(self, att: dict, dirs: torch.Tensor, idx: torch.Tensor, background: torch.Tensor) -> dict:
+    def shade(self, att: dict, dirs: torch.Tensor, idx: torch.Tensor, background: torch.Tensor,
+              features: torch.Tensor | None = None) -> dict:
         """Ray colours (no decoder) or ray features (decoder) from attention. background [3] display colour."""
-        v = self.point_values(dirs, idx)
+        v = self.point_values(dirs, idx, features)
         fv = (att["weights"][..., None] * v).sum(1)
         if self.decoder is None:
             rgb = fv + att["bg"][:, None] * background

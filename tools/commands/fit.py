@@ -67,10 +67,14 @@ def run(args) -> int:
               f"(object {final['psnr_object']:.2f} dB), {model.num_points} points -> {out}")
         print(f"[fit] PSNR-vs-time log {hist_path} and plot {out.with_suffix('.curve.png')}")
     if args.stage in ("atlas", "all"):
+        from core.atlas.config import AtlasConfig
         from core.pipeline import fit_atlas_stage
 
         bundle = load_bundle(out, device=train_cfg.device)
-        fit_atlas_stage(bundle, train, args, show_progress=not args.no_progress)
+        atlas_cfg = from_args(AtlasConfig, args, prefix="atlas")
+        hist = fit_atlas_stage(bundle, train, atlas_cfg, show_progress=not args.no_progress)
         save_bundle(out, bundle)
-        print(f"[fit] stage 2 atlas saved into {out}")
+        write_history(out.with_suffix(".atlas_history.json"), [], {"atlas": hist, "config": to_dict(atlas_cfg)})
+        print(f"[fit] stage 2: {hist['n']} charts from {hist['samples']} surface samples in "
+              f"{hist['total_seconds']:.0f} s (fitting PSNR {hist['psnr'][-1]:.2f} dB) -> {out}")
     return 0

@@ -1,0 +1,149 @@
+"""Render a model after geometry edits (moved / removed / duplicated points) and texture edits (a painted atlas).
+
+Per frame: neighbours are re-selected and attention re-inferred among the deformed points; the point render gives
+the base colour; where the atlas was painted, the canonical correspondence maps each ray's surface point back to
+canonical space and the painted texture is looked up there. Work a frame does not need is skipped: no
+correspondence when the points did not move, no texture work when the atlas is unedited, no attention for rays
+with no neighbour (they cannot reach the object).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import torch
+
+from core.config import opt
+from core.edits.correspondence import MODES, canonical_points
+from core.edits.texture_edit import BLENDS, blend, check_atlas_image, edit_mask
+from core.frames.render import shade_frame, trace_frame
+from core.util.errors import InputError
+
+
+@dataclass
+class EditConfig:
+    """Edited rendering (correspondence and texture blending)."""
+
+    correspondence: str = opt("deform-aware", "canonical correspondence: deform-aware | naive", choices=MODES)
+    blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
+                     choices=BLENDS)
+    mask_threshold: float = opt(0.01, "a texel counts as painted when its colour changed by more than this (L2)")
+    temperature: float = opt(1.0, "attention softmax temperature at render time (< 1 sharpens attention)")
+    colour: str = opt("points", "object colour: points (point render, painted texels from the atlas) | atlas "
+                      "(every ray coloured from the atlas texture)", choices=("points", "atlas"))
+
+
+class EditState:
+    """Per-model edit inputs, validated once and reused across frames (animation, live preview).
+
+    points [M, 3] deformed positions (None = canonical), ids [M] canonical index of each point (None = identity,
+    requires M == N), atlas [H, W, 3] painted atlas (None = unedited). Non-finite positions (a broken rig) are
+    counted and treated as absent points.
+    """
+
+    def __init__(self, bundle, points=None, ids=None, atlas=None, cfg: EditConfig | None = None):
+        self.bundle = bundle
+        self.cfg = cfg or EditConfig()
+        model = bundle.model
+        dev = model.xyz.device
+        n = model.num_points
+        if points is None and ids is not None:
+            raise InputError("ids were given without points: pass the deformed positions they belong to")
+        self.moved = points is not None
+        if points is None:
+            self.points = model.xyz.detach()
+            self.ids = None
+        else:
+            pts = torch.as_tensor(points)
+            if pts.dim() != 2 or pts.shape[1] != 3:
+                raise InputError(f"points: expected shape [M, 3], got {tuple(pts.shape)}")
+            pts = pts.to(dev, torch.float32)
+            if ids is None:
+                if pts.shape[0] != n:
+                    raise InputError(f"points: {pts.shape[0]} positions for a model of {n} points and no ids; "
+                                     "pass ids (the canonical index of each point) when points were added or removed")
+                self.ids = None
+            else:
+                idt = torch.as_tensor(ids)
+                if idt.dim() != 1 or idt.shape[0] != pts.shape[0]:
+                    raise InputError(f"ids: expected shape [{pts.shape[0]}] (one per point), got {tuple(idt.shape)}")
+                if idt.dtype.is_floating_point or idt.dtype == torch.bool:
+                    raise InputError(f"ids: expected integers, got {idt.dtype}")
+                idt = idt.to(dev, torch.long)
+                if idt.numel() and (int(idt.min()) < 0 or int(idt.max()) >= n):
+                    raise InputError(f"ids: values must lie in [0, {n - 1}] for this model, found "
+                                     f"[{int(idt.min())}, {int(idt.max())}]")
+                self.ids = idt
+            self.points = pts
+        self.non_finite_points = int((~torch.isfinite(self.points).all(1)).sum())
+        self.p_can = model.xyz.detach() if self.ids is None else model.xyz.detach()[self.ids]
+        self.features = None if self.ids is None else model.features.detach()[self.ids]
+        self.influence = model.influence.detach() if self.ids is None else model.influence.detach()[self.ids]
+        if self.moved and self.ids is None and torch.equal(self.points, model.xyz.detach()):
+            self.moved = False  # same positions as canonical: nothing to correspond
+        self.atlas_image = None
+        self.mask_image = None
+        atl = bundle.atlas
+        if atlas is not None:
+            if atl is None:
+                raise InputError("an edited atlas was given but this model has no atlas; run `pointgt atlas` first")
+            original = atl.packed_image().to(dev)
+            img = check_atlas_image(atlas, tuple(original.shape[:2])).to(dev)
+            mask = edit_mask(original, img, self.cfg.mask_threshold)
+            if bool(mask.any()):  # unedited atlas: skip all texture work
+                self.atlas_image = img
+                self.mask_image = mask[..., None].expand(-1, -1, 3).contiguous()
+        if self.cfg.colour == "atlas":
+            if atl is None:
+                raise InputError("colour 'atlas' needs a model with an atlas; run `pointgt atlas` first")
+            if self.atlas_image is None:
+                self.atlas_image = atl.packed_image().to(dev)
+            self.mask_image = torch.ones_like(self.atlas_image)
+
+    @property
+    def textured(self) -> bool:
+        return self.atlas_image is not None
+
+
+@torch.no_grad()
+def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, focal: float,
+                  background=(1.0, 1.0, 1.0)) -> dict:
+    """One frame: dict(rgb [H, W, 3], alpha [H, W], x_can [H, W, 3] (NaN off the object), stats)."""
+    t0 = time.perf_counter()
+    bundle, cfg = state.bundle, state.cfg
+    model = bundle.model
+    tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
+                     temperature=cfg.temperature)
+    rgb = shade_frame(model, tr, background, features=state.features).reshape(-1, 3)
+    fg = 1.0 - tr["bg"]
+    hit = tr["active"] & (fg > 1e-4)
+    x_can = torch.full_like(tr["x"], float("nan"))
+    stats = {"rays": int(tr["idx"].shape[0]), "rays_shaded": int(tr["active"].sum()),
+             "non_finite_points": state.non_finite_points, "texture_rays": 0, "correspondence": "skipped"}
+    if state.textured and bool(hit.any()):
+        sel = torch.nonzero(hit).squeeze(1)
+        x_hat = tr["x"][sel]
+        if state.moved:
+            pts = torch.nan_to_num(state.points, nan=0.0, posinf=0.0, neginf=0.0)
+            xc = canonical_points(tr["fg_weights"][sel], tr["idx"][sel], x_hat, tr["origins"][sel],
+                                  tr["dirs"][sel], pts, state.p_can, cfg.correspondence)
+            stats["correspondence"] = cfg.correspondence
+        else:  # nothing moved: the canonical point is the ray's own surface point
+            xc = x_hat
+        bad = ~torch.isfinite(xc).all(1)
+        stats["non_finite_lookups_repaired"] = int(bad.sum())
+        xc = torch.where(bad[:, None], x_hat.nan_to_num(0.0), xc)
+        atlas = bundle.atlas
+        tex = atlas.lookup(xc, state.atlas_image)
+        m = atlas.lookup(xc, state.mask_image)[:, 0]
+        bgc = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
+        f = fg[sel][:, None]
+        # The point render is fg·c + (1 − fg)·background; edit the object colour c, keep the coverage fg.
+        c = ((rgb[sel] - (1 - f) * bgc) / f.clamp_min(1e-4)).clamp(0, 1)
+        rgb[sel] = f * blend(c, tex, m, cfg.blend) + (1 - f) * bgc
+        x_can[sel] = xc
+        stats["texture_rays"] = int(sel.numel())
+    stats["seconds"] = time.perf_counter() - t0
+    rgb = torch.nan_to_num(rgb, nan=1.0).clamp(0, 1)
+    return {"rgb": rgb.reshape(height, width, 3), "alpha": fg.reshape(height, width),
+            "x_can": x_can.reshape(height, width, 3), "stats": stats, "trace": tr}

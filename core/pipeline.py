@@ -1,0 +1,46 @@
+"""Glue between the stages: stage 2 (atlas) from a trained stage-1 model and its training images."""
+from __future__ import annotations
+
+import time
+
+import torch
+
+from core.atlas.config import AtlasConfig
+from core.atlas.fit import fit_atlas
+from core.atlas.samples import extract_surface_samples
+from core.images.cameras import project_points
+from core.points.select import select_neighbors
+
+
+def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0):
+    """Stage-2 input from a stage-1 model: xyz [S, 3], rgb [S, 3] over all views of `split` (SplitData)."""
+    current = {}
+
+    def views():
+        for i in range(len(split)):
+            current["c2w"] = split.c2w[i].to(model.xyz.device)
+            yield split.c2w[i], split.height, split.width, split.focal, split.images[i], split.alphas[i]
+
+    @torch.no_grad()
+    def render_fn(o, d):
+        c2w = current["c2w"]
+        o, d = o.to(model.xyz.device), d.to(model.xyz.device)
+        px, _ = project_points(o + d, c2w, split.height, split.width, split.focal)  # back to pixel coordinates
+        idx = select_neighbors(model.xyz, model.cfg.neighbors, model.cfg.k, c2w, split.height, split.width,
+                               split.focal, px, o, d)
+        att = model.attend(model.xyz, model.influence, o, d, idx)
+        return {"x": att["x"], "fg": 1.0 - att["bg"]}
+
+    return extract_surface_samples(render_fn, views(), max_samples=max_samples, seed=seed)
+
+
+def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True, progress_callback=None):
+    """Fit stage 2 into `bundle` (sets bundle.atlas and bundle.meta['atlas_fit']); returns the fit history."""
+    t0 = time.perf_counter()
+    xyz, rgb = surface_samples(bundle.model, split, seed=cfg.seed)
+    t_samples = time.perf_counter() - t0
+    atlas, history = fit_atlas(xyz, rgb, cfg, progress=progress_callback, quiet=not show_progress)
+    bundle.atlas = atlas
+    history = {**history, "samples": int(xyz.shape[0]), "sample_seconds": round(t_samples, 2)}
+    bundle.meta["atlas_fit"] = {k: v for k, v in history.items() if not isinstance(v, list)}
+    return history

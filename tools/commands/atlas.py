@@ -1,0 +1,38 @@
+"""`pointgt atlas MODEL.pgt DATA`: refit stage 2 (UV atlas + texture) of an existing model."""
+from __future__ import annotations
+
+NAME = "atlas"
+HELP = "refit the UV atlas and texture (stage 2) of a model from its training images"
+ORDER = 25
+
+
+def add_arguments(p):
+    from core.atlas.config import AtlasConfig
+    from core.config import add_to_parser
+
+    p.add_argument("model", help="model file (.pgt); rewritten in place, the previous version kept as .bak")
+    p.add_argument("data", help="the dataset the model was trained on (NeRF-synthetic layout)")
+    p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_to_parser(p, AtlasConfig, prefix="atlas")
+
+
+def run(args) -> int:
+    from pathlib import Path
+
+    from core.atlas.config import AtlasConfig
+    from core.bundle import load_bundle, save_bundle
+    from core.config import from_args, to_dict
+    from core.frames.report import write_history
+    from core.images.dataset import load_split
+    from core.pipeline import fit_atlas_stage
+
+    cfg = from_args(AtlasConfig, args, prefix="atlas")
+    bundle = load_bundle(args.model, device=cfg.device)
+    train = load_split(args.data, "train", downscale=args.downscale)
+    hist = fit_atlas_stage(bundle, train, cfg, show_progress=not args.no_progress)
+    save_bundle(args.model, bundle)
+    write_history(Path(args.model).with_suffix(".atlas_history.json"), [], {"atlas": hist, "config": to_dict(cfg)})
+    print(f"stage 2: {hist['n']} charts from {hist['samples']} samples in {hist['total_seconds']:.0f} s "
+          f"(fitting PSNR {hist['psnr'][-1]:.2f} dB) -> {args.model}")
+    return 0
