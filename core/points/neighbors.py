@@ -22,6 +22,7 @@ benchmark (`python -m tools.bench.neighbors`) times the fast path against.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
 from dataclasses import dataclass
@@ -35,12 +36,25 @@ from core.images.cameras import project_points
 from core.util.errors import InputError
 
 METHODS = ("screen", "screen_depth", "perpendicular")
-BACKENDS = ("auto", "kdtree", "torch")
+BACKENDS = ("auto", "grid", "kdtree", "torch")
 _CHUNK_ELEMS = 1 << 22  # rays × points per brute-force chunk (~16 MB of float32 distances)
 _NEAR_POINTS = 32  # smallest-weight points handled by brute force in the weighted tree search
 _LAYERS = 4  # weight layers of the weighted tree search (see _WeightedTree)
 _MIN_TREE_RAYS = 64  # fewer rays than this from one origin: brute force beats building a tree
 _MAX_COORD = 1e18  # beyond this a point has diverged; squared distances would overflow float32 on the torch path
+_AUTO_FACTOR = 2.0  # "auto" cap = this × the radius holding K points at the median projected density ...
+_AUTO_MIN_PX = 1.5  # ... and at least this many pixels
+_DENSITY_CELL_POINTS = 16  # density cells hold this many points on average if spread over the whole frame
+_GRID_BANDS = 4  # grid bands per cap radius: more bands hug the search disc tighter but cost more runs
+_BINS_PER_SIDE = 4  # grid cells are this many times narrower than tall: runs overshoot the disc by < 1 cell
+_MAX_BANDS = 1 << 16  # bounds the cell table for tiny caps ...
+_MAX_CELLS = 1 << 21  # ... (2 × 16 MB of int64 prefix counts at most)
+_STAGE1_FACTOR = 1.25  # stage-1 disc radius / radius holding K points at the query's density (pixel distance)
+_STAGE1_MIN_COUNT = 2.5  # queries with at most this many × K points around them skip stage 1
+_STAGE1_FACTOR_WEIGHTED = 1.5  # the same for depth-weighted ranks: far layers (e.g. a back side) fill the disc
+_OUTSIDE = 1e30  # rank penalty per pixel beyond the search radius (finite: 0 × inf would be nan)
+_GROUP_MIN_WIDTH = 16  # narrower query groups are merged: per-group overhead beats padding there
+_GRID_BUDGET = 1 << 15  # candidate slots per table chunk: the working set stays in cache, one dense spot in memory
 
 
 @dataclass
@@ -49,8 +63,11 @@ class NeighborConfig:
 
     method: str = opt("screen_depth", "neighbour metric: screen | screen_depth | perpendicular", choices=METHODS)
     k: int = opt(20, "neighbours per ray K")
-    backend: str = opt("auto", "auto = k-d tree for CPU tensors, chunked torch brute force elsewhere",
-                       choices=BACKENDS)
+    max_radius_px: float = opt(0.0, "screen metrics: a point is a candidate only within this many pixels of the "
+                                    "ray's pixel (rays with none hit the background); 0 = auto from the projected "
+                                    "point density, -1 = no cap")
+    backend: str = opt("auto", "auto = pixel grid for capped screen metrics, else k-d tree for CPU tensors and "
+                               "chunked torch brute force elsewhere", choices=BACKENDS)
 
 
 class Neighbors(NamedTuple):
@@ -82,12 +99,33 @@ def _check_matrix(name: str, t, cols: int) -> torch.Tensor:
     return t
 
 
-def _check_backend(backend: str, device: torch.device) -> str:
+def _check_backend(backend: str, device: torch.device, capped: bool = False) -> str:
+    """Resolve "auto": the grid for capped screen searches, else the k-d tree on CPU and brute force elsewhere."""
     if backend not in BACKENDS:
         raise InputError(f"neighbour search: backend must be one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
-        return "kdtree" if device.type == "cpu" else "torch"
+        return "grid" if capped else "kdtree" if device.type == "cpu" else "torch"
+    if backend == "grid" and not capped:
+        raise InputError("neighbour search: backend 'grid' needs a finite max_radius_px (screen metrics only); "
+                         "use backend 'auto', 'kdtree' or 'torch'")
+    if backend == "kdtree" and capped:
+        raise InputError("neighbour search: backend 'kdtree' searches without a radius cap; set max_radius_px to "
+                         "-1 (no cap) or use backend 'auto' / 'grid'")
     return backend
+
+
+def _check_radius(value) -> float | str:
+    """max_radius_px -> "auto", a positive float, or inf (no cap). 0 also means auto and a negative number no cap
+    (the config spelling: JSON has no infinity)."""
+    if isinstance(value, str):
+        if value != "auto":
+            raise InputError(f"neighbour search: max_radius_px must be 'auto' or a number of pixels, got {value!r}")
+        return value
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or math.isnan(value):
+        raise InputError(f"neighbour search: max_radius_px must be 'auto' or a number of pixels, got {value!r}")
+    if value == 0:
+        return "auto"
+    return math.inf if value < 0 else float(value)
 
 
 def _check_camera(c2w, height, width, focal) -> None:
@@ -152,11 +190,16 @@ def _perpendicular_brute(points: torch.Tensor, origins: torch.Tensor, dirs: torc
     return _finalize(idx, dist, k, points.device)
 
 
-def _screen_brute(px: torch.Tensor, weight: torch.Tensor | None, query: torch.Tensor, k: int) -> Neighbors:
-    """px [M, 2] projected candidates, weight [M] or None, query [R, 2]; ranks by weight × pixel distance."""
+def _screen_brute(px: torch.Tensor, weight: torch.Tensor | None, query: torch.Tensor, k: int,
+                  cap: float = math.inf) -> Neighbors:
+    """px [M, 2] projected candidates, weight [M] or None, query [R, 2]; ranks by weight × pixel distance among
+    the points within `cap` pixels."""
     def dist_fn(sl):
         d = torch.cdist(query[sl], px, compute_mode="donot_use_mm_for_euclid_dist")  # mm form loses ~0.01 px
-        return d if weight is None else d * weight[None, :]
+        far = d > cap
+        if weight is not None:
+            d = d * weight[None, :]
+        return d.masked_fill(far, math.inf)
     idx, dist = _topk_chunked(dist_fn, query.shape[0], px.shape[0], k, px.device)
     return Neighbors(idx, dist)
 
@@ -284,21 +327,247 @@ def _sin_to_chord(s: np.ndarray) -> np.ndarray:
     return np.where(s < 1.0, c, math.sqrt(2.0))
 
 
+# --------------------------------------------------------------------------------- pixel-space grid (any device)
+def _median_density(px: torch.Tensor, height: int, width: int) -> float:
+    """Projected points per square pixel where the object is: px [M, 2] (col, row) -> the median over points of
+    the density of the grid cell holding the point. Weighting by points, not cells, lets interior cells outvote
+    the partial cells along the silhouette. Cells are sized to hold ~_DENSITY_CELL_POINTS points: first at the
+    density of the whole frame, then once more at the density this first pass found (objects smaller than the
+    frame)."""
+    m = px.shape[0]
+    if m == 0:
+        return 0.0
+    density = m / ((width + 2.0) * (height + 2.0))  # candidates lie inside the frame ± 1 px
+    for _ in range(2):
+        side = min(math.sqrt(_DENSITY_CELL_POINTS / density), width + 2.0, height + 2.0)
+        cols = int((width + 2.0) // side) + 1
+        cell = ((px[:, 1] + 1.0) // side).long() * cols + ((px[:, 0] + 1.0) // side).long()
+        counts = torch.bincount(cell.clamp(min=0))
+        density = float(counts[cell].to(torch.float64).median()) / (side * side)
+    return density
+
+
+def auto_radius_px(density: float, k: int) -> float:
+    """The "auto" pixel radius cap: _AUTO_FACTOR × the radius of a disc holding k points at `density` points per
+    square pixel, at least _AUTO_MIN_PX. An interior pixel then sees ≈ _AUTO_FACTOR² · k candidates."""
+    if not density > 0:
+        return _AUTO_MIN_PX
+    return max(_AUTO_MIN_PX, _AUTO_FACTOR * math.sqrt(k / (math.pi * density)))
+
+
+class _CellGrid:
+    """Candidates within `cap` pixels of a query, exact, in pure torch (CPU or GPU).
+
+    Cells are `side` = cap / _GRID_BANDS tall and side / _BINS_PER_SIDE wide; points are sorted by cell, row-major,
+    and an exclusive prefix count per cell turns "the points of one band between two columns" into one contiguous
+    run, found by two table lookups. A disc of radius ρ around a query touches ≤ ρ / side + 2 bands, each with
+    the disc's column half-width in that band, so its runs cover little more than the disc. Runs are laid side by
+    side in a padded [queries, width] table, queries grouped by candidate count (narrow tables, and one dense spot
+    costs its own queries time, not everyone's memory), then an exact distance test and a top-k.
+
+    Two stages keep the tables narrow. Stage 1 searches a disc expected to hold ≈ _STAGE1_FACTOR² · K points at
+    the query's density; its answer is final where it proves that nothing outside the disc does better: the K-th
+    value ≤ ρ₁ · (smallest weight near the query; 1 for plain pixel distance). Otherwise stage 2 searches the disc
+    of radius min(cap, K-th value / smallest weight), which that bound shows complete.
+    """
+
+    def __init__(self, px: torch.Tensor, weight: torch.Tensor | None, cap: float, density: float, height: int,
+                 width: int):
+        self.cap, self.density = float(cap), float(density)
+        self.side = max(self.cap / _GRID_BANDS, (height + 2.0) / _MAX_BANDS)
+        self.bands = int((height + 2.0) // self.side) + 1
+        self.bin = self.side / _BINS_PER_SIDE
+        self.bins = int((width + 2.0) // self.bin) + 2
+        if self.bands * self.bins > _MAX_CELLS:  # wide frame with a tiny cap: coarser columns
+            self.bins = max(2, _MAX_CELLS // self.bands)
+            self.bin = (width + 2.0) / (self.bins - 2)
+        self.xmax = width + 2.0  # shifted column x + 1 of a candidate lies in [0, xmax]
+        band = ((px[:, 1] + 1.0) // self.side).clamp(0, self.bands - 1).long()
+        col = ((px[:, 0] + 1.0) // self.bin).clamp(0, self.bins - 1).long()
+        cell, order = torch.sort(band * self.bins + col)
+        counts = torch.bincount(cell, minlength=self.bands * self.bins)
+        self.prefix = torch.nn.functional.pad(torch.cumsum(counts, 0), (1, 0))  # [cells + 1] points before a cell
+        grid = counts.view(self.bands, self.bins)
+        self.table = torch.nn.functional.pad(grid.cumsum(0).cumsum(1), (1, 0, 1, 0))  # [bands+1, bins+1] summed area
+        self.m = m = order.numel()
+        pad = (0, m)  # slots M.. are sentinels at infinity: a query's table is padded with them
+        self.order = torch.nn.functional.pad(order, pad, value=-1)  # [2M] sorted slot -> point, -1 = sentinel
+        self.x = torch.nn.functional.pad(px[order, 0].to(torch.float32), pad, value=math.inf)  # [2M] sorted
+        self.y = torch.nn.functional.pad(px[order, 1].to(torch.float32), pad, value=math.inf)
+        self.weight = None if weight is None else torch.nn.functional.pad(weight[order].to(torch.float32), pad,
+                                                                          value=1.0)
+        self.wmin = None  # [bands, coarse cols] smallest weight within the cap of any query in that coarse cell
+        if weight is not None:
+            per = _BINS_PER_SIDE
+            coarse_cols = (self.bins + per - 1) // per
+            wcell = torch.full((self.bands * coarse_cols,), math.inf, dtype=torch.float32, device=px.device)
+            wcell.scatter_reduce_(0, band * coarse_cols + col // per, weight.to(torch.float32), "amin")
+            reach = int(math.ceil(self.cap / min(self.side, self.bin * per))) + 1  # cells a cap disc spans each way
+            self.wmin = -torch.nn.functional.max_pool2d(-wcell.view(1, self.bands, coarse_cols), 2 * reach + 1,
+                                                         stride=1, padding=reach)[0]
+
+    def _square_count(self, q: torch.Tensor) -> torch.Tensor:
+        """q [R, 2] float64 finite -> [R] int64: points in the cells meeting the square of half-side cap around q,
+        a superset of the cap disc (0 = certainly no candidate)."""
+        lo = ((q + (1.0 - self.cap)) / torch.tensor([self.bin, self.side], device=q.device, dtype=q.dtype)).floor()
+        hi = ((q + (1.0 + self.cap)) / torch.tensor([self.bin, self.side], device=q.device, dtype=q.dtype)).floor()
+        c0 = lo[:, 0].clamp(0, self.bins).long()
+        c1 = (hi[:, 0] + 1).clamp(0, self.bins).long().maximum(c0)
+        b0 = lo[:, 1].clamp(0, self.bands).long()
+        b1 = (hi[:, 1] + 1).clamp(0, self.bands).long().maximum(b0)
+        t = self.table
+        return t[b1, c1] - t[b0, c1] - t[b1, c0] + t[b0, c0]
+
+    def _runs(self, q: torch.Tensor, radius: torch.Tensor):
+        """q [R, 2] float64 finite, radius [R] float64 (≤ cap) -> start, length [R, S] int64: one run per band,
+        a superset of the points within `radius` of the query (inside the frame ± 1 px)."""
+        side, rad = self.side, radius[:, None]
+        slack = 1e-9 * (1.0 + self.cap)  # rounding margin: runs may hold a few extra points, the exact test drops them
+        first = torch.floor((q[:, 1:2] + 1.0 - rad - slack) / side)  # [R, 1]
+        span = int(math.ceil(2.0 * float(radius.max()) / side)) + 2 if radius.numel() else 1  # bands a disc meets
+        band = first + torch.arange(span, device=q.device, dtype=q.dtype)  # [R, S]
+        y0 = band * side - 1.0  # band covers rows [y0, y0 + side)
+        dy = torch.clamp(torch.maximum(y0 - q[:, 1:2], q[:, 1:2] - (y0 + side)), min=0.0)
+        half2 = (rad + slack) ** 2 - dy * dy
+        half = torch.sqrt(half2.clamp(min=0.0)) + slack
+        lo, hi = q[:, 0:1] + 1.0 - half, q[:, 0:1] + 1.0 + half
+        active = (half2 >= 0) & (band >= 0) & (band < self.bands) & (hi >= 0) & (lo <= self.xmax)
+        base = band.clamp(0, self.bands - 1).long() * self.bins
+        c_lo = (lo.clamp(0.0, self.xmax) / self.bin).long().clamp(max=self.bins - 1)
+        c_hi = (hi.clamp(0.0, self.xmax) / self.bin).long().clamp(max=self.bins - 1)
+        start = self.prefix.take(base + c_lo)
+        return start, (self.prefix.take(base + c_hi + 1) - start) * active
+
+    def _select(self, q: torch.Tensor, radius: torch.Tensor, k: int):
+        """K best among the points within `radius` pixels: q [r, 2] float64, radius [r] float64 -> (slot [r, k]
+        into the sorted points, value [r, k] float32 ascending, inf = none)."""
+        r = q.shape[0]
+        start, length = self._runs(q, radius)
+        count_s, srt = torch.sort(length.sum(dim=1))  # grouped by candidate count; results in this order
+        start, length = start.index_select(0, srt), length.index_select(0, srt)
+        q32 = q.index_select(0, srt).to(torch.float32)
+        rad32 = radius.index_select(0, srt).to(torch.float32)[:, None]
+        slot = torch.zeros((r, k), dtype=torch.int64, device=q.device)
+        value = torch.full((r, k), math.inf, dtype=torch.float32, device=q.device)
+        for a, b, wid in _groups(count_s, _GRID_BUDGET):
+            n = b - a
+            pos = _run_positions(start[a:b], length[a:b], wid, self.m).view(-1)  # [n * wid], padding -> sentinels
+            qs, rs = q32[a:b], rad32[a:b]
+            dx = self.x.index_select(0, pos).view(n, wid).sub_(qs[:, 0:1])
+            dy = self.y.index_select(0, pos).view(n, wid).sub_(qs[:, 1:2])
+            d = dx.mul_(dx).add_(dy.mul_(dy)).sqrt_()  # pixel distance [n, wid], inf for sentinels
+            v = d.sub(rs).clamp_(min=0.0).mul_(_OUTSIDE)  # beyond the radius: ranks after every candidate
+            v.add_(d if self.weight is None else self.weight.index_select(0, pos).view(n, wid).mul_(d))
+            kk = min(k, wid)
+            vals, col = torch.topk(v, kk, dim=1, largest=False, sorted=True)
+            inside = torch.gather(d, 1, col) <= rs  # (boolean masks on the whole table are slow on CPU)
+            slot[a:b, :kk] = torch.gather(pos.view(n, wid), 1, col)
+            value[a:b, :kk] = torch.where(inside, vals, math.inf)
+        inverse = torch.empty_like(srt)
+        inverse[srt] = torch.arange(r, device=q.device)
+        return slot.index_select(0, inverse), value.index_select(0, inverse)
+
+    def query(self, q: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """q [R, 2] float64 (non-finite rows = no neighbours) -> (idx [R, k] into the points given to __init__, -1
+        = none; dist [R, k] float32 ascending, inf = none)."""
+        r = q.shape[0]
+        idx = torch.full((r, k), -1, dtype=torch.int64, device=q.device)
+        dist = torch.full((r, k), math.inf, dtype=torch.float32, device=q.device)
+        q = torch.where(torch.isfinite(q).all(dim=1, keepdim=True), q, -1e9)  # far outside: no runs
+        cap = torch.full((r,), self.cap, dtype=torch.float64, device=q.device)
+        count = self._square_count(q)
+        rows = torch.nonzero(count > 0).squeeze(1)
+        if rows.numel() == 0:
+            return idx, dist
+        q, count, cap = q[rows], count[rows].to(torch.float64), cap[rows]
+        # stage 1: the density is the larger of the square's and the median one (a disc cut by the silhouette)
+        density = torch.clamp(count / (2.0 * self.cap + self.side) ** 2, min=self.density)
+        factor = _STAGE1_FACTOR if self.weight is None else _STAGE1_FACTOR_WEIGHTED
+        rad1 = torch.minimum(factor * torch.sqrt(k / (math.pi * density)), cap)
+        rad1 = torch.where(count <= _STAGE1_MIN_COUNT * k, cap, rad1)  # few candidates: one stage is cheaper
+        slot, value = self._select(q, rad1, k)
+        wmin = torch.ones_like(rad1, dtype=torch.float32)
+        if self.wmin is not None:
+            band = ((q[:, 1] + 1.0) // self.side).clamp(0, self.wmin.shape[0] - 1).long()
+            col = ((q[:, 0] + 1.0) // (self.bin * _BINS_PER_SIDE)).clamp(0, self.wmin.shape[1] - 1).long()
+            wmin = self.wmin[band, col]
+        kth = value[:, -1]
+        done = torch.isfinite(kth) & (kth <= rad1.to(torch.float32) * wmin)
+        done |= rad1 >= cap  # stage 1 already searched the whole cap disc
+        redo = torch.nonzero(~done).squeeze(1)
+        if redo.numel():  # stage 2: the disc that the stage-1 K-th value shows complete
+            bound = (kth[redo] / wmin[redo]).to(torch.float64) * (1 + 1e-6)
+            rad2 = torch.where(torch.isfinite(bound), torch.minimum(bound, cap[redo]), cap[redo])
+            slot[redo], value[redo] = self._select(q[redo], rad2, k)
+        idx[rows] = torch.where(torch.isfinite(value), self.order[slot], -1)  # sentinels are never finite
+        dist[rows] = value
+        return idx, dist
+
+
+@contextlib.contextmanager
+def _one_cpu_thread(device: torch.device):
+    """Run torch CPU ops on one thread inside: the grid search is hundreds of small ops, and on a shared CPU each
+    multi-threaded op can wait a scheduler tick for its second thread (see docs/bench-neighbors.md)."""
+    if device.type != "cpu":
+        yield
+        return
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _groups(count: torch.Tensor, budget: int):
+    """count [R] ascending candidates per query -> (a, b, width) slices, width = count[b − 1] > 0, whose widths
+    differ by at most ~50 % (padding vs. per-slice overhead) and whose padded tables (b − a) × width stay within
+    budget."""
+    c = count.cpu()
+    n = c.shape[0]
+    a = int(torch.searchsorted(c, 1))  # skip queries without candidates
+    while a < n:
+        limit = max(int(c[a]) * 3 // 2, _GROUP_MIN_WIDTH)
+        b = int(torch.searchsorted(c, limit, right=True))
+        b = max(a + 1, min(b, a + budget // max(int(c[b - 1]), 1)))
+        yield a, b, int(c[b - 1])
+        a = b
+
+
+def _run_positions(start: torch.Tensor, length: torch.Tensor, width: int, tail: int) -> torch.Tensor:
+    """Runs laid side by side: start/length [r, S] -> pos [r, width] with pos[i, t] = start[i, j] + (t − first
+    slot of run j) for the run j holding slot t, and tail + (t − run total) past the last run. Built as a
+    cumulative sum of jumps at the run boundaries (empty runs telescope away)."""
+    r = start.shape[0]
+    start = torch.cat([start, start.new_full((r, 1), tail)], dim=1)
+    length = torch.cat([length, length.new_full((r, 1), width)], dim=1)
+    first = torch.cumsum(length, dim=1) - length  # [r, S] first slot of each run
+    offset = start - first  # pos = t + offset inside run j
+    jump = offset - torch.nn.functional.pad(offset[:, :-1], (1, 0))
+    acc = torch.zeros((r, width + 1), dtype=torch.int64, device=start.device)
+    acc.scatter_add_(1, first.clamp(max=width), jump)
+    return torch.cumsum(acc[:, :width], dim=1) + torch.arange(width, device=start.device)
+
+
 # -------------------------------------------------------------------------------------------- public indexes
 class ScreenIndex:
     """Projected points of one camera, built once and queried many times (e.g. every chunk of a frame).
 
     points [N, 3]; c2w [4, 4] or [3, 4]; height, width in pixels; focal in pixels. depth_factor=False ranks by
     pixel distance (pixels), True by pixel distance × depth / focal (world units, ≈ perpendicular distance).
+    max_radius_px: candidates lie within this many pixels of the query; "auto" (or 0) derives it from the
+    projected density and K (`radius_px(k)`), inf (or a negative number) means no cap.
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal: float,
-                 depth_factor: bool = False, backend: str = "auto"):
+                 depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto"):
         _check_matrix("points", points, 3)
         _check_camera(c2w, height, width, focal)
+        self.radius = _check_radius(max_radius_px)
         self.device = points.device
-        self.backend = _check_backend(backend, self.device)
+        self.backend = _check_backend(backend, self.device, capped=self.radius != math.inf)
         self.depth_factor = depth_factor
+        self.height, self.width = int(height), int(width)
         p = points.detach().to(torch.float64)
         px, depth = project_points(p, c2w.detach().to(p.device, torch.float64), height, width, float(focal))
         keep = _present(p) & torch.isfinite(px).all(dim=1) & (depth > 0)
@@ -306,13 +575,26 @@ class ScreenIndex:
         self.ids = torch.nonzero(keep).squeeze(1)  # [M] original point index of each candidate
         self.px = px[keep]  # [M, 2] (col, row)
         self.weight = depth[keep] / float(focal) if depth_factor else None  # [M]
+        self._density: float | None = None
+        self._grids: dict[float, _CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
         self._tree = None
         if self.backend == "kdtree":
             w = None if self.weight is None else self.weight.cpu().numpy()
             self._tree = _WeightedTree(self.px.cpu().numpy(), w)
-        else:
+        elif self.backend == "torch":
             self._px32 = self.px.to(torch.float32)
             self._w32 = None if self.weight is None else self.weight.to(torch.float32)
+
+    def radius_px(self, k: int) -> float:
+        """The pixel radius cap a query with K = k uses (inf = no cap)."""
+        if self.radius != "auto":
+            return self.radius
+        return auto_radius_px(self._median_density(), _check_k(k))
+
+    def _median_density(self) -> float:
+        if self._density is None:
+            self._density = _median_density(self.px, self.height, self.width)
+        return self._density
 
     def query(self, query_px: torch.Tensor, k: int) -> Neighbors:
         """query_px [R, 2] (col, row) pixel coords (pixel (r, c) centre = (c + 0.5, r + 0.5)) -> Neighbors [R, K]."""
@@ -321,6 +603,15 @@ class ScreenIndex:
         r = query_px.shape[0]
         if r == 0 or self.ids.numel() == 0:
             return _empty(r, k, self.device)
+        if self.backend == "grid":
+            with _one_cpu_thread(self.device):
+                cap = self.radius_px(k)
+                if cap not in self._grids:
+                    self._grids[cap] = _CellGrid(self.px, self.weight, cap, self._median_density(), self.height,
+                                                 self.width)
+                li, ld = self._grids[cap].query(query_px.detach().to(self.device, torch.float64), k)
+                idx = torch.where(li >= 0, self.ids[li.clamp(min=0)], -1)
+                return _finalize(idx, ld, k, self.device)
         ok = torch.isfinite(query_px).all(dim=1)
         if self._tree is not None:
             q = query_px.detach().to("cpu", torch.float64).numpy()
@@ -329,7 +620,7 @@ class ScreenIndex:
             li, ld = torch.from_numpy(li), torch.from_numpy(ld)
         else:
             q = torch.where(ok[:, None], query_px.detach().to(self.device, torch.float32), 0.0)
-            li, ld = _screen_brute(self._px32, self._w32, q, k)
+            li, ld = _screen_brute(self._px32, self._w32, q, k, self.radius_px(k))
         ids = self.ids.to(li.device)
         idx = torch.where(li >= 0, ids[li.clamp(min=0)], -1)
         ld = ld.masked_fill(~ok.to(ld.device)[:, None], math.inf)
@@ -394,14 +685,17 @@ class PerpendicularIndex:
 
 # ------------------------------------------------------------------------------------------ public functions
 def screen_knn(points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal: float,
-               query_px: torch.Tensor, k: int, depth_factor: bool = False, backend: str = "auto") -> Neighbors:
-    """K nearest projected points to each query pixel.
+               query_px: torch.Tensor, k: int, depth_factor: bool = False, backend: str = "auto",
+               max_radius_px: float | str = "auto") -> Neighbors:
+    """K nearest projected points to each query pixel, among those within max_radius_px pixels of it.
 
     points [N, 3] world; c2w [4, 4]; query_px [R, 2] (col, row) pixel coords. Keeps points in front of the camera
-    and inside the frame ± 1 px. Returns Neighbors(idx [R, K] int64 (-1 = none), dist [R, K] float32 (+inf =
-    none)) sorted ascending; dist in pixels, or pixel distance × depth / focal with depth_factor=True.
+    and inside the frame ± 1 px. max_radius_px: "auto" (or 0) = from the projected density (see
+    ScreenIndex.radius_px), a number of pixels, or inf (or < 0) = no cap. Returns Neighbors(idx [R, K] int64
+    (-1 = none), dist [R, K] float32 (+inf = none)) sorted ascending; dist in pixels, or pixel distance × depth /
+    focal with depth_factor=True.
     """
-    return ScreenIndex(points, c2w, height, width, focal, depth_factor, backend).query(query_px, k)
+    return ScreenIndex(points, c2w, height, width, focal, depth_factor, backend, max_radius_px).query(query_px, k)
 
 
 def rays_knn_perpendicular(points: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor, k: int,
@@ -472,7 +766,8 @@ def knn_for_pixels(cfg: NeighborConfig, points: torch.Tensor, c2w: torch.Tensor,
         raise InputError(f"neighbour search: method must be one of {METHODS}, got {cfg.method!r}")
     if cfg.method != "perpendicular":
         return screen_knn(points, c2w, height, width, focal, query_px, cfg.k,
-                          depth_factor=cfg.method == "screen_depth", backend=cfg.backend)
+                          depth_factor=cfg.method == "screen_depth", backend=cfg.backend,
+                          max_radius_px=cfg.max_radius_px)
     _check_camera(c2w, height, width, focal)
     _check_matrix("query_px", query_px, 2)
     m = c2w.detach().to(points.device, torch.float32)

@@ -1,4 +1,7 @@
-"""Neighbour search: the fast paths return the same neighbour sets as plain-torch brute force (ties aside)."""
+"""Neighbour search: the fast paths return the same neighbour sets as plain-torch brute force (ties aside).
+
+Screen searches are checked uncapped (k-d tree, max_radius_px = inf) and with a pixel radius cap (pixel grid and
+capped brute force); the references below apply the same cap."""
 from __future__ import annotations
 
 import math
@@ -14,6 +17,7 @@ from core.util.errors import InputError
 H = W = 24
 FOCAL = 1.1 * W
 BACKENDS = ("kdtree", "torch")
+INF = math.inf
 
 
 # ------------------------------------------------------------------------------- plain-torch references (float64)
@@ -42,7 +46,7 @@ def ref_perpendicular(points, origins, dirs, k):
     return _topk_ref(perp, k)
 
 
-def ref_screen(points, c2w, query_px, k, depth_factor):
+def ref_screen(points, c2w, query_px, k, depth_factor, cap=INF):
     p, m = points.double(), c2w.double()
     cam = (p - m[:3, 3]) @ m[:3, :3]
     z = -cam[:, 2]
@@ -51,9 +55,10 @@ def ref_screen(points, c2w, query_px, k, depth_factor):
     keep = (z > 0) & (col >= -1) & (col <= W + 1) & (row >= -1) & (row <= H + 1) & ~_absent(points)
     px = torch.stack([col, row], -1)
     d = (query_px.double()[:, None, :] - px[None]).norm(dim=-1)
+    keep = keep[None] & (d <= cap)
     if depth_factor:
         d = d * (z / FOCAL)[None]
-    d = d.masked_fill(~keep[None] | ~torch.isfinite(d), math.inf)
+    d = d.masked_fill(~keep | ~torch.isfinite(d), math.inf)
     return _topk_ref(d, k)
 
 
@@ -127,11 +132,11 @@ def test_perpendicular_matches_brute_force(kind, seed, backend):
 @pytest.mark.parametrize("depth_factor", [False, True])
 @pytest.mark.parametrize("kind", ["blob", "sphere", "plane", "line"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_screen_matches_brute_force(kind, seed, depth_factor, backend):
+def test_screen_uncapped_matches_brute_force(kind, seed, depth_factor, backend):
     pts = scene(kind, 800, seed)
     c2w = camera(seed)
     q = random_px(700, seed)
-    got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 12, depth_factor=depth_factor, backend=backend)
+    got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 12, depth_factor=depth_factor, backend=backend, max_radius_px=INF)
     assert_same(got, ref_screen(pts, c2w, q, 12, depth_factor))
 
 
@@ -156,17 +161,23 @@ def test_stray_point_next_to_the_camera():
     pts = torch.cat([pts, stray[None], stray[None] + 1e-4])
     assert_same(nb.rays_knn_perpendicular(pts, o, d, 10), ref_perpendicular(pts, o, d, 10))
     q = random_px(500, 4)
-    assert_same(nb.screen_knn(pts, c2w, H, W, FOCAL, q, 10, True), ref_screen(pts, c2w, q, 10, True))
+    assert_same(nb.screen_knn(pts, c2w, H, W, FOCAL, q, 10, True, max_radius_px=INF),
+                ref_screen(pts, c2w, q, 10, True))
+    cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL).radius_px(10)
+    assert_same(nb.screen_knn(pts, c2w, H, W, FOCAL, q, 10, True), ref_screen(pts, c2w, q, 10, True, cap))
 
 
 def test_index_reused_across_chunks_equals_one_call():
     pts = scene("blob", 1000, 5)
     c2w = camera(5)
     q = random_px(600, 5)
-    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor=True)
-    parts = [index.query(q[i:i + 150], 7) for i in range(0, 600, 150)]
-    whole = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 7, depth_factor=True)
-    assert torch.equal(torch.cat([p.idx for p in parts]), whole.idx)
+    for cap in (INF, "auto"):
+        index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor=True, max_radius_px=cap)
+        parts = [index.query(q[i:i + 150], 7) for i in range(0, 600, 150)]
+        whole = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 7, depth_factor=True, max_radius_px=cap)
+        assert torch.equal(torch.cat([p.idx for p in parts]), whole.idx)
+        index.query(q, 3)  # another K (another auto cap) in between changes nothing
+        assert torch.equal(index.query(q, 7).idx, whole.idx)
     o, d = rays(c2w)
     pidx = nb.PerpendicularIndex(pts, c2w[:3, 3])
     assert_same(pidx.query(d, 7), ref_perpendicular(pts, o, d, 7))
@@ -184,74 +195,88 @@ def test_config_dispatch(method):
     if method == "perpendicular":
         o, d = rays(c2w)  # the same rays as cameras.pixel_rays
         ref = ref_perpendicular(pts, o, d, 6)
-    else:
-        ref = ref_screen(pts, c2w, q, 6, method == "screen_depth")
+    else:  # default cap: auto
+        assert cfg.max_radius_px == 0.0
+        cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL).radius_px(6)
+        ref = ref_screen(pts, c2w, q, 6, method == "screen_depth", cap)
     assert_same(got, ref)
 
 
 # ------------------------------------------------------------------------------------------- degenerate input
-def _all_methods(pts, k, backend):
+# (backend, max_radius_px) of the screen searches; "perpendicular" runs on the k-d tree where the grid is asked
+SEARCHES = [("kdtree", INF), ("torch", INF), ("torch", "auto"), ("grid", "auto"), ("grid", 2.5)]
+
+
+def resolved_cap(pts, c2w, k, cap):
+    return nb.ScreenIndex(pts, c2w, H, W, FOCAL, max_radius_px=cap).radius_px(k)
+
+
+def _all_methods(pts, k, search):
+    backend, cap = search
     c2w = camera(0)
     o, d = rays(c2w)
     q = random_px(50, 0)
+    r = resolved_cap(pts, c2w, k, cap)
+    perp = "kdtree" if backend == "grid" else backend
     return {
-        "perpendicular": (nb.rays_knn_perpendicular(pts, o, d, k, backend=backend), ref_perpendicular(pts, o, d, k)),
-        "screen": (nb.screen_knn(pts, c2w, H, W, FOCAL, q, k, backend=backend), ref_screen(pts, c2w, q, k, False)),
-        "screen_depth": (nb.screen_knn(pts, c2w, H, W, FOCAL, q, k, True, backend=backend),
-                         ref_screen(pts, c2w, q, k, True)),
+        "perpendicular": (nb.rays_knn_perpendicular(pts, o, d, k, backend=perp), ref_perpendicular(pts, o, d, k)),
+        "screen": (nb.screen_knn(pts, c2w, H, W, FOCAL, q, k, backend=backend, max_radius_px=cap),
+                   ref_screen(pts, c2w, q, k, False, r)),
+        "screen_depth": (nb.screen_knn(pts, c2w, H, W, FOCAL, q, k, True, backend=backend, max_radius_px=cap),
+                         ref_screen(pts, c2w, q, k, True, r)),
     }
 
 
 @pytest.mark.stability
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_empty_point_set(backend):
-    for name, (got, ref) in _all_methods(torch.empty(0, 3), 5, backend).items():
+@pytest.mark.parametrize("search", SEARCHES)
+def test_empty_point_set(search):
+    for name, (got, ref) in _all_methods(torch.empty(0, 3), 5, search).items():
         assert got.idx.shape == (got.idx.shape[0], 5), name
         assert not got.valid.any() and torch.isinf(got.dist).all(), name
         assert_same(got, ref)
 
 
 @pytest.mark.stability
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_k_larger_than_n_pads(backend):
+@pytest.mark.parametrize("search", SEARCHES)
+def test_k_larger_than_n_pads(search):
     pts = scene("blob", 7, 1) * 0.2
-    for name, (got, ref) in _all_methods(pts, 20, backend).items():
+    for name, (got, ref) in _all_methods(pts, 20, search).items():
         assert got.idx.shape[1] == 20
         assert (got.valid.sum(1) <= 7).all() and not got.valid[:, 7:].any(), name
         assert_same(got, ref)
 
 
 @pytest.mark.stability
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_non_finite_and_diverged_points_are_absent(backend):
+@pytest.mark.parametrize("search", SEARCHES)
+def test_non_finite_and_diverged_points_are_absent(search):
     pts = scene("blob", 300, 2)
     bad = torch.tensor([[math.nan, 0, 0], [0, math.inf, 0], [-math.inf, 1, 2], [1e30, 1e30, 1e30], [0, 0, -1e30]])
     pts = torch.cat([pts[:150], bad, pts[150:]])
     bad_ids = torch.arange(150, 155)
-    for name, (got, ref) in _all_methods(pts, 8, backend).items():
+    for name, (got, ref) in _all_methods(pts, 8, search).items():
         assert not torch.isin(got.idx, bad_ids).any(), name
         assert torch.isfinite(got.dist[got.valid]).all(), name
         assert_same(got, ref)
-    only_bad = _all_methods(bad, 3, backend)
+    only_bad = _all_methods(bad, 3, search)
     assert all(not got.valid.any() for got, _ in only_bad.values())
 
 
 @pytest.mark.stability
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_everything_behind_the_camera(backend):
+@pytest.mark.parametrize("search", SEARCHES)
+def test_everything_behind_the_camera(search):
     c2w = camera(0)
     behind = c2w[:3, 3] + c2w[:3, 2] * 2.0 + 0.3 * torch.randn(100, 3, generator=torch.Generator().manual_seed(0))
-    for name, (got, ref) in _all_methods(behind, 4, backend).items():
+    for name, (got, ref) in _all_methods(behind, 4, search).items():
         if name != "perpendicular":  # wide pixel rays may still see a few; the screen path must see none
             assert not got.valid.any(), name
         assert_same(got, ref)
 
 
 @pytest.mark.stability
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_coincident_points(backend):
+@pytest.mark.parametrize("search", SEARCHES)
+def test_coincident_points(search):
     pts = torch.zeros(40, 3) + torch.tensor([0.1, -0.2, 0.05])
-    for name, (got, ref) in _all_methods(pts, 10, backend).items():
+    for name, (got, ref) in _all_methods(pts, 10, search).items():
         v = got.idx[got.valid].reshape(-1) if got.valid.any() else got.idx[:0]
         assert ((v >= 0) & (v < 40)).all(), name
         rowsorted = got.idx.sort(1).values
@@ -261,32 +286,170 @@ def test_coincident_points(backend):
 
 
 @pytest.mark.stability
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_bad_rays_and_queries_get_no_neighbours(backend):
+@pytest.mark.parametrize("search", SEARCHES)
+def test_bad_rays_and_queries_get_no_neighbours(search):
+    backend, cap = search
     pts = scene("blob", 200, 0)
     o, d = rays(camera(0))
     o, d = o[:6].clone(), d[:6].clone()
     d[0] = 0.0
     d[1, 0] = math.nan
     o[2, 1] = math.inf
-    got = nb.rays_knn_perpendicular(pts, o, d, 5, backend=backend)
+    got = nb.rays_knn_perpendicular(pts, o, d, 5, backend="kdtree" if backend == "grid" else backend)
     assert not got.valid[:3].any() and got.valid[3:].all()
-    q = torch.tensor([[math.nan, 3.0], [12.0, 12.0]])
-    got = nb.screen_knn(pts, camera(0), H, W, FOCAL, q, 5, backend=backend)
-    assert not got.valid[0].any() and torch.isfinite(got.dist[1]).all()
+    q = torch.tensor([[math.nan, 3.0], [12.0, 12.0], [3.0, -math.inf], [1e6, 5.0], [-1e6, -1e6], [12.5, 11.5]])
+    for df in (False, True):
+        got = nb.screen_knn(pts, camera(0), H, W, FOCAL, q, 5, df, backend=backend, max_radius_px=cap)
+        assert not got.valid[[0, 2]].any() and torch.isfinite(got.dist[[1, 5]]).all()
+        far = got.valid[[3, 4]]  # far outside the frame: beyond any cap, but an uncapped search finds the K nearest
+        assert bool(far.all()) if cap == INF else not far.any()
 
 
-def test_outputs_follow_the_input_device_and_backends_agree():
-    dev = torch.device("cpu")
-    pts = scene("sphere", 500, 7).to(dev)
-    c2w = camera(7).to(dev)
-    q = random_px(200, 7).to(dev)
-    a = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 5, True, backend="kdtree")
-    b = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 5, True, backend="torch")
-    c = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 5, True, backend="auto")
-    assert a.idx.device == dev and a.dist.device == dev
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_outputs_follow_the_input_device_and_backends_agree(device):
+    dev = torch.device(device)
+    pts = scene("sphere", 500, 7)
+    c2w = camera(7)
+    q = random_px(200, 7)
+    a = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 5, True, backend="kdtree", max_radius_px=INF)
+    b = nb.screen_knn(pts.to(dev), c2w.to(dev), H, W, FOCAL, q.to(dev), 5, True, backend="torch", max_radius_px=INF)
+    c = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 5, True, backend="auto", max_radius_px=-1)
+    assert b.idx.device.type == dev.type and b.dist.device.type == dev.type
     assert torch.equal(a.idx, c.idx)
-    assert_same(b, (a.idx, a.dist.double()))
+    assert_same(b._replace(idx=b.idx.cpu(), dist=b.dist.cpu()), (a.idx, a.dist.double()))
+    cap = resolved_cap(pts, c2w, 5, "auto")
+    g = nb.screen_knn(pts.to(dev), c2w.to(dev), H, W, FOCAL, q.to(dev), 5, True)  # auto: the grid
+    assert g.idx.device.type == dev.type and g.dist.device.type == dev.type
+    assert_same(g._replace(idx=g.idx.cpu(), dist=g.dist.cpu()), ref_screen(pts, c2w, q, 5, True, cap))
+
+
+# --------------------------------------------------------------------------------------- capped: pixel grid
+@pytest.mark.parametrize("cap", ["auto", 1.7, 4.0])
+@pytest.mark.parametrize("depth_factor", [False, True])
+@pytest.mark.parametrize("kind", ["blob", "sphere", "plane", "line"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_grid_matches_capped_brute_force(kind, seed, depth_factor, cap):
+    pts = scene(kind, 800, seed)
+    c2w = camera(seed)
+    q = random_px(700, seed)
+    r = resolved_cap(pts, c2w, 12, cap)
+    ref = ref_screen(pts, c2w, q, 12, depth_factor, r)
+    for backend in ("grid", "torch"):
+        got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 12, depth_factor, backend=backend, max_radius_px=cap)
+        assert_same(got, ref)
+
+
+@pytest.mark.parametrize("depth_factor", [False, True])
+def test_grid_on_a_pixel_grid_of_queries_and_a_large_frame(depth_factor):
+    """Every pixel centre of a 96 × 80 frame (most of the work in training and rendering), two stages at work."""
+    h, w, f = 80, 96, 90.0
+    pts = scene("sphere", 3000, 8) * torch.tensor([1.0, 0.6, 0.8])
+    c2w = look_at([2.2, -2.0, 1.0]).float()
+    rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    q = torch.stack([cols.flatten() + 0.5, rows.flatten() + 0.5], -1).float()
+    index = nb.ScreenIndex(pts, c2w, h, w, f, depth_factor)
+    got = index.query(q, 16)
+    p, m = pts.double(), c2w.double()
+    cam = (p - m[:3, 3]) @ m[:3, :3]
+    z = -cam[:, 2]
+    px = torch.stack([f * cam[:, 0] / z + 0.5 * w, -f * cam[:, 1] / z + 0.5 * h], -1)
+    d = (q.double()[:, None, :] - px[None]).norm(dim=-1)
+    keep = (z > 0)[None] & (d <= index.radius_px(16))
+    if depth_factor:
+        d = d * (z / f)[None]
+    ref = _topk_ref(d.masked_fill(~keep, math.inf), 16)
+    assert_same(got, ref)
+    assert 0.2 < float(got.valid[:, 0].float().mean()) < 0.9  # object and background both present
+
+
+@pytest.mark.stability
+@pytest.mark.parametrize("depth_factor", [False, True])
+def test_grid_very_dense_cell_is_exact_and_chunked(depth_factor, monkeypatch):
+    """3000 points inside 0.01 px next to a sparse cloud: every query near the clump has thousands of candidates.
+    A tiny table budget forces one query per chunk there; results stay exact."""
+    g = torch.Generator().manual_seed(9)
+    c2w = camera(0)
+    sparse = scene("blob", 400, 9)
+    centre = sparse[:1]
+    clump = centre + 1e-5 * torch.randn(3000, 3, generator=g)
+    pts = torch.cat([sparse, clump])
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor)
+    cpx = index.px[index.ids == 0][0].float()
+    q = torch.cat([cpx + torch.randn(60, 2, generator=g) * 1.5, random_px(200, 9)])
+    monkeypatch.setattr(nb, "_GRID_BUDGET", 256)
+    got = index.query(q, 25)
+    ref = ref_screen(pts, c2w, q, 25, depth_factor, index.radius_px(25))
+    assert_same(got, ref)
+    assert int(got.valid.sum(1).max()) == 25
+
+
+@pytest.mark.stability
+@pytest.mark.parametrize("cap", [1e-6, 0.3, 1e6])
+def test_grid_extreme_caps(cap):
+    pts = scene("sphere", 600, 10)
+    c2w = camera(10)
+    q = random_px(300, 10)
+    for df in (False, True):
+        got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 9, df, max_radius_px=cap)
+        assert_same(got, ref_screen(pts, c2w, q, 9, df, cap))
+        assert torch.isfinite(got.dist[got.valid]).all()
+    if cap == 1e6:  # a cap beyond the frame is no cap
+        uncapped = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 9, True, max_radius_px=INF)
+        assert_same(nb.screen_knn(pts, c2w, H, W, FOCAL, q, 9, True, max_radius_px=cap),
+                    (uncapped.idx, uncapped.dist.double()))
+
+
+def test_grid_fewer_candidates_than_k_pads():
+    pts = scene("plane", 150, 11) * 3.0  # sparse: ~0.3 points per pixel
+    c2w = camera(11)
+    q = random_px(400, 11)
+    got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 30, True, max_radius_px=3.0)
+    assert_same(got, ref_screen(pts, c2w, q, 30, True, 3.0))
+    n = got.valid.sum(1)
+    assert (n < 30).all() and (n > 0).any() and (n == 0).any()
+
+
+def _lattice(spacing: float, lo: float, hi: float) -> torch.Tensor:
+    """Points at depth 2 in front of an identity camera projecting onto a square pixel lattice [lo, hi)²."""
+    t = torch.arange(lo, hi, spacing, dtype=torch.float64)
+    col, row = torch.meshgrid(t, t, indexing="xy")
+    x, y = (col.flatten() - 0.5 * W) / FOCAL, -(row.flatten() - 0.5 * H) / FOCAL
+    return torch.stack([x, y, -torch.ones_like(x)], -1) * 2.0
+
+
+@pytest.mark.parametrize("spacing", [0.25, 0.5, 1.0])
+def test_auto_radius_follows_the_projected_density(spacing):
+    """A lattice of `spacing` pixels covering half the frame: density 1 / spacing², so the auto cap is 2 × the
+    radius of a disc holding K points there (at least 1.5 px), and every interior pixel sees about 4 K points."""
+    pts = _lattice(spacing, 4.0, 20.0)
+    index = nb.ScreenIndex(pts, torch.eye(4), H, W, FOCAL)
+    for k in (4, 20):
+        expect = max(1.5, 2.0 * math.sqrt(k * spacing ** 2 / math.pi))
+        assert index.radius_px(k) == pytest.approx(expect, rel=0.1)
+    assert index.radius_px(20) >= index.radius_px(4)
+    centre = index.query(torch.tensor([[12.1, 11.9]]), 20)
+    assert bool(centre.valid.all())
+    assert nb.ScreenIndex(pts, torch.eye(4), H, W, FOCAL, max_radius_px=2.0).radius_px(20) == 2.0
+    assert nb.ScreenIndex(pts, torch.eye(4), H, W, FOCAL, max_radius_px=-1).radius_px(20) == INF
+
+
+@pytest.mark.stability
+@pytest.mark.parametrize("pts", [torch.empty(0, 3), torch.tensor([[0.1, 0.2, -2.0]]), torch.zeros(50, 3) - 2.0])
+def test_auto_radius_of_degenerate_clouds_is_finite(pts):
+    r = nb.ScreenIndex(pts, torch.eye(4), H, W, FOCAL).radius_px(10)
+    assert math.isfinite(r) and r >= 1.5
+
+
+def test_config_cap_round_trips_and_is_used():
+    cfg = nb.NeighborConfig(method="screen", k=5, max_radius_px=2.0)
+    assert from_dict(nb.NeighborConfig, to_dict(cfg)) == cfg
+    pts, c2w, q = scene("sphere", 700, 12), camera(12), random_px(300, 12)
+    assert_same(nb.knn_for_pixels(cfg, pts, c2w, H, W, FOCAL, q), ref_screen(pts, c2w, q, 5, False, 2.0))
+    cfg = nb.NeighborConfig(method="screen", k=5, max_radius_px=-1.0)  # no cap: the k-d tree
+    assert_same(nb.knn_for_pixels(cfg, pts, c2w, H, W, FOCAL, q), ref_screen(pts, c2w, q, 5, False))
 
 
 @pytest.mark.parametrize("call, match", [
@@ -298,6 +461,16 @@ def test_outputs_follow_the_input_device_and_backends_agree():
     (lambda: nb.rays_knn_perpendicular(torch.zeros(5, 3), torch.zeros(4, 3), torch.ones(3, 3), 2), "differ"),
     (lambda: nb.rays_knn_perpendicular(torch.zeros(5, 3), torch.zeros(4, 3), torch.ones(4, 3), 2, "gpu"),
      "backend"),
+    (lambda: nb.rays_knn_perpendicular(torch.zeros(5, 3), torch.zeros(4, 3), torch.ones(4, 3), 2, "grid"),
+     "grid"),
+    (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, FOCAL, torch.zeros(3, 2), 4, max_radius_px="big"),
+     "max_radius_px"),
+    (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, FOCAL, torch.zeros(3, 2), 4, max_radius_px=math.nan),
+     "max_radius_px"),
+    (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, FOCAL, torch.zeros(3, 2), 4, backend="kdtree"),
+     "kdtree"),
+    (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, FOCAL, torch.zeros(3, 2), 4, backend="grid",
+                           max_radius_px=INF), "grid"),
 ])
 def test_bad_input_is_a_clear_error(call, match):
     with pytest.raises(InputError, match=match):
