@@ -68,7 +68,11 @@ def import_model(context, path: str, name: str = "", **settings):
     path = bpy.path.abspath(path)
     if not os.path.isfile(path):
         raise ModelFileError(f"{path}: file not found; choose an existing .pgt model")
-    xyz, atlas, _meta = read_model(path)
+    xyz, atlas, meta = read_model(path)
+    if "neighbors" not in settings:  # the K the model was trained with, unless the artist chose one
+        k = (meta.get("model") or {}).get("k") if isinstance(meta, dict) else None
+        if isinstance(k, int) and not isinstance(k, bool) and 1 <= k <= 256:
+            settings["neighbors"] = k
     name = name or os.path.splitext(os.path.basename(path))[0]
     created = []  # (collection, datablock): removed again if anything below fails
     try:
@@ -108,7 +112,8 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
     filename_ext = ".pgt"
     filter_glob: bpy.props.StringProperty(default="*.pgt", options={'HIDDEN'})
     preview_resolution: bpy.props.IntProperty(name="Preview resolution", default=256, min=16, max=4096)
-    neighbors: bpy.props.IntProperty(name="K", default=20, min=1, max=256)
+    neighbors: bpy.props.IntProperty(name="K", default=20, min=1, max=256,
+                                     description="Neighbour points per ray (unset: the K the model was trained with)")
     correspondence: bpy.props.EnumProperty(
         name="Correspondence", default='DEFORM_AWARE',
         items=[('DEFORM_AWARE', "Deform-aware", ""), ('NAIVE', "Naive", "")])
@@ -116,8 +121,11 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
 
     def execute(self, context):
         try:
-            obj = import_model(context, self.filepath, preview_resolution=self.preview_resolution,
-                               neighbors=self.neighbors, correspondence=self.correspondence, device=self.device)
+            settings = dict(preview_resolution=self.preview_resolution, correspondence=self.correspondence,
+                            device=self.device)
+            if self.properties.is_property_set("neighbors"):
+                settings["neighbors"] = self.neighbors
+            obj = import_model(context, self.filepath, **settings)
         except PointGTError as exc:
             self.report({'ERROR'}, str(exc))
             return {'CANCELLED'}

@@ -4,10 +4,14 @@ import bpy
 from .evaluated import ID_ATTRIBUTE
 
 
+# Blender 5 warns about '//' paths in string properties that do not declare support for them.
+PATH_OPTIONS = {'PATH_SUPPORTS_BLEND_RELATIVE'} if bpy.app.version >= (5, 0, 0) else set()
+
+
 class PointGTObjectSettings(bpy.types.PropertyGroup):
     is_model: bpy.props.BoolProperty(name="PointGT model", default=False,
                                      description="This object holds the points of a PointGT model")
-    model_path: bpy.props.StringProperty(name="Model", subtype='FILE_PATH',
+    model_path: bpy.props.StringProperty(name="Model", subtype='FILE_PATH', options=PATH_OPTIONS,
                                          description="The .pgt model file (relative to the .blend when possible)")
     point_count: bpy.props.IntProperty(name="Points", min=0, description="Number of points in the model")
     atlas: bpy.props.PointerProperty(name="Atlas", type=bpy.types.Image,
@@ -25,6 +29,24 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
         name="Device", default='CPU',
         items=[('CPU', "CPU", "Run the network on the processor"),
                ('CUDA', "CUDA", "Run the network on an NVIDIA GPU (needs a CUDA build of PyTorch)")])
+    preview_image: bpy.props.PointerProperty(name="Preview", type=bpy.types.Image,
+                                             description="The live preview of this model from the scene camera "
+                                                         "(paint on it to paint the atlas)")
+
+
+class PointGTSceneSettings(bpy.types.PropertyGroup):
+    live_preview: bpy.props.BoolProperty(
+        name="Live preview", default=True,
+        description="Re-render the preview images when the points move, the frame changes or the atlas is painted")
+    auto_transfer: bpy.props.BoolProperty(
+        name="Transfer preview paint", default=True,
+        description="Strokes painted on a preview image are written into the atlas texels those pixels show")
+    transfer_threshold: bpy.props.FloatProperty(
+        name="Paint threshold", default=0.02, min=0.0, max=1.0,
+        description="A preview pixel counts as painted when its colour changed by more than this")
+    background: bpy.props.FloatVectorProperty(
+        name="Background", subtype='COLOR_GAMMA', size=3, default=(1.0, 1.0, 1.0), min=0.0, max=1.0,
+        description="Colour behind the models in previews and renders (Film > Transparent renders alpha instead)")
 
 
 def is_pointgt_object(obj) -> bool:
@@ -32,12 +54,14 @@ def is_pointgt_object(obj) -> bool:
             and ID_ATTRIBUTE in obj.data.attributes)
 
 
-CLASSES = (PointGTObjectSettings,)
+CLASSES = (PointGTObjectSettings, PointGTSceneSettings)
 
 
 def register_properties():
     bpy.types.Object.pointgt = bpy.props.PointerProperty(type=PointGTObjectSettings)
+    bpy.types.Scene.pointgt = bpy.props.PointerProperty(type=PointGTSceneSettings)
 
 
 def unregister_properties():
+    del bpy.types.Scene.pointgt
     del bpy.types.Object.pointgt

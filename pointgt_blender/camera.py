@@ -1,0 +1,84 @@
+"""Blender camera -> the core's pinhole camera: c2w [4, 4] (camera looks down -Z, +Y up, like Blender), image
+size and focal length in pixels.
+
+The maths takes plain numbers (tested without Blender); `scene_camera` reads them from a scene. Only what the
+core can render is accepted: a perspective camera without lens shift and with square pixels; anything else is
+reported with what to change instead of rendering a silently wrong picture.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from core.util.errors import InputError
+
+
+def render_size(resolution_x: int, resolution_y: int, percentage: int) -> tuple[int, int]:
+    """(width, height) in pixels of a render, as Blender computes it from the resolution and its percentage."""
+    w = int(resolution_x * percentage / 100)
+    h = int(resolution_y * percentage / 100)
+    if w < 1 or h < 1:
+        raise InputError(f"render size {w}x{h} px is empty; raise Resolution or its percentage (Output properties)")
+    return w, h
+
+
+def preview_size(long_side: int, resolution_x: int, resolution_y: int) -> tuple[int, int]:
+    """(width, height) of a preview whose longer side is `long_side`, with the render's aspect ratio."""
+    long_side = max(int(long_side), 1)
+    if resolution_x >= resolution_y:
+        return long_side, max(1, round(long_side * resolution_y / resolution_x))
+    return max(1, round(long_side * resolution_x / resolution_y)), long_side
+
+
+def focal_pixels(lens: float, sensor_width: float, sensor_height: float, sensor_fit: str,
+                 width: int, height: int) -> float:
+    """Focal length in pixels for a `width` x `height` image (square pixels), following Blender's sensor fit:
+    AUTO fits the sensor width to the larger image side, HORIZONTAL to the width, VERTICAL the sensor height to
+    the height."""
+    if not (lens > 0 and sensor_width > 0 and sensor_height > 0):
+        raise InputError(f"camera lens {lens} mm / sensor {sensor_width}x{sensor_height} mm must be positive")
+    if sensor_fit == 'AUTO':
+        return lens / sensor_width * max(width, height)
+    if sensor_fit == 'HORIZONTAL':
+        return lens / sensor_width * width
+    if sensor_fit == 'VERTICAL':
+        return lens / sensor_height * height
+    raise InputError(f"unknown sensor fit {sensor_fit!r}; use Auto, Horizontal or Vertical")
+
+
+def camera_to_world(matrix) -> np.ndarray:
+    """A camera's matrix_world [4, 4] with its scale removed -> c2w [4, 4] float32 (orthonormal rotation)."""
+    m = np.asarray(matrix, dtype=np.float64).reshape(4, 4)
+    if not np.isfinite(m).all():
+        raise InputError("the camera's transform holds NaN or infinite values; reset its location/rotation/scale")
+    rot = m[:3, :3]
+    scale = np.linalg.norm(rot, axis=0)
+    if (scale < 1e-9).any():
+        raise InputError("the camera has zero scale on an axis, so it has no viewing direction; set its scale to 1")
+    out = np.eye(4)
+    out[:3, :3] = rot / scale
+    out[:3, 3] = m[:3, 3]
+    return out.astype(np.float32)
+
+
+def scene_camera(scene, width: int, height: int, depsgraph=None) -> tuple[np.ndarray, float]:
+    """(c2w [4, 4] float32, focal in pixels) of the scene's active camera for a `width` x `height` image.
+    With a depsgraph the camera's evaluated (animated) transform is used."""
+    cam = scene.camera
+    if cam is None or cam.type != 'CAMERA':
+        raise InputError(f"scene '{scene.name}' has no active camera; add a camera and make it active (Ctrl+Numpad 0)"
+                         f", PointGT renders from it")
+    if depsgraph is not None:
+        cam = cam.evaluated_get(depsgraph)
+    data = cam.data
+    if data.type != 'PERSP':
+        raise InputError(f"camera '{cam.name}' is {data.type.lower()}; PointGT renders perspective cameras only "
+                         f"(Camera properties > Lens > Type: Perspective)")
+    if abs(data.shift_x) > 1e-6 or abs(data.shift_y) > 1e-6:
+        raise InputError(f"camera '{cam.name}' uses lens shift ({data.shift_x:g}, {data.shift_y:g}); PointGT needs "
+                         f"a centred lens: set Shift X and Y to 0")
+    r = scene.render
+    if abs(r.pixel_aspect_x - r.pixel_aspect_y) > 1e-6:
+        raise InputError(f"scene '{scene.name}' uses non-square pixels (aspect {r.pixel_aspect_x:g}:"
+                         f"{r.pixel_aspect_y:g}); set Output > Format > Aspect X and Y equal")
+    focal = focal_pixels(data.lens, data.sensor_width, data.sensor_height, data.sensor_fit, width, height)
+    return camera_to_world(cam.matrix_world), float(focal)

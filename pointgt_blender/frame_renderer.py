@@ -1,0 +1,153 @@
+"""Render PointGT objects into one frame: model loading (cached), edit states (cached on their inputs) and
+depth-ordered compositing of several models. No bpy here: the Blender side (preview, render engine) gathers
+`ObjectInputs` from the scene and hands them over, so this module is tested with plain arrays.
+
+Imports torch at module level: only import it after checking `deps.torch_status()`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from core.bundle import load_bundle
+from core.frames.edited import EditConfig, EditState, render_edited
+from core.util.errors import InputError, ModelFileError
+
+CORRESPONDENCE = {'DEFORM_AWARE': "deform-aware", 'NAIVE': "naive"}
+
+
+@dataclass
+class ObjectInputs:
+    """What one PointGT object contributes to a frame. positions [M, 3] float32 world space, ids [M] int64,
+    atlas [H, W, 3] float32 display space row 0 = top (None: the model's own)."""
+
+    name: str
+    model_path: str           # absolute
+    device: str               # 'cpu' | 'cuda'
+    k: int
+    correspondence: str       # 'DEFORM_AWARE' | 'NAIVE'
+    point_count: int
+    positions: np.ndarray
+    ids: np.ndarray
+    atlas: np.ndarray | None = None
+
+
+class ModelCache:
+    """Loaded models by (path, device), reloaded when the file changes on disk (size or modification time)."""
+
+    def __init__(self):
+        self._items: dict = {}
+
+    def get(self, path: str, device: str):
+        try:
+            st = os.stat(path)
+        except OSError:
+            raise ModelFileError(f"{path}: model file not found; point the object's Model setting (PointGT sidebar)"
+                                 f" to the .pgt file, or keep it next to the .blend") from None
+        key = (os.path.normcase(os.path.abspath(path)), device)
+        stamp = (st.st_size, st.st_mtime_ns)
+        hit = self._items.get(key)
+        if hit is not None and hit[0] == stamp:
+            return hit[1]
+        bundle = load_bundle(path, device=device)
+        self._items[key] = (stamp, bundle)
+        return bundle
+
+    def clear(self):
+        self._items.clear()
+
+
+def _same(a, b) -> bool:
+    if a is None or b is None:
+        return a is b
+    return a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)
+
+
+class StateCache:
+    """One EditState per object name, rebuilt only when its model, settings, positions, ids or atlas change
+    (building one compares the atlas with the model's and moves the points to the device)."""
+
+    def __init__(self):
+        self._items: dict = {}
+
+    def get(self, inputs: ObjectInputs, bundle, cfg: EditConfig) -> tuple[EditState, bool]:
+        """(state, rebuilt)."""
+        old = self._items.get(inputs.name)
+        if old is not None:
+            o_bundle, o_cfg, o_pos, o_ids, o_atlas, state = old
+            if (o_bundle is bundle and o_cfg == cfg and _same(o_pos, inputs.positions) and _same(o_ids, inputs.ids)
+                    and _same(o_atlas, inputs.atlas)):
+                return state, False
+        state = EditState(bundle, points=torch.from_numpy(np.ascontiguousarray(inputs.positions)),
+                          ids=torch.from_numpy(np.ascontiguousarray(inputs.ids)), atlas=inputs.atlas, cfg=cfg)
+        # copies: the caller may reuse its buffers
+        self._items[inputs.name] = (bundle, cfg, inputs.positions.copy(), inputs.ids.copy(),
+                                    None if inputs.atlas is None else inputs.atlas.copy(), state)
+        return state, True
+
+    def forget(self, name: str):
+        self._items.pop(name, None)
+
+    def clear(self):
+        self._items.clear()
+
+
+MODELS = ModelCache()
+STATES = StateCache()
+
+
+def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCache = STATES):
+    """The EditState for one object's inputs (model loaded and checked against the object)."""
+    bundle = models.get(inputs.model_path, inputs.device)
+    n = bundle.model.num_points
+    if inputs.point_count and inputs.point_count != n:
+        raise ModelFileError(f"{inputs.model_path}: holds {n} points but object '{inputs.name}' was imported with "
+                             f"{inputs.point_count}; the file was replaced by another model - re-import it")
+    if inputs.atlas is not None and bundle.atlas is None:
+        inputs = dataclasses.replace(inputs, atlas=None)  # a points-only model: nothing to paint yet
+    if bundle.model.cfg.k != inputs.k:  # the object's K setting; the cached model follows it
+        bundle.model.cfg = dataclasses.replace(bundle.model.cfg, k=int(inputs.k))
+    cfg = EditConfig(correspondence=CORRESPONDENCE[inputs.correspondence])
+    state, _ = states.get(inputs, bundle, cfg)
+    return state
+
+
+def render_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float) -> dict:
+    """One model over a black background: premultiplied display-space colour [H, W, 3], alpha [H, W], depth
+    [H, W] along the ray (inf off the object) and the raw result of `render_edited`."""
+    c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float32))
+    res = render_edited(state, c2w_t, height, width, focal, background=(0.0, 0.0, 0.0))
+    tr = res["trace"]
+    alpha = res["alpha"].clamp(0, 1)
+    depth = ((tr["x"] - tr["origins"]) * tr["dirs"]).sum(-1).reshape(height, width)
+    depth = torch.where((alpha > 1e-4) & torch.isfinite(depth), depth, torch.full_like(depth, float("inf")))
+    return {"premul": res["rgb"].cpu().numpy(), "alpha": alpha.cpu().numpy(), "depth": depth.cpu().numpy(),
+            "result": res}
+
+
+def composite(layers: list[dict], background=(1.0, 1.0, 1.0), transparent: bool = False) -> tuple[np.ndarray,
+                                                                                                  np.ndarray]:
+    """Depth-ordered 'over' of premultiplied layers, nearest first per pixel.
+    Returns (rgb [H, W, 3] display space, alpha [H, W]); rgb is over `background` unless `transparent`, in which
+    case it is the straight (un-premultiplied) colour."""
+    if not layers:
+        raise InputError("nothing to composite: no PointGT object is visible")
+    prem = np.stack([l["premul"] for l in layers])            # [L, H, W, 3]
+    alpha = np.stack([l["alpha"] for l in layers])            # [L, H, W]
+    order = np.argsort(np.stack([l["depth"] for l in layers]), axis=0, kind="stable")
+    prem = np.take_along_axis(prem, order[..., None], axis=0)
+    alpha = np.take_along_axis(alpha, order, axis=0)
+    acc = np.zeros(prem.shape[1:], dtype=np.float32)
+    acc_a = np.zeros(alpha.shape[1:], dtype=np.float32)
+    for p, a in zip(prem, alpha):  # a handful of layers, each a whole image
+        acc += (1.0 - acc_a)[..., None] * p
+        acc_a += (1.0 - acc_a) * a
+    if transparent:
+        rgb = np.where(acc_a[..., None] > 1e-6, acc / np.maximum(acc_a, 1e-6)[..., None], 0.0)
+    else:
+        rgb = acc + (1.0 - acc_a)[..., None] * np.asarray(background, dtype=np.float32)
+    return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0).astype(np.float32), np.clip(acc_a, 0.0, 1.0)

@@ -1,0 +1,120 @@
+"""The PointGT tab in the Image Editor sidebar: the model's preview and atlas images (the atlas opens ready for
+Texture Paint), preview settings, re-render, transfer of preview paint, and Render Animation."""
+import bpy
+
+from . import preview
+from .preferences import draw_dependency_status
+from .properties import is_pointgt_object
+
+
+def panel_object(context):
+    """The PointGT model the Image Editor is about: the active object, or the model whose preview or atlas the
+    editor shows."""
+    obj = context.active_object
+    if is_pointgt_object(obj):
+        return obj
+    image = getattr(context.space_data, "image", None)
+    if image is not None:
+        for o in context.scene.objects:
+            if is_pointgt_object(o) and image in (o.pointgt.atlas, o.pointgt.preview_image):
+                return o
+    return None
+
+
+def show_image(context, image, paint: bool) -> None:
+    """Show `image` in the context's Image Editor; with `paint`, switch it to Paint mode with the image as the
+    paint canvas."""
+    space = context.space_data
+    space.image = image
+    if paint:
+        space.ui_mode = 'PAINT'
+        settings = context.scene.tool_settings.image_paint
+        settings.mode = 'IMAGE'
+        settings.canvas = image
+
+
+class _ImageEditorOp:
+    @classmethod
+    def poll(cls, context):
+        if getattr(context.space_data, "type", "") != 'IMAGE_EDITOR':
+            cls.poll_message_set("Run this from the Image Editor")
+            return False
+        if panel_object(context) is None:
+            cls.poll_message_set("Make an imported PointGT model the active object")
+            return False
+        return True
+
+
+class POINTGT_OT_open_atlas(_ImageEditorOp, bpy.types.Operator):
+    """Show the model's atlas in this Image Editor, ready for Texture Paint"""
+    bl_idname = "pointgt.open_atlas"
+    bl_label = "Paint Atlas"
+    bl_options = {'REGISTER'}
+
+    def execute(self, context):
+        obj = panel_object(context)
+        if obj.pointgt.atlas is None:
+            self.report({'ERROR'}, f"'{obj.name}' has no atlas (the model was saved before `pointgt atlas` ran)")
+            return {'CANCELLED'}
+        show_image(context, obj.pointgt.atlas, paint=True)
+        return {'FINISHED'}
+
+
+class POINTGT_OT_open_preview(_ImageEditorOp, bpy.types.Operator):
+    """Show the model's live preview in this Image Editor (paint on it to paint the atlas where you look)"""
+    bl_idname = "pointgt.open_preview"
+    bl_label = "Show Preview"
+    bl_options = {'REGISTER'}
+
+    paint: bpy.props.BoolProperty(name="Paint", default=True, description="Switch to Paint mode on the preview")
+
+    def execute(self, context):
+        obj = panel_object(context)
+        if obj.pointgt.preview_image is None:
+            done = preview.update_previews(context.scene, context.evaluated_depsgraph_get(), force=True, objects=[obj])
+            if obj.pointgt.preview_image is None:
+                self.report({'ERROR'}, done.get(obj.name, "the preview could not be rendered"))
+                return {'CANCELLED'}
+        show_image(context, obj.pointgt.preview_image, paint=self.paint)
+        return {'FINISHED'}
+
+
+class POINTGT_PT_image(bpy.types.Panel):
+    bl_label = "PointGT"
+    bl_idname = "POINTGT_PT_image"
+    bl_space_type = 'IMAGE_EDITOR'
+    bl_region_type = 'UI'
+    bl_category = "PointGT"
+
+    def draw(self, context):
+        layout = self.layout
+        draw_dependency_status(layout)
+        obj = panel_object(context)
+        if obj is None:
+            layout.label(text="Select an imported model", icon='INFO')
+            return
+        s, scene = obj.pointgt, context.scene
+        layout.label(text=obj.name, icon='OUTLINER_OB_MESH')
+        row = layout.row(align=True)
+        row.operator("pointgt.open_preview", icon='RESTRICT_RENDER_OFF')
+        row.operator("pointgt.open_atlas", icon='TPAINT_HLT')
+        col = layout.column()
+        col.prop(s, "preview_image")
+        col.prop(s, "atlas")
+        col.prop(s, "preview_resolution")
+        col.prop(s, "correspondence")
+        col.prop(scene.pointgt, "live_preview")
+        col.prop(scene.pointgt, "auto_transfer")
+        col.operator("pointgt.refresh_preview", icon='FILE_REFRESH')
+        col.operator("pointgt.transfer_paint", icon='BRUSH_DATA')
+        text = preview.status(obj)
+        if text:
+            layout.label(text=text, icon='INFO')
+        box = layout.box()
+        box.prop(scene.render, "engine")
+        row = box.row(align=True)
+        row.operator("render.render", text="Render Image", icon='RENDER_STILL')
+        row.operator("render.render", text="Render Animation", icon='RENDER_ANIMATION').animation = True
+
+
+CLASSES = (POINTGT_OT_open_atlas, POINTGT_OT_open_preview, POINTGT_PT_image)
