@@ -201,7 +201,7 @@ def fit_atlas(xyz, rgb, cfg: AtlasConfig | None = None, progress: Optional[Calla
     with torch.no_grad():
         used = _used_texels(probs_all, uv_all, R)
         atlas.textures.copy_(dilate_unused(atlas.textures.clamp(0, 1), used))
-        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing)
+        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle)
     p = log(total, "final")
     bar.close()
     hist["total_seconds"] = time.perf_counter() - t0

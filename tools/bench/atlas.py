@@ -36,41 +36,34 @@ def load_samples(args) -> tuple[torch.Tensor, torch.Tensor, str]:
     return xyz, rgb, f"synthetic {args.surface} ({args.samples} samples)"
 
 
-def xatlas_utilisation(atlas, xyz) -> float:
-    """Utilisation if the used texels of each chart were packed by xatlas instead of the grid (same texel size)."""
+def xatlas_utilisation(atlas) -> tuple[float, float]:
+    """(grid, xatlas) coverage: valid texels (texel map not NaN) over all pixels of the grid-packed image, and
+    the same texels packed by xatlas (same texel size, same padding) over the xatlas image."""
     import xatlas
 
-    from core.atlas.packing import texel_uv  # noqa: F401  (documents the texel convention used below)
-
     L = atlas.layout
-    chart, pix = atlas.atlas_pixel_coords(xyz)
-    pix = pix.cpu().numpy()
-    ch = chart.cpu().numpy()
+    valid = torch.isfinite(atlas.texel_points()).all(-1).cpu().numpy()
     xa = xatlas.Atlas()
-    total_used = 0
+    total = 0
     for c in range(L.n):
         r0, c0 = L.origin(c)
-        p = pix[ch == c]
-        cols = np.clip(np.floor(p[:, 0]).astype(int) - c0, 0, L.R - 1)
-        rows = np.clip(np.floor(p[:, 1]).astype(int) - r0, 0, L.R - 1)
-        used = np.zeros((L.R, L.R), bool)
-        used[rows, cols] = True
-        rr, cc = np.nonzero(used)
+        rr, cc = np.nonzero(valid[r0:r0 + L.R, c0:c0 + L.R])
         if len(rr) == 0:
             continue
-        total_used += len(rr)
-        # two triangles per used texel; shared corners so xatlas sees connected charts
-        corner = lambda r, c: r * (L.R + 1) + c  # noqa: E731
+        total += len(rr)
+        corner = lambda r, k: r * (L.R + 1) + k  # noqa: E731  two triangles per valid texel, shared corners
         quads = np.stack([corner(rr, cc), corner(rr, cc + 1), corner(rr + 1, cc + 1), corner(rr + 1, cc)], -1)
         tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]]).astype(np.uint32)
         gr, gc = np.meshgrid(np.arange(L.R + 1), np.arange(L.R + 1), indexing="ij")
         uvs = np.stack([gc.reshape(-1), gr.reshape(-1)], -1).astype(np.float32) / L.R
         xa.add_uv_mesh(uvs, tris)
+    if total == 0:
+        return 0.0, 0.0
     pack = xatlas.PackOptions()
     pack.padding = 2 * L.pad
     pack.texels_per_unit = float(L.R)
     xa.generate(pack_options=pack)
-    return total_used / float(xa.width * xa.height)
+    return total / float(L.shape[0] * L.shape[1]), total / float(xa.width * xa.height)
 
 
 def run_one(xyz, rgb, cfg, label: str, out: dict, png: str | None = None) -> None:
@@ -78,7 +71,7 @@ def run_one(xyz, rgb, cfg, label: str, out: dict, png: str | None = None) -> Non
 
     atlas, hist = fit_atlas(xyz, rgb, cfg, quiet=True)
     q = quality_report(atlas, xyz, rgb, hist["area"], cfg.chart_fill)
-    q["xatlas_utilisation"] = xatlas_utilisation(atlas, xyz)
+    q["grid_coverage"], q["xatlas_coverage"] = xatlas_utilisation(atlas)
     q.update(charts=hist["n"], flatness=hist["flatness"], R=hist["R"], seconds=hist["total_seconds"],
              image_shape=list(atlas.layout.shape))
     q["history"] = [(round(s, 2), st, round(p, 2), ph) for s, st, p, ph in
@@ -90,7 +83,8 @@ def run_one(xyz, rgb, cfg, label: str, out: dict, png: str | None = None) -> Non
     print(f"[{label}] sigma1/sigma2 median={q['aniso_median']:.3f} p95={q['aniso_p95']:.3f}   "
           f"sigma1*sigma2 median={q['area_median']:.3f} p5={q['area_p5']:.3f} p95={q['area_p95']:.3f}")
     print(f"[{label}] utilisation grid={q['utilisation']:.3f} (chart interiors {q['utilisation_interior']:.3f}) "
-          f"xatlas={q['xatlas_utilisation']:.3f}  valid texels={q['texel_valid']:.3f}  "
+          f"valid texels={q['texel_valid']:.3f}\n[{label}] valid-texel coverage grid={q['grid_coverage']:.3f} "
+          f"xatlas={q['xatlas_coverage']:.3f}  "
           f"chart share={[round(s, 2) for s in q['chart_share']]}")
     print(f"[{label}] PSNR vs time: " + "  ".join(f"{s:.0f}s:{p:.1f}" for s, _, p, _ in q["history"][::4]))
     if png:

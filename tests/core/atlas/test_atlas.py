@@ -1,0 +1,176 @@
+"""Atlas object: shapes, serialisation round trip, texel-map layout, and (with a quick fit) the checkerboard bake."""
+import numpy as np
+import pytest
+import torch
+
+from core.atlas.atlas import Atlas
+from core.atlas.config import AtlasConfig
+from core.atlas.fit import choose_chart_count, fit_atlas
+from core.atlas.synthetic import synthetic_samples
+from core.util.errors import InputError, ModelFileError
+
+QUICK = dict(steps=400, texture_steps=60, batch=256, uv_batch=64, distortion_batch=64, width_map=48, depth_map=2,
+             width_chart=32, depth_chart=2, texture_res=32, log_every=100, eval_samples=1024, charts="4", device="cpu")
+
+
+@pytest.fixture(scope="module")
+def strip_fit():
+    xyz, rgb = synthetic_samples("strip", 6000, seed=1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # small matrices: one thread is several times faster on a busy machine
+    try:
+        atlas, hist = fit_atlas(xyz, rgb, AtlasConfig(**QUICK), quiet=True)
+    finally:
+        torch.set_num_threads(threads)
+    return atlas, hist, xyz, rgb
+
+
+def _random_atlas(n=4, R=16, pad=2):
+    torch.manual_seed(0)
+    a = Atlas(n, R, pad, torch.tensor([0.1, 0.2, 0.3]), 0.9, width_chart=16, depth_chart=1, width_map=16, depth_map=1)
+    with torch.no_grad():
+        a.textures.uniform_(0, 1)
+    return a
+
+
+def test_lookup_and_query_shapes():
+    a = _random_atlas()
+    x = torch.randn(37, 3)
+    probs, uv = a.chart_uv(x)
+    assert probs.shape == (37, 4) and uv.shape == (37, 4, 2)
+    assert torch.allclose(probs.sum(-1), torch.ones(37))
+    assert a.lookup(x).shape == (37, 3)
+    assert a.lookup(np.zeros((0, 3), np.float32)).shape == (0, 3)
+    chart, pix = a.atlas_pixel_coords(x)
+    assert chart.shape == (37,) and pix.shape == (37, 2)
+    H, W = a.layout.shape
+    assert a.packed_image().shape == (H, W, 3) and a.texel_points().shape == (H, W, 3)
+
+
+def test_lookup_with_the_packed_image_equals_fitted_lookup_and_sees_edits():
+    a = _random_atlas()
+    x = torch.randn(50, 3)
+    img = a.packed_image()
+    assert torch.equal(a.lookup(x, img), a.lookup(x))
+    edited = torch.zeros_like(img)  # paint everything black
+    assert torch.equal(a.lookup(x, edited.numpy()), torch.zeros(50, 3))
+
+
+def test_bad_inputs_raise_clear_errors():
+    a = _random_atlas()
+    with pytest.raises(InputError, match=r"\[M, 3\]"):
+        a.lookup(torch.zeros(5, 2))
+    with pytest.raises(InputError, match="NaN"):
+        a.lookup(torch.full((2, 3), float("nan")))
+    with pytest.raises(InputError, match="expected an image"):
+        a.lookup(torch.zeros(3, 3), image=torch.zeros(10, 10, 3))
+
+
+def test_round_trip_through_arrays_is_exact(strip_fit):
+    a = strip_fit[0]
+    arrays, meta = a.to_arrays(), a.meta()
+    assert all(k.startswith("atlas/") and v.dtype == np.float32 for k, v in arrays.items())
+    assert arrays["atlas/image"].shape == (*a.layout.shape, 3)
+    import json
+    b = Atlas.from_arrays({k: v.copy() for k, v in arrays.items()}, json.loads(json.dumps(meta)), "cpu")
+    assert torch.equal(b.textures, a.textures)
+    assert torch.equal(b.packed_image(), a.packed_image())
+    assert np.array_equal(b.texel_points().numpy(), a.texel_points().numpy(), equal_nan=True)
+    x = strip_fit[2][:500]
+    assert torch.equal(b.lookup(x), a.lookup(x))
+
+
+def test_from_arrays_rejects_missing_or_misshaped_arrays():
+    a = _random_atlas()
+    arrays, meta = a.to_arrays(), a.meta()
+    broken = dict(arrays)
+    del broken["atlas/net/tex.mlp.0.weight"]
+    with pytest.raises(ModelFileError, match="tex.mlp.0.weight"):
+        Atlas.from_arrays(broken, meta)
+    broken = dict(arrays, **{"atlas/image": arrays["atlas/image"][:-1]})
+    with pytest.raises(ModelFileError, match="atlas/image"):
+        Atlas.from_arrays(broken, meta)
+    with pytest.raises(ModelFileError, match="version"):
+        Atlas.from_arrays(arrays, dict(meta, version=99))
+
+
+def test_texel_map_layout(strip_fit):
+    a = strip_fit[0]
+    tp = a.texel_points()
+    L = a.layout
+    assert tp.shape == (*L.shape, 3)
+    finite = torch.isfinite(tp)
+    assert torch.equal(finite.all(-1), finite.any(-1))  # a texel is all-NaN or all-finite
+    inside = torch.zeros(L.shape, dtype=torch.bool)
+    for c in range(L.n):
+        r0, c0 = L.origin(c)
+        inside[r0:r0 + L.R, c0:c0 + L.R] = True
+    assert not finite.all(-1)[~inside].any()  # padding never has a surface point
+    # where the samples land, the texel map mostly has a surface point
+    _, pix = a.atlas_pixel_coords(strip_fit[2])
+    at_samples = finite.all(-1)[pix[:, 1].long(), pix[:, 0].long()].float().mean()
+    assert at_samples > 0.5, f"only {at_samples:.2f} of the sample texels have a surface point"
+    # valid texel points lie near the strip (the NaN rule drops far ones)
+    pts = tp[finite.all(-1)]
+    d = torch.cdist(pts, strip_fit[2]).min(dim=1).values
+    assert d.max() < 3.0 * strip_fit[1]["spacing"] + 1e-6
+
+
+def test_checkerboard_baked_through_texel_map_is_reproduced(strip_fit):
+    a, hist, xyz, _ = strip_fit
+    cell = 0.5
+
+    def checker(p):
+        k = torch.floor(p / cell).long().sum(-1) % 2
+        return torch.stack([k.float(), 1 - k.float(), torch.full_like(k.float(), 0.5)], -1)
+
+    tp = a.texel_points()
+    ok = torch.isfinite(tp).all(-1)
+    img = a.packed_image().clone()
+    img[ok] = checker(tp[ok])
+    # samples away from cell borders, and handled by their chart with confidence
+    frac = (xyz / cell) - torch.floor(xyz / cell)
+    away = ((frac > 0.2) & (frac < 0.8)).all(-1)
+    probs, _ = a.chart_uv(xyz)
+    # only samples whose bilinear footprint lies on baked (valid) texels: the bake defines nothing elsewhere
+    _, pix = a.atlas_pixel_coords(xyz)
+    r, c = pix[:, 1].long(), pix[:, 0].long()
+    H, W = ok.shape
+    baked = torch.ones(len(xyz), dtype=torch.bool)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            baked &= ok[(r + dr).clamp(0, H - 1), (c + dc).clamp(0, W - 1)]
+    x = xyz[away & baked & (probs.max(-1).values > 0.98)]
+    assert len(x) > 100
+    got = a.lookup(x, img)
+    agree = ((got[:, 0] > 0.5) == (checker(x)[:, 0] > 0.5)).float().mean()
+    assert agree > 0.95, f"only {agree:.3f} of samples show the baked checkerboard"
+
+
+def test_fixed_seed_gives_the_same_atlas():
+    xyz, rgb = synthetic_samples("sphere", 1500, seed=2)
+    cfg = AtlasConfig(**dict(QUICK, steps=15, texture_steps=5))
+    a, ha = fit_atlas(xyz, rgb, cfg, quiet=True)
+    b, hb = fit_atlas(xyz, rgb, cfg, quiet=True)
+    assert ha["psnr"] == hb["psnr"]
+    for (na, pa), (nb, pb) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert na == nb and torch.equal(pa.nan_to_num(7.0), pb.nan_to_num(7.0)), na
+
+
+def test_fit_rejects_bad_samples():
+    xyz, rgb = synthetic_samples("strip", 200)
+    with pytest.raises(InputError, match="rgb"):
+        fit_atlas(xyz, rgb[:10], AtlasConfig(**QUICK), quiet=True)
+    with pytest.raises(InputError, match="at least"):
+        fit_atlas(xyz[:10], rgb[:10], AtlasConfig(**QUICK), quiet=True)
+    bad = xyz.clone()
+    bad[3, 1] = float("inf")
+    with pytest.raises(InputError, match="NaN or infinite"):
+        fit_atlas(bad, rgb, AtlasConfig(**QUICK), quiet=True)
+
+
+def test_auto_chart_count_rule():
+    cfg = AtlasConfig()
+    assert choose_chart_count(synthetic_samples("strip", 4000)[0], cfg)[0] == 4
+    assert choose_chart_count(synthetic_samples("torus", 4000)[0], cfg)[0] == 8
+    assert choose_chart_count(synthetic_samples("torus", 4000)[0], AtlasConfig(charts="4"))[0] == 4
