@@ -75,3 +75,19 @@ def read_atlas_image(image) -> np.ndarray:
         buf = rgba.reshape(-1)
     # byte images (an artist's PNG) hand out their stored sRGB-encoded values; float buffers are scene-linear
     return pixels_to_atlas(buf, h, w, linear=bool(image.is_float))
+
+
+def repack_painted_atlases() -> list[str]:
+    """Pack again every packed PointGT atlas whose pixels changed (painting or paint transfer), so the .blend
+    saves the painted atlas, not the one packed at import. Atlases kept as files outside the .blend are left to
+    Blender's own image saving. Returns the image names."""
+    import bpy
+
+    done = []
+    for obj in bpy.data.objects:
+        s = getattr(obj, "pointgt", None)
+        img = s.atlas if s is not None and s.is_model else None
+        if img is not None and img.name not in done and img.packed_file is not None and img.is_dirty:
+            img.pack()
+            done.append(img.name)
+    return done

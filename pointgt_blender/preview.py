@@ -260,6 +260,15 @@ def on_load(*_args):
 
 
 @bpy.app.handlers.persistent
+def on_save(*_args):
+    """save_pre: painted atlases are packed again, or the .blend would keep the atlas as imported."""
+    try:
+        atlas_image.repack_painted_atlases()
+    except Exception as exc:  # a save must never fail because of the add-on
+        print(f"PointGT: could not pack the painted atlas: {type(exc).__name__}: {exc}")
+
+
+@bpy.app.handlers.persistent
 def on_render_start(*_args):
     global _rendering
     _rendering = True
@@ -283,8 +292,8 @@ def _poll():
 
 
 _HANDLERS = (("frame_change_post", on_frame_change), ("depsgraph_update_post", on_depsgraph_update),
-             ("load_post", on_load), ("render_init", on_render_start), ("render_complete", on_render_end),
-             ("render_cancel", on_render_end))
+             ("load_post", on_load), ("save_pre", on_save), ("render_init", on_render_start),
+             ("render_complete", on_render_end), ("render_cancel", on_render_end))
 
 
 def register_handlers():

@@ -1,0 +1,91 @@
+"""Compositing and caches of pointgt_blender/frame_renderer.py, against plain references (no Blender)."""
+import numpy as np
+import pytest
+
+from core.util.errors import InputError, ModelFileError
+from pointgt_blender.frame_renderer import ModelCache, ObjectInputs, StateCache, composite
+
+
+def _layers(rng, n=3, h=5, w=4):
+    out = []
+    for _ in range(n):
+        a = rng.uniform(0, 1, (h, w)).astype(np.float32)
+        c = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+        d = rng.uniform(1, 5, (h, w)).astype(np.float32)
+        d[rng.uniform(size=(h, w)) < 0.2] = np.inf  # off this object
+        out.append({"premul": a[..., None] * c, "alpha": a, "depth": d})
+    return out
+
+
+def _reference(layers, bg, transparent):
+    h, w = layers[0]["alpha"].shape
+    rgb = np.zeros((h, w, 3), np.float32)
+    alpha = np.zeros((h, w), np.float32)
+    for r in range(h):
+        for c in range(w):
+            acc, acc_a = np.zeros(3), 0.0
+            for l in sorted(layers, key=lambda l: l["depth"][r, c]):
+                acc = acc + (1 - acc_a) * l["premul"][r, c]
+                acc_a = acc_a + (1 - acc_a) * l["alpha"][r, c]
+            rgb[r, c] = acc / acc_a if transparent and acc_a > 1e-6 else (0 if transparent else acc + (1 - acc_a) * bg)
+            alpha[r, c] = acc_a
+    return rgb, alpha
+
+
+@pytest.mark.parametrize("transparent", [False, True])
+def test_composite_matches_per_pixel_reference(transparent):
+    layers = _layers(np.random.default_rng(0))
+    bg = np.array([0.2, 0.5, 0.9], np.float32)
+    rgb, alpha = composite(layers, background=bg, transparent=transparent)
+    ref_rgb, ref_a = _reference(layers, bg, transparent)
+    np.testing.assert_allclose(alpha, ref_a, atol=1e-6)
+    np.testing.assert_allclose(rgb, np.clip(ref_rgb, 0, 1), atol=1e-5)
+
+
+def test_composite_is_finite_for_empty_and_nan_layers():
+    h, w = 3, 3
+    layer = {"premul": np.full((h, w, 3), np.nan, np.float32), "alpha": np.zeros((h, w), np.float32),
+             "depth": np.full((h, w), np.inf, np.float32)}
+    rgb, alpha = composite([layer], background=(1, 1, 1), transparent=True)
+    assert np.isfinite(rgb).all() and (alpha == 0).all()
+    with pytest.raises(InputError, match="no PointGT object"):
+        composite([])
+
+
+def _inputs(pos, atlas=None):
+    return ObjectInputs(name="o", model_path="m.pgt", device="cpu", k=8, correspondence="DEFORM_AWARE",
+                        point_count=len(pos), positions=pos, ids=np.arange(len(pos)), atlas=atlas)
+
+
+def test_state_cache_rebuilds_only_when_inputs_change(monkeypatch):
+    import pointgt_blender.frame_renderer as fr
+
+    built = []
+    monkeypatch.setattr(fr, "EditState", lambda *a, **k: built.append(1) or object())
+    cache = StateCache()
+    bundle, cfg = object(), fr.EditConfig()
+    pos = np.zeros((4, 3), np.float32)
+    s1, new1 = cache.get(_inputs(pos), bundle, cfg)
+    pos[0, 0] = 0.0  # same values written again (a frame change that moved nothing)
+    s2, new2 = cache.get(_inputs(pos.copy()), bundle, cfg)
+    assert s1 is s2 and new1 and not new2
+    pos[1, 2] = 1e-3
+    s3, new3 = cache.get(_inputs(pos), bundle, cfg)
+    s4, new4 = cache.get(_inputs(pos, atlas=np.zeros((2, 2, 3), np.float32)), bundle, cfg)
+    assert new3 and new4 and s3 is not s2 and len(built) == 3
+
+
+def test_model_cache_reloads_changed_files_and_names_missing_ones(tmp_path, monkeypatch):
+    import pointgt_blender.frame_renderer as fr
+
+    loads = []
+    monkeypatch.setattr(fr, "load_bundle", lambda path, device: loads.append(path) or object())
+    path = tmp_path / "m.pgt"
+    path.write_bytes(b"one")
+    cache = ModelCache()
+    a = cache.get(str(path), "cpu")
+    assert cache.get(str(path), "cpu") is a and len(loads) == 1
+    path.write_bytes(b"three")  # another model copied over it
+    assert cache.get(str(path), "cpu") is not a and len(loads) == 2
+    with pytest.raises(ModelFileError, match="gone.pgt.*not found"):
+        cache.get(str(tmp_path / "gone.pgt"), "cpu")
