@@ -71,7 +71,25 @@ def session(tmp_path_factory):
                  tmp)
     second = _run(HERE / "reload_session.py", [str(work / "posed.blend")], env, tmp) \
         if (work / "posed.blend").exists() else {"error": "posed.blend was not saved"}
+    if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows this session's frames
+        _doc_images(work, Path(os.environ["POINTGT_DOC_IMAGES"]))
     return {"r": first, "reload": second, "work": work, "model": model}
+
+
+def _doc_images(work: Path, out: Path) -> None:
+    """Small strips for the docs: the posed animation frames, and the other-camera view of preview paint."""
+    out.mkdir(parents=True, exist_ok=True)
+
+    def strip(paths, name):
+        ims = [Image.open(p).convert("RGB") for p in paths]
+        w, h = ims[0].size
+        canvas = Image.new("RGB", (len(ims) * (3 * w + 4) - 4, 3 * h), "white")
+        for i, im in enumerate(ims):
+            canvas.paste(im.resize((3 * w, 3 * h), Image.NEAREST), (i * (3 * w + 4), 0))
+        canvas.save(out / name, optimize=True)
+
+    strip([work / "anim" / f"f_000{f}.png" for f in (1, 2, 3)], "addon_patch_follows_pose.png")
+    strip([work / "anim" / "f_0001.png", work / "other_view.png"], "addon_preview_paint_other_view.png")
 
 
 def _get(session, step):
