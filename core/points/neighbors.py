@@ -381,14 +381,18 @@ class _CellGrid:
         if self.bands * self.bins > _MAX_CELLS:  # wide frame with a tiny cap: coarser columns
             self.bins = max(2, _MAX_CELLS // self.bands)
             self.bin = (width + 2.0) / (self.bins - 2)
-        self.xmax = width + 2.0  # shifted column x + 1 of a candidate lies in [0, xmax]
+        self.slack = 1e-5 * (self.cap + height + width + 2.0)  # ≫ float32 rounding of pixel coordinates
         band = ((px[:, 1] + 1.0) // self.side).clamp(0, self.bands - 1).long()
         col = ((px[:, 0] + 1.0) // self.bin).clamp(0, self.bins - 1).long()
         cell, order = torch.sort(band * self.bins + col)
-        counts = torch.bincount(cell, minlength=self.bands * self.bins)
-        self.prefix = torch.nn.functional.pad(torch.cumsum(counts, 0), (1, 0))  # [cells + 1] points before a cell
-        grid = counts.view(self.bands, self.bins)
-        self.table = torch.nn.functional.pad(grid.cumsum(0).cumsum(1), (1, 0, 1, 0))  # [bands+1, bins+1] summed area
+        counts = torch.bincount(cell, minlength=self.bands * self.bins).view(self.bands, self.bins)
+        self.table = torch.nn.functional.pad(counts.cumsum(0).cumsum(1), (1, 0, 1, 0))  # [bands+1, bins+1] summed area
+        # run lookups use the cell grid framed by empty bands and columns, so that runs of a disc reaching past
+        # the frame need no masks: indices are clamped into the empty frame
+        self.pad_bands = 3 * _GRID_BANDS + 4
+        framed = torch.nn.functional.pad(counts, (1, 1, self.pad_bands, self.pad_bands))
+        self.cols = framed.shape[1]
+        self.prefix = torch.nn.functional.pad(framed.view(-1).cumsum(0), (1, 0))  # [cells + 1] points before a cell
         self.m = m = order.numel()
         pad = (0, m)  # slots M.. are sentinels at infinity: a query's table is padded with them
         self.order = torch.nn.functional.pad(order, pad, value=-1)  # [2M] sorted slot -> point, -1 = sentinel
@@ -419,37 +423,38 @@ class _CellGrid:
         return t[b1, c1] - t[b0, c1] - t[b1, c0] + t[b0, c0]
 
     def _runs(self, q: torch.Tensor, radius: torch.Tensor):
-        """q [R, 2] float64 finite, radius [R] float64 (≤ cap) -> start, length [R, S] int64: one run per band,
+        """q [R, 2] float32 finite, radius [R] float32 (≤ cap) -> start, length [R, S] int64: one run per band,
         a superset of the points within `radius` of the query (inside the frame ± 1 px)."""
         side, rad = self.side, radius[:, None]
-        slack = 1e-9 * (1.0 + self.cap)  # rounding margin: runs may hold a few extra points, the exact test drops them
-        first = torch.floor((q[:, 1:2] + 1.0 - rad - slack) / side)  # [R, 1]
+        slack = self.slack  # rounding margin: runs may hold a few extra points, the exact test drops them
+        y1 = q[:, 1:2] + 1.0
+        first = torch.floor((y1 - rad - slack) / side)  # [R, 1]
         span = int(math.ceil(2.0 * float(radius.max()) / side)) + 2 if radius.numel() else 1  # bands a disc meets
         band = first + torch.arange(span, device=q.device, dtype=q.dtype)  # [R, S]
-        y0 = band * side - 1.0  # band covers rows [y0, y0 + side)
-        dy = torch.clamp(torch.maximum(y0 - q[:, 1:2], q[:, 1:2] - (y0 + side)), min=0.0)
+        below = band * side - y1  # band covers shifted rows [band·side, band·side + side): query to its lower edge
+        dy = torch.maximum(below, -side - below).clamp_(min=0.0)
         half2 = (rad + slack) ** 2 - dy * dy
-        half = torch.sqrt(half2.clamp(min=0.0)) + slack
-        lo, hi = q[:, 0:1] + 1.0 - half, q[:, 0:1] + 1.0 + half
-        active = (half2 >= 0) & (band >= 0) & (band < self.bands) & (hi >= 0) & (lo <= self.xmax)
-        base = band.clamp(0, self.bands - 1).long() * self.bins
-        c_lo = (lo.clamp(0.0, self.xmax) / self.bin).long().clamp(max=self.bins - 1)
-        c_hi = (hi.clamp(0.0, self.xmax) / self.bin).long().clamp(max=self.bins - 1)
+        half = half2.clamp(min=0.0).sqrt_().add_(slack)
+        x1 = q[:, 0:1] * (1.0 / self.bin) + (1.0 / self.bin + 1.0)  # shifted column in bins, + 1 for the frame
+        hb = half * (1.0 / self.bin)
+        c_lo = (x1 - hb).floor_().clamp_(0, self.cols - 1).long()
+        c_hi = (x1 + hb).floor_().clamp_(0, self.cols - 1).long()
+        base = (band + self.pad_bands).clamp_(0, self.bands + 2 * self.pad_bands - 1).long() * self.cols
         start = self.prefix.take(base + c_lo)
-        return start, (self.prefix.take(base + c_hi + 1) - start) * active
+        return start, (self.prefix.take(base + c_hi + 1) - start) * (half2 >= 0)
 
     def _select(self, q: torch.Tensor, radius: torch.Tensor, k: int):
-        """K best among the points within `radius` pixels: q [r, 2] float64, radius [r] float64 -> (slot [r, k]
+        """K best among the points within `radius` pixels: q [r, 2] float32, radius [r] float32 -> (slot [r, k]
         into the sorted points, value [r, k] float32 ascending, inf = none)."""
         r = q.shape[0]
         start, length = self._runs(q, radius)
         count_s, srt = torch.sort(length.sum(dim=1))  # grouped by candidate count; results in this order
         start, length = start.index_select(0, srt), length.index_select(0, srt)
-        q32 = q.index_select(0, srt).to(torch.float32)
-        rad32 = radius.index_select(0, srt).to(torch.float32)[:, None]
+        q32 = q.index_select(0, srt)
+        rad32 = radius.index_select(0, srt)[:, None]
         slot = torch.zeros((r, k), dtype=torch.int64, device=q.device)
         value = torch.full((r, k), math.inf, dtype=torch.float32, device=q.device)
-        for a, b, wid in _groups(count_s, _GRID_BUDGET):
+        for a, b, wid in _groups(count_s, _GRID_BUDGET):  # each group writes its rows a..b
             n = b - a
             pos = _run_positions(start[a:b], length[a:b], wid, self.m).view(-1)  # [n * wid], padding -> sentinels
             qs, rs = q32[a:b], rad32[a:b]
@@ -474,29 +479,31 @@ class _CellGrid:
         idx = torch.full((r, k), -1, dtype=torch.int64, device=q.device)
         dist = torch.full((r, k), math.inf, dtype=torch.float32, device=q.device)
         q = torch.where(torch.isfinite(q).all(dim=1, keepdim=True), q, -1e9)  # far outside: no runs
-        cap = torch.full((r,), self.cap, dtype=torch.float64, device=q.device)
         count = self._square_count(q)
         rows = torch.nonzero(count > 0).squeeze(1)
         if rows.numel() == 0:
             return idx, dist
-        q, count, cap = q[rows], count[rows].to(torch.float64), cap[rows]
-        # stage 1: the density is the larger of the square's and the median one (a disc cut by the silhouette)
-        density = torch.clamp(count / (2.0 * self.cap + self.side) ** 2, min=self.density)
+        q = q.index_select(0, rows).to(torch.float32)  # within a cap of the frame: float32 is plenty
+        count = count.index_select(0, rows).to(torch.float32)
+        cap = torch.full_like(count, self.cap)
+        # stage 1: a disc holding ≈ factor² · k points at the density around the query
+        density = count / (2.0 * self.cap + self.side) ** 2
         factor = _STAGE1_FACTOR if self.weight is None else _STAGE1_FACTOR_WEIGHTED
-        rad1 = torch.minimum(factor * torch.sqrt(k / (math.pi * density)), cap)
+        rad1 = torch.minimum(density.reciprocal_().mul_(k / math.pi).sqrt_().mul_(factor), cap)
         rad1 = torch.where(count <= _STAGE1_MIN_COUNT * k, cap, rad1)  # few candidates: one stage is cheaper
         slot, value = self._select(q, rad1, k)
-        wmin = torch.ones_like(rad1, dtype=torch.float32)
+        wmin = torch.ones_like(rad1)
         if self.wmin is not None:
             band = ((q[:, 1] + 1.0) // self.side).clamp(0, self.wmin.shape[0] - 1).long()
             col = ((q[:, 0] + 1.0) // (self.bin * _BINS_PER_SIDE)).clamp(0, self.wmin.shape[1] - 1).long()
             wmin = self.wmin[band, col]
         kth = value[:, -1]
-        done = torch.isfinite(kth) & (kth <= rad1.to(torch.float32) * wmin)
+        # outside the disc every value is ≥ rad1 · wmin (rounding is monotone): where the K-th is within, it's final
+        done = torch.isfinite(kth) & (kth <= rad1 * wmin)
         done |= rad1 >= cap  # stage 1 already searched the whole cap disc
         redo = torch.nonzero(~done).squeeze(1)
         if redo.numel():  # stage 2: the disc that the stage-1 K-th value shows complete
-            bound = (kth[redo] / wmin[redo]).to(torch.float64) * (1 + 1e-6)
+            bound = kth[redo] / wmin[redo] * (1 + 1e-5)
             rad2 = torch.where(torch.isfinite(bound), torch.minimum(bound, cap[redo]), cap[redo])
             slot[redo], value[redo] = self._select(q[redo], rad2, k)
         idx[rows] = torch.where(torch.isfinite(value), self.order[slot], -1)  # sentinels are never finite
@@ -506,8 +513,9 @@ class _CellGrid:
 
 @contextlib.contextmanager
 def _one_cpu_thread(device: torch.device):
-    """Run torch CPU ops on one thread inside: the grid search is hundreds of small ops, and on a shared CPU each
-    multi-threaded op can wait a scheduler tick for its second thread (see docs/bench-neighbors.md)."""
+    """Run torch CPU ops single-threaded inside: the grid search is hundreds of small ops, and on a shared CPU
+    each multi-threaded op can wait a scheduler tick for its second thread (measured here under load: a 128²
+    frame took 0.2–2 s with 2 threads, 50 ms with 1). Python threads over the groups did not help either."""
     if device.type != "cpu":
         yield
         return
