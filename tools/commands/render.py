@@ -1,4 +1,9 @@
-"""`pointgt render MODEL.pgt --cameras transforms.json --out DIR`: one PNG per camera."""
+"""`pointgt render MODEL.pgt --cameras transforms.json --out DIR`: one PNG per camera.
+
+With --points/--ids (a deformed point set, e.g. exported from a Blender rig) and/or --atlas (a painted atlas), the
+frames are rendered through the edit path (core.frames.edited): neighbours and attention in deformed space, the
+painted texture looked up at each ray's canonical correspondence.
+"""
 from __future__ import annotations
 
 import json
@@ -6,7 +11,7 @@ import time
 from pathlib import Path
 
 NAME = "render"
-HELP = "render a model from the cameras of a transforms JSON (one RGBA PNG per camera)"
+HELP = "render a model from the cameras of a transforms JSON (one RGBA PNG per camera), optionally posed/painted"
 ORDER = 40
 
 
@@ -17,6 +22,53 @@ def add_arguments(p):
     p.add_argument("--size", type=int, default=None, help="square image size (default: size of the JSON's images)")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
     p.add_argument("--json", default=None, help="write timings and counts to this JSON file")
+    p.add_argument("--points", default=None, help="deformed point positions: .npy float [M, 3]")
+    p.add_argument("--ids", default=None,
+                   help="canonical index of each deformed point: .npy integer [M] (needed when M != model points)")
+    p.add_argument("--atlas", default=None, help="painted atlas image (PNG, same size as the model's atlas)")
+    p.add_argument("--correspondence", default="deform-aware", choices=("deform-aware", "naive"),
+                   help="canonical correspondence for texture lookups of moved points")
+    p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
+                   help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
+    p.add_argument("--temperature", type=float, default=1.0, help="attention temperature (< 1 sharpens attention)")
+
+
+def load_npy(path, what: str, kind: str):
+    """Read a .npy array without unpickling. kind 'points' -> float32 [M, 3]; 'ids' -> int64 [M].
+    Raises InputError naming the file and the problem (missing, corrupt, pickled, wrong shape/dtype)."""
+    import numpy as np
+
+    from core.util.errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} file does not exist")
+    with open(path, "rb") as fh:
+        magic = fh.read(6)
+    if magic != b"\x93NUMPY":
+        raise InputError(f"{path}: {what} is not a .npy file (no NumPy header); save the array with numpy.save")
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except ValueError as exc:
+        if "pickle" in str(exc):  # object arrays need pickle: refused, loading never runs code
+            raise InputError(f"{path}: {what} holds Python objects (pickled data), which is never loaded; "
+                             f"save a plain numeric array with numpy.save") from exc
+        raise InputError(f"{path}: {what} is truncated or corrupt ({exc}); save it again with numpy.save") from exc
+    except (OSError, EOFError) as exc:
+        raise InputError(f"{path}: {what} is not a readable .npy file ({exc}); save it with numpy.save") from exc
+    if not isinstance(arr, np.ndarray):
+        raise InputError(f"{path}: {what} must be a single .npy array, not an .npz archive")
+    if kind == "points":
+        if arr.ndim != 2 or arr.shape[1] != 3:
+            raise InputError(f"{path}: {what} must have shape [M, 3], got {list(arr.shape)}")
+        if arr.dtype.kind != "f":
+            raise InputError(f"{path}: {what} must be floating point, got dtype {arr.dtype}")
+        return arr.astype(np.float32)
+    if arr.ndim != 1:
+        raise InputError(f"{path}: {what} must have shape [M], got {list(arr.shape)}")
+    if arr.dtype.kind not in "iu":
+        raise InputError(f"{path}: {what} must be integers, got dtype {arr.dtype}")
+    return arr.astype(np.int64)
 
 
 def run(args) -> int:
@@ -24,26 +76,57 @@ def run(args) -> int:
     import torch
 
     from core.bundle import load_bundle
-    from core.frames.render import render_frame
     from core.images.dataset import load_cameras
-    from core.images.png import write_png
+    from core.images.png import read_png, write_png
     from core.util.atomic import atomic_write_text
+    from core.util.errors import InputError
     from core.util.progress import Progress
 
     bundle = load_bundle(args.model, device=args.device)
     cams = load_cameras(args.cameras, size=args.size)
+    edited = args.points is not None or args.ids is not None or args.atlas is not None
+    state = None
+    if edited:
+        from core.frames.edited import EditConfig, EditState
+
+        points = load_npy(args.points, "--points", "points") if args.points else None
+        ids = load_npy(args.ids, "--ids", "ids") if args.ids else None
+        atlas = read_png(args.atlas) if args.atlas else None
+        cfg = EditConfig(correspondence=args.correspondence, blend=args.blend, temperature=args.temperature)
+        try:
+            state = EditState(bundle, points=points, ids=ids, atlas=atlas, cfg=cfg)
+        except InputError as exc:  # name the files the arrays came from
+            files = ", ".join(f for f in (args.points, args.ids, args.atlas) if f)
+            raise InputError(f"{files}: {exc}") from exc
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    times = []
+    times, totals = [], {}
     with Progress(len(cams.names), "render") as bar:
         for i, name in enumerate(cams.names):
             t0 = time.perf_counter()
-            res = render_frame(bundle.model, cams.c2w[i], cams.height, cams.width, cams.focal)
+            if state is None:
+                from core.frames.render import render_frame
+
+                res = render_frame(bundle.model, cams.c2w[i], cams.height, cams.width, cams.focal)
+            else:
+                from core.frames.edited import render_edited
+
+                res = render_edited(state, cams.c2w[i], cams.height, cams.width, cams.focal)
+                for k, v in res["stats"].items():
+                    if isinstance(v, (int, float)) and k != "seconds":
+                        totals[k] = totals.get(k, 0) + v
             times.append(time.perf_counter() - t0)
             rgba = torch.cat([res["rgb"], res["alpha"][..., None]], dim=-1).cpu().numpy()
             write_png(out / f"{name}.png", rgba)
             bar.update(1)
     summary = {"frames": len(times), "seconds_per_frame": float(np.mean(times)), "out": str(out)}
+    if state is not None:
+        summary.update(edited=True, correspondence=args.correspondence if state.moved else "skipped",
+                       blend=args.blend, temperature=args.temperature, textured=state.textured,
+                       points=int(state.points.shape[0]), non_finite_points=state.non_finite_points,
+                       non_finite_lookups_repaired=int(totals.get("non_finite_lookups_repaired", 0)),
+                       rays=int(totals.get("rays", 0)), rays_shaded=int(totals.get("rays_shaded", 0)),
+                       texture_rays=int(totals.get("texture_rays", 0)))
     print(f"rendered {len(times)} frames to {out} ({summary['seconds_per_frame']:.3f} s/frame)")
     if args.json:
         atomic_write_text(args.json, json.dumps(summary, indent=1))
