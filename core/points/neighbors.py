@@ -9,16 +9,25 @@ with fewer than K candidates is padded with idx -1 and dist +inf (`.valid` [R, K
 - "screen_depth" (reference "d2r_z"): as "screen" but ranked by pixel distance × depth / focal, which is ≈ the
   perpendicular distance (world units).
 
+Pixel radius cap (screen metrics): a point is a candidate for a query pixel only if its projected distance is
+≤ max_radius_px. A ray whose nearest projected point is farther than a few pixels misses the object: the
+attention's background slot takes it, and the renderer can skip shading it. "auto" (the default) sets the cap to
+2 × the radius of a disc holding K points at the median projected density (at least 1.5 px), so an interior pixel
+sees ≈ 4 K candidates; inf means no cap (the reference's behaviour).
+
 Points with a non-finite coordinate are absent; so is any candidate whose distance is not finite.
 Indices are not differentiable and `dist` is detached: gather the points with `idx` to get gradients.
 
-Fast path (CPU tensors, backend "kdtree"): a scipy k-d tree over keys x_j (pixel coords, or unit directions from
-the shared origin) and an exact re-rank. Every metric here is w_j · φ(‖q − x_j‖) with a per-point weight w_j > 0
-(1, depth / focal, or |p − o|) and φ increasing, so once K candidates give an upper bound r on the K-th distance,
-every closer point has key distance < φ⁻¹(r / w_min): a ball query of that radius is complete, hence exact.
-The few points with the smallest weights (a stray point next to the camera would blow the ball up) are checked
-by brute force instead. Other devices (backend "torch") use chunked brute force, which is also the reference the
-benchmark (`python -m tools.bench.neighbors`) times the fast path against.
+Backends, all exact w.r.t. the definition above (tests compare each with a plain-torch brute force):
+- "grid" (capped screen metrics, any device, pure torch): a pixel-space cell grid, see _CellGrid.
+- "kdtree" (uncapped, CPU tensors): a scipy k-d tree over keys x_j (pixel coords, or unit directions from the
+  shared origin) and an exact re-rank. Every metric here is w_j · φ(‖q − x_j‖) with a per-point weight w_j > 0
+  (1, depth / focal, or |p − o|) and φ increasing, so once K candidates give an upper bound r on the K-th
+  distance, every closer point has key distance < φ⁻¹(r / w_min): a ball query of that radius is complete. The
+  few points with the smallest weights (a stray point next to the camera would blow the ball up) are checked by
+  brute force instead.
+- "torch": chunked brute force (with the cap applied), the reference the benchmark times the fast paths
+  against (`python -m tools.bench.neighbors`); "auto" picks grid / kdtree / torch in that order of fit.
 """
 from __future__ import annotations
 

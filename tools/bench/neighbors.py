@@ -76,9 +76,15 @@ def main(argv=None) -> None:
     ap.add_argument("--brute-repeats", type=int, default=3, help="repeats of the brute force (median reported)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", choices=["all", "capped", "uncapped"], default="all", help="which rows to run")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="torch threads for the brute force and the k-d tree path (0 = torch's default); the grid "
+                         "always runs its ops on one thread")
     args = ap.parse_args(argv)
 
     import torch
+
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
 
     from core.images.cameras import pixel_rays
     from core.points import neighbors as nb
