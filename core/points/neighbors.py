@@ -380,8 +380,9 @@ class _CellGrid:
     of radius min(cap, K-th value / smallest weight), which that bound shows complete.
     """
 
-    def __init__(self, px: torch.Tensor, weight: torch.Tensor | None, cap: float, density: float, height: int,
-                 width: int):
+    def __init__(self, px: torch.Tensor, weight: torch.Tensor | None, ids: torch.Tensor, cap: float, density: float,
+                 height: int, width: int):
+        """px [M, 2] float64 projected points, weight [M] or None, ids [M] int64 what query() returns for each."""
         self.cap, self.density = float(cap), float(density)
         self.side = max(self.cap / _GRID_BANDS, (height + 2.0) / _MAX_BANDS)
         self.bands = int((height + 2.0) // self.side) + 1
@@ -404,7 +405,7 @@ class _CellGrid:
         self.prefix = torch.nn.functional.pad(framed.view(-1).cumsum(0), (1, 0))  # [cells + 1] points before a cell
         self.m = m = order.numel()
         pad = (0, m)  # slots M.. are sentinels at infinity: a query's table is padded with them
-        self.order = torch.nn.functional.pad(order, pad, value=-1)  # [2M] sorted slot -> point, -1 = sentinel
+        self.order = torch.nn.functional.pad(ids[order], pad, value=-1)  # [2M] sorted slot -> id, -1 = sentinel
         self.x = torch.nn.functional.pad(px[order, 0].to(torch.float32), pad, value=math.inf)  # [2M] sorted
         self.y = torch.nn.functional.pad(px[order, 1].to(torch.float32), pad, value=math.inf)
         self.weight = None if weight is None else torch.nn.functional.pad(weight[order].to(torch.float32), pad,
@@ -482,7 +483,7 @@ class _CellGrid:
         return slot.index_select(0, inverse), value.index_select(0, inverse)
 
     def query(self, q: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """q [R, 2] float64 (non-finite rows = no neighbours) -> (idx [R, k] into the points given to __init__, -1
+        """q [R, 2] float64 (non-finite rows = no neighbours) -> (idx [R, k] of the ids given to __init__, -1
         = none; dist [R, k] float32 ascending, inf = none)."""
         r = q.shape[0]
         idx = torch.full((r, k), -1, dtype=torch.int64, device=q.device)
@@ -624,11 +625,9 @@ class ScreenIndex:
             with _one_cpu_thread(self.device):
                 cap = self.radius_px(k)
                 if cap not in self._grids:
-                    self._grids[cap] = _CellGrid(self.px, self.weight, cap, self._median_density(), self.height,
-                                                 self.width)
-                li, ld = self._grids[cap].query(query_px.detach().to(self.device, torch.float64), k)
-                idx = torch.where(li >= 0, self.ids[li.clamp(min=0)], -1)
-                return _finalize(idx, ld, k, self.device)
+                    self._grids[cap] = _CellGrid(self.px, self.weight, self.ids, cap, self._median_density(),
+                                                 self.height, self.width)
+                return Neighbors(*self._grids[cap].query(query_px.detach().to(self.device, torch.float64), k))
         ok = torch.isfinite(query_px).all(dim=1)
         if self._tree is not None:
             q = query_px.detach().to("cpu", torch.float64).numpy()
