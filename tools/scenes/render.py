@@ -1,0 +1,105 @@
+"""Cycles (CPU) settings and the view-rendering loop (needs bpy)."""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import time
+from pathlib import Path
+
+import bpy
+import numpy as np
+from mathutils import Matrix
+
+DEFAULT_SAMPLES = {False: 16, True: 64}  # emission needs few samples (anti-aliasing only); lit needs more
+
+
+def setup_cycles(scene, size: int, samples: int, lit: bool, filter_width: float | None = None) -> None:
+    """Cycles on the CPU, no denoiser, transparent film, Standard view (PNG = sRGB encoding of linear), 8-bit
+    RGBA PNGs, no dithering (so a constant emission colour gives one exact pixel value)."""
+    scene.render.engine = "CYCLES"
+    cyc = scene.cycles
+    cyc.device = "CPU"
+    cyc.samples = int(samples)
+    cyc.use_adaptive_sampling = False
+    cyc.use_denoising = False
+    cyc.seed = 0
+    if filter_width is not None:
+        cyc.filter_width = float(filter_width)  # tiny width: each sample goes through the pixel centre
+    if lit:
+        cyc.max_bounces, cyc.diffuse_bounces, cyc.glossy_bounces = 3, 2, 1
+    else:
+        cyc.max_bounces = 0  # emission seen directly; bounces would only cost time
+    r = scene.render
+    r.film_transparent = True
+    r.resolution_x = r.resolution_y = int(size)
+    r.resolution_percentage = 100
+    r.dither_intensity = 0.0
+    r.use_persistent_data = True
+    r.image_settings.file_format = "PNG"
+    r.image_settings.color_mode = "RGBA"
+    r.image_settings.color_depth = "8"
+    scene.display_settings.display_device = "sRGB"
+    scene.view_settings.view_transform = "Standard"
+    scene.view_settings.look = "None"
+    scene.view_settings.exposure = 0.0
+    scene.view_settings.gamma = 1.0
+
+
+def add_lights(scene) -> None:
+    """The lit variant: a sun from above-front plus a dim grey world (still a transparent film)."""
+    sun = bpy.data.lights.new("sun", "SUN")
+    sun.energy = 3.0
+    obj = bpy.data.objects.new("sun", sun)
+    obj.rotation_euler = (0.8, 0.2, 0.6)
+    scene.collection.objects.link(obj)
+    world = bpy.data.worlds.new("world")
+    world.use_nodes = True
+    bg = world.node_tree.nodes.get("Background")
+    bg.inputs["Color"].default_value = (0.25, 0.25, 0.25, 1.0)
+    scene.world = world
+
+
+def add_camera(scene, camera_angle_x: float, name: str = "camera"):
+    cam = bpy.data.cameras.new(name)
+    cam.sensor_fit = "HORIZONTAL"
+    cam.angle = float(camera_angle_x)
+    cam.clip_start, cam.clip_end = 0.05, 100.0
+    obj = bpy.data.objects.new(name, cam)
+    scene.collection.objects.link(obj)
+    scene.camera = obj
+    return obj
+
+
+@contextlib.contextmanager
+def quiet_stdout():
+    """Cycles prints a status line per tile on the C-level stdout; hide it so our progress stays readable."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
+def render_views(scene, camera, c2ws: np.ndarray, out_dir: Path, split: str, log=print) -> list[dict]:
+    """Render one PNG per camera-to-world matrix [V, 4, 4] into out_dir/split/r_<i>.png.
+
+    Returns the NeRF-synthetic frame entries: file_path "./<split>/r_<i>" (no extension) + transform_matrix.
+    """
+    (out_dir / split).mkdir(parents=True, exist_ok=True)
+    frames = []
+    start = time.perf_counter()
+    total = len(c2ws)
+    for i, c2w in enumerate(c2ws):
+        camera.matrix_world = Matrix(np.asarray(c2w).tolist())
+        scene.render.filepath = str(out_dir / split / f"r_{i}.png")
+        with quiet_stdout():
+            bpy.ops.render.render(write_still=True)
+        frames.append({"file_path": f"./{split}/r_{i}", "transform_matrix": np.asarray(c2w).tolist()})
+        log(f"  {split}: {i + 1}/{total} views, {time.perf_counter() - start:.1f} s")
+    return frames
