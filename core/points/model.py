@@ -114,7 +114,8 @@ class PointModel(nn.Module):
         t_min = torch.where(t_min >= big, torch.zeros_like(t_min), t_min)
         # Clamp the key features: points sent far away or huge scene scales must not overflow the Fourier terms.
         feats = torch.stack([(rho / s).clamp(max=64.0), ((t - t_min) / s).clamp(-64.0, 64.0)], dim=-1)
-        logits = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1) + influence[safe_idx]
+        # Influence clamped: ±1e30 softmaxes fine (max subtracted), an infinite one (diverged fit) would give inf − inf.
+        logits = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1) + influence[safe_idx].clamp(-1e30, 1e30)
         temp = self.cfg.temperature if temperature is None else temperature
         all_logits = torch.cat([logits, self.bg_logit.expand(logits.shape[0], 1)], dim=1) / max(temp, 1e-3)
         all_logits = all_logits.masked_fill(torch.cat([~valid, torch.zeros_like(valid[:, :1])], 1), float("-inf"))
