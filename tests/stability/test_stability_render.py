@@ -10,6 +10,7 @@ from core.edits.bake import bake
 from core.frames.edited import EditState, render_edited
 from core.images.cameras import look_at
 from tests.helpers.tiny_fast import tiny_fast
+from tests.stability.frame_checks import check_frame
 
 pytestmark = pytest.mark.stability
 
@@ -20,17 +21,6 @@ def tiny():
     painted = bake(bundle.atlas, lambda x: (torch.stack([(x[:, 0] > 0).float(), 0.2 + 0 * x[:, 0],
                                                          (x[:, 1] > 0).float()], 1), None))
     return bundle, test, painted
-
-
-def check_frame(out, h, w):
-    """The invariants of every frame: shapes, finite rgb/alpha in [0, 1], x_can finite or NaN (off the object)."""
-    rgb, alpha, x = out["rgb"], out["alpha"], out["x_can"]
-    assert rgb.shape == (h, w, 3) and alpha.shape == (h, w) and x.shape == (h, w, 3)
-    assert bool(torch.isfinite(rgb).all()) and float(rgb.min()) >= 0.0 and float(rgb.max()) <= 1.0
-    assert bool(torch.isfinite(alpha).all()) and float(alpha.min()) >= 0.0 and float(alpha.max()) <= 1.0 + 1e-6
-    assert not bool(torch.isinf(x).any())
-    for key in ("weights", "fg_weights", "bg", "x"):
-        assert bool(torch.isfinite(out["trace"][key]).all()), key
 
 
 def _twist(p, turns):
