@@ -1,0 +1,117 @@
+"""Scene profile on analytic scenes: emission vs view-dependent colour, thin sheet vs solid, and apply rules."""
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from core.atlas.config import AtlasConfig
+from core.config import add_to_parser
+from core.images.cameras import focal_from_fov, pixel_rays
+from core.images.dataset import SplitData
+from core.points.model import ModelConfig
+from core.profile import SceneProfile, apply_profile, explicit_fields, scene_profile, view_variation
+from tests.helpers.synthetic import _hit, fibonacci_cameras, render_split, stripes
+
+SIZE = 48
+
+
+def _normal(shape, p, d):
+    n = p / p.norm(dim=1, keepdim=True) if shape == "sphere" else torch.tensor([0.0, 0.0, 1.0]).expand_as(p)
+    return torch.where(((n * d).sum(1, keepdim=True) > 0), -n, n)  # facing the viewer
+
+
+def render_glossy(shape, c2w, size, fov=0.69, gloss=0.8):
+    """The analytic scene with a view-dependent colour: stripes × diffuse + a white Phong highlight of a light
+    fixed in the world, which moves over the surface as the camera moves."""
+    focal = focal_from_fov(size, fov)
+    light = torch.nn.functional.normalize(torch.tensor([0.3, 0.5, 1.0]), dim=0)
+    ss, ims, als = 2, [], []
+    for m in c2w:
+        o, d = pixel_rays(m, size * ss, size * ss, focal * ss)
+        o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+        t = _hit(shape, o, d)
+        hit = torch.isfinite(t)
+        p = o[hit] + t[hit, None] * d[hit]
+        n = _normal(shape, p, d[hit])
+        refl = d[hit] - 2 * (d[hit] * n).sum(1, keepdim=True) * n
+        spec = (refl @ light).clamp_min(0) ** 8
+        rgb = torch.zeros_like(o)
+        rgb[hit] = (0.6 * stripes(p) + gloss * spec[:, None]).clamp(0, 1)
+        a = hit.float()
+        rgb = rgb.reshape(size, ss, size, ss, 3).mean((1, 3))
+        a = a.reshape(size, ss, size, ss).mean((1, 3))
+        ims.append(rgb + (1 - a[..., None]))
+        als.append(a)
+    return SplitData(split="train", images=torch.stack(ims), alphas=torch.stack(als), c2w=c2w.float(), focal=focal,
+                     height=size, width=size, camera_angle_x=fov,
+                     files=[Path(f"train/r_{i}.png") for i in range(len(c2w))])
+
+
+@pytest.fixture(scope="module")
+def profiles():
+    cams = fibonacci_cameras(16, seed=0)
+    out = {}
+    for shape in ("sphere", "card"):
+        out[(shape, "emission")] = scene_profile(render_split(shape, cams, SIZE), hull_points=2000)
+        out[(shape, "glossy")] = scene_profile(render_glossy(shape, cams, SIZE), hull_points=2000)
+    return out
+
+
+def test_emission_scenes_need_no_decoder(profiles):
+    for shape in ("sphere", "card"):
+        p = profiles[(shape, "emission")]
+        assert p.decoder == "none" and not p.view_dependent, (shape, p.measured)
+
+
+def test_view_dependent_scenes_get_the_decoder(profiles):
+    for shape in ("sphere", "card"):
+        p = profiles[(shape, "glossy")]
+        assert p.decoder == "unet" and p.view_dependent, (shape, p.measured)
+        assert p.measured["view_variation"] > 1.5 * profiles[(shape, "emission")].measured["view_variation"]
+
+
+def test_thin_sheet_gets_more_neighbours(profiles):
+    assert profiles[("card", "emission")].k > profiles[("sphere", "emission")].k
+    assert profiles[("card", "emission")].measured["hull_flatness"] < profiles[("sphere", "emission")].measured["hull_flatness"]
+
+
+def test_profile_is_json_and_charts_follow_the_atlas_rule(profiles):
+    for p in profiles.values():
+        d = json.loads(json.dumps(p.to_dict()))
+        assert d["charts"] in ("4", "8") and d["measured"]["points_compared"] > 50
+
+
+def test_view_variation_matches_a_plain_reference():
+    g = torch.Generator().manual_seed(0)
+    pid = torch.randint(0, 20, (400,), generator=g)
+    rgb = torch.rand(400, 3, generator=g)
+    contrast = 0.3 * torch.rand(400, generator=g)
+    got = view_variation(pid, rgb, contrast, 20)
+    stds, excess = [], []
+    for i in range(20):  # brute force: per point, population std of its colours summed over channels, its contrast
+        c = rgb[pid == i]
+        if len(c) >= 3:
+            sd = float(c.var(0, unbiased=False).sum().sqrt())
+            stds.append(sd)
+            excess.append(max(0.0, sd - float(contrast[pid == i].mean())))
+    assert got["view_std"] == pytest.approx(float(torch.tensor(stds).median()), rel=1e-4)
+    assert got["view_variation"] == pytest.approx(sum(excess) / len(excess), rel=1e-4)
+    assert got["points_compared"] == len(stds)
+
+
+def test_apply_keeps_explicit_values():
+    prof = SceneProfile(decoder="unet", view_dependent=True, k=40, charts="8")
+    m, a, applied = apply_profile(prof, ModelConfig(), AtlasConfig())
+    assert (m.decoder, m.view_dependent, m.k, a.charts) == ("unet", True, 40, "8") and len(applied) == 4
+    # values different from the defaults count as the user's when no explicit set is given
+    m, a, applied = apply_profile(prof, ModelConfig(k=12), AtlasConfig(charts="4"))
+    assert m.k == 12 and a.charts == "4" and m.decoder == "unet" and set(applied) == {"decoder", "view_dependent"}
+    # an explicit flag that happens to equal the default is still the user's
+    ap = argparse.ArgumentParser()
+    add_to_parser(ap, ModelConfig)
+    args = ap.parse_args(["--k", "20", "--decoder", "none"])
+    m, _, applied = apply_profile(prof, ModelConfig(k=20, decoder="none"), AtlasConfig(),
+                                  explicit=explicit_fields(args, ModelConfig))
+    assert m.k == 20 and m.decoder == "none" and m.view_dependent and "k" not in applied
