@@ -115,3 +115,14 @@ def test_apply_keeps_explicit_values():
     m, _, applied = apply_profile(prof, ModelConfig(k=20, decoder="none"), AtlasConfig(),
                                   explicit=explicit_fields(args, ModelConfig))
     assert m.k == 20 and m.decoder == "none" and m.view_dependent and "k" not in applied
+
+
+if __name__ == "__main__":  # the table in docs/stability.md: `python -m tests.core.test_profile`
+    cams = fibonacci_cameras(16, seed=0)
+    print("| scene | colour | view_variation | hull flatness | decoder | K | charts |")
+    print("|---|---|---|---|---|---|---|")
+    for shape in ("sphere", "card"):
+        for kind, split in (("emission", render_split(shape, cams, SIZE)), ("glossy", render_glossy(shape, cams, SIZE))):
+            p = scene_profile(split, hull_points=2000)
+            print(f"| {shape} | {kind} | {p.measured['view_variation']:.3f} | {p.measured['hull_flatness']:.3f} | "
+                  f"{p.decoder} | {p.k} | {p.charts} |")

@@ -210,6 +210,38 @@ def timed_parts(bundle, acc: dict):
                 setattr(obj, name, fn)
 
 
+def compare_chunks(bundle, points, atlas_image, cams, size, focal, chunks: str) -> dict:
+    """Edited-frame times for several trace_frame chunk sizes, interleaved per camera: {chunk: (wall s, CPU s)}."""
+    import core.frames.edited as edited_mod
+    from core.frames.edited import EditState, render_edited
+    from core.frames.render import trace_frame
+
+    sizes = [int(c) for c in chunks.split(",") if c.strip()]
+    if not sizes:
+        return {}
+    state = EditState(bundle, points=points, atlas=atlas_image)
+    times = {c: ([], []) for c in sizes}
+    try:
+        for i, cam in enumerate([cams[0]] + list(cams)):  # the first is a warm-up
+            for c in sizes:
+                edited_mod.trace_frame = functools.partial(trace_frame, chunk=c)
+                t, tc = time.perf_counter(), time.process_time()
+                render_edited(state, cam, size, size, focal)
+                if i:
+                    times[c][0].append(time.perf_counter() - t)
+                    times[c][1].append(time.process_time() - tc)
+    finally:
+        edited_mod.trace_frame = trace_frame
+    print("\ntrace_frame chunk (rays per attention call), deformed + retextured frame, interleaved:")
+    print("| chunk | median s | CPU s |")
+    print("|---|---|---|")
+    out = {}
+    for c, (w, cp) in times.items():
+        out[c] = (statistics.median(w), statistics.median(cp))
+        print(f"| {c} | {out[c][0]:.3f} | {out[c][1]:.3f} |")
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", default=None, help="a trained .pgt with an atlas (default: build one, see above)")
@@ -220,6 +252,8 @@ def main(argv=None) -> int:
     ap.add_argument("--save-model", default=None, help="save the built model here (reuse it with --model)")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch's default)")
     ap.add_argument("--budget", type=float, default=0.25, help="target seconds for a deformed + retextured frame")
+    ap.add_argument("--chunks", default="", help="comma-separated trace_frame chunk sizes (rays per attention call) "
+                    "to compare on the deformed + retextured frame, e.g. 16384,1024; empty = skip")
     ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = ap.parse_args(argv)
 
@@ -319,6 +353,8 @@ def main(argv=None) -> int:
     rest = total - sum(acc.values())
     print(f"| rest (rays, blending, bookkeeping) | {rest / len(cams):.4f} | {100 * rest / max(total, 1e-12):.0f} % |")
 
+    chunk_rows = compare_chunks(bundle, bent, painted, cams, args.size, focal, args.chunks)
+
     if args.json:
         from core.util.atomic import atomic_write_text
 
@@ -327,7 +363,7 @@ def main(argv=None) -> int:
                "skips": [{"skip": n, "skipped_s": a["median_s"], "forced_s": b["median_s"],
                           "skipped_cpu_s": a["cpu_s"], "forced_cpu_s": b["cpu_s"],
                           "skipped_stats": a["stats"], "forced_stats": b["stats"]} for n, a, b in skips],
-               "parts_s_per_frame": {k: v / len(cams) for k, v in acc.items()}}
+               "parts_s_per_frame": {k: v / len(cams) for k, v in acc.items()}, "chunks": chunk_rows}
         atomic_write_text(args.json, json.dumps(out, indent=1, default=float))
     return 0 if edited_s <= args.budget else 1
 
