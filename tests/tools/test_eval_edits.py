@@ -1,0 +1,205 @@
+"""`pointgt render` edit flags (deformed points, ids, painted atlas, JSON stats, bad .npy files) and
+`pointgt eval-edits` (diagnostics on a tiny model; a Blender smoke run on a tiny scene in a subprocess)."""
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from core.bundle import save_bundle
+from core.edits.bake import bake
+from core.frames.edited import EditConfig, EditState, render_edited
+from core.images.png import read_png, write_png
+from tests.helpers.tiny_model import tiny_card
+from tools.cli import main
+from tools.eval_edits import diagnostics, markdown, methods
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return tiny_card()
+
+
+@pytest.fixture(scope="module")
+def model_files(tiny, tmp_path_factory):
+    """The tiny model as a .pgt, a transforms JSON of its test cameras and a painted atlas PNG."""
+    bundle, _, test = tiny
+    d = tmp_path_factory.mktemp("render_cli")
+    save_bundle(d / "m.pgt", bundle)
+    frames = [{"file_path": f"./test/v{i}", "transform_matrix": test.c2w[i].tolist()} for i in range(2)]
+    (d / "cams.json").write_text(json.dumps({"camera_angle_x": test.camera_angle_x, "frames": frames}))
+    red_right = lambda x: (torch.where((x[:, 0] > 0)[:, None], torch.tensor([1.0, 0.0, 0.0]),
+                                       torch.tensor([0.0, 0.0, 1.0])), None)
+    write_png(d / "atlas.png", bake(bundle.atlas, red_right).numpy())
+    return d
+
+
+def _render(d, *extra):
+    return main(["render", str(d / "m.pgt"), "--cameras", str(d / "cams.json"), "--size", "40", "--device", "cpu",
+                 *extra])
+
+
+def test_render_with_points_ids_and_atlas_writes_frames_and_stats(tiny, model_files, tmp_path):
+    bundle, _, _ = tiny
+    n = bundle.model.num_points
+    keep = np.setdiff1d(np.arange(n), np.arange(0, n, 10))  # remove every 10th point, move the rest, one NaN
+    pts = bundle.model.xyz.detach().numpy()[keep] + np.float32([0.05, 0.0, 0.0])
+    pts[3] = np.nan
+    np.save(tmp_path / "p.npy", pts.astype(np.float32))
+    np.save(tmp_path / "i.npy", keep.astype(np.int32))
+    out = tmp_path / "frames"
+    rc = _render(model_files, "--out", str(out), "--points", str(tmp_path / "p.npy"), "--ids", str(tmp_path / "i.npy"),
+                 "--atlas", str(model_files / "atlas.png"), "--correspondence", "naive", "--blend", "threshold",
+                 "--json", str(tmp_path / "r.json"))
+    assert rc == 0
+    stats = json.loads((tmp_path / "r.json").read_text())
+    assert stats["frames"] == 2 and stats["edited"] and stats["textured"]
+    assert stats["correspondence"] == "naive" and stats["blend"] == "threshold"
+    assert stats["points"] == len(keep) and stats["non_finite_points"] == 1
+    assert stats["rays"] == 2 * 40 * 40 and 0 < stats["texture_rays"] <= stats["rays_shaded"] <= stats["rays"]
+    assert stats["seconds_per_frame"] > 0 and stats["non_finite_lookups_repaired"] >= 0
+    img = read_png(out / "v0.png")
+    assert img.shape == (40, 40, 4) and np.isfinite(img).all()
+    # the painted colours reach the frame: red and blue object pixels, no green from the original texture left
+    obj = img[..., 3] > 0.5
+    assert obj.sum() > 20
+    assert (img[obj, 1] < 0.35).mean() > 0.9
+
+
+def test_render_without_edit_flags_keeps_the_plain_path(model_files, tmp_path):
+    assert _render(model_files, "--out", str(tmp_path / "f"), "--json", str(tmp_path / "r.json")) == 0
+    stats = json.loads((tmp_path / "r.json").read_text())
+    assert stats["frames"] == 2 and "edited" not in stats
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda p: np.save(p, np.zeros((5, 2), np.float32)), r"must have shape \[M, 3\], got \[5, 2\]"),
+    (lambda p: np.save(p, np.zeros((5, 3), np.int32)), "must be floating point, got dtype int32"),
+    (lambda p: np.save(p, np.array([{"x": 1}], dtype=object), allow_pickle=True), "pickled data"),
+    (lambda p: p.write_bytes(b"not an array"), "not a .npy file"),
+    (lambda p: (np.save(p, np.zeros((100, 3), np.float32)), p.write_bytes(p.read_bytes()[:200])), "truncated"),
+])
+def test_bad_points_files_are_named_errors(model_files, tmp_path, capsys, make, message):
+    bad = tmp_path / "bad.npy"
+    make(bad)
+    assert _render(model_files, "--out", str(tmp_path / "f"), "--points", str(bad)) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and message.split("\\")[0].split("(")[0] in err.replace("\\", "")
+    assert not (tmp_path / "f" / "v0.png").exists()
+
+
+def test_bad_ids_files_are_named_errors(tiny, model_files, tmp_path, capsys):
+    n = tiny[0].model.num_points
+    np.save(tmp_path / "p.npy", np.zeros((4, 3), np.float32))
+    cases = {"float ids": (np.zeros(4, np.float32), "must be integers"),
+             "2-D ids": (np.zeros((4, 1), np.int64), "must have shape [M]"),
+             "wrong count": (np.zeros(3, np.int64), "expected shape [4]"),
+             "out of range": (np.array([0, 1, 2, n]), f"[0, {n - 1}]")}
+    for name, (arr, message) in cases.items():
+        np.save(tmp_path / "i.npy", arr)
+        rc = _render(model_files, "--out", str(tmp_path / "f"), "--points", str(tmp_path / "p.npy"),
+                     "--ids", str(tmp_path / "i.npy"))
+        err = capsys.readouterr().err
+        assert rc == 2, name
+        assert message in err and "i.npy" in err, (name, err)
+    rc = _render(model_files, "--out", str(tmp_path / "f"), "--points", str(tmp_path / "missing.npy"))
+    assert rc == 2 and "missing.npy: --points file does not exist" in capsys.readouterr().err
+
+
+def test_correspondence_gap_equals_distance_of_surface_point_to_its_ray(tiny):
+    """naive − aware = x̂ − Π_ray(x̂) ray by ray, so the measured gap must equal the measured ray distance."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    bent = xyz.clone()
+    bent[:, 2] += 0.4 * xyz[:, 0] ** 2  # a non-rigid bend
+    atlas = bake(bundle.atlas, lambda x: (x.clamp(0, 1), None))
+    for t in (1.0, 0.3):
+        state = EditState(bundle, points=bent, atlas=atlas, cfg=EditConfig(temperature=t))
+        out = render_edited(state, test.c2w[0], test.height, test.width, test.focal)
+        d = diagnostics(out, state)
+        assert d["rays_object"] > 50
+        assert 0 < d["max_weight"] <= 1
+        assert math.isclose(d["corr_gap"], d["ray_dist"], rel_tol=1e-3, abs_tol=1e-6)
+        assert math.isclose(d["ray_dist_spacings"] * float(bundle.model.spacing), d["ray_dist"], rel_tol=1e-5)
+
+
+def test_markdown_lists_every_method_and_case():
+    meths = methods((1.0, 0.5))
+    assert len(meths) == 12 and sum(m.blend == "threshold" for m in meths) == 2
+    rows = []
+    for pose, mag in (("rest", 0.0), ("bend", 1.0)):
+        for i, m in enumerate(meths):
+            rows.append({"pose": pose, "magnitude": mag, "edit": m.edit, "correspondence": m.correspondence,
+                         "temperature": m.temperature, "blend": m.blend, "psnr": 20.0 + i, "psnr_object": 10.0 + i,
+                         "ssim": 0.9, "seconds_per_frame": 0.1, "max_weight": 0.5, "ray_dist": 0.01,
+                         "ray_dist_spacings": 0.5, "corr_gap": 0.01, "psnr_object_oracle": 15.0})
+    from tools.eval_edits import blend_comparison, retexture_gaps
+
+    result = {"scene_name": "x", "views": 1, "width": 8, "height": 8, "model_points": 10, "point_spacing": 0.1,
+              "retexture": "stripes", "seconds_total": 1.0, "rows": rows,
+              "blank": [{"pose": p, "magnitude": m, "edit": e, "psnr": 5.0, "psnr_object": 1.0}
+                        for p, m in (("rest", 0.0), ("bend", 1.0)) for e in ("geometry", "retexture", "decal")],
+              "retexture_gap": retexture_gaps(rows), "blend_comparison": blend_comparison(rows)}
+    text = markdown(result)
+    assert text.count("| bend | 1 |") == len(meths) + 4  # every case + the 4 retexture gaps
+    assert len(result["retexture_gap"]) == 4 and all(g["gap_psnr_object"] == 0 for g in result["retexture_gap"])
+    assert set(result["blend_comparison"]) == {"naive T=1", "deform-aware T=1"}
+
+
+SMOKE = textwrap.dedent("""
+    import json, sys
+    from pathlib import Path
+    from tools.scenes.build import make_scene
+    from core.atlas.config import AtlasConfig
+    from core.bundle import Bundle, save_bundle
+    from core.images.dataset import load_split
+    from core.pipeline import fit_atlas_stage
+    from core.points.model import ModelConfig
+    from core.points.train import TrainConfig, fit_points
+    from tools.cli import main
+
+    d = Path(sys.argv[1])
+    make_scene("cloth", d / "scene", size=32, views_train=8, views_val=0, views_test=3, samples=4, log=lambda m: None)
+    train, test = load_split(d / "scene", "train"), load_split(d / "scene", "test")
+    model, _ = fit_points(train, test, ModelConfig(num_points=600, k=8, feature_dim=8, key_width=16, value_width=16),
+                          TrainConfig(steps=40, patches=2, patch_size=16, eval_every=1e9, eval_views=1, device="cpu",
+                                      prune_every=0, clone_every=0), show_progress=False)
+    bundle = Bundle(model=model, meta={})
+    fit_atlas_stage(bundle, train, AtlasConfig(steps=40, texture_steps=20, charts="4", device="cpu"),
+                    show_progress=False)
+    save_bundle(d / "m.pgt", bundle)
+    rc = main(["eval-edits", str(d / "m.pgt"), "--scene", str(d / "scene"), "--poses", "bend", "--magnitudes", "1",
+               "--views", "1", "--temperatures", "1", "--samples", "4", "--json", str(d / "e.json"),
+               "--markdown", str(d / "e.md")])
+    sys.exit(rc)
+""")
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_eval_edits_smoke_on_a_tiny_scene(tmp_path):
+    proc = subprocess.run([sys.executable, "-c", SMOKE, str(tmp_path)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    res = json.loads((tmp_path / "e.json").read_text())
+    cases = {(r["pose"], r["magnitude"]) for r in res["rows"]}
+    assert cases == {("rest", 0.0), ("bend", 1.0)} and res["views"] == 1
+    assert len(res["rows"]) == 2 * 7  # geometry, 2 retexture, 2 decal soft, 2 decal threshold per case
+    for r in res["rows"]:
+        for k in ("psnr", "psnr_object", "ssim", "seconds_per_frame"):
+            assert math.isfinite(r[k]), (r, k)
+    assert len(res["retexture_gap"]) == 2 and all(math.isfinite(g["gap_psnr_object"]) for g in res["retexture_gap"])
+    assert all(math.isfinite(b["psnr"]) for b in res["blank"])
+    assert set(res["blend_comparison"]) == {"naive T=1", "deform-aware T=1"}
+    table = (tmp_path / "e.md").read_text()
+    assert table.count("| bend | 1 | ") == 7 + 2  # every case row + the two retexture gaps
+    assert (tmp_path / "scene" / "eval_views1" / "poses" / "bend_decal" / "variant.json").exists()
