@@ -32,8 +32,8 @@ class TrainConfig:
 
     steps: int = opt(6000, "maximum optimisation steps")
     minutes: float = opt(0.0, "wall-clock budget in minutes (0 = no limit; training ends at whichever comes first)")
-    patches: int = opt(4, "image patches per step")
-    patch_size: int = opt(32, "patch side in pixels")
+    patches: int = opt(16, "image patches per step")
+    patch_size: int = opt(16, "patch side in pixels")
     fg_patch_frac: float = opt(0.75, "fraction of patches centred on foreground pixels")
     lr_points: float = opt(0.1, "point position learning rate, in units of the initial point spacing")
     lr_features: float = opt(1e-2, "point feature learning rate")

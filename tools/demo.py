@@ -1,0 +1,267 @@
+"""The main job end to end (`pointgt demo`): scene → fit → atlas → pose + paint → animation → evaluation → report.
+
+Every stage writes its result into the output folder and is skipped when that result is already there, so an
+interrupted run resumes where it stopped (delete the folder to start over).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import platform
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from core.util.atomic import atomic_write_text
+
+
+@dataclass
+class DemoSize:
+    """Sizes of one demo run (full or --quick)."""
+    size: int
+    views_train: int
+    views_test: int
+    minutes: float
+    atlas_steps: int
+    atlas_texture_steps: int
+    frames: int
+    eval_views: int
+    poses: tuple[str, ...]
+    magnitudes: tuple[float, ...]
+    temperatures: tuple[float, ...]
+
+
+FULL = DemoSize(size=128, views_train=60, views_test=20, minutes=10.0, atlas_steps=1500, atlas_texture_steps=300,
+                frames=24, eval_views=4, poses=("bend", "twist", "squash", "stretch", "arm"),
+                magnitudes=(0.5, 1.0), temperatures=(1.0,))
+QUICK = DemoSize(size=40, views_train=16, views_test=4, minutes=0.5, atlas_steps=200, atlas_texture_steps=50,
+                 frames=4, eval_views=2, poses=("bend",), magnitudes=(1.0,), temperatures=(1.0,))
+
+
+def _banner(i: int, n: int, text: str) -> None:
+    print(f"\n=== [{i}/{n}] {text}", flush=True)
+
+
+def _write_json(path: Path, data) -> None:
+    atomic_write_text(path, json.dumps(data, indent=1), backup=False)
+
+
+def machine() -> dict:
+    import os
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads(),
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+
+
+def run_demo(args) -> int:
+    from core.atlas.config import AtlasConfig
+    from core.bundle import Bundle, load_bundle, save_bundle
+    from core.config import to_dict
+    from core.frames.report import plot_curves, write_history
+    from core.images.dataset import load_dataset
+    from core.pipeline import fit_atlas_stage
+    from core.points.model import ModelConfig
+    from core.points.train import TrainConfig, fit_points
+    from tools.scenes import library
+    from tools.scenes.build import make_scene
+
+    sz = QUICK if args.quick else FULL
+    if args.minutes is not None:
+        sz = dataclasses.replace(sz, minutes=float(args.minutes))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    name = args.scene or library.scene_names()[0]
+    scene_dir = out / "scene"
+    model_path = out / "model.pgt"
+    n = 7
+    t_all = time.perf_counter()
+    report: dict = {"scene": name, "quick": bool(args.quick), "sizes": dataclasses.asdict(sz), "machine": machine(),
+                    "stages": {}}
+
+    def stage_done(key, t0, **info):
+        report["stages"][key] = {"seconds": round(time.perf_counter() - t0, 2), **info}
+
+    # 1. images: Blender renders the scene
+    _banner(1, n, f"scene '{name}' rendered by Blender (Cycles) -> {scene_dir}")
+    t0 = time.perf_counter()
+    if (scene_dir / "scene.json").exists():
+        print("reusing the existing scene")
+    else:
+        make_scene(name, scene_dir, size=sz.size, views_train=sz.views_train, views_test=sz.views_test)
+    stage_done("scene", t0)
+    data = load_dataset(scene_dir, splits=("train", "test"), required=("train", "test"))
+    train, test = data["train"], data["test"]
+
+    # 2. points: stage 1
+    _banner(2, n, f"stage 1: PAPR points, {sz.minutes:g} min budget -> {model_path}")
+    t0 = time.perf_counter()
+    if model_path.exists():
+        print("reusing the existing model")
+        bundle = load_bundle(model_path, device=args.device)
+        history = json.loads(model_path.with_suffix(".history.json").read_text())["history"]
+    else:
+        mcfg = ModelConfig()
+        tcfg = TrainConfig(minutes=sz.minutes, steps=10**9, device=args.device)
+        model, history = fit_points(train, test, mcfg, tcfg)
+        bundle = Bundle(model=model, meta={"scene": {"name": name, "data": str(scene_dir.resolve())},
+                                           "train": {"config": to_dict(tcfg), "final": history[-1]}})
+        save_bundle(model_path, bundle, backup=False)
+        write_history(model_path.with_suffix(".history.json"), history, {"model": to_dict(mcfg), "train": to_dict(tcfg)})
+    plot_curves(out / "curve.png", {"stage 1": history}, f"{name}: test PSNR vs training time")
+    stage_done("fit", t0, train_seconds=history[-1]["seconds"], steps=history[-1]["step"])
+    report["test_psnr_during_training"] = history[-1]
+
+    # 3. atlas: stage 2
+    _banner(3, n, "stage 2: UV atlas and texture")
+    t0 = time.perf_counter()
+    if bundle.atlas is None:
+        acfg = AtlasConfig(steps=sz.atlas_steps, texture_steps=sz.atlas_texture_steps, device=args.device)
+        hist = fit_atlas_stage(bundle, train, acfg)
+        save_bundle(model_path, bundle, backup=False)
+        report["atlas"] = {k: v for k, v in hist.items() if not isinstance(v, list)}
+    else:
+        print("reusing the existing atlas")
+        report["atlas"] = bundle.meta.get("atlas_fit", {})
+    stage_done("atlas", t0)
+
+    # 4. evaluation of the reconstruction on all test views
+    _banner(4, n, "novel-view evaluation on the test split")
+    t0 = time.perf_counter()
+    report["novel_views"] = evaluate_views(bundle, test)
+    stage_done("eval", t0)
+    print(f"test PSNR {report['novel_views']['psnr']:.2f} dB, object {report['novel_views']['psnr_object']:.2f} dB, "
+          f"SSIM {report['novel_views']['ssim']:.4f}, atlas-coloured {report['novel_views']['atlas_psnr']:.2f} dB")
+
+    # 5. edits: paint a decal into the atlas, pose with the rig, render an animation
+    _banner(5, n, f"pose with the rig + paint a decal: {sz.frames}-frame animation")
+    t0 = time.perf_counter()
+    anim = render_animation(bundle, scene_dir, out / "animation", sz.frames, sz.poses[0], test)
+    stage_done("animation", t0, **anim)
+
+    # 6. ground truth: the same edits rendered by Blender
+    _banner(6, n, "edits against Blender's ground truth")
+    t0 = time.perf_counter()
+    from tools.eval_edits import markdown, run_eval
+
+    ev = run_eval(model_path, scene_dir, poses=sz.poses, magnitudes=sz.magnitudes, views=sz.eval_views,
+                  temperatures=sz.temperatures, device=args.device)
+    _write_json(out / "edits.json", ev)
+    (out / "edits.md").write_text(markdown(ev))
+    report["edits"] = [{k: r[k] for k in ("pose", "magnitude", "edit", "correspondence", "temperature", "blend",
+                                         "psnr", "psnr_object", "ssim", "seconds_per_frame") if k in r}
+                       for r in ev["rows"]]
+    report["edits_blank_floor"] = ev.get("blank")
+    report["retexture_gap"] = ev.get("retexture_gap")
+    stage_done("edit_eval", t0)
+
+    # 7. report
+    _banner(7, n, "report")
+    report["test_psnr"] = report["novel_views"]["psnr"]
+    report["test_psnr_object"] = report["novel_views"]["psnr_object"]
+    report["training_seconds"] = history[-1]["seconds"]
+    report["total_seconds"] = round(time.perf_counter() - t_all, 1)
+    _write_json(out / "report.json", report)
+    write_report_image(out / "report.png", history, report)
+    print(f"report: {out / 'report.json'} and {out / 'report.png'}; animation: {anim['gif']}")
+    print(f"total {report['total_seconds']:.0f} s")
+    return 0
+
+
+@torch.no_grad()
+def evaluate_views(bundle, split) -> dict:
+    """PSNR/SSIM of the point render and of the atlas-coloured render on every view of a split."""
+    from core.frames.edited import EditConfig, EditState, render_edited
+    from core.frames.metrics import object_mask, psnr, ssim
+
+    rows = []
+    plain = EditState(bundle)
+    atlas = EditState(bundle, cfg=EditConfig(colour="atlas")) if bundle.atlas is not None else None
+    for i in range(len(split)):
+        gt = split.images[i]
+        r = render_edited(plain, split.c2w[i], split.height, split.width, split.focal)
+        m = object_mask(split.alphas[i], r["alpha"].cpu())
+        row = {"psnr": psnr(r["rgb"].cpu(), gt), "psnr_object": psnr(r["rgb"].cpu(), gt, m),
+               "ssim": float(ssim(r["rgb"].cpu(), gt)), "seconds": r["stats"]["seconds"]}
+        if atlas is not None:
+            ra = render_edited(atlas, split.c2w[i], split.height, split.width, split.focal)
+            row["atlas_psnr"] = psnr(ra["rgb"].cpu(), gt)
+            row["atlas_psnr_object"] = psnr(ra["rgb"].cpu(), gt, m)
+        rows.append(row)
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+
+
+@torch.no_grad()
+def render_animation(bundle, scene_dir: Path, out: Path, frames: int, pose: str, test) -> dict:
+    """Decal painted into the atlas + `pose` ramping 0 → 1: PNG frames and a GIF from the first test camera."""
+    from PIL import Image
+
+    from core.edits.bake import bake
+    from core.edits.procedural import evaluate
+    from core.frames.edited import EditState, render_edited
+    from core.images.png import write_png
+    from tools.eval_edits import deform_points
+    from tools.scenes.poses import load_scene_spec
+
+    spec = load_scene_spec(scene_dir)
+    c, h = spec["bbox"]["center"], spec["bbox"]["half_size"]
+    painted = bake(bundle.atlas, lambda p: evaluate("decal", p, c, h, spec["texture"]["params"].get("decal")))
+    out.mkdir(parents=True, exist_ok=True)
+    write_png(out / "painted_atlas.png", painted.cpu().numpy())
+    canonical = bundle.model.xyz.detach().cpu().numpy()
+    images, secs = [], []
+    cam = test.c2w[0]
+    for f in range(frames):
+        m = f / max(frames - 1, 1)
+        pts = deform_points(canonical, scene_dir, pose, m) if m > 0 else None
+        state = EditState(bundle, points=None if pts is None else torch.from_numpy(pts), atlas=painted)
+        r = render_edited(state, cam, test.height, test.width, test.focal)
+        secs.append(r["stats"]["seconds"])
+        rgb = r["rgb"].cpu().numpy()
+        write_png(out / f"frame_{f:03d}.png", rgb)
+        images.append(Image.fromarray((np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)))
+        print(f"  frame {f + 1}/{frames}: {pose} magnitude {m:.2f}, {secs[-1]:.3f} s", flush=True)
+    gif = out / "animation.gif"
+    images[0].save(gif, save_all=True, append_images=images[1:], duration=120, loop=0)
+    return {"frames": frames, "pose": pose, "seconds_per_frame": float(np.mean(secs)), "gif": str(gif)}
+
+
+def write_report_image(path: Path, history: list[dict], report: dict) -> None:
+    """PSNR-vs-time curve beside the edit-fidelity table, one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, tb) = plt.subplots(1, 2, figsize=(13, 5), dpi=100, gridspec_kw={"width_ratios": [1, 1.4]})
+    for key, style in (("psnr", "-"), ("psnr_object", "--")):
+        ax.plot([r["seconds"] for r in history], [r[key] for r in history], style, marker=".",
+                label=key.replace("_", " "))
+    ax.set_xlabel("training time (s)")
+    ax.set_ylabel("test PSNR (dB)")
+    ax.set_title(f"{report['scene']}: error against run time")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    tb.axis("off")
+    rows = [r for r in report.get("edits", []) if r.get("blend", "soft") == "soft" and r.get("temperature", 1.0) == 1.0]
+    cells = [[r["pose"], f"{r['magnitude']:g}", r["edit"], r["correspondence"], f"{r['psnr']:.2f}",
+              f"{r['psnr_object']:.2f}", f"{r['seconds_per_frame']:.3f}"] for r in rows][:28]
+    if cells:
+        t = tb.table(cellText=cells, colLabels=["pose", "mag", "edit", "corresp.", "PSNR", "object", "s/frame"],
+                     loc="center", cellLoc="center")
+        t.auto_set_font_size(False)
+        t.set_fontsize(7)
+        t.scale(1, 1.1)
+    tb.set_title("edits vs Blender ground truth (dB)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
