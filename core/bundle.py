@@ -50,8 +50,8 @@ def load_bundle(path: str | Path, device="auto") -> Bundle:
         try:
             atlas = Atlas.from_arrays({k: v for k, v in arrays.items() if k.startswith("atlas/")}, meta["atlas"],
                                       device=dev)
-        except ModelFileError:
-            raise
+        except ModelFileError as exc:
+            raise ModelFileError(f"{path}: {exc}") from exc
         except Exception as exc:
             raise ModelFileError(f"{path}: the atlas section is damaged ({exc}); refit it with `pointgt atlas`") from exc
     model.eval()

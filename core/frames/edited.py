@@ -17,6 +17,7 @@ from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
 from core.edits.texture_edit import BLENDS, blend, check_atlas_image, edit_mask
 from core.frames.render import shade_frame, trace_frame
+from core.points.regularizers import project_on_ray
 from core.util.errors import InputError
 
 
@@ -128,8 +129,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
             xc = canonical_points(tr["fg_weights"][sel], tr["idx"][sel], x_hat, tr["origins"][sel],
                                   tr["dirs"][sel], pts, state.p_can, cfg.correspondence)
             stats["correspondence"] = cfg.correspondence
-        else:  # nothing moved: the canonical point is the ray's own surface point
-            xc = x_hat
+        else:  # nothing moved: the canonical point is the ray's surface point on its ray (as the atlas saw it)
+            xc = project_on_ray(x_hat, tr["origins"][sel], tr["dirs"][sel])
         bad = ~torch.isfinite(xc).all(1)
         stats["non_finite_lookups_repaired"] = int(bad.sum())
         xc = torch.where(bad[:, None], x_hat.nan_to_num(0.0), xc)
