@@ -1,10 +1,14 @@
 """`pointgt fit DATA --out MODEL.pgt`: stage 1 (PAPR points) and stage 2 (UV atlas + texture)."""
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from pathlib import Path
 
+import dataclasses
+
+from core.atlas.config import AtlasConfig
 from core.config import add_to_parser, from_args, to_dict
 from core.points.model import ModelConfig
 from core.points.train import TrainConfig
@@ -22,13 +26,12 @@ def add_arguments(p):
     p.add_argument("--points", type=int, default=None, help="initial number of points (= --num-points)")
     p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--profile", action=argparse.BooleanOptionalAction, default=True,
+                   help="measure the scene and choose decoder, view dependence, K and chart count from it "
+                        "(settings given on the command line always win)")
     add_to_parser(p, ModelConfig)
     add_to_parser(p, TrainConfig)
-    try:
-        from core.atlas.config import AtlasConfig
-        add_to_parser(p, AtlasConfig, prefix="atlas")
-    except ImportError:  # stage 2 not installed
-        pass
+    add_to_parser(p, AtlasConfig, prefix="atlas")
 
 
 def run(args) -> int:
@@ -43,11 +46,25 @@ def run(args) -> int:
         raise UserError(f"--out must end in .pgt, got {out}")
     model_cfg = from_args(ModelConfig, args)
     if args.points is not None:
-        model_cfg = from_args(ModelConfig, args, base=model_cfg.__class__(**{**to_dict(model_cfg), "num_points": args.points}))
+        model_cfg = dataclasses.replace(model_cfg, num_points=args.points)
     train_cfg = from_args(TrainConfig, args)
+    atlas_cfg = from_args(AtlasConfig, args, prefix="atlas")
     data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"), downscale=args.downscale)
     train, test = data["train"], data["test"]
     print(f"[fit] {args.data}: {len(train)} train / {len(test)} test views at {train.width}x{train.height}")
+    profile = None
+    if args.profile and args.stage in ("papr", "all"):
+        from core.profile import apply_profile, explicit_fields, scene_profile
+
+        profile = scene_profile(train, seed=train_cfg.seed)
+        explicit = explicit_fields(args, ModelConfig) | explicit_fields(args, AtlasConfig, prefix="atlas")
+        if args.points is not None:
+            explicit.add("num_points")
+        model_cfg, atlas_cfg, applied = apply_profile(profile, model_cfg, atlas_cfg, explicit)
+        m = profile.measured
+        print(f"[fit] scene profile: decoder={profile.decoder} view_dependent={profile.view_dependent} "
+              f"k={profile.k} charts={profile.charts} (view variation {m['view_variation']:.3f}, hull flatness "
+              f"{m['hull_flatness']:.2f}); applied {applied or 'nothing (set on the command line)'}")
     if args.stage in ("papr", "all"):
         t0 = time.perf_counter()
         model, history = fit_points(train, test, model_cfg, train_cfg, show_progress=not args.no_progress)
@@ -55,6 +72,7 @@ def run(args) -> int:
         final = history[-1]
         meta = {"scene": {"data": str(Path(args.data).resolve()), "width": train.width, "height": train.height,
                           "camera_angle_x": train.camera_angle_x},
+                "profile": profile.to_dict() if profile else None,
                 "train": {"config": to_dict(train_cfg), "seconds": round(seconds, 2),
                           "train_seconds": final["seconds"], "steps": final["step"], "final": final}}
         bundle = Bundle(model=model, meta=meta)
@@ -67,11 +85,9 @@ def run(args) -> int:
               f"(object {final['psnr_object']:.2f} dB), {model.num_points} points -> {out}")
         print(f"[fit] PSNR-vs-time log {hist_path} and plot {out.with_suffix('.curve.png')}")
     if args.stage in ("atlas", "all"):
-        from core.atlas.config import AtlasConfig
         from core.pipeline import fit_atlas_stage
 
         bundle = load_bundle(out, device=train_cfg.device)
-        atlas_cfg = from_args(AtlasConfig, args, prefix="atlas")
         hist = fit_atlas_stage(bundle, train, atlas_cfg, show_progress=not args.no_progress)
         save_bundle(out, bundle)
         write_history(out.with_suffix(".atlas_history.json"), [], {"atlas": hist, "config": to_dict(atlas_cfg)})
