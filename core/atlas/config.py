@@ -20,7 +20,11 @@ class AtlasConfig:
     distortion_batch: int = opt(128, "samples per step on which the Jacobian distortion loss is evaluated")
     lr: float = opt(2e-3, "Adam learning rate of the networks (decays x0.1 over the run)")
     texture_lr: float = opt(3e-2, "Adam learning rate of the chart textures")
-    texture_steps: int = opt(300, "texture-only refinement steps after the maps converge (maps frozen)")
+    texture_mode: str = opt("kernel", "final texture with the maps frozen: kernel (weighted mean colour of the samples "
+                            "around each texel) or descent (texture_steps of Adam on the per-sample MSE)",
+                            choices=("kernel", "descent"))
+    texture_sigma: float = opt(1.0, "kernel texture: Gaussian std in units of the mean sample spacing in texel space")
+    texture_steps: int = opt(300, "descent texture: refinement steps after the maps converge (maps frozen)")
     width_chart: int = opt(64, "hidden width of the chart-assignment MLP")
     depth_chart: int = opt(3, "hidden layers of the chart-assignment MLP")
     width_map: int = opt(96, "hidden width of the texture-coordinate and surface-coordinate MLPs")

@@ -1,0 +1,91 @@
+"""Kernel-regression textures: the splat is the adjoint of the bilinear lookup, the blur matches a dense reference,
+spacing estimates, noise averaging, and finite results for degenerate samples."""
+import math
+
+import torch
+import torch.nn.functional as F
+
+from core.atlas.packing import sample_charts
+from core.atlas.texture import gaussian_blur, kernel_texture, splat, texel_spacing
+
+
+def _samples(S=500, n=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    probs = torch.softmax(3 * torch.randn(S, n, generator=g), -1)
+    uv = torch.rand(S, n, 2, generator=g) * 1.2 - 0.1  # some outside [0, 1]: clamp to edge like the lookup
+    rgb = torch.rand(S, 3, generator=g)
+    return probs, uv, rgb
+
+
+def test_splat_is_the_adjoint_of_the_bilinear_lookup():
+    probs, uv, rgb = _samples()
+    R = 7
+    csum, wsum = splat(probs, uv, rgb, R, min_prob=0.0)
+    T = torch.rand(3, 3, R, R, dtype=torch.float64)
+    # <splat weights, T> == sum_s sum_c P_sc * bilinear(T_c, uv_sc), per channel and with colours.
+    look = sample_charts(T, uv.double())  # [S, n, 3]
+    lhs_w = (wsum.double()[:, None] * T).sum((0, 2, 3))
+    rhs_w = (probs.double()[..., None] * look).sum((0, 1))
+    assert torch.allclose(lhs_w, rhs_w, atol=1e-4)
+    lhs_c = (csum.double() * T).sum((0, 2, 3))
+    rhs_c = (probs.double()[..., None] * rgb.double()[:, None] * look).sum((0, 1))
+    assert torch.allclose(lhs_c, rhs_c, atol=1e-4)
+
+
+def test_splat_drops_low_probability_charts():
+    probs, uv, rgb = _samples()
+    _, w0 = splat(probs, uv, rgb, 5, min_prob=0.0)
+    _, w1 = splat(probs, uv, rgb, 5, min_prob=0.3)
+    kept = (probs * (probs > 0.3)).sum(0)
+    assert torch.allclose(w1.sum((1, 2)), kept, atol=1e-4) and (w1 <= w0 + 1e-6).all()
+
+
+def test_gaussian_blur_matches_a_dense_convolution():
+    img = torch.rand(2, 3, 20, 17)
+    s = 1.7
+    r = math.ceil(3 * s)
+    x = torch.arange(-r, r + 1, dtype=torch.float32)
+    k2 = torch.exp(-0.5 * (x[:, None] ** 2 + x[None] ** 2) / s**2)
+    k2 = k2 / k2.sum()
+    ref = F.conv2d(img.reshape(6, 1, 20, 17), k2[None, None], padding=r).view(2, 3, 20, 17)
+    assert torch.allclose(gaussian_blur(img, s), ref, atol=1e-5)
+    assert torch.equal(gaussian_blur(img, 0.0), img)
+
+
+def test_texel_spacing_of_a_regular_grid():
+    h = 2.5
+    g = torch.stack(torch.meshgrid(torch.arange(60.0), torch.arange(60.0), indexing="ij"), -1).reshape(-1, 2) * h
+    assert abs(texel_spacing(g) / h - 1) < 0.15
+    assert abs(texel_spacing(g, max_points=900) / h - 1) < 0.2  # subset corrected for its lower density
+    assert texel_spacing(torch.zeros(3, 2)) == 1.0
+
+
+def test_kernel_texture_reproduces_a_constant_and_averages_noise():
+    g = torch.Generator().manual_seed(1)
+    S, R = 20000, 32
+    uv = torch.rand(S, 1, 2, generator=g) * 0.8 + 0.1
+    probs = torch.ones(S, 1)
+    const = torch.tensor([0.2, 0.5, 0.7])
+    tex, cov, _ = kernel_texture(probs, uv, const.expand(S, 3), R, sigma=1.0)
+    assert torch.allclose(tex[0][:, cov[0]], const[:, None].expand(-1, int(cov[0].sum())), atol=1e-5)
+    assert not cov[0, 0, 0]  # far from every sample: not covered, neutral grey
+    truth = torch.stack([uv[:, 0, 0], uv[:, 0, 1], 1 - uv[:, 0, 0]], -1)  # a smooth colour ramp
+    noisy = truth + 0.1 * torch.randn(S, 3, generator=g)
+    err_in = (noisy - truth).pow(2).mean()
+    for sigma in (0.0, 2.0):
+        tex, _, st = kernel_texture(probs, uv, noisy, R, sigma=sigma)
+        err = ((probs[..., None] * sample_charts(tex, uv)).sum(1) - truth).pow(2).mean()
+        assert err < (0.5 if sigma == 0 else 0.1) * err_in, (sigma, float(err), float(err_in))
+    assert st > 0
+
+
+def test_kernel_texture_is_finite_for_degenerate_samples():
+    S, R = 50, 8
+    uv = torch.full((S, 2, 2), 0.5)  # every sample at one point
+    probs = torch.tensor([[1.0, 0.0]]).expand(S, 2)  # chart 1 gets nothing
+    rgb = torch.rand(S, 3)
+    for sigma in (0.0, 1.0, 100.0):
+        tex, cov, st = kernel_texture(probs, uv, rgb, R, sigma)
+        assert torch.isfinite(tex).all() and math.isfinite(st)
+        assert cov[0].any() and not cov[1].any()
+        assert torch.allclose(tex[1], torch.full_like(tex[1], 0.5))

@@ -1,0 +1,154 @@
+"""Stage-2 quality on real views: render the test views of a model with the PAPR colours and with every ray coloured
+from the atlas (lookup at the ray's surface point x_i), and print PSNR against the ground truth, full frame and on
+the object's pixels.
+
+    python -m tools.bench.atlas_vs_papr --model m.pgt --data /work/data/cloth128
+    python -m tools.bench.atlas_vs_papr --model m.pgt --data D --fit-npz samples.npz --steps 1500 ...
+
+--fit-npz fits a fresh atlas (any AtlasConfig flag) from saved surface samples (arrays xyz, rgb) in memory and adds
+its row, without touching the model file. --knn-npz adds a bound: each ray coloured by the mean colour of its k
+nearest surface samples (the best a function of x alone does on these samples, no atlas involved).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+
+import numpy as np
+import torch
+
+from core.config import add_to_parser, from_args
+
+
+def load_npz(path: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """xyz [S, 3], rgb [S, 3] from an .npz (no pickle)."""
+    from core.util.errors import InputError
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return torch.from_numpy(np.asarray(z["xyz"], np.float32)), torch.from_numpy(np.asarray(z["rgb"], np.float32))
+    except KeyError as e:
+        raise InputError(f"{path}: needs arrays 'xyz' [S, 3] and 'rgb' [S, 3] ({e} missing)") from e
+    except (OSError, ValueError) as e:
+        raise InputError(f"{path}: not a readable .npz file ({e})") from e
+
+
+def composite(trace: dict, papr_rgb: torch.Tensor, colour_fn, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """The atlas-coloured frame from a trace, as render_edited(colour='atlas') composes it (unmoved points):
+    object colour = colour_fn(x [R', 3]) -> [R', 3] on rays that hit, coverage fg kept. papr_rgb [H, W, 3]."""
+    h, w = trace["shape"]
+    rgb = papr_rgb.reshape(-1, 3).clone()
+    fg = 1.0 - trace["bg"]
+    hit = torch.nonzero(trace["active"] & (fg > 1e-4)).squeeze(1)
+    if hit.numel():
+        bgc = torch.as_tensor(background, dtype=rgb.dtype)
+        f = fg[hit][:, None]
+        rgb[hit] = f * colour_fn(trace["x"][hit]) + (1 - f) * bgc
+    return torch.nan_to_num(rgb, nan=1.0).clamp(0, 1).reshape(h, w, 3)
+
+
+def knn_colour(xyz: torch.Tensor, rgb: torch.Tensor, k: int):
+    """colour_fn(x [M, 3]) -> [M, 3]: mean colour of the k nearest samples xyz [S, 3] / rgb [S, 3]."""
+    from scipy.spatial import cKDTree
+
+    tree, cols = cKDTree(xyz.numpy()), rgb.numpy()
+
+    def fn(x: torch.Tensor) -> torch.Tensor:
+        _, i = tree.query(x.cpu().numpy(), k=k)
+        return torch.from_numpy(cols[i.reshape(len(x), k)].mean(1)).float()
+    return fn
+
+
+def main(argv=None) -> int:
+    from core.atlas.config import AtlasConfig
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", required=True, help="model file (.pgt) with an atlas (never modified)")
+    ap.add_argument("--data", required=True, help="its dataset (NeRF-synthetic layout)")
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--every", type=int, default=2, help="use every n-th view of the split")
+    ap.add_argument("--fit-npz", help="also fit an atlas from these surface samples (AtlasConfig flags apply)")
+    ap.add_argument("--knn-npz", help="also colour rays by the k nearest of these surface samples (a bound)")
+    ap.add_argument("--knn", type=int, default=16)
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    ap.add_argument("--json", help="write the figures to this JSON file")
+    ap.add_argument("--png", help="write [PAPR | atlas | (fitted) | ground truth] of the last view here")
+    ap.add_argument("--atlas-png", help="write the packed atlas image of the last atlas row here")
+    add_to_parser(ap, AtlasConfig)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    from core.bundle import load_bundle
+    from core.frames.edited import EditConfig, EditState, render_edited
+    from core.frames.metrics import object_mask, psnr
+    from core.frames.render import shade_frame
+    from core.images.dataset import load_split
+
+    bundle = load_bundle(args.model, "cpu")
+    split = load_split(args.data, args.split)
+    rows: dict[str, object] = {}
+    if bundle.atlas is not None:
+        rows["atlas (model file)"] = bundle.atlas
+    fit_info = {}
+    if args.fit_npz:
+        from core.atlas.fit import fit_atlas
+
+        cfg = from_args(AtlasConfig, args)
+        xyz, rgb = load_npz(args.fit_npz)
+        atlas, hist = fit_atlas(xyz, rgb, cfg, quiet=True)
+        fit_info = {"seconds": hist["total_seconds"], "fit_psnr": hist["psnr"][-1], "charts": hist["n"],
+                    "config": dataclasses.asdict(cfg)}
+        print(f"fitted atlas from {args.fit_npz}: {hist['n']} charts, {hist['total_seconds']:.1f} s, "
+              f"fitting PSNR {hist['psnr'][-1]:.2f} dB")
+        rows["atlas (fitted)"] = atlas
+    if not rows:
+        print(f"{args.model} has no atlas and no --fit-npz was given", file=sys.stderr)
+        return 2
+    knn_fn = knn_colour(*load_npz(args.knn_npz), args.knn) if args.knn_npz else None
+
+    # The first atlas renders through the production path (render_edited); its trace is reused for the other rows.
+    first = next(iter(rows))
+    bundle.atlas = rows[first]
+    state = EditState(bundle, cfg=EditConfig(colour="atlas"))
+    scores: dict[str, list] = {}
+    t0 = time.perf_counter()
+    views = list(range(0, len(split), args.every))
+    for i in views:
+        out = render_edited(state, split.c2w[i], split.height, split.width, split.focal)
+        tr = out["trace"]
+        papr = torch.nan_to_num(shade_frame(bundle.model, tr), nan=1.0).clamp(0, 1)
+        frames = {"PAPR": papr, first: out["rgb"]}
+        for name, atl in rows.items():
+            if name != first:
+                frames[name] = composite(tr, papr, lambda x, a=atl: a.lookup(x, a.packed_image()))
+        if knn_fn is not None:
+            frames[f"k-NN colour field (k={args.knn})"] = composite(tr, papr, knn_fn)
+        gt, m = split.images[i], object_mask(split.alphas[i], out["alpha"])
+        for name, img in frames.items():
+            scores.setdefault(name, []).append((psnr(img, gt), psnr(img, gt, m)))
+    secs = time.perf_counter() - t0
+
+    print(f"{args.model} on {args.data} ({args.split}, {len(views)} views, {secs:.0f} s)")
+    print(f"{'colour':34s} {'full (dB)':>10s} {'object (dB)':>12s}")
+    table = {}
+    for name, s in scores.items():
+        a = np.asarray(s)
+        table[name] = {"full": float(a[:, 0].mean()), "object": float(np.nanmean(a[:, 1]))}
+        print(f"{name:34s} {table[name]['full']:10.2f} {table[name]['object']:12.2f}")
+    if args.json:
+        from core.util.atomic import atomic_write_text
+        atomic_write_text(args.json, json.dumps({"table": table, "fit": fit_info, "views": views}, indent=1))
+    if args.png:
+        from core.images.png import write_png
+        write_png(args.png, torch.cat(list(frames.values()) + [split.images[views[-1]]], 1).numpy())
+    if args.atlas_png:
+        from core.images.png import write_png
+        write_png(args.atlas_png, rows[list(rows)[-1]].packed_image().numpy())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
