@@ -110,7 +110,12 @@ def run_demo(args) -> int:
         bundle = load_bundle(model_path, device=args.device)
         history = json.loads(model_path.with_suffix(".history.json").read_text())["history"]
     else:
-        mcfg = ModelConfig()
+        from core.profile import apply_profile, scene_profile
+
+        profile = scene_profile(train)
+        mcfg, _, applied = apply_profile(profile, ModelConfig(), AtlasConfig(), explicit=set())
+        report["profile"] = {**profile.to_dict(), "applied": applied}
+        print(f"scene profile: decoder={profile.decoder} k={profile.k} charts={profile.charts}")
         tcfg = TrainConfig(minutes=sz.minutes, steps=10**9, device=args.device)
         model, history = fit_points(train, test, mcfg, tcfg)
         bundle = Bundle(model=model, meta={"scene": {"name": name, "data": str(scene_dir.resolve())},
@@ -125,7 +130,9 @@ def run_demo(args) -> int:
     _banner(3, n, "stage 2: UV atlas and texture")
     t0 = time.perf_counter()
     if bundle.atlas is None:
-        acfg = AtlasConfig(steps=sz.atlas_steps, texture_steps=sz.atlas_texture_steps, device=args.device)
+        charts = (report.get("profile") or {}).get("charts", "auto")
+        acfg = AtlasConfig(steps=sz.atlas_steps, texture_steps=sz.atlas_texture_steps, charts=charts,
+                           device=args.device)
         hist = fit_atlas_stage(bundle, train, acfg)
         save_bundle(model_path, bundle, backup=False)
         report["atlas"] = {k: v for k, v in hist.items() if not isinstance(v, list)}
