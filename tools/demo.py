@@ -25,8 +25,8 @@ class DemoSize:
     views_train: int
     views_test: int
     minutes: float
-    atlas_steps: int
-    atlas_texture_steps: int
+    atlas_steps: int | None          # None = AtlasConfig's defaults
+    atlas_texture_steps: int | None
     frames: int
     eval_views: int
     poses: tuple[str, ...]
@@ -34,7 +34,7 @@ class DemoSize:
     temperatures: tuple[float, ...]
 
 
-FULL = DemoSize(size=128, views_train=60, views_test=20, minutes=10.0, atlas_steps=1500, atlas_texture_steps=300,
+FULL = DemoSize(size=128, views_train=60, views_test=20, minutes=10.0, atlas_steps=None, atlas_texture_steps=None,
                 frames=24, eval_views=4, poses=("bend", "twist", "squash", "stretch", "arm"),
                 magnitudes=(0.5, 1.0), temperatures=(1.0,))
 QUICK = DemoSize(size=40, views_train=16, views_test=4, minutes=0.5, atlas_steps=200, atlas_texture_steps=50,
@@ -131,8 +131,8 @@ def run_demo(args) -> int:
     t0 = time.perf_counter()
     if bundle.atlas is None:
         charts = (report.get("profile") or {}).get("charts", "auto")
-        acfg = AtlasConfig(steps=sz.atlas_steps, texture_steps=sz.atlas_texture_steps, charts=charts,
-                           device=args.device)
+        sizes = {k: v for k, v in (("steps", sz.atlas_steps), ("texture_steps", sz.atlas_texture_steps)) if v}
+        acfg = AtlasConfig(charts=charts, device=args.device, **sizes)
         hist = fit_atlas_stage(bundle, train, acfg)
         save_bundle(model_path, bundle, backup=False)
         report["atlas"] = {k: v for k, v in hist.items() if not isinstance(v, list)}
