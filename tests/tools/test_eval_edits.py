@@ -72,7 +72,9 @@ def test_render_with_points_ids_and_atlas_writes_frames_and_stats(tiny, model_fi
     # the painted colours reach the frame: red and blue object pixels, no green from the original texture left
     obj = img[..., 3] > 0.5
     assert obj.sum() > 20
-    assert (img[obj, 1] < 0.35).mean() > 0.9
+    a = img[obj, 3:4]
+    colour = (img[obj, :3] - (1 - a)) / a  # undo the white-background composite of edge pixels
+    assert (colour[:, 1] < 0.35).mean() > 0.8  # the original texture's green channel spans 0.1..0.9
 
 
 def test_render_without_edit_flags_keeps_the_plain_path(model_files, tmp_path):
