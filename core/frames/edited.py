@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
+from core.atlas.packing import sample_charts, unpack
 from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
 from core.edits.texture_edit import BLENDS, blend, check_atlas_image, edit_mask
@@ -84,6 +85,7 @@ class EditState:
             self.moved = False  # same positions as canonical: nothing to correspond
         self.atlas_image = None
         self.mask_image = None
+        self._edit_textures = None
         atl = bundle.atlas
         if atlas is not None:
             if atl is None:
@@ -105,16 +107,27 @@ class EditState:
     def textured(self) -> bool:
         return self.atlas_image is not None
 
+    @property
+    def edit_textures(self) -> torch.Tensor:
+        """Painted texture and its mask per chart, stacked: [n, 6, R, R] (one bilinear lookup serves both)."""
+        if self._edit_textures is None:
+            layout = self.bundle.atlas.layout
+            self._edit_textures = torch.cat([unpack(self.atlas_image, layout), unpack(self.mask_image, layout)], 1)
+        return self._edit_textures
+
 
 @torch.no_grad()
 def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, focal: float,
-                  background=(1.0, 1.0, 1.0)) -> dict:
-    """One frame: dict(rgb [H, W, 3], alpha [H, W], x_can [H, W, 3] (NaN off the object), stats)."""
+                  background=(1.0, 1.0, 1.0), trace: dict | None = None) -> dict:
+    """One frame: dict(rgb [H, W, 3], alpha [H, W], x_can [H, W, 3] (NaN off the object), stats, trace).
+
+    trace: the 'trace' of an earlier render_edited call with the same points, camera and temperature (several
+    texture edits or correspondence modes of one frame then share neighbours and attention)."""
     t0 = time.perf_counter()
     bundle, cfg = state.bundle, state.cfg
     model = bundle.model
-    tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
-                     temperature=cfg.temperature)
+    tr = trace if trace is not None else trace_frame(model, c2w, height, width, focal, points=state.points,
+                                                     influence=state.influence, temperature=cfg.temperature)
     rgb = shade_frame(model, tr, background, features=state.features).reshape(-1, 3)
     fg = 1.0 - tr["bg"]
     hit = tr["active"] & (fg > 1e-4)
@@ -134,9 +147,9 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         bad = ~torch.isfinite(xc).all(1)
         stats["non_finite_lookups_repaired"] = int(bad.sum())
         xc = torch.where(bad[:, None], x_hat.nan_to_num(0.0), xc)
-        atlas = bundle.atlas
-        tex = atlas.lookup(xc, state.atlas_image)
-        m = atlas.lookup(xc, state.mask_image)[:, 0]
+        probs, uv = bundle.atlas.chart_uv(xc)
+        looked = (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)   # [S, 6]
+        tex, m = looked[:, :3], looked[:, 3]
         bgc = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
         f = fg[sel][:, None]
         # The point render is fg·c + (1 − fg)·background; edit the object colour c, keep the coverage fg.
