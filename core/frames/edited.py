@@ -128,12 +128,14 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     model = bundle.model
     tr = trace if trace is not None else trace_frame(model, c2w, height, width, focal, points=state.points,
                                                      influence=state.influence, temperature=cfg.temperature)
+    trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
     rgb = shade_frame(model, tr, background, features=state.features).reshape(-1, 3)
     fg = 1.0 - tr["bg"]
     hit = tr["active"] & (fg > 1e-4)
     x_can = torch.full_like(tr["x"], float("nan"))
     stats = {"rays": int(tr["idx"].shape[0]), "rays_shaded": int(tr["active"].sum()),
-             "non_finite_points": state.non_finite_points, "texture_rays": 0, "correspondence": "skipped"}
+             "non_finite_points": state.non_finite_points, "texture_rays": 0, "correspondence": "skipped",
+             "trace_seconds": trace_seconds}
     if state.textured and bool(hit.any()):
         sel = torch.nonzero(hit).squeeze(1)
         x_hat = tr["x"][sel]
