@@ -1,5 +1,10 @@
 """Surface samples for stage 2: render every training view with the stage-1 model, keep foreground pixels,
-project the predicted surface point onto its ray, pair it with the pixel colour, drop statistical outliers."""
+project the predicted surface point onto its ray, pair it with a colour, drop statistical outliers.
+
+The colour is the ground-truth pixel (`colour="image"`, the paper) or the stage-1 model's own object colour for
+that ray (`colour="render"`, distillation). On the cloth scene the rendered colour fits an atlas better: one
+surface point is seen in many pixels whose true colours differ (footprints, noisy x), while the model's colour is
+already a consistent function of the ray; measured in docs/atlas.md (`tools/bench/atlas_vs_papr.py`)."""
 from __future__ import annotations
 
 from typing import Callable, Iterable
@@ -28,14 +33,21 @@ def remove_outliers(xyz: np.ndarray, k: int = 8, std_ratio: float = 2.0) -> np.n
 def extract_surface_samples(render_fn: Callable[[torch.Tensor, torch.Tensor], dict], views: Iterable,
                             max_samples: int = 200_000, outlier_std: float = 2.0, alpha_threshold: float = 0.5,
                             fg_threshold: float = 0.5, chunk: int = 65536, seed: int = 0,
-                            device: str | torch.device = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+                            device: str | torch.device = "cpu", colour: str = "image",
+                            background=(1.0, 1.0, 1.0)) -> tuple[torch.Tensor, torch.Tensor]:
     """Collect (surface point, colour) pairs from rendered views.
 
     views: iterable of (c2w [4, 4], height, width, focal, image [H, W, 3] in [0, 1], alpha [H, W]).
-    render_fn(origins [R, 3], dirs [R, 3]) -> dict(x=[R, 3] surface point, fg=[R] foreground weight in [0, 1]).
+    render_fn(origins [R, 3], dirs [R, 3]) -> dict(x=[R, 3] surface point, fg=[R] foreground weight in [0, 1],
+    and for colour="render" rgb=[R, 3] the rendered display colour fg * c + (1 - fg) * background).
     Keeps pixels with alpha > alpha_threshold and fg > fg_threshold; x is projected onto its ray.
+    colour: "image" pairs x with the pixel colour, "render" with the model's object colour
+    c = (rgb - (1 - fg) * background) / fg (what an atlas lookup replaces when a frame is coloured from the atlas).
     Returns xyz [S, 3] float32 and rgb [S, 3] float32 (S <= max_samples), on `device`.
     """
+    if colour not in ("image", "render"):
+        raise InputError(f"surface samples: colour must be 'image' or 'render', got {colour!r}")
+    bg = torch.as_tensor(background, dtype=torch.float32).reshape(3)
     xs, cs = [], []
     for i, view in enumerate(views):
         try:
@@ -58,8 +70,16 @@ def extract_surface_samples(render_fn: Callable[[torch.Tensor, torch.Tensor], di
             oc, dc = o[s:s + chunk], d[s:s + chunk]
             x = oc + ((x - oc) * dc).sum(-1, keepdim=True) * dc  # orthogonal projection onto the ray
             keep = (fg > fg_threshold) & torch.isfinite(x).all(-1)
+            if colour == "render":
+                if "rgb" not in out:
+                    raise InputError("surface samples: colour='render' needs the render function to return 'rgb'")
+                f = fg.clamp_min(1e-6)[:, None]
+                c = (torch.as_tensor(out["rgb"], dtype=torch.float32).reshape(-1, 3) - (1 - f) * bg) / f
+                keep &= torch.isfinite(c).all(-1)
+            else:
+                c = rgb[s:s + chunk]
             xs.append(x[keep])
-            cs.append(rgb[s:s + chunk][keep])
+            cs.append(c[keep])
     if not xs or sum(len(x) for x in xs) == 0:
         raise InputError("no surface samples: no pixel had both alpha > "
                          f"{alpha_threshold} and a rendered foreground weight > {fg_threshold}")

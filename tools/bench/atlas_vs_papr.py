@@ -3,10 +3,11 @@ from the atlas (lookup at the ray's surface point x_i), and print PSNR against t
 the object's pixels.
 
     python -m tools.bench.atlas_vs_papr --model m.pgt --data /work/data/cloth128
-    python -m tools.bench.atlas_vs_papr --model m.pgt --data D --fit-npz samples.npz --steps 1500 ...
+    python -m tools.bench.atlas_vs_papr --model m.pgt --data D --fit render --steps 1500 ...
 
---fit-npz fits a fresh atlas (any AtlasConfig flag) from saved surface samples (arrays xyz, rgb) in memory and adds
-its row, without touching the model file. --knn-npz adds a bound: each ray coloured by the mean colour of its k
+--fit image|render extracts surface samples from the model's training views (colour = ground-truth pixel or the
+model's rendered object colour, core/atlas/samples.py), fits a fresh atlas (any AtlasConfig flag) in memory and adds
+its row, without touching the model file; --fit-npz does the same from saved samples (arrays xyz, rgb). --knn-npz adds a bound: each ray coloured by the mean colour of its k
 nearest surface samples (the best a function of x alone does on these samples, no atlas involved).
 """
 from __future__ import annotations
@@ -62,6 +63,40 @@ def knn_colour(xyz: torch.Tensor, rgb: torch.Tensor, k: int):
     return fn
 
 
+def model_samples(bundle, split, colour: str, seed: int = 0, background=(1.0, 1.0, 1.0)):
+    """Surface samples xyz [S, 3], rgb [S, 3] of a stage-1 model (no decoder) over all views of `split`,
+    as core/pipeline.py extracts them, plus the rendered colour for colour='render'."""
+    from core.atlas.samples import extract_surface_samples
+    from core.images.cameras import project_points
+    from core.points.select import select_neighbors
+    from core.util.errors import InputError
+
+    model = bundle.model
+    if colour == "render" and model.decoder is not None:
+        raise InputError("--fit render: per-ray colours need a model without an image decoder")
+    current = {}
+    bg = torch.as_tensor(background, dtype=torch.float32)
+
+    def views():
+        for i in range(len(split)):
+            current["c2w"] = split.c2w[i]
+            yield split.c2w[i], split.height, split.width, split.focal, split.images[i], split.alphas[i]
+
+    @torch.no_grad()
+    def render_fn(o, d):
+        c2w = current["c2w"]
+        px, _ = project_points(o + d, c2w, split.height, split.width, split.focal)
+        idx = select_neighbors(model.xyz, model.cfg.neighbors, model.cfg.k, c2w, split.height, split.width,
+                               split.focal, px, o, d)
+        att = model.attend(model.xyz, model.influence, o, d, idx)
+        out = {"x": att["x"], "fg": 1.0 - att["bg"]}
+        if colour == "render":
+            out["rgb"] = model.shade(att, d, idx, bg)["rgb"].clamp(0, 1)
+        return out
+
+    return extract_surface_samples(render_fn, views(), seed=seed, colour=colour, background=background)
+
+
 def main(argv=None) -> int:
     from core.atlas.config import AtlasConfig
 
@@ -70,7 +105,10 @@ def main(argv=None) -> int:
     ap.add_argument("--data", required=True, help="its dataset (NeRF-synthetic layout)")
     ap.add_argument("--split", default="test")
     ap.add_argument("--every", type=int, default=2, help="use every n-th view of the split")
+    ap.add_argument("--fit", choices=("image", "render"), help="also fit an atlas from samples of the model's "
+                    "training views coloured by the image or by the model's render (AtlasConfig flags apply)")
     ap.add_argument("--fit-npz", help="also fit an atlas from these surface samples (AtlasConfig flags apply)")
+    ap.add_argument("--save-samples", help="write the --fit samples to this .npz (xyz, rgb)")
     ap.add_argument("--knn-npz", help="also colour rays by the k nearest of these surface samples (a bound)")
     ap.add_argument("--knn", type=int, default=16)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
@@ -93,15 +131,28 @@ def main(argv=None) -> int:
     if bundle.atlas is not None:
         rows["atlas (model file)"] = bundle.atlas
     fit_info = {}
-    if args.fit_npz:
+    if args.fit or args.fit_npz:
         from core.atlas.fit import fit_atlas
 
         cfg = from_args(AtlasConfig, args)
-        xyz, rgb = load_npz(args.fit_npz)
+        if args.fit:
+            t = time.perf_counter()
+            xyz, rgb = model_samples(bundle, load_split(args.data, "train"), args.fit, seed=cfg.seed)
+            fit_info["sample_seconds"] = time.perf_counter() - t
+            print(f"{len(xyz)} surface samples coloured by the {args.fit} in {fit_info['sample_seconds']:.0f} s")
+            if args.save_samples:
+                import io
+
+                from core.util.atomic import atomic_write_bytes
+                buf = io.BytesIO()
+                np.savez(buf, xyz=xyz.numpy(), rgb=rgb.numpy())
+                atomic_write_bytes(args.save_samples, buf.getvalue())
+        else:
+            xyz, rgb = load_npz(args.fit_npz)
         atlas, hist = fit_atlas(xyz, rgb, cfg, quiet=True)
-        fit_info = {"seconds": hist["total_seconds"], "fit_psnr": hist["psnr"][-1], "charts": hist["n"],
-                    "config": dataclasses.asdict(cfg)}
-        print(f"fitted atlas from {args.fit_npz}: {hist['n']} charts, {hist['total_seconds']:.1f} s, "
+        fit_info |= {"seconds": hist["total_seconds"], "samples": len(xyz), "fit_psnr": hist["psnr"][-1],
+                     "charts": hist["n"], "config": dataclasses.asdict(cfg)}
+        print(f"fitted atlas from {args.fit_npz or args.fit + ' samples'}: {hist['n']} charts, {hist['total_seconds']:.1f} s, "
               f"fitting PSNR {hist['psnr'][-1]:.2f} dB")
         rows["atlas (fitted)"] = atlas
     if not rows:

@@ -74,3 +74,27 @@ def test_bad_view_shapes_are_reported():
     c2w, h, w, f, img, alpha = _views(1)[0]
     with pytest.raises(InputError, match="view 0"):
         extract_surface_samples(_sphere_render, [(c2w, h, w, f, img[:, :5], alpha)])
+
+
+def _coloured_render(origins, dirs, bg=(0.2, 0.9, 0.4)):
+    """The sphere render plus a display colour fg * c + (1 - fg) * bg with a known object colour c(x)."""
+    out = _sphere_render(origins, dirs)
+    fg = out["fg"] * 0.6  # partial coverage on hits (above the 0.5 threshold), to test the un-compositing
+    c = (out["x"] * 0.8 + 0.5).clamp(0, 1)
+    return {"x": out["x"], "fg": fg, "rgb": fg[:, None] * c + (1 - fg[:, None]) * torch.tensor(bg)}
+
+
+def test_render_colour_is_the_uncomposited_object_colour():
+    xyz, rgb = extract_surface_samples(_coloured_render, _views(), outlier_std=10.0, colour="render",
+                                       background=(0.2, 0.9, 0.4))
+    # c was computed at the unprojected x (1 cm off the ray); projection moves x by <= 1 cm (0.8 cm in colour).
+    assert (rgb - (xyz * 0.8 + 0.5).clamp(0, 1)).abs().max() < 0.02
+    xyz_i, rgb_i = extract_surface_samples(_coloured_render, _views(), outlier_std=10.0)  # image colours differ
+    assert torch.equal(xyz_i, xyz) and not torch.allclose(rgb_i, rgb)
+
+
+def test_render_colour_needs_rgb_and_a_known_mode():
+    with pytest.raises(InputError, match="needs the render function to return 'rgb'"):
+        extract_surface_samples(_sphere_render, _views(1), colour="render")
+    with pytest.raises(InputError, match="colour must be"):
+        extract_surface_samples(_sphere_render, _views(1), colour="paint")
