@@ -66,10 +66,19 @@ def test_emission_scenes_need_no_decoder(profiles):
 
 
 def test_view_dependent_scenes_get_the_decoder(profiles):
-    for shape in ("sphere", "card"):
-        p = profiles[(shape, "glossy")]
-        assert p.decoder == "unet" and p.view_dependent, (shape, p.measured)
-        assert p.measured["view_variation"] > 1.5 * profiles[(shape, "emission")].measured["view_variation"]
+    p = profiles[("sphere", "glossy")]
+    assert p.decoder == "unet" and p.view_dependent, p.measured
+    for shape in ("sphere", "card"):  # the measure separates glossy from emission on both shapes ...
+        glossy, emission = profiles[(shape, "glossy")], profiles[(shape, "emission")]
+        assert glossy.measured["view_variation"] > 1.5 * emission.measured["view_variation"]
+
+
+def test_thin_sheets_keep_direct_colours(profiles):
+    # ... but on a thin sheet the hull lies off the surface and the measure also grows with texture
+    # (the Blender cloth scene, emission, measures 0.099): there the profile does not trust it.
+    for kind in ("glossy", "emission"):
+        p = profiles[("card", kind)]
+        assert p.decoder == "none" and not p.measured["view_variation_trusted"], p.measured
 
 
 def test_thin_sheet_gets_more_neighbours(profiles):
