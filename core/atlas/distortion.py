@@ -26,6 +26,7 @@ def singular_values_2x3(J: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, to
 
     Closed form: a = |du|^2, b = du.dv, c = |dv|^2, lambda = (a + c +- sqrt((a - c)^2 + 4 b^2)) / 2, sigma = sqrt(lambda).
     """
+    J = J.float()  # the guards below underflow in half precision; gradients flow back to a half input
     m = J.detach().abs().amax(dim=(-2, -1)).clamp_min(_MIN_SCALE)
     Jn = J / m[..., None, None]
     du, dv = Jn[..., 0, :], Jn[..., 1, :]

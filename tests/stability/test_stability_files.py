@@ -220,12 +220,10 @@ ATLAS_CASES = {
     "atlas_array_missing": lambda a, m: _drop(a, next(k for k in a if k.startswith("atlas/net/"))),
     "atlas_image_wrong_size": lambda a, m: a.update({"atlas/image": a["atlas/image"][:-1].copy()}),
 }
-# load_bundle re-raises the atlas's own ModelFileError unchanged, so these messages do not name the file.
-# Proposed fix (core/bundle.py, load_bundle): `except ModelFileError as exc: raise ModelFileError(f"{path}: {exc}")`.
-_ATLAS_UNNAMED = pytest.mark.xfail(strict=True, reason="atlas-section errors do not name the model file")
+# load_bundle prefixes the atlas's own ModelFileError with the model file's path.
 
 
-@pytest.mark.parametrize("case", list(MODEL_CASES) + [pytest.param(c, marks=_ATLAS_UNNAMED) for c in ATLAS_CASES])
+@pytest.mark.parametrize("case", list(MODEL_CASES) + list(ATLAS_CASES))
 def test_damaged_model_content_is_a_clear_error_naming_the_file(saved, tmp_path, case):
     arrays, meta = _bundle_arrays(saved[3])
     (MODEL_CASES | ATLAS_CASES)[case](arrays, meta)
