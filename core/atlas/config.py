@@ -14,6 +14,9 @@ class AtlasConfig:
 
     charts: str = opt("auto", "number of charts: auto (from sample complexity), 4 or 8", choices=("auto", "4", "8"))
     auto_flatness: float = opt(0.3, "auto charts: use 8 when the mean out-of-plane spread of 4 clusters exceeds this")
+    sample_colour: str = opt("render", "colour of the surface samples: render (the stage-1 model's object colour of "
+                             "the ray; models without an image decoder) or image (the ground-truth pixel, paper)",
+                             choices=("render", "image"))
     steps: int = opt(1500, "optimisation steps of the UV maps (joint with the texture)")
     batch: int = opt(512, "surface samples per step")
     uv_batch: int = opt(128, "random texture coordinates per chart per step (2D->3D->2D cycle, consistency, Chamfer)")

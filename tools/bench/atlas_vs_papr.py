@@ -63,6 +63,22 @@ def knn_colour(xyz: torch.Tensor, rgb: torch.Tensor, k: int):
     return fn
 
 
+def with_kernel_texture(atlas, xyz: torch.Tensor, rgb: torch.Tensor, sigma: float):
+    """A copy of `atlas` whose textures are the kernel regression of samples xyz [S, 3] / rgb [S, 3] at `sigma`
+    (as fit_atlas makes them with texture_mode='kernel')."""
+    import copy
+
+    from core.atlas.packing import dilate_unused
+    from core.atlas.texture import kernel_texture
+
+    out = copy.deepcopy(atlas)
+    probs, uv = out.chart_uv(xyz)
+    with torch.no_grad():
+        tex, covered, _ = kernel_texture(probs, uv, rgb.clamp(0, 1), out.layout.R, sigma)
+        out.textures.copy_(dilate_unused(tex.clamp(0, 1), covered))
+    return out
+
+
 def model_samples(bundle, split, colour: str, seed: int = 0, background=(1.0, 1.0, 1.0)):
     """Surface samples xyz [S, 3], rgb [S, 3] of a stage-1 model (no decoder) over all views of `split`,
     as core/pipeline.py extracts them, plus the rendered colour for colour='render'."""
@@ -108,6 +124,8 @@ def main(argv=None) -> int:
     ap.add_argument("--fit", choices=("image", "render"), help="also fit an atlas from samples of the model's "
                     "training views coloured by the image or by the model's render (AtlasConfig flags apply)")
     ap.add_argument("--fit-npz", help="also fit an atlas from these surface samples (AtlasConfig flags apply)")
+    ap.add_argument("--texture-sigmas", help="comma-separated kernel widths: extra rows with the fitted maps and the "
+                    "kernel texture at each width (--texture-sigma units)")
     ap.add_argument("--save-samples", help="write the --fit samples to this .npz (xyz, rgb)")
     ap.add_argument("--knn-npz", help="also colour rays by the k nearest of these surface samples (a bound)")
     ap.add_argument("--knn", type=int, default=16)
@@ -155,6 +173,8 @@ def main(argv=None) -> int:
         print(f"fitted atlas from {args.fit_npz or args.fit + ' samples'}: {hist['n']} charts, {hist['total_seconds']:.1f} s, "
               f"fitting PSNR {hist['psnr'][-1]:.2f} dB")
         rows["atlas (fitted)"] = atlas
+        for sig in [float(v) for v in (args.texture_sigmas or "").split(",") if v.strip()]:
+            rows[f"atlas (fitted), texture sigma {sig:g}"] = with_kernel_texture(atlas, xyz, rgb, sig)
     if not rows:
         print(f"{args.model} has no atlas and no --fit-npz was given", file=sys.stderr)
         return 2
