@@ -172,8 +172,16 @@ def fit_points(train, test, model_cfg: ModelConfig, cfg: TrainConfig, background
     Returns (model, history) where history is a list of dicts (step, seconds, points, psnr, psnr_object, ssim)
     measured on `cfg.eval_views` test views; `seconds` is training wall-clock time, evaluation excluded.
     """
+    threads = torch.get_num_threads()
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
+    try:
+        return _fit_points(train, test, model_cfg, cfg, background, progress_callback, show_progress)
+    finally:
+        torch.set_num_threads(threads)  # a process-wide setting: do not leave it changed
+
+
+def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show_progress):
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     dev = resolve_device(cfg.device)

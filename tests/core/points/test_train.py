@@ -11,7 +11,7 @@ TINY_MODEL = ModelConfig(num_points=600, k=8, feature_dim=16, key_width=32, valu
 
 
 def _tiny_cfg(**kw):
-    base = dict(steps=150, patches=1, patch_size=32, eval_every=1e9, eval_views=2, device="cpu", seed=0,
+    base = dict(steps=150, patches=1, patch_size=32, eval_every=1e9, eval_views=2, device="cpu", seed=0, threads=1,
                 prune_every=0, clone_every=0, lr_final=0.2)
     base.update(kw)
     return TrainConfig(**base)
