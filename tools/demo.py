@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ import numpy as np
 import torch
 
 from core.util.atomic import atomic_write_text
+from tools.bench.machine import machine_info
 
 
 @dataclass
@@ -49,20 +49,6 @@ def _write_json(path: Path, data) -> None:
     atomic_write_text(path, json.dumps(data, indent=1), backup=False)
 
 
-def machine() -> dict:
-    import os
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
-
-
 def run_demo(args) -> int:
     from core.atlas.config import AtlasConfig
     from core.bundle import Bundle, load_bundle, save_bundle
@@ -85,7 +71,7 @@ def run_demo(args) -> int:
     model_path = out / "model.pgt"
     n = 7
     t_all = time.perf_counter()
-    report: dict = {"scene": name, "quick": bool(args.quick), "sizes": dataclasses.asdict(sz), "machine": machine(),
+    report: dict = {"scene": name, "quick": bool(args.quick), "sizes": dataclasses.asdict(sz), "machine": machine_info(),
                     "stages": {}}
 
     def stage_done(key, t0, **info):

@@ -11,21 +11,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import platform
 import statistics
 import time
 
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
+from tools.bench.machine import machine_line
 
 
 def _median_time(fn, repeats: int):
@@ -107,12 +96,7 @@ def main(argv=None) -> None:
     if args.only in ("all", "capped"):
         rows += [("screen", f"auto = {cap:.2f} px", screen(False, "auto"), "grid"),
                  ("screen_depth", f"auto = {cap:.2f} px", screen(True, "auto"), "grid")]
-    try:
-        load = "%.2f %.2f %.2f" % os.getloadavg()
-    except OSError:
-        load = "n/a"
-    print(f"machine: {_cpu_model()}, {os.cpu_count()} cores, torch {torch.__version__}, "
-          f"{torch.get_num_threads()} torch threads, load average {load}")
+    print(machine_line())
     print(f"scene: {h}x{w} = {h * w} rays of one camera, {args.points} points on a unit sphere covering ~60 % of the "
           f"frame, K = {args.k}; median of {args.brute_repeats} (brute) / {args.repeats} (fast) runs")
     print("| metric | radius cap | brute force (torch) s | fast path s | speed-up | rays with equal sets "

@@ -30,36 +30,10 @@ import contextlib
 import functools
 import json
 import math
-import os
-import platform
 import statistics
 import time
 
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def machine_line() -> str:
-    import torch
-
-    try:
-        load = "%.2f %.2f %.2f" % os.getloadavg()
-    except OSError:
-        load = "n/a"
-    try:
-        usable = len(os.sched_getaffinity(0))
-    except AttributeError:
-        usable = os.cpu_count()
-    return (f"machine: {_cpu_model()}, {os.cpu_count()} cores ({usable} usable), torch {torch.__version__}, "
-            f"{torch.get_num_threads()} torch threads, load average {load}")
+from tools.bench.machine import machine_line
 
 
 def build_model(n: int, atlas_steps: int, seed: int = 0):

@@ -12,12 +12,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import platform
 import time
 
-import torch
 
 from core.images.dataset import load_dataset
+from tools.bench.machine import machine_line
 from core.points.geometry_stats import surface_stats
 from core.points.model import ModelConfig
 from core.points.train import TrainConfig, evaluate, fit_points
@@ -45,8 +44,8 @@ def main(argv=None) -> int:
     train, test = data["train"], data["test"]
     views = list(range(len(test)))
     rows = []
-    print(f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, "
-          f"torch {torch.__version__}; {args.steps} steps per variant on {args.data}")
+    print(machine_line())
+    print(f"{args.steps} steps per variant on {args.data}")
     for name in args.variants.split(","):
         cfg = dataclasses.replace(TrainConfig(steps=args.steps, eval_every=1e9, threads=args.threads), **VARIANTS[name])
         t0 = time.perf_counter()
