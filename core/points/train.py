@@ -198,7 +198,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     train_s = 0.0
     next_eval = 0.0
     step = 0
-    with Progress(cfg.steps, "fit", callback=progress_callback, enabled=show_progress) as bar:
+    by_time = budget_s < float("inf")
+    with Progress(1000 if by_time else cfg.steps, "fit", callback=progress_callback, enabled=show_progress) as bar:
         while step < cfg.steps and train_s < budget_s:
             if train_s >= next_eval:
                 history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points,
@@ -267,8 +268,12 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                         resize_points(model, opt, allidx, jit)
                         dens.reset(model.num_points, dev)
             train_s += time.perf_counter() - t0
-            bar.update(1, loss=float(loss.detach()), pts=model.num_points,
-                       psnr=history[-1]["psnr"] if history else float("nan"))
+            info = dict(step=step, loss=float(loss.detach()), pts=model.num_points,
+                        psnr=history[-1]["psnr"] if history else float("nan"))
+            if by_time:
+                bar.set_fraction(max(step / cfg.steps, train_s / budget_s), **info)
+            else:
+                bar.update(1, **info)
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points,
                     **evaluate(model, test, eval_ids, background)})
     return model, history

@@ -23,6 +23,8 @@ class Progress:
         self._last = 0.0
         self.info = ""
         self._tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        if not self._tty:  # a log file: a line every few seconds, not a redraw every half second
+            self.min_interval = max(min_interval, 10.0)
 
     def __enter__(self):
         return self
@@ -33,6 +35,10 @@ class Progress:
     @property
     def elapsed(self) -> float:
         return time.perf_counter() - self.start
+
+    def set_fraction(self, frac: float, **info) -> None:
+        """Time-budgeted work: report progress as a fraction of the budget instead of counted items."""
+        self.update(max(int(frac * self.total) - self.n, 0), **info)
 
     def update(self, n: int = 1, **info) -> None:
         self.n = min(self.n + n, self.total)
