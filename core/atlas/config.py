@@ -52,6 +52,8 @@ class AtlasConfig:
     texel_max_cycle: float = opt(0.1, "texel map: NaN where t_c(s_c(u)) misses u by more than this (outside the used region)")
     eval_samples: int = opt(8192, "samples used for the fitting-PSNR history")
     log_every: int = opt(50, "steps between history entries")
+    threads: int = opt(1, "torch CPU threads while fitting (0 = keep torch's setting); small matrices: 2 threads "
+                          "on a shared 2-core box took 1611 s where 1 thread takes ~200 s (docs/atlas.md)")
     device: str = opt("auto", "torch device: auto, cpu, cuda")
     seed: int = opt(0, "random seed (same seed, same atlas)")
 

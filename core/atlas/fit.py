@@ -134,13 +134,26 @@ def _predict(atlas: Atlas, xn: torch.Tensor, chunk: int = 32768) -> tuple[torch.
 
 def fit_atlas(xyz, rgb, cfg: AtlasConfig | None = None, progress: Optional[Callable[[float, str], None]] = None,
               quiet: bool = False) -> tuple[Atlas, dict]:
+    """Learn an atlas from surface samples xyz [S, 3] and colours rgb [S, 3] in [0, 1] (see _fit_atlas), with
+    torch limited to cfg.threads CPU threads for the duration (restored afterwards)."""
+    cfg = cfg or AtlasConfig()
+    before = torch.get_num_threads()
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    try:
+        return _fit_atlas(xyz, rgb, cfg, progress, quiet)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, str], None]] = None,
+               quiet: bool = False) -> tuple[Atlas, dict]:
     """Learn an atlas from surface samples xyz [S, 3] and colours rgb [S, 3] in [0, 1].
 
     progress: optional callback(fraction, info) (e.g. Blender's UI); a text bar goes to stderr unless quiet.
     Returns (atlas, history) with history = {"n": charts, "flatness": f, "seconds": [...], "step": [...],
     "psnr": [...] (fitting PSNR on up to cfg.eval_samples samples), "phase": [...], "total_seconds": t}.
     """
-    cfg = cfg or AtlasConfig()
     xyz = check_points(xyz, "surface samples xyz")
     rgb = torch.as_tensor(rgb).float()
     if rgb.shape != xyz.shape or not torch.isfinite(rgb).all():

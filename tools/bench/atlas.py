@@ -102,16 +102,17 @@ def main(argv=None) -> int:
     ap.add_argument("--sample-seed", type=int, default=0)
     ap.add_argument("--npz", help="samples file with arrays xyz [S, 3], rgb [S, 3]")
     ap.add_argument("--compare-distortion", action="store_true", help="also run with the distortion loss off")
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 is fastest on a busy 2-core box)")
     ap.add_argument("--json", help="write all figures to this JSON file")
     ap.add_argument("--png", help="save the packed atlas image (first run) as PNG")
     add_to_parser(ap, AtlasConfig)
     args = ap.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    threads = from_args(AtlasConfig, args).threads
+    if threads > 0:  # AtlasConfig.threads: the fit and (here) everything else
+        torch.set_num_threads(threads)
     cfg = from_args(AtlasConfig, args)
     xyz, rgb, source = load_samples(args)
     print(f"samples: {source}; config: steps={cfg.steps} batch={cfg.batch} width_map={cfg.width_map} "
-          f"depth_map={cfg.depth_map} charts={cfg.charts} threads={args.threads}")
+          f"depth_map={cfg.depth_map} charts={cfg.charts} threads={cfg.threads}")
     out: dict = {"source": source, "config": dataclasses.asdict(cfg)}
     run_one(xyz, rgb, cfg, "distortion on" if cfg.distortion else "distortion off", out, args.png)
     if args.compare_distortion and cfg.distortion:

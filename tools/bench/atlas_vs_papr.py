@@ -129,13 +129,14 @@ def main(argv=None) -> int:
     ap.add_argument("--save-samples", help="write the --fit samples to this .npz (xyz, rgb)")
     ap.add_argument("--knn-npz", help="also colour rays by the k nearest of these surface samples (a bound)")
     ap.add_argument("--knn", type=int, default=16)
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     ap.add_argument("--json", help="write the figures to this JSON file")
     ap.add_argument("--png", help="write [PAPR | atlas | (fitted) | ground truth] of the last view here")
     ap.add_argument("--atlas-png", help="write the packed atlas image of the last atlas row here")
     add_to_parser(ap, AtlasConfig)
     args = ap.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    threads = from_args(AtlasConfig, args).threads
+    if threads > 0:  # AtlasConfig.threads: the fit and (here) everything else
+        torch.set_num_threads(threads)
 
     from core.bundle import load_bundle
     from core.frames.edited import EditConfig, EditState, render_edited

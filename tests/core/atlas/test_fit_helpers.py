@@ -65,3 +65,23 @@ def test_unknown_texture_mode_is_a_clear_error():
     xyz, rgb = synthetic_samples("strip", 200, seed=0)
     with pytest.raises(InputError, match="texture_mode"):
         fit_atlas(xyz, rgb, AtlasConfig(texture_mode="paint", steps=1), quiet=True)
+
+
+def test_fit_uses_the_configured_threads_and_restores_them():
+    import torch
+
+    from core.atlas.config import AtlasConfig
+    from core.atlas.fit import fit_atlas
+
+    xyz, rgb = synthetic_samples("strip", 300, seed=0)
+    original = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        seen = []
+        fit_atlas(xyz, rgb, AtlasConfig(steps=2, texture_steps=0, texture_res=8, charts="4", threads=1, width_map=8,
+                                        depth_map=1, width_chart=8, depth_chart=1, eval_samples=64),
+                  progress=lambda f, info: seen.append(torch.get_num_threads()), quiet=True)
+        assert seen and set(seen) == {1}
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(original)
