@@ -98,7 +98,9 @@ def run_demo(args) -> int:
     else:
         from core.profile import apply_profile, scene_profile
 
-        profile = scene_profile(train)
+        from core.util.device import resolve_device
+
+        profile = scene_profile(train, device=str(resolve_device(args.device)))
         mcfg, _, applied = apply_profile(profile, ModelConfig(), AtlasConfig(), explicit=set())
         report["profile"] = {**profile.to_dict(), "applied": applied}
         print(f"scene profile: decoder={profile.decoder} k={profile.k} charts={profile.charts}")

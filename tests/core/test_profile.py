@@ -81,9 +81,14 @@ def test_thin_sheets_keep_direct_colours(profiles):
         assert p.decoder == "none" and not p.measured["view_variation_trusted"], p.measured
 
 
-def test_thin_sheet_gets_more_neighbours(profiles):
-    assert profiles[("card", "emission")].k > profiles[("sphere", "emission")].k
-    assert profiles[("card", "emission")].measured["hull_flatness"] < profiles[("sphere", "emission")].measured["hull_flatness"]
+def test_thin_sheet_gets_more_neighbours_on_a_gpu_only(profiles):
+    card, sphere = profiles[("card", "emission")], profiles[("sphere", "emission")]
+    assert card.measured["hull_flatness"] < sphere.measured["hull_flatness"]
+    assert card.k == sphere.k == 20  # CPU: K = 40 costs more steps than it gains under a time budget
+    cams = fibonacci_cameras(16, seed=0)
+    gpu_card = scene_profile(render_split("card", cams, SIZE), hull_points=2000, device="cuda")
+    gpu_sphere = scene_profile(render_split("sphere", cams, SIZE), hull_points=2000, device="cuda")
+    assert gpu_card.k > gpu_sphere.k
 
 
 def test_profile_is_json_and_charts_follow_the_atlas_rule(profiles):

@@ -55,7 +55,9 @@ def run(args) -> int:
     if args.profile and args.stage in ("papr", "all"):
         from core.profile import apply_profile, explicit_fields, scene_profile
 
-        profile = scene_profile(train, seed=train_cfg.seed)
+        from core.util.device import resolve_device
+
+        profile = scene_profile(train, seed=train_cfg.seed, device=str(resolve_device(train_cfg.device)))
         explicit = explicit_fields(args, ModelConfig) | explicit_fields(args, AtlasConfig, prefix="atlas")
         if args.points is not None:
             explicit.add("num_points")
