@@ -73,13 +73,13 @@ def run_one(xyz, rgb, cfg, label: str, out: dict, png: str | None = None) -> Non
     q = quality_report(atlas, xyz, rgb, hist["area"], cfg.chart_fill)
     q["grid_coverage"], q["xatlas_coverage"] = xatlas_utilisation(atlas)
     q.update(charts=hist["n"], flatness=hist["flatness"], R=hist["R"], seconds=hist["total_seconds"],
-             image_shape=list(atlas.layout.shape))
+             image_shape=list(atlas.layout.shape), area=hist["area"], spacing=hist["spacing"])
     q["history"] = [(round(s, 2), st, round(p, 2), ph) for s, st, p, ph in
                     zip(hist["seconds"], hist["steps"], hist["psnr"], hist["phase"])]
     out[label] = q
     print(f"[{label}] charts={hist['n']} (flatness {hist['flatness']:.3f}) R={hist['R']} "
           f"image={atlas.layout.shape[1]}x{atlas.layout.shape[0]} time={hist['total_seconds']:.1f}s "
-          f"PSNR={q['psnr']:.2f} dB")
+          f"PSNR={q['psnr']:.2f} dB area={hist['area']:.3f} spacing={hist['spacing']:.4g}")
     print(f"[{label}] sigma1/sigma2 median={q['aniso_median']:.3f} p95={q['aniso_p95']:.3f}   "
           f"sigma1*sigma2 median={q['area_median']:.3f} p5={q['area_p5']:.3f} p95={q['area_p95']:.3f}")
     print(f"[{label}] utilisation grid={q['utilisation']:.3f} (chart interiors {q['utilisation_interior']:.3f}) "
