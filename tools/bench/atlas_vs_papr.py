@@ -7,8 +7,9 @@ the object's pixels.
 
 --fit image|render extracts surface samples from the model's training views (colour = ground-truth pixel or the
 model's rendered object colour, core/atlas/samples.py), fits a fresh atlas (any AtlasConfig flag) in memory and adds
-its row, without touching the model file; --fit-npz does the same from saved samples (arrays xyz, rgb). --knn-npz adds a bound: each ray coloured by the mean colour of its k
-nearest surface samples (the best a function of x alone does on these samples, no atlas involved).
+its row, without touching the model file; --fit-npz does the same from saved samples (arrays xyz, rgb).
+--knn-npz adds a bound: each ray coloured by the mean colour of its k nearest surface samples (the best a function
+of x alone does on these samples, no atlas involved).
 """
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ def load_npz(path: str) -> tuple[torch.Tensor, torch.Tensor]:
 
     try:
         with np.load(path, allow_pickle=False) as z:
-            return torch.from_numpy(np.asarray(z["xyz"], np.float32)), torch.from_numpy(np.asarray(z["rgb"], np.float32))
+            xyz, rgb = np.asarray(z["xyz"], np.float32), np.asarray(z["rgb"], np.float32)
+        return torch.from_numpy(xyz), torch.from_numpy(rgb)
     except KeyError as e:
         raise InputError(f"{path}: needs arrays 'xyz' [S, 3] and 'rgb' [S, 3] ({e} missing)") from e
     except (OSError, ValueError) as e:
@@ -171,7 +173,8 @@ def main(argv=None) -> int:
         atlas, hist = fit_atlas(xyz, rgb, cfg, quiet=True)
         fit_info |= {"seconds": hist["total_seconds"], "samples": len(xyz), "fit_psnr": hist["psnr"][-1],
                      "charts": hist["n"], "config": dataclasses.asdict(cfg)}
-        print(f"fitted atlas from {args.fit_npz or args.fit + ' samples'}: {hist['n']} charts, {hist['total_seconds']:.1f} s, "
+        print(f"fitted atlas from {args.fit_npz or args.fit + ' samples'}: {hist['n']} charts, "
+              f"{hist['total_seconds']:.1f} s, "
               f"fitting PSNR {hist['psnr'][-1]:.2f} dB")
         rows["atlas (fitted)"] = atlas
         for sig in [float(v) for v in (args.texture_sigmas or "").split(",") if v.strip()]:
