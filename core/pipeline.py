@@ -12,8 +12,10 @@ from core.images.cameras import project_points
 from core.points.select import select_neighbors
 
 
-def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0):
-    """Stage-2 input from a stage-1 model: xyz [S, 3], rgb [S, 3] over all views of `split` (SplitData)."""
+def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0, colour: str = "image"):
+    """Stage-2 input from a stage-1 model: xyz [S, 3], rgb [S, 3] over all views of `split` (SplitData).
+    colour: "image" pairs each surface point with its pixel's colour, "render" with the model's own colour there
+    (the same colour the point render shows; measured +0.3 dB for the atlas on the cloth scene, docs/atlas.md)."""
     current = {}
 
     def views():
@@ -29,15 +31,20 @@ def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0):
         idx = select_neighbors(model.xyz, model.cfg.neighbors, model.cfg.k, c2w, split.height, split.width,
                                split.focal, px, o, d)
         att = model.attend(model.xyz, model.influence, o, d, idx)
-        return {"x": att["x"], "fg": 1.0 - att["bg"]}
+        out = {"x": att["x"], "fg": 1.0 - att["bg"]}
+        if colour == "render":
+            out["rgb"] = model.shade(att, d, idx, torch.ones(3, device=d.device))["rgb"].clamp(0, 1)
+        return out
 
-    return extract_surface_samples(render_fn, views(), max_samples=max_samples, seed=seed)
+    return extract_surface_samples(render_fn, views(), max_samples=max_samples, seed=seed, colour=colour)
 
 
 def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True, progress_callback=None):
     """Fit stage 2 into `bundle` (sets bundle.atlas and bundle.meta['atlas_fit']); returns the fit history."""
     t0 = time.perf_counter()
-    xyz, rgb = surface_samples(bundle.model, split, seed=cfg.seed)
+    # Model colours need direct RGB values; with a UNet decoder the per-ray colour needs whole images: use pixels.
+    colour = cfg.sample_colour if bundle.model.decoder is None else "image"
+    xyz, rgb = surface_samples(bundle.model, split, seed=cfg.seed, colour=colour)
     t_samples = time.perf_counter() - t0
     atlas, history = fit_atlas(xyz, rgb, cfg, progress=progress_callback, quiet=not show_progress)
     bundle.atlas = atlas
