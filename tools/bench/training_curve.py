@@ -43,7 +43,6 @@ def main(argv=None) -> int:
         data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"))
         profile = scene_profile(data["train"])
         mcfg, _, _ = apply_profile(profile, ModelConfig(), AtlasConfig(), explicit=set())
-        print(machine_line())
         _, history = fit_points(data["train"], data["test"], mcfg, TrainConfig(minutes=args.minutes, steps=10**9))
     print(machine_line())
     print_curve(history)
