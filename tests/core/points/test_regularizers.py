@@ -19,7 +19,7 @@ def test_close_to_ray_zero_when_points_on_ray_and_positive_off_ray():
     fg = torch.ones(8, dtype=torch.bool)
     assert float(close_to_ray(att, o, d, fg).detach()) < 1e-6
     att["p"] = att["p"] + torch.tensor([0.3, 0.0, 0.0])
-    assert abs(float(close_to_ray(att, o, d, fg)) - 0.3) < 1e-5
+    assert abs(float(close_to_ray(att, o, d, fg).detach()) - 0.3) < 1e-5
 
 
 def test_close_to_ray_moves_attention_not_points():
