@@ -36,10 +36,10 @@ def test_close_to_ray_moves_attention_not_points():
 def test_close_to_surface_zero_when_neighbours_at_x_and_only_moves_points():
     att, o, d = _att_on_ray(k=1)
     fg = torch.ones(8, dtype=torch.bool)
-    assert float(close_to_surface(att, fg)) < 1e-6
+    assert float(close_to_surface(att, fg).detach()) < 1e-6
     att, o, d = _att_on_ray(k=4)
     loss = close_to_surface(att, fg)
-    assert float(loss) > 0
+    assert float(loss.detach()) > 0
     loss.backward()
     assert att["p"].grad is not None and torch.isfinite(att["p"].grad).all()
     assert att["fg_weights"].grad is None  # x detached: no gradient into attention
@@ -48,8 +48,8 @@ def test_close_to_surface_zero_when_neighbours_at_x_and_only_moves_points():
 def test_background_rays_ignored_and_empty_mask_is_zero():
     att, o, d = _att_on_ray()
     none = torch.zeros(8, dtype=torch.bool)
-    assert float(close_to_ray(att, o, d, none)) == 0.0
-    assert float(close_to_surface(att, none)) == 0.0
+    assert float(close_to_ray(att, o, d, none).detach()) == 0.0
+    assert float(close_to_surface(att, none).detach()) == 0.0
 
 
 def test_distance_to_ray_far_points_finite():
