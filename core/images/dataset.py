@@ -188,16 +188,21 @@ def _frames(doc: dict, json_path: Path, root: Path) -> tuple[list[Path], np.ndar
             raise DataError(f"{where} uses the same image as frame {seen[key]} ({path}); remove the duplicate frame")
         seen[key] = i
         files.append(path)
-        try:
-            mat = np.asarray(frame["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise DataError(f"{where} ({path.name}): 'transform_matrix' must be a 4x4 list of numbers ({exc})") from exc
-        if mat.shape != (4, 4):
-            raise DataError(f"{where} ({path.name}): 'transform_matrix' must be 4x4, got shape {mat.shape}")
-        mats.append(mat)
+        mats.append(_frame_matrix(frame, f"{where} ({path.name})"))
     c2w = np.stack(mats)
     _check_rigid(c2w, files, json_path)
     return files, c2w
+
+
+def _frame_matrix(frame: dict, where: str) -> np.ndarray:
+    """A frame's 'transform_matrix' as float64 [4, 4]; `where` names the frame in the error."""
+    try:
+        mat = np.asarray(frame["transform_matrix"], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"{where}: 'transform_matrix' must be a 4x4 list of numbers ({exc})") from exc
+    if mat.shape != (4, 4):
+        raise DataError(f"{where}: 'transform_matrix' must be 4x4, got shape {mat.shape}")
+    return mat
 
 
 def _image_path(root: Path, file_path: str, where: str) -> Path:
@@ -314,13 +319,7 @@ def load_cameras(json_path: str | os.PathLike, size: int | None = None) -> Camer
     for i, frame in enumerate(frames):
         if not isinstance(frame, dict) or "transform_matrix" not in frame:
             raise DataError(f"{json_path}: frame {i} has no 'transform_matrix'")
-        try:
-            mat = np.asarray(frame["transform_matrix"], dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise DataError(f"{json_path}: frame {i}: 'transform_matrix' must be a 4x4 list of numbers ({exc})") from exc
-        if mat.shape != (4, 4):
-            raise DataError(f"{json_path}: frame {i}: 'transform_matrix' must be 4x4, got shape {mat.shape}")
-        mats.append(mat)
+        mats.append(_frame_matrix(frame, f"{json_path}: frame {i}"))
         fp = frame.get("file_path")
         names.append(Path(fp).stem if isinstance(fp, str) and fp.strip() else f"frame_{i:04d}")
     c2w = np.stack(mats)
