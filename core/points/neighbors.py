@@ -42,10 +42,11 @@ import torch
 
 from core.config import opt
 from core.images.cameras import project_points
+from core.points import grid_kernel
 from core.util.errors import InputError
 
 METHODS = ("screen", "screen_depth", "perpendicular")
-BACKENDS = ("auto", "grid", "kdtree", "torch")
+BACKENDS = ("auto", "compiled", "grid", "kdtree", "torch")
 _CHUNK_ELEMS = 1 << 22  # rays × points per brute-force chunk (~16 MB of float32 distances)
 _NEAR_POINTS = 32  # smallest-weight points handled by brute force in the weighted tree search
 _LAYERS = 4  # weight layers of the weighted tree search (see _WeightedTree)
@@ -75,8 +76,9 @@ class NeighborConfig:
     max_radius_px: float = opt(0.0, "screen metrics: a point is a candidate only within this many pixels of the "
                                     "ray's pixel (rays with none hit the background); 0 = auto from the projected "
                                     "point density, -1 = no cap")
-    backend: str = opt("auto", "auto = pixel grid for capped screen metrics, else k-d tree for CPU tensors and "
-                               "chunked torch brute force elsewhere", choices=BACKENDS)
+    backend: str = opt("auto", "auto = compiled grid (numba, CPU) or torch pixel grid for capped screen metrics, "
+                               "else k-d tree for CPU tensors and chunked torch brute force elsewhere",
+                       choices=BACKENDS)
 
 
 class Neighbors(NamedTuple):
@@ -109,11 +111,25 @@ def _check_matrix(name: str, t, cols: int) -> torch.Tensor:
 
 
 def _check_backend(backend: str, device: torch.device, capped: bool = False) -> str:
-    """Resolve "auto": the grid for capped screen searches, else the k-d tree on CPU and brute force elsewhere."""
+    """Resolve "auto": for capped screen searches the compiled grid on CPU (when numba is installed) else the torch
+    grid; uncapped, the k-d tree on CPU and brute force elsewhere."""
     if backend not in BACKENDS:
         raise InputError(f"neighbour search: backend must be one of {BACKENDS}, got {backend!r}")
+    cpu = device.type == "cpu"
     if backend == "auto":
-        return "grid" if capped else "kdtree" if device.type == "cpu" else "torch"
+        if capped:
+            return "compiled" if cpu and grid_kernel.available() else "grid"
+        return "kdtree" if cpu else "torch"
+    if backend == "compiled":
+        if not capped:
+            raise InputError("neighbour search: backend 'compiled' needs a finite max_radius_px (screen metrics "
+                             "only); use backend 'auto', 'kdtree' or 'torch'")
+        if not cpu:
+            raise InputError(f"neighbour search: backend 'compiled' runs on CPU tensors, got {device}; "
+                             "use backend 'grid' (any device) or 'auto'")
+        if not grid_kernel.available():
+            raise InputError("neighbour search: backend 'compiled' needs numba (pip install numba); "
+                             "use backend 'grid' or 'auto'")
     if backend == "grid" and not capped:
         raise InputError("neighbour search: backend 'grid' needs a finite max_radius_px (screen metrics only); "
                          "use backend 'auto', 'kdtree' or 'torch'")
@@ -596,6 +612,7 @@ class ScreenIndex:
         self._density: float | None = None
         self._grids: dict[float, _CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
         self._tree = None
+        self._compiled: dict[float, grid_kernel.CompiledGrid] = {}
         if self.backend == "kdtree":
             w = None if self.weight is None else self.weight.cpu().numpy()
             self._tree = _WeightedTree(self.px.cpu().numpy(), w)
@@ -629,7 +646,14 @@ class ScreenIndex:
                                                  self.height, self.width)
                 return Neighbors(*self._grids[cap].query(query_px.detach().to(self.device, torch.float64), k))
         ok = torch.isfinite(query_px).all(dim=1)
-        if self._tree is not None:
+        if self.backend == "compiled":
+            cap = self.radius_px(k)
+            if cap not in self._compiled:
+                w = None if self.weight is None else self.weight.numpy()
+                self._compiled[cap] = grid_kernel.CompiledGrid(self.px.numpy(), w, cap, self.height, self.width)
+            li, ld = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
+            li, ld = torch.from_numpy(li), torch.from_numpy(ld)
+        elif self._tree is not None:
             q = query_px.detach().to("cpu", torch.float64).numpy()
             q = np.where(ok.cpu().numpy()[:, None], q, 0.0)
             li, ld = self._tree.query(q, k)

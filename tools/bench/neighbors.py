@@ -5,7 +5,8 @@ sphere that fills ~60 % of the frame, K = 20). Prints the machine, one row per m
 over the repeats), how many rays got the same neighbour set from both paths, and how many rays found a neighbour.
 
 Rows: the uncapped searches (brute force vs the k-d tree, backend "kdtree"), then the capped screen searches the
-model uses by default (brute force with the same pixel radius cap vs the pixel grid, backend "grid").
+model uses by default (brute force with the same pixel radius cap vs the compiled grid, backend "compiled", when
+numba is installed, and the pure-torch pixel grid, backend "grid").
 """
 from __future__ import annotations
 
@@ -66,8 +67,8 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", choices=["all", "capped", "uncapped"], default="all", help="which rows to run")
     ap.add_argument("--threads", type=int, default=0,
-                    help="torch threads for the brute force and the k-d tree path (0 = torch's default); the grid "
-                         "always runs its ops on one thread")
+                    help="torch threads for the brute force and the k-d tree path (0 = torch's default); both grids "
+                         "(compiled and torch) always run on one thread")
     args = ap.parse_args(argv)
 
     import torch
@@ -76,6 +77,7 @@ def main(argv=None) -> None:
         torch.set_num_threads(args.threads)
 
     from core.images.cameras import pixel_rays
+    from core.points import grid_kernel
     from core.points import neighbors as nb
 
     pts, c2w, focal, q = sphere_scene(args.points, args.size, args.seed)
@@ -94,8 +96,10 @@ def main(argv=None) -> None:
                  ("screen_depth", "none", screen(True, inf), "kdtree")]
     cap = nb.ScreenIndex(pts, c2w, h, w, focal).radius_px(args.k)
     if args.only in ("all", "capped"):
-        rows += [("screen", f"auto = {cap:.2f} px", screen(False, "auto"), "grid"),
-                 ("screen_depth", f"auto = {cap:.2f} px", screen(True, "auto"), "grid")]
+        fast = ["compiled"] if grid_kernel.available() else []
+        for b in fast + ["grid"]:  # compiled (numba) grid first: the CPU default when numba is installed
+            rows += [("screen", f"auto = {cap:.2f} px", screen(False, "auto"), b),
+                     ("screen_depth", f"auto = {cap:.2f} px", screen(True, "auto"), b)]
     print(machine_line())
     print(f"scene: {h}x{w} = {h * w} rays of one camera, {args.points} points on a unit sphere covering ~60 % of the "
           f"frame, K = {args.k}; median of {args.brute_repeats} (brute) / {args.repeats} (fast) runs")

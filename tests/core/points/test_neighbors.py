@@ -11,12 +11,15 @@ import torch
 
 from core.config import from_dict, to_dict
 from core.images.cameras import look_at, pixel_rays
+from core.points import grid_kernel
 from core.points import neighbors as nb
 from core.util.errors import InputError
 
 H = W = 24
 FOCAL = 1.1 * W
 BACKENDS = ("kdtree", "torch")
+# capped screen searches: the torch grid everywhere, the compiled (numba) grid where numba is installed
+GRIDS = ("grid", "compiled") if grid_kernel.available() else ("grid",)
 INF = math.inf
 
 
@@ -204,7 +207,7 @@ def test_config_dispatch(method):
 
 # ------------------------------------------------------------------------------------------- degenerate input
 # (backend, max_radius_px) of the screen searches; "perpendicular" runs on the k-d tree where the grid is asked
-SEARCHES = [("kdtree", INF), ("torch", INF), ("torch", "auto"), ("grid", "auto"), ("grid", 2.5)]
+SEARCHES = [("kdtree", INF), ("torch", INF), ("torch", "auto")] + [(g, c) for g in GRIDS for c in ("auto", 2.5)]
 
 
 def resolved_cap(pts, c2w, k, cap):
@@ -217,7 +220,7 @@ def _all_methods(pts, k, search):
     o, d = rays(c2w)
     q = random_px(50, 0)
     r = resolved_cap(pts, c2w, k, cap)
-    perp = "kdtree" if backend == "grid" else backend
+    perp = "kdtree" if backend in GRIDS else backend
     return {
         "perpendicular": (nb.rays_knn_perpendicular(pts, o, d, k, backend=perp), ref_perpendicular(pts, o, d, k)),
         "screen": (nb.screen_knn(pts, c2w, H, W, FOCAL, q, k, backend=backend, max_radius_px=cap),
@@ -295,7 +298,7 @@ def test_bad_rays_and_queries_get_no_neighbours(search):
     d[0] = 0.0
     d[1, 0] = math.nan
     o[2, 1] = math.inf
-    got = nb.rays_knn_perpendicular(pts, o, d, 5, backend="kdtree" if backend == "grid" else backend)
+    got = nb.rays_knn_perpendicular(pts, o, d, 5, backend="kdtree" if backend in GRIDS else backend)
     assert not got.valid[:3].any() and got.valid[3:].all()
     q = torch.tensor([[math.nan, 3.0], [12.0, 12.0], [3.0, -math.inf], [1e6, 5.0], [-1e6, -1e6], [12.5, 11.5]])
     for df in (False, True):
@@ -337,20 +340,21 @@ def test_grid_matches_capped_brute_force(kind, seed, depth_factor, cap):
     q = random_px(700, seed)
     r = resolved_cap(pts, c2w, 12, cap)
     ref = ref_screen(pts, c2w, q, 12, depth_factor, r)
-    for backend in ("grid", "torch"):
+    for backend in GRIDS + ("torch",):
         got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 12, depth_factor, backend=backend, max_radius_px=cap)
         assert_same(got, ref)
 
 
+@pytest.mark.parametrize("backend", GRIDS)
 @pytest.mark.parametrize("depth_factor", [False, True])
-def test_grid_on_a_pixel_grid_of_queries_and_a_large_frame(depth_factor):
+def test_grid_on_a_pixel_grid_of_queries_and_a_large_frame(depth_factor, backend):
     """Every pixel centre of a 96 × 80 frame (most of the work in training and rendering), two stages at work."""
     h, w, f = 80, 96, 90.0
     pts = scene("sphere", 3000, 8) * torch.tensor([1.0, 0.6, 0.8])
     c2w = look_at([2.2, -2.0, 1.0]).float()
     rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
     q = torch.stack([cols.flatten() + 0.5, rows.flatten() + 0.5], -1).float()
-    index = nb.ScreenIndex(pts, c2w, h, w, f, depth_factor)
+    index = nb.ScreenIndex(pts, c2w, h, w, f, depth_factor, backend=backend)
     got = index.query(q, 16)
     p, m = pts.double(), c2w.double()
     cam = (p - m[:3, 3]) @ m[:3, :3]
@@ -366,8 +370,9 @@ def test_grid_on_a_pixel_grid_of_queries_and_a_large_frame(depth_factor):
 
 
 @pytest.mark.stability
+@pytest.mark.parametrize("backend", GRIDS)
 @pytest.mark.parametrize("depth_factor", [False, True])
-def test_grid_very_dense_cell_is_exact_and_chunked(depth_factor, monkeypatch):
+def test_grid_very_dense_cell_is_exact_and_chunked(depth_factor, backend, monkeypatch):
     """3000 points inside 0.01 px next to a sparse cloud: every query near the clump has thousands of candidates.
     A tiny table budget forces one query per chunk there; results stay exact."""
     g = torch.Generator().manual_seed(9)
@@ -376,7 +381,7 @@ def test_grid_very_dense_cell_is_exact_and_chunked(depth_factor, monkeypatch):
     centre = sparse[:1]
     clump = centre + 1e-5 * torch.randn(3000, 3, generator=g)
     pts = torch.cat([sparse, clump])
-    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor)
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend)
     cpx = index.px[index.ids == 0][0].float()
     q = torch.cat([cpx + torch.randn(60, 2, generator=g) * 1.5, random_px(200, 9)])
     monkeypatch.setattr(nb, "_GRID_BUDGET", 256)
@@ -392,8 +397,8 @@ def test_grid_extreme_caps(cap):
     pts = scene("sphere", 600, 10)
     c2w = camera(10)
     q = random_px(300, 10)
-    for df in (False, True):
-        got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 9, df, max_radius_px=cap)
+    for df, backend in [(df, b) for df in (False, True) for b in GRIDS]:
+        got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 9, df, max_radius_px=cap, backend=backend)
         assert_same(got, ref_screen(pts, c2w, q, 9, df, cap))
         assert torch.isfinite(got.dist[got.valid]).all()
     if cap == 1e6:  # a cap beyond the frame is no cap
@@ -471,6 +476,10 @@ def test_config_cap_round_trips_and_is_used():
      "kdtree"),
     (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, FOCAL, torch.zeros(3, 2), 4, backend="grid",
                            max_radius_px=INF), "grid"),
+    (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, FOCAL, torch.zeros(3, 2), 4, backend="compiled",
+                           max_radius_px=INF), "compiled"),
+    (lambda: nb.rays_knn_perpendicular(torch.zeros(5, 3), torch.zeros(4, 3), torch.ones(4, 3), 2, "compiled"),
+     "compiled"),
 ])
 def test_bad_input_is_a_clear_error(call, match):
     with pytest.raises(InputError, match=match):

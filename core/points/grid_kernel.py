@@ -1,0 +1,159 @@
+"""Compiled CPU kernel of the capped screen-space K-nearest search (the "compiled" backend of neighbors.py).
+
+Same definition as the pure-torch grid (`_CellGrid`): candidates of a query pixel are the projected points within
+`cap` pixels; they are ranked by pixel distance × per-point weight (weight 1 for "screen", depth / focal for
+"screen_depth"). Why a compiled loop: on the CPU the torch grid is a few hundred small tensor ops per frame and a
+per-row `topk` (≈ 0.8 µs a row); one loop per query that keeps its K best in an insertion buffer does the same work
+in a single pass over ~3 K candidates. Needs numba (an optional dependency: without it `available()` is False and
+"auto" keeps the torch grid). CPU only and single-threaded, like the torch grid on the CPU (see neighbors.py).
+
+Cells are squares of about half the cap (the radius holding K points at the median density, so the K nearest
+usually lie in the query's cell and its 8 neighbours). Cells are visited ring by ring around the query's cell; a
+cell is skipped when its nearest corner/edge is farther than the cap or, once K candidates are held, when
+(its distance × the smallest weight in it) cannot beat the K-th value; the walk stops when a whole ring is out
+of reach by the same bounds (with the smallest weight over all points). Every skipped point is provably worse
+than the K held, so the result is exact (ties with the K-th value aside).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:  # optional: the torch grid is used without it
+    import numba
+
+    _NUMBA_ERROR = None
+except ImportError as exc:  # pragma: no cover - exercised only where numba is missing
+    numba = None
+    _NUMBA_ERROR = exc
+
+_MAX_CELLS = 1 << 22  # bounds the cell table for tiny caps (4 M cells = 32 MB of int64 offsets at most)
+_CELL_PER_CAP = 0.5  # cell side / cap
+
+
+def available() -> bool:
+    """True when numba imports (the compiled backend can run)."""
+    return numba is not None
+
+
+def _kernel(xs, ys, ws, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_slot, out_val):
+    """For each query q[i] = (col, row) relative to the grid origin: its K best (slot into xs, value) ascending.
+    xs, ys, ws [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest weight
+    per cell (inf when empty). out_slot [R, K] (-1 = none), out_val [R, K] (inf = none), pre-filled."""
+    rmax = int(math.ceil(cap / cell)) + 1
+    cap2 = cap * cap
+    for i in range(q.shape[0]):
+        qx = q[i, 0]
+        qy = q[i, 1]
+        if not (math.isfinite(qx) and math.isfinite(qy)):
+            continue
+        if qx < -cap or qy < -cap or qx > ncx * cell + cap or qy > ncy * cell + cap:
+            continue  # beyond the cap of every cell (and keeps the cell index arithmetic small)
+        cx = int(math.floor(qx / cell))
+        cy = int(math.floor(qy / cell))
+        n = 0
+        for r in range(rmax + 1):
+            lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
+            if lb > cap:
+                break
+            if n == k and lb * wmin_all >= out_val[i, k - 1]:
+                break
+            for dy in range(-r, r + 1):
+                y = cy + dy
+                if y < 0 or y >= ncy:
+                    continue
+                edge = dy == -r or dy == r
+                step = 1 if edge else 2 * r
+                dx = -r
+                while dx <= r:
+                    x = cx + dx
+                    dx += step if r > 0 else 1
+                    if x < 0 or x >= ncx:
+                        continue
+                    c = y * ncx + x
+                    a = start[c]
+                    b = start[c + 1]
+                    if a == b:
+                        continue
+                    # distance from the query to the cell's rectangle
+                    ex = max(x * cell - qx, qx - (x + 1) * cell, 0.0)
+                    ey = max(y * cell - qy, qy - (y + 1) * cell, 0.0)
+                    md = math.sqrt(ex * ex + ey * ey)
+                    if md > cap:
+                        continue
+                    if n == k and md * wcell[c] >= out_val[i, k - 1]:
+                        continue
+                    for j in range(a, b):
+                        ddx = xs[j] - qx
+                        ddy = ys[j] - qy
+                        d2 = ddx * ddx + ddy * ddy
+                        if d2 > cap2:
+                            continue
+                        v = math.sqrt(d2) * ws[j]
+                        if n == k and v >= out_val[i, k - 1]:
+                            continue
+                        # insertion into the sorted buffer (equal values keep the earlier one first)
+                        p = n if n < k else k - 1
+                        while p > 0 and out_val[i, p - 1] > v:
+                            out_val[i, p] = out_val[i, p - 1]
+                            out_slot[i, p] = out_slot[i, p - 1]
+                            p -= 1
+                        out_val[i, p] = v
+                        out_slot[i, p] = j
+                        if n < k:
+                            n += 1
+
+
+_compiled = None
+
+
+def _get_kernel():
+    global _compiled
+    if _compiled is None:
+        if numba is None:
+            raise RuntimeError(f"the compiled neighbour search needs numba ({_NUMBA_ERROR}); "
+                               "install it (pip install numba) or use backend='grid'")
+        _compiled = numba.njit(cache=True, nogil=True, fastmath=False)(_kernel)
+    return _compiled
+
+
+class CompiledGrid:
+    """Projected points of one camera in square cells, queried by the compiled kernel.
+
+    px [M, 2] float64 (col, row) pixel coords, already filtered (finite, in front, inside the frame ± 1 px);
+    weight [M] float64 or None; cap > 0 pixels (finite); height, width of the frame."""
+
+    def __init__(self, px: np.ndarray, weight: np.ndarray | None, cap: float, height: int, width: int):
+        self.cap = float(cap)
+        span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
+        self.cell = max(_CELL_PER_CAP * self.cap, math.sqrt(span_x * span_y / _MAX_CELLS))
+        self.ncx = int(span_x // self.cell) + 1
+        self.ncy = int(span_y // self.cell) + 1
+        rel = np.asarray(px, dtype=np.float64) + 1.0  # grid origin at (-1, -1)
+        cx = np.clip(np.floor(rel[:, 0] / self.cell), 0, self.ncx - 1).astype(np.int64)
+        cy = np.clip(np.floor(rel[:, 1] / self.cell), 0, self.ncy - 1).astype(np.int64)
+        cell_id = cy * self.ncx + cx
+        self.order = np.argsort(cell_id, kind="stable")  # slot -> row of px
+        counts = np.bincount(cell_id, minlength=self.ncx * self.ncy)
+        self.start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self.xs = np.ascontiguousarray(rel[self.order, 0])
+        self.ys = np.ascontiguousarray(rel[self.order, 1])
+        w = np.ones(len(rel)) if weight is None else np.asarray(weight, dtype=np.float64)
+        self.ws = np.ascontiguousarray(w[self.order])
+        self.wcell = np.full(self.ncx * self.ncy, np.inf)
+        np.minimum.at(self.wcell, cell_id, w)
+        self.wmin = float(w.min()) if len(w) else 1.0
+
+    def query(self, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """q [R, 2] float64 (col, row), non-finite rows get no neighbours -> (row of px [R, k] int64, -1 = none;
+        value [R, k] float32 ascending, inf = none)."""
+        r = q.shape[0]
+        slot = np.full((r, k), -1, dtype=np.int64)
+        val = np.full((r, k), np.inf, dtype=np.float64)
+        if r and len(self.xs):
+            qq = np.ascontiguousarray(np.asarray(q, dtype=np.float64) + 1.0)
+            _get_kernel()(self.xs, self.ys, self.ws, self.wcell, self.start, self.ncx, self.ncy, self.cell,
+                          self.wmin, qq, self.cap, k, slot, val)
+        rows = np.where(slot >= 0, self.order[np.maximum(slot, 0)], -1)
+        return rows, val.astype(np.float32)
