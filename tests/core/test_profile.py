@@ -11,7 +11,8 @@ from core.config import add_to_parser
 from core.images.cameras import focal_from_fov, pixel_rays
 from core.images.dataset import SplitData
 from core.points.model import ModelConfig
-from core.profile import SceneProfile, apply_profile, explicit_fields, scene_profile, view_variation
+from core.profile import (DETAIL_PIXELS_PER_POINT, SceneProfile, apply_profile, explicit_fields, scene_profile,
+                          view_variation)
 from tests.helpers.synthetic import _hit, fibonacci_cameras, render_split, stripes
 
 SIZE = 48
@@ -140,3 +141,14 @@ if __name__ == "__main__":  # the table in docs/stability.md: `python -m tests.c
             p = scene_profile(split, hull_points=2000)
             print(f"| {shape} | {kind} | {p.measured['view_variation']:.3f} | {p.measured['hull_flatness']:.3f} | "
                   f"{p.decoder} | {p.k} | {p.charts} |")
+
+
+def test_detail_finer_than_the_points_gets_the_decoder():
+    """Few points for many foreground pixels: the decoder, even on an emission (view-independent) scene."""
+    split = render_split("sphere", fibonacci_cameras(16, seed=0), SIZE)
+    fg = float((split.alphas > 0.5).float().sum(dim=(1, 2)).mean())
+    sparse = scene_profile(split, hull_points=2000, num_points=int(fg / (3 * DETAIL_PIXELS_PER_POINT)))
+    dense = scene_profile(split, hull_points=2000, num_points=int(fg / (0.5 * DETAIL_PIXELS_PER_POINT)))
+    assert sparse.decoder == "unet" and not sparse.view_dependent, sparse.measured
+    assert dense.decoder == "none", dense.measured
+    assert sparse.measured["pixels_per_point"] > DETAIL_PIXELS_PER_POINT > dense.measured["pixels_per_point"]

@@ -57,7 +57,8 @@ def run(args) -> int:
 
         from core.util.device import resolve_device
 
-        profile = scene_profile(train, seed=train_cfg.seed, device=str(resolve_device(train_cfg.device)))
+        profile = scene_profile(train, seed=train_cfg.seed, device=str(resolve_device(train_cfg.device)),
+                                num_points=model_cfg.num_points)
         explicit = explicit_fields(args, ModelConfig) | explicit_fields(args, AtlasConfig, prefix="atlas")
         if args.points is not None:
             explicit.add("num_points")
@@ -65,7 +66,7 @@ def run(args) -> int:
         m = profile.measured
         print(f"[fit] scene profile: decoder={profile.decoder} view_dependent={profile.view_dependent} "
               f"k={profile.k} charts={profile.charts} (view variation {m['view_variation']:.3f}, hull flatness "
-              f"{m['hull_flatness']:.2f}); applied {applied or 'nothing (set on the command line)'}")
+              f"{m['hull_flatness']:.2f}, {m['pixels_per_point']:.2f} foreground pixels per point); applied {applied or 'nothing (set on the command line)'}")
     if args.stage in ("papr", "all"):
         t0 = time.perf_counter()
         model, history = fit_points(train, test, model_cfg, train_cfg, show_progress=not args.no_progress)
