@@ -37,12 +37,15 @@ def available() -> bool:
     return numba is not None
 
 
-def _kernel(xs, ys, ws, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_slot, out_val):
-    """For each query q[i] = (col, row) relative to the grid origin: its K best (slot into xs, value) ascending.
-    xs, ys, ws [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest weight
-    per cell (inf when empty). out_slot [R, K] (-1 = none), out_val [R, K] (inf = none), pre-filled."""
+def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val):
+    """For each query q[i] = (col, row) relative to the grid origin: its K best (ids[slot], value) ascending.
+    xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
+    weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
+    pre-filled; values are ranked in float64 and stored in float32."""
     rmax = int(math.ceil(cap / cell)) + 1
     cap2 = cap * cap
+    best = np.empty(k, dtype=np.float64)  # the query's K best values, ascending ...
+    slot = np.empty(k, dtype=np.int64)  # ... and their slots
     for i in range(q.shape[0]):
         qx = q[i, 0]
         qy = q[i, 1]
@@ -57,7 +60,7 @@ def _kernel(xs, ys, ws, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_s
             lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
             if lb > cap:
                 break
-            if n == k and lb * wmin_all >= out_val[i, k - 1]:
+            if n == k and lb * wmin_all >= best[k - 1]:
                 break
             for dy in range(-r, r + 1):
                 y = cy + dy
@@ -82,7 +85,7 @@ def _kernel(xs, ys, ws, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_s
                     md = math.sqrt(ex * ex + ey * ey)
                     if md > cap:
                         continue
-                    if n == k and md * wcell[c] >= out_val[i, k - 1]:
+                    if n == k and md * wcell[c] >= best[k - 1]:
                         continue
                     for j in range(a, b):
                         ddx = xs[j] - qx
@@ -91,18 +94,21 @@ def _kernel(xs, ys, ws, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_s
                         if d2 > cap2:
                             continue
                         v = math.sqrt(d2) * ws[j]
-                        if n == k and v >= out_val[i, k - 1]:
+                        if n == k and v >= best[k - 1]:
                             continue
                         # insertion into the sorted buffer (equal values keep the earlier one first)
                         p = n if n < k else k - 1
-                        while p > 0 and out_val[i, p - 1] > v:
-                            out_val[i, p] = out_val[i, p - 1]
-                            out_slot[i, p] = out_slot[i, p - 1]
+                        while p > 0 and best[p - 1] > v:
+                            best[p] = best[p - 1]
+                            slot[p] = slot[p - 1]
                             p -= 1
-                        out_val[i, p] = v
-                        out_slot[i, p] = j
+                        best[p] = v
+                        slot[p] = j
                         if n < k:
                             n += 1
+        for p in range(n):
+            out_idx[i, p] = ids[slot[p]]
+            out_val[i, p] = best[p]
 
 
 _compiled = None
@@ -122,9 +128,11 @@ class CompiledGrid:
     """Projected points of one camera in square cells, queried by the compiled kernel.
 
     px [M, 2] float64 (col, row) pixel coords, already filtered (finite, in front, inside the frame ± 1 px);
-    weight [M] float64 or None; cap > 0 pixels (finite); height, width of the frame."""
+    weight [M] float64 or None; ids [M] int64, what a query returns for each point; cap > 0 pixels (finite);
+    height, width of the frame."""
 
-    def __init__(self, px: np.ndarray, weight: np.ndarray | None, cap: float, height: int, width: int):
+    def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
+                 width: int):
         self.cap = float(cap)
         span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
         self.cell = max(_CELL_PER_CAP * self.cap, math.sqrt(span_x * span_y / _MAX_CELLS))
@@ -141,19 +149,19 @@ class CompiledGrid:
         self.ys = np.ascontiguousarray(rel[self.order, 1])
         w = np.ones(len(rel)) if weight is None else np.asarray(weight, dtype=np.float64)
         self.ws = np.ascontiguousarray(w[self.order])
+        self.ids = np.ascontiguousarray(np.asarray(ids, dtype=np.int64)[self.order])
         self.wcell = np.full(self.ncx * self.ncy, np.inf)
         np.minimum.at(self.wcell, cell_id, w)
         self.wmin = float(w.min()) if len(w) else 1.0
 
     def query(self, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """q [R, 2] float64 (col, row), non-finite rows get no neighbours -> (row of px [R, k] int64, -1 = none;
-        value [R, k] float32 ascending, inf = none)."""
+        """q [R, 2] float64 (col, row), non-finite rows get no neighbours -> (ids [R, k] int64 of the ids given
+        to __init__, -1 = none; value [R, k] float32 ascending, inf = none)."""
         r = q.shape[0]
-        slot = np.full((r, k), -1, dtype=np.int64)
-        val = np.full((r, k), np.inf, dtype=np.float64)
+        idx = np.full((r, k), -1, dtype=np.int64)
+        val = np.full((r, k), np.inf, dtype=np.float32)
         if r and len(self.xs):
             qq = np.ascontiguousarray(np.asarray(q, dtype=np.float64) + 1.0)
-            _get_kernel()(self.xs, self.ys, self.ws, self.wcell, self.start, self.ncx, self.ncy, self.cell,
-                          self.wmin, qq, self.cap, k, slot, val)
-        rows = np.where(slot >= 0, self.order[np.maximum(slot, 0)], -1)
-        return rows, val.astype(np.float32)
+            _get_kernel()(self.xs, self.ys, self.ws, self.ids, self.wcell, self.start, self.ncx, self.ncy, self.cell,
+                          self.wmin, qq, self.cap, k, idx, val)
+        return idx, val

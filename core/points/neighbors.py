@@ -645,15 +645,16 @@ class ScreenIndex:
                     self._grids[cap] = _CellGrid(self.px, self.weight, self.ids, cap, self._median_density(),
                                                  self.height, self.width)
                 return Neighbors(*self._grids[cap].query(query_px.detach().to(self.device, torch.float64), k))
-        ok = torch.isfinite(query_px).all(dim=1)
-        if self.backend == "compiled":
+        if self.backend == "compiled":  # already final: ids, -1 / inf padding, ascending, non-finite rows empty
             cap = self.radius_px(k)
             if cap not in self._compiled:
                 w = None if self.weight is None else self.weight.numpy()
-                self._compiled[cap] = grid_kernel.CompiledGrid(self.px.numpy(), w, cap, self.height, self.width)
-            li, ld = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
-            li, ld = torch.from_numpy(li), torch.from_numpy(ld)
-        elif self._tree is not None:
+                self._compiled[cap] = grid_kernel.CompiledGrid(self.px.numpy(), w, self.ids.numpy(), cap,
+                                                               self.height, self.width)
+            idx, dist = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
+            return Neighbors(torch.from_numpy(idx), torch.from_numpy(dist))
+        ok = torch.isfinite(query_px).all(dim=1)
+        if self._tree is not None:
             q = query_px.detach().to("cpu", torch.float64).numpy()
             q = np.where(ok.cpu().numpy()[:, None], q, 0.0)
             li, ld = self._tree.query(q, k)
