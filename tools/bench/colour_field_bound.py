@@ -1,0 +1,169 @@
+"""How well can *any* colour field on the surface reproduce the test views? Bounds for the atlas (needs bpy).
+
+    python -m tools.bench.colour_field_bound --model M.pgt --scene DIR [--every 2] [--knn 16] [--json OUT]
+
+DIR is a scene made by `pointgt make-scene` (its `scene.blend` holds the true mesh). An atlas colours each ray by
+a function of one surface point, so two things bound it: how view-consistent the surface points are, and how much
+of the image a per-point colour can hold at all at this resolution (anti-aliased pixels, thin stripes). Rows, all
+on the test views with the model's coverage (1 − background weight) and its point render elsewhere, so that only
+the object colour differs:
+
+- point render: the model as trained (decoder included);
+- colour field at the true surface: each ray's true hit point (the ray cast against the scene mesh) coloured by the
+  mean pixel colour of the k nearest training samples taken at their own true hits — the best a function of the
+  surface point can do with perfect geometry;
+- colour field at x_i: the same with the model's surface points x_i (projected on their rays, as the atlas samples
+  are made) — the best any atlas of this model can do;
+- colour field at the true surface, true coverage: true hits composited with the image's own alpha, no model at
+  all — what a per-surface-point colour can hold at this resolution;
+
+and the error of x_i against the true hit (distance, and its component along the ray). Object PSNR uses ground
+truth ∪ rendered foreground like everywhere else.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tools.bench.machine import machine_line
+
+
+def mesh_ray_caster(scene_dir: Path):
+    """cast(origins [R, 3], dirs [R, 3]) -> hits [R, 3] float64 (NaN = miss) against the scene's rest mesh."""
+    import bpy
+    from mathutils import Vector
+    from mathutils.bvhtree import BVHTree
+
+    meta = json.loads((scene_dir / "scene.json").read_text())
+    bpy.ops.wm.open_mainfile(filepath=str(scene_dir / "scene.blend"))
+    obj = bpy.data.objects[meta["object"]]
+    mw = obj.matrix_world
+    verts = [mw @ v.co for v in obj.data.vertices]
+    tree = BVHTree.FromPolygons(verts, [tuple(p.vertices) for p in obj.data.polygons])
+
+    def cast(o: np.ndarray, d: np.ndarray) -> np.ndarray:
+        out = np.full((len(o), 3), np.nan)
+        for i in range(len(o)):  # mathutils has no batched ray cast; ~5 µs a ray
+            loc = tree.ray_cast(Vector(o[i]), Vector(d[i]))[0]
+            if loc is not None:
+                out[i] = loc
+        return out
+    return cast
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", required=True, help="model file (.pgt)")
+    ap.add_argument("--scene", required=True, help="scene folder made by `pointgt make-scene` (scene.blend)")
+    ap.add_argument("--every", type=int, default=2, help="use every n-th view of the train and test splits")
+    ap.add_argument("--knn", type=int, default=16, help="training samples averaged per ray")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    ap.add_argument("--json", help="write the figures here")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(max(args.threads, 1))
+    from scipy.spatial import cKDTree
+
+    from core.bundle import load_bundle
+    from core.frames.metrics import object_mask, psnr
+    from core.frames.render import shade_frame, trace_frame
+    from core.images.dataset import load_split
+
+    t_start = time.perf_counter()
+    scene = Path(args.scene)
+    cast = mesh_ray_caster(scene)
+    model = load_bundle(args.model, "cpu").model
+    train, test = load_split(scene, "train"), load_split(scene, "test")
+
+    def view(split, i):
+        """(trace, hits [R, 3], x on the ray [R, 3], coverage [R]) of view i."""
+        tr = trace_frame(model, split.c2w[i], split.height, split.width, split.focal)
+        o, d = tr["origins"].double().numpy(), tr["dirs"].double().numpy()
+        fg = (1.0 - tr["bg"]).numpy()
+        x = tr["x"].double().numpy()
+        x = o + ((x - o) * d).sum(-1, keepdims=True) * d
+        hits = np.full_like(o, np.nan)
+        look = (split.alphas[i].reshape(-1).numpy() > 0.5) | (fg > 0.5)
+        hits[look] = cast(o[look], d[look])
+        return tr, hits, x, fg
+
+    samples = {"true surface": ([], []), "x_i": ([], [])}
+    for i in range(0, len(train), args.every):
+        _, hits, x, fg = view(train, i)
+        sel = train.alphas[i].reshape(-1).numpy() > 0.5
+        rgb = train.images[i].reshape(-1, 3).numpy()
+        ok = sel & np.isfinite(hits).all(1)
+        samples["true surface"][0].append(hits[ok]), samples["true surface"][1].append(rgb[ok])
+        ok = sel & (fg > 0.5)
+        samples["x_i"][0].append(x[ok]), samples["x_i"][1].append(rgb[ok])
+    fields = {}
+    for name, (xs, cs) in samples.items():
+        xyz, col = np.concatenate(xs), np.concatenate(cs)
+        fields[name] = (cKDTree(xyz), col)
+        print(f"{name}: {len(xyz)} training samples", flush=True)
+
+    scores = {"point render": [], "colour field at the true surface": [], "colour field at x_i": [],
+              "colour field at the true surface, true coverage": []}
+    dist, along = [], []
+    for i in range(0, len(test), args.every):
+        tr, hits, x, fg = view(test, i)
+        h, w = tr["shape"]
+        papr = shade_frame(model, tr).reshape(-1, 3).clamp(0, 1)
+        gt, alpha = test.images[i], test.alphas[i]
+        mask = object_mask(alpha, torch.from_numpy(fg).reshape(h, w))
+        scores["point render"].append(psnr(papr.reshape(h, w, 3), gt, mask))
+        active = (tr["active"].numpy()) & (fg > 1e-4)
+        for name, (field_name, pts) in {"colour field at the true surface": ("true surface", hits),
+                                        "colour field at x_i": ("x_i", x)}.items():
+            tree, col = fields[field_name]
+            use = active & np.isfinite(pts).all(1)
+            if field_name == "true surface":  # rays whose true ray misses the mesh keep x_i's colour source
+                use = active
+                pts = np.where(np.isfinite(pts).all(1, keepdims=True), pts, x)
+            _, nn = tree.query(pts[use], k=args.knn)
+            c = col[nn.reshape(len(nn), -1)].mean(1)
+            rgb = papr.clone().double().numpy()
+            f = fg[use, None]
+            rgb[use] = f * c + (1 - f)  # white background, as the atlas render composes it
+            scores[name].append(psnr(torch.from_numpy(rgb).float().reshape(h, w, 3), gt, mask))
+        # per-point colour capacity alone: true hits and the image's own alpha as coverage (no model at all)
+        a = alpha.reshape(-1).double().numpy()
+        use = np.isfinite(hits).all(1) & (a > 0)
+        tree, col = fields["true surface"]
+        _, nn = tree.query(hits[use], k=args.knn)
+        rgb = np.ones((len(a), 3))
+        rgb[use] = a[use, None] * col[nn.reshape(len(nn), -1)].mean(1) + (1 - a[use, None])
+        scores["colour field at the true surface, true coverage"].append(
+            psnr(torch.from_numpy(rgb).float().reshape(h, w, 3), gt, mask))
+        both = (fg > 0.5) & np.isfinite(hits).all(1)
+        dv = x[both] - hits[both]
+        dist.append(np.linalg.norm(dv, axis=1))
+        along.append(np.abs((dv * tr["dirs"].double().numpy()[both]).sum(1)))
+    dist, along = np.concatenate(dist), np.concatenate(along)
+    pixel = float(np.median(np.linalg.norm(test.c2w[:, :3, 3].numpy(), axis=1))) / test.focal
+    result = {"model": args.model, "scene": str(scene), "every": args.every, "knn": args.knn,
+              "object_psnr": {k: float(np.mean(v)) for k, v in scores.items()},
+              "x_error": {"median": float(np.median(dist)), "p90": float(np.percentile(dist, 90)),
+                          "along_ray_median": float(np.median(along)), "pixel_footprint": pixel},
+              "seconds": round(time.perf_counter() - t_start, 1)}
+    print(machine_line())
+    print(f"{args.model} on {scene}: test views every {args.every}, k = {args.knn}, {result['seconds']} s")
+    print("| colour of each object ray | object PSNR (dB) |")
+    print("|---|---|")
+    for k, v in result["object_psnr"].items():
+        print(f"| {k} | {v:.2f} |")
+    e = result["x_error"]
+    print(f"x_i against the true hit: median {e['median']:.4f}, p90 {e['p90']:.4f}, along the ray (median) "
+          f"{e['along_ray_median']:.4f} world units; one pixel is {e['pixel_footprint']:.4f} at the camera distance")
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
