@@ -120,7 +120,10 @@ def _get_kernel():
         if numba is None:
             raise RuntimeError(f"the compiled neighbour search needs numba ({_NUMBA_ERROR}); "
                                "install it (pip install numba) or use backend='grid'")
-        _compiled = numba.njit(cache=True, nogil=True, fastmath=False)(_kernel)
+        try:  # cached next to the module (or numba's user cache) so later processes skip the ~2 s compile
+            _compiled = numba.njit(cache=True, nogil=True, fastmath=False)(_kernel)
+        except RuntimeError:  # no writable cache location (read-only install): compile per process
+            _compiled = numba.njit(cache=False, nogil=True, fastmath=False)(_kernel)
     return _compiled
 
 
