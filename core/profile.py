@@ -143,7 +143,8 @@ def scene_profile(train, hull_points: int = 3000, seed: int = 0, device: str = "
     points = int(num_points) if num_points else ModelConfig().num_points
     pixels_per_point = float((train.alphas > 0.5).float().sum(dim=(1, 2)).mean()) / max(points, 1)
     detail = pixels_per_point > DETAIL_PIXELS_PER_POINT
-    measured = {**var, "pixels_per_point": pixels_per_point, "hull_flatness": hull_flat, "surface_flatness": surface_flat, "hull_points": pts.shape[0],
+    measured = {**var, "pixels_per_point": pixels_per_point, "hull_flatness": hull_flat,
+                "surface_flatness": surface_flat, "hull_points": pts.shape[0],
                 "surface_points": int(visible.numel()), "point_spacing": spacing, "zbuffer_cell_px": cell,
                 "thresholds": {"view_variation": VIEW_DEPENDENT_ABOVE, "hull_flatness": THIN_SHEET_BELOW,
                                "pixels_per_point": DETAIL_PIXELS_PER_POINT},

@@ -67,12 +67,12 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args(argv)
     torch.set_num_threads(max(args.threads, 1))
-    from scipy.spatial import cKDTree
-
     from core.bundle import load_bundle
     from core.frames.metrics import object_mask, psnr
     from core.frames.render import shade_frame, trace_frame
     from core.images.dataset import load_split
+    from core.points.regularizers import project_on_ray
+    from tools.bench.atlas_vs_papr import composite, knn_colour
 
     t_start = time.perf_counter()
     scene = Path(args.scene)
@@ -81,30 +81,27 @@ def main(argv=None) -> int:
     train, test = load_split(scene, "train"), load_split(scene, "test")
 
     def view(split, i):
-        """(trace, hits [R, 3], x on the ray [R, 3], coverage [R]) of view i."""
+        """(trace, true hits [R, 3] (NaN = miss), x_i on its ray [R, 3], coverage [R]) of view i."""
         tr = trace_frame(model, split.c2w[i], split.height, split.width, split.focal)
-        o, d = tr["origins"].double().numpy(), tr["dirs"].double().numpy()
-        fg = (1.0 - tr["bg"]).numpy()
-        x = tr["x"].double().numpy()
-        x = o + ((x - o) * d).sum(-1, keepdims=True) * d
-        hits = np.full_like(o, np.nan)
-        look = (split.alphas[i].reshape(-1).numpy() > 0.5) | (fg > 0.5)
-        hits[look] = cast(o[look], d[look])
+        fg = 1.0 - tr["bg"]
+        x = project_on_ray(tr["x"], tr["origins"], tr["dirs"])
+        hits = torch.full_like(x, float("nan"))
+        look = (split.alphas[i].reshape(-1) > 0.5) | (fg > 0.5)
+        hits[look] = torch.from_numpy(cast(tr["origins"][look].double().numpy(),
+                                           tr["dirs"][look].double().numpy())).float()
         return tr, hits, x, fg
 
     samples = {"true surface": ([], []), "x_i": ([], [])}
     for i in range(0, len(train), args.every):
         _, hits, x, fg = view(train, i)
-        sel = train.alphas[i].reshape(-1).numpy() > 0.5
-        rgb = train.images[i].reshape(-1, 3).numpy()
-        ok = sel & np.isfinite(hits).all(1)
-        samples["true surface"][0].append(hits[ok]), samples["true surface"][1].append(rgb[ok])
-        ok = sel & (fg > 0.5)
-        samples["x_i"][0].append(x[ok]), samples["x_i"][1].append(rgb[ok])
+        sel = train.alphas[i].reshape(-1) > 0.5
+        rgb = train.images[i].reshape(-1, 3)
+        for name, pts, ok in (("true surface", hits, sel & torch.isfinite(hits).all(1)), ("x_i", x, sel & (fg > 0.5))):
+            samples[name][0].append(pts[ok]), samples[name][1].append(rgb[ok])
     fields = {}
     for name, (xs, cs) in samples.items():
-        xyz, col = np.concatenate(xs), np.concatenate(cs)
-        fields[name] = (cKDTree(xyz), col)
+        xyz, col = torch.cat(xs), torch.cat(cs)
+        fields[name] = knn_colour(xyz, col, args.knn)
         print(f"{name}: {len(xyz)} training samples", flush=True)
 
     scores = {"point render": [], "colour field at the true surface": [], "colour field at x_i": [],
@@ -113,37 +110,27 @@ def main(argv=None) -> int:
     for i in range(0, len(test), args.every):
         tr, hits, x, fg = view(test, i)
         h, w = tr["shape"]
-        papr = shade_frame(model, tr).reshape(-1, 3).clamp(0, 1)
+        papr = shade_frame(model, tr).clamp(0, 1)
         gt, alpha = test.images[i], test.alphas[i]
-        mask = object_mask(alpha, torch.from_numpy(fg).reshape(h, w))
-        scores["point render"].append(psnr(papr.reshape(h, w, 3), gt, mask))
-        active = (tr["active"].numpy()) & (fg > 1e-4)
-        for name, (field_name, pts) in {"colour field at the true surface": ("true surface", hits),
-                                        "colour field at x_i": ("x_i", x)}.items():
-            tree, col = fields[field_name]
-            use = active & np.isfinite(pts).all(1)
-            if field_name == "true surface":  # rays whose true ray misses the mesh keep x_i's colour source
-                use = active
-                pts = np.where(np.isfinite(pts).all(1, keepdims=True), pts, x)
-            _, nn = tree.query(pts[use], k=args.knn)
-            c = col[nn.reshape(len(nn), -1)].mean(1)
-            rgb = papr.clone().double().numpy()
-            f = fg[use, None]
-            rgb[use] = f * c + (1 - f)  # white background, as the atlas render composes it
-            scores[name].append(psnr(torch.from_numpy(rgb).float().reshape(h, w, 3), gt, mask))
+        mask = object_mask(alpha, fg.reshape(h, w))
+        found = torch.isfinite(hits).all(1)
+        # rays whose true ray misses the mesh keep x_i as their colour source
+        at_true = torch.where(found[:, None], hits, x)
+        frames = {"point render": papr,
+                  "colour field at the true surface": composite(dict(tr, x=at_true), papr, fields["true surface"]),
+                  "colour field at x_i": composite(dict(tr, x=x), papr, fields["x_i"])}
         # per-point colour capacity alone: true hits and the image's own alpha as coverage (no model at all)
-        a = alpha.reshape(-1).double().numpy()
-        use = np.isfinite(hits).all(1) & (a > 0)
-        tree, col = fields["true surface"]
-        _, nn = tree.query(hits[use], k=args.knn)
-        rgb = np.ones((len(a), 3))
-        rgb[use] = a[use, None] * col[nn.reshape(len(nn), -1)].mean(1) + (1 - a[use, None])
-        scores["colour field at the true surface, true coverage"].append(
-            psnr(torch.from_numpy(rgb).float().reshape(h, w, 3), gt, mask))
-        both = (fg > 0.5) & np.isfinite(hits).all(1)
-        dv = x[both] - hits[both]
-        dist.append(np.linalg.norm(dv, axis=1))
-        along.append(np.abs((dv * tr["dirs"].double().numpy()[both]).sum(1)))
+        a = alpha.reshape(-1)
+        use = found & (a > 0)
+        rgb = torch.ones(len(a), 3)
+        rgb[use] = a[use, None] * fields["true surface"](hits[use]) + (1 - a[use, None])
+        frames["colour field at the true surface, true coverage"] = rgb.reshape(h, w, 3)
+        for name, frame in frames.items():
+            scores[name].append(psnr(frame, gt, mask))
+        both = (fg > 0.5) & found
+        dv = (x[both] - hits[both]).double()
+        dist.append(dv.norm(dim=1).numpy())
+        along.append((dv * tr["dirs"][both].double()).sum(1).abs().numpy())
     dist, along = np.concatenate(dist), np.concatenate(along)
     pixel = float(np.median(np.linalg.norm(test.c2w[:, :3, 3].numpy(), axis=1))) / test.focal
     result = {"model": args.model, "scene": str(scene), "every": args.every, "knn": args.knn,

@@ -13,7 +13,6 @@ both regularizer weights (the paper's γ = 0.002, η = 0.01 at 1) to show each o
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import statistics
 import time
@@ -58,10 +57,9 @@ def main(argv=None) -> int:
     base = TrainConfig()
     for name in args.variants.split(","):
         for seed in seeds:
-            cfg = dataclasses.replace(TrainConfig(steps=args.steps, eval_every=1e9, threads=args.threads, seed=seed),
-                                      close2ray_weight=base.close2ray_weight * args.reg_scale,
-                                      close2surface_weight=base.close2surface_weight * args.reg_scale,
-                                      **VARIANTS[name])
+            cfg = TrainConfig(steps=args.steps, eval_every=1e9, threads=args.threads, seed=seed,
+                              close2ray_weight=base.close2ray_weight * args.reg_scale,
+                              close2surface_weight=base.close2surface_weight * args.reg_scale, **VARIANTS[name])
             t0 = time.perf_counter()
             model, hist = fit_points(train, test, ModelConfig(decoder=args.decoder), cfg, show_progress=False)
             q = evaluate(model, test, views, (1.0, 1.0, 1.0))
@@ -69,7 +67,8 @@ def main(argv=None) -> int:
             row = {"variant": name, "seed": seed, "steps": hist[-1]["step"], "train_seconds": hist[-1]["seconds"],
                    "seconds": round(time.perf_counter() - t0, 1), **q, **s}
             rows.append(row)
-            print(f"{name:18s} seed {seed}  steps {row['steps']:5d}  PSNR {q['psnr']:.2f}  object {q['psnr_object']:.2f}  "
+            print(f"{name:18s} seed {seed}  steps {row['steps']:5d}  PSNR {q['psnr']:.2f}  "
+                  f"object {q['psnr_object']:.2f}  "
                   f"mask IoU {s['mask_iou']:.3f}  ray distance {s['ray_distance']:.5f}  "
                   f"neighbour spread {s['neighbour_spread']:.5f}", flush=True)
     if len(seeds) > 1:

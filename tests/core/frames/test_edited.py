@@ -35,21 +35,22 @@ def test_unedited_render_skips_texture_and_correspondence(tiny):
 
 
 def test_global_retexture_lands_on_the_surface(tiny):
-    _check_retexture(*tiny)
+    bundle, _, test = tiny
+    _check_retexture(bundle, test)
 
 
 def test_retexture_with_the_unet_decoder():
     """The decoder renders the feature image; texture edits are composited on its output, deformed or not."""
     bundle, _, test = tiny_card(steps=400, decoder="unet")  # the decoder's points need longer to settle
     assert bundle.model.decoder is not None
-    _check_retexture(bundle, None, test)
+    _check_retexture(bundle, test)
     state = EditState(bundle, atlas=bake(bundle.atlas, _half_split),
                       points=bundle.model.xyz.detach() * torch.tensor([1.0, 1.0, 0.05]))  # squash to 5 %
     out = _render(state, test, 0)
     assert torch.isfinite(out["rgb"]).all() and out["stats"]["texture_rays"] > 0
 
 
-def _check_retexture(bundle, _, test):
+def _check_retexture(bundle, test):
     atlas = bake(bundle.atlas, _half_split)
     state = EditState(bundle, atlas=atlas)
     hits = correct = 0

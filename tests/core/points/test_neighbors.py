@@ -4,6 +4,7 @@ Screen searches are checked uncapped (k-d tree, max_radius_px = inf) and with a 
 capped brute force); the references below apply the same cap."""
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -397,7 +398,7 @@ def test_grid_extreme_caps(cap):
     pts = scene("sphere", 600, 10)
     c2w = camera(10)
     q = random_px(300, 10)
-    for df, backend in [(df, b) for df in (False, True) for b in GRIDS]:
+    for df, backend in itertools.product((False, True), GRIDS):
         got = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 9, df, max_radius_px=cap, backend=backend)
         assert_same(got, ref_screen(pts, c2w, q, 9, df, cap))
         assert torch.isfinite(got.dist[got.valid]).all()
