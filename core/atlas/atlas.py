@@ -9,6 +9,7 @@ from torch import nn
 
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet
 from core.atlas.packing import GridLayout, pack, sample_charts, texel_uv, unpack, uv_to_pixel
+from core.atlas.texture import kernel_texture
 from core.util.errors import InputError, ModelFileError
 
 FORMAT_VERSION = 1
@@ -108,24 +109,45 @@ class Atlas(nn.Module):
         return self.texel_xyz
 
     @torch.no_grad()
-    def compute_texel_points(self, samples, max_dist: float, max_cycle: float = 0.05) -> torch.Tensor:
-        """Fill the texel map from s_c at texel centres. samples [S, 3] world; max_dist in world units.
+    def compute_texel_points(self, samples, max_dist: float, max_cycle: float = 2.0, mode: str = "splat",
+                             sigma: float = 1.0) -> torch.Tensor:
+        """Fill the texel map: the canonical 3-D point of every packed-image pixel. samples [S, 3] world (the
+        stage-2 surface samples); max_dist in world units; max_cycle in texels. Returns [H, W, 3].
 
-        A texel keeps its point only where the chart net picks chart c there, s_c(u) lies within max_dist of
-        some sample, and t_c(s_c(u)) returns to within max_cycle of u. Returns [H, W, 3].
+        mode "splat" (default): each texel's point is the kernel-weighted mean position of the samples that t_c
+        maps around it (the same kernel as the texture, width sigma sample spacings), so the map is consistent with
+        lookups by construction. "inverse": s_c at texel centres — the surface-coordinate net misses its own
+        texel by ~5 texels (median) on real samples, which shifts anything baked through it (docs/atlas.md).
+        A texel keeps its point only where the chart net picks chart c there, the point lies within max_dist of
+        some sample, and t_c(point) returns to within max_cycle texels of the texel centre.
         """
+        if mode not in ("splat", "inverse"):
+            raise InputError(f"texel map mode must be 'splat' or 'inverse', got {mode!r}")
         L, R = self.layout, self.layout.R
+        samples = check_points(samples, "surface samples").to(self.device)
         u = texel_uv(R, self.device)  # [R*R, 2]
-        xn = self.surf(u[None].expand(self.n, -1, -1).contiguous())  # [n, R*R, 3]
+        if mode == "splat":
+            probs, uv = self.chart_uv(samples)
+            mean, covered, _ = kernel_texture(probs, uv, samples, R, sigma)  # [n, 3, R, R], [n, R, R]
+            cand = mean.permute(0, 2, 3, 1).reshape(self.n, R * R, 3)
+            cand = torch.where(covered.reshape(self.n, R * R, 1), cand, torch.full_like(cand, float("nan")))
+        else:
+            with torch.no_grad():
+                cand = self.denormalise(self.surf(u[None].expand(self.n, -1, -1).contiguous()))  # [n, R*R, 3]
         out = torch.full((*L.shape, 3), float("nan"), device=self.device)
-        tree = cKDTree(check_points(samples, "surface samples").cpu().numpy())
+        tree = cKDTree(samples.cpu().numpy())
         for c in range(self.n):
-            pick = torch.softmax(self.chart(xn[c]), -1).argmax(-1) == c
-            cyc = (self.tex(xn[c])[:, c] - u).norm(dim=-1) < max_cycle
-            xw = self.denormalise(xn[c])
-            dist, _ = tree.query(xw.cpu().numpy(), k=1)
-            near = torch.from_numpy(dist <= max_dist).to(self.device)
-            pts = torch.where((pick & cyc & near)[:, None], xw, torch.full_like(xw, float("nan")))
+            xw = cand[c]
+            have = torch.isfinite(xw).all(-1)
+            keep = torch.zeros_like(have)
+            if have.any():
+                probs, uv = self.chart_uv(xw[have])
+                pick = probs.argmax(-1) == c
+                cyc = (uv[:, c] - u[have]).norm(dim=-1) * R <= max_cycle
+                dist, _ = tree.query(xw[have].cpu().numpy(), k=1)
+                near = torch.from_numpy(dist <= max_dist).to(self.device)
+                keep[have] = pick & cyc & near
+            pts = torch.where(keep[:, None], xw, torch.full_like(xw, float("nan")))
             r0, c0 = L.origin(c)
             out[r0:r0 + R, c0:c0 + R] = pts.reshape(R, R, 3)
         self.texel_xyz.copy_(out)

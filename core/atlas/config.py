@@ -49,7 +49,11 @@ class AtlasConfig:
     texture_res: int = opt(0, "texels per chart side; 0 = round(256*sqrt(2/n)) as in the paper")
     pad: int = opt(4, "padding texels around each chart in the packed image (edge-replicated, no bleeding)")
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings")
-    texel_max_cycle: float = opt(0.1, "texel map: NaN where t_c(s_c(u)) misses u by more than this (outside the used region)")
+    texel_map: str = opt("splat", "texel map from the forward map (splat: kernel mean of the sample positions around each "
+                                   "texel) or the surface-coordinate net (inverse: s_c at texel centres)",
+                         choices=("splat", "inverse"))
+    texel_max_cycle: float = opt(2.0, "texel map: NaN where t_c of the texel's point misses the texel centre by more than "
+                                      "this many texels (folds, outside the used region)")
     eval_samples: int = opt(8192, "samples used for the fitting-PSNR history")
     log_every: int = opt(50, "steps between history entries")
     threads: int = opt(1, "torch CPU threads while fitting (0 = keep torch's setting); small matrices: 2 threads "

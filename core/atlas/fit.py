@@ -237,7 +237,8 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
 
     with torch.no_grad():
         atlas.textures.copy_(dilate_unused(atlas.textures.clamp(0, 1), used))
-        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle)
+        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle, cfg.texel_map,
+                                    cfg.texture_sigma)
     p = log(total, "final")
     bar.close()
     hist["total_seconds"] = time.perf_counter() - t0

@@ -174,3 +174,32 @@ def test_auto_chart_count_rule():
     assert choose_chart_count(synthetic_samples("strip", 4000)[0], cfg)[0] == 4
     assert choose_chart_count(synthetic_samples("torus", 4000)[0], cfg)[0] == 8
     assert choose_chart_count(synthetic_samples("torus", 4000)[0], AtlasConfig(charts="4"))[0] == 4
+
+
+def _cycle_error_texels(a, tp) -> torch.Tensor:
+    """For every texel with a point: distance (texels) from its centre to where t_c sends the point back."""
+    ok = torch.isfinite(tp).all(-1)
+    _, pix = a.atlas_pixel_coords(tp[ok])
+    rows, cols = torch.nonzero(ok, as_tuple=True)
+    return (pix - torch.stack([cols + 0.5, rows + 0.5], -1)).norm(dim=-1)
+
+
+def test_texel_map_from_forward_splat_is_consistent_with_lookups(strip_fit):
+    """The default texel map (kernel mean of the sample positions around each texel) sends each texel's point back
+    to that texel; the surface-coordinate net alone (inverse) is the looser map it replaced."""
+    a, hist, xyz, _ = strip_fit
+    max_dist = 3.0 * hist["spacing"]
+    splat = a.compute_texel_points(xyz, max_dist, max_cycle=1e9, mode="splat").clone()
+    inverse = a.compute_texel_points(xyz, max_dist, max_cycle=1e9, mode="inverse").clone()
+    e_splat, e_inv = _cycle_error_texels(a, splat), _cycle_error_texels(a, inverse)
+    _, pix = a.atlas_pixel_coords(xyz)  # the texels the samples land in all get a point
+    landed = torch.isfinite(splat).all(-1)[pix[:, 1].long(), pix[:, 0].long()].float().mean()
+    assert landed > 0.9, f"only {landed:.2f} of the sample texels have a point"
+    assert e_splat.median() < 0.5, f"splat texel map misses its texels by {e_splat.median():.2f} (median)"
+    assert e_splat.median() < e_inv.median()
+    # the cycle rule drops what misses by more than max_cycle texels
+    strict = a.compute_texel_points(xyz, max_dist, max_cycle=0.5, mode="splat")
+    assert _cycle_error_texels(a, strict).max() <= 0.5 + 1e-4
+    with pytest.raises(InputError, match="splat"):
+        a.compute_texel_points(xyz, max_dist, mode="nearest")
+    a.compute_texel_points(xyz, max_dist)  # leave the fixture's atlas as fit_atlas made it
