@@ -264,7 +264,7 @@ def blank_scores(gt) -> dict:
 
 def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), views: int = 4,
              temperatures=(1.0, 0.5), retexture: str = "stripes", samples=None, device: str = "cpu",
-             log=print) -> dict:
+             antialias: int = EditConfig.antialias, log=print) -> dict:
     """Evaluate a model's edits against Blender ground truth; returns the JSON-able result (see module doc)."""
     from core.bundle import load_bundle
     from tools.scenes.poses import load_scene_spec
@@ -300,7 +300,7 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
         traces: dict = {}  # neighbours + attention per (view, temperature), shared by this pose's methods
         for mt in meths:
             cfg = EditConfig(correspondence=mt.correspondence if mt.correspondence != "-" else "deform-aware",
-                             blend=mt.blend, temperature=mt.temperature)
+                             blend=mt.blend, temperature=mt.temperature, antialias=antialias)
             state = EditState(bundle, points=points, atlas=atlases[mt.edit], cfg=cfg)
             res = score_frames(state, gts[mt.edit], oracle=(retexture, spec) if mt.edit == "retexture" else None,
                                traces=traces)
@@ -312,7 +312,7 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
               "views": len(gts["geometry"]), "width": gts["geometry"].width, "height": gts["geometry"].height,
               "model_points": bundle.model.num_points, "point_spacing": float(bundle.model.spacing),
               "retexture": retexture, "decal": spec["texture"]["params"].get("decal"),
-              "poses": poses, "magnitudes": list(magnitudes), "temperatures": list(temperatures),
+              "poses": poses, "magnitudes": list(magnitudes), "temperatures": list(temperatures), "antialias": antialias,
               "seconds_total": time.perf_counter() - t_start, "rows": rows, "blank": blanks}
     result["retexture_gap"] = retexture_gaps(rows)
     result["blend_comparison"] = blend_comparison(rows)

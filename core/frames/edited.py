@@ -16,7 +16,9 @@ import torch
 from core.atlas.packing import sample_charts, unpack
 from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
+from core.edits.procedural import linear_to_srgb, srgb_to_linear
 from core.edits.texture_edit import BLENDS, blend, check_atlas_image, edit_mask
+from core.frames.antialias import filter_down, subpixel_points
 from core.frames.render import shade_frame, trace_frame
 from core.points.regularizers import project_on_ray
 from core.util.errors import InputError
@@ -33,6 +35,8 @@ class EditConfig:
     temperature: float = opt(1.0, "attention softmax temperature at render time (< 1 sharpens attention)")
     colour: str = opt("points", "object colour: points (point render, painted texels from the atlas) | atlas "
                       "(every ray coloured from the atlas texture)", choices=("points", "atlas"))
+    antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
+                            "(1 = one lookup at each ray's surface point: cheaper, aliased)")
 
 
 class EditState:
@@ -46,6 +50,8 @@ class EditState:
     def __init__(self, bundle, points=None, ids=None, atlas=None, cfg: EditConfig | None = None):
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
+        if not 1 <= int(self.cfg.antialias) <= 8:
+            raise InputError(f"antialias: texture lookups per pixel side must be 1-8, got {self.cfg.antialias}")
         model = bundle.model
         dev = model.xyz.device
         n = model.num_points
@@ -116,6 +122,32 @@ class EditState:
         return self._edit_textures
 
 
+def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Tensor, height: int, width: int,
+                     focal: float, sub: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Painted colour and mask of the rays `sel` [S] from sub x sub lookups per pixel, Blackman-Harris filtered in
+    linear light (core/frames/antialias.py). xc [S, 3] canonical points. Returns (rgb [S, 3], mask [S])."""
+    dev = xc.device
+    n = height * width
+    valid = torch.zeros(n, dtype=torch.bool, device=dev)
+    valid[sel] = True
+    canon = torch.zeros(n, 3, dtype=xc.dtype, device=dev)
+    canon[sel] = xc
+    depth = torch.zeros(n, dtype=xc.dtype, device=dev)
+    depth[sel] = ((tr["x"][sel] - tr["origins"][sel]) * tr["dirs"][sel]).sum(-1)
+    # neighbours on the same surface: depth within 3 pixel footprints (an occlusion edge jumps much further)
+    step = 3.0 * depth.abs() / focal
+    sp = subpixel_points(canon.view(height, width, 3), valid.view(height, width), depth.view(height, width), sub,
+                         step.view(height, width))
+    on = torch.isfinite(sp).all(-1)
+    probs, uv = state.bundle.atlas.chart_uv(sp[on])
+    looked = (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)  # [K, 6]: rgb, mask x3
+    vals = torch.zeros(4, *on.shape, dtype=xc.dtype, device=dev)
+    vals[:3, on] = srgb_to_linear(looked[:, :3].clamp(0, 1)).T
+    vals[3, on] = looked[:, 3]
+    px = filter_down(vals, on, sub).reshape(4, n)[:, sel]
+    return linear_to_srgb(px[:3].T.clamp(0, 1)), px[3]
+
+
 @torch.no_grad()
 def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, focal: float,
                   background=(1.0, 1.0, 1.0), trace: dict | None = None) -> dict:
@@ -149,9 +181,12 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         bad = ~torch.isfinite(xc).all(1)
         stats["non_finite_lookups_repaired"] = int(bad.sum())
         xc = torch.where(bad[:, None], x_hat.nan_to_num(0.0), xc)
-        probs, uv = bundle.atlas.chart_uv(xc)
-        looked = (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)   # [S, 6]
-        tex, m = looked[:, :3], looked[:, 3]
+        if cfg.antialias > 1:
+            tex, m = _filtered_lookup(state, tr, sel, xc, height, width, focal, cfg.antialias)
+        else:
+            probs, uv = bundle.atlas.chart_uv(xc)
+            looked = (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)   # [S, 6]
+            tex, m = looked[:, :3], looked[:, 3]
         bgc = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
         f = fg[sel][:, None]
         # The point render is fg·c + (1 − fg)·background; edit the object colour c, keep the coverage fg.

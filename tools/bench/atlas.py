@@ -11,7 +11,6 @@ import argparse
 import dataclasses
 import json
 import sys
-import time
 
 import numpy as np
 import torch

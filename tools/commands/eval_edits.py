@@ -20,6 +20,8 @@ def add_arguments(p):
     p.add_argument("--magnitudes", default="0.25,0.5,1", help="comma-separated pose magnitudes (1 = the named pose)")
     p.add_argument("--views", type=int, default=4, help="test views per case (evenly spaced over the scene's)")
     p.add_argument("--temperatures", default="1,0.5", help="attention temperatures (< 1 sharpens attention)")
+    p.add_argument("--antialias", type=int, default=2,
+                   help="texture lookups per pixel side (1 = one per ray, no pixel filter)")
     p.add_argument("--retexture", default="stripes", help="global procedural texture for the retexture edit (stripes: along x; checker cells are thinner than a thin object's depth error)")
     p.add_argument("--samples", type=int, default=None, help="Cycles samples for the ground truth (default: scene's)")
     p.add_argument("--device", default="cpu", help="cpu | cuda | auto")
@@ -36,6 +38,7 @@ def run(args) -> int:
     poses = [p.strip() for p in args.poses.split(",") if p.strip()] if args.poses else None
     result = run_eval(args.model, args.scene, poses=poses, magnitudes=parse_floats(args.magnitudes, "--magnitudes"),
                       views=args.views, temperatures=parse_floats(args.temperatures, "--temperatures"),
+                      antialias=args.antialias,
                       retexture=args.retexture, samples=args.samples, device=args.device,
                       log=lambda m: print(m, flush=True))
     table = markdown(result)

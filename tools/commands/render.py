@@ -31,6 +31,8 @@ def add_arguments(p):
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
     p.add_argument("--temperature", type=float, default=1.0, help="attention temperature (< 1 sharpens attention)")
+    p.add_argument("--antialias", type=int, default=2,
+                   help="texture lookups per pixel side, pixel-filtered (1 = one per ray, no filter)")
 
 
 def load_npy(path, what: str, kind: str):
@@ -92,7 +94,8 @@ def run(args) -> int:
         points = load_npy(args.points, "--points", "points") if args.points else None
         ids = load_npy(args.ids, "--ids", "ids") if args.ids else None
         atlas = read_png(args.atlas) if args.atlas else None
-        cfg = EditConfig(correspondence=args.correspondence, blend=args.blend, temperature=args.temperature)
+        cfg = EditConfig(correspondence=args.correspondence, blend=args.blend, temperature=args.temperature,
+                         antialias=args.antialias)
         try:
             state = EditState(bundle, points=points, ids=ids, atlas=atlas, cfg=cfg)
         except InputError as exc:  # name the files the arrays came from

@@ -6,7 +6,6 @@ transform is applied to the mesh), so rest-pose world coordinates = mesh coordin
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import Callable
 
 FIT_RADIUS = 0.95

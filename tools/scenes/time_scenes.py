@@ -40,7 +40,7 @@ def main(argv=None) -> int:
             spec = json.loads((root / name / "scene.json").read_text())
             views = args.views_train + args.views_val + args.views_test
             rows.append((name, spec["vertices"], views, spec["render"]["samples"], spec["seconds"], wall))
-    print(f"| scene | vertices | views | samples | build+render s | wall s (incl. bpy start) | s/view |")
+    print("| scene | vertices | views | samples | build+render s | wall s (incl. bpy start) | s/view |")
     print("|---|---|---|---|---|---|---|")
     for name, nv, views, spp, sec, wall in rows:
         print(f"| {name} | {nv} | {views} | {spp} | {sec:.1f} | {wall:.1f} | {sec / views:.3f} |")

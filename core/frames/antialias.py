@@ -1,0 +1,96 @@
+"""Anti-aliased texture lookups: several surface points per pixel, filtered like the renderer's pixel filter.
+
+Why: a texture lookup at the one surface point of a pixel's centre ray samples the texture, it does not filter it.
+Cycles (the ground truth here, and what an artist compares against) averages the radiance over a pixel footprint
+with a Blackman-Harris filter 3 pixels wide (its default 1.5-pixel setting), in linear light. On the cloth scene,
+the true texture on the true mesh scores 19.4 dB object PSNR against the Cycles frames sampled at pixel centres and
+31.7 dB filtered this way (`python -m tools.bench.pixel_filter_bound`, docs/atlas.md): fine stripes and painted
+strokes alias without it.
+
+How: the ray surface points of a frame form a map [H, W, 3]; S x S sub-pixel points per pixel are interpolated
+bilinearly from it (only across neighbours on the same surface: depth within a few pixel footprints), looked up,
+turned to linear light, and filtered down with a separable Blackman-Harris kernel over the sub-pixel grid,
+renormalised over the sub-pixels that lie on the object.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+FILTER_WIDTH = 3.0  # pixels: Cycles' Blackman-Harris at its default width setting of 1.5 spans 3 pixels
+
+
+def blackman_harris_taps(sub: int, width: float = FILTER_WIDTH) -> torch.Tensor:
+    """1-D filter weights [M] (sum 1) at the sub-pixel centres within `width` pixels, M = round(width * sub).
+    Tap j sits at ((j + 0.5) / M - 0.5) * width pixels from the pixel centre."""
+    if sub < 1:
+        raise ValueError(f"sub-pixels per side must be >= 1, got {sub}")
+    m = max(int(round(width * sub)), 1)
+    t = (torch.arange(m, dtype=torch.float64) + 0.5) / m  # position across the support, (0, 1)
+    v = 2.0 * math.pi * t
+    w = 0.35875 - 0.48829 * torch.cos(v) + 0.14128 * torch.cos(2 * v) - 0.01168 * torch.cos(3 * v)
+    return (w / w.sum()).float()
+
+
+def subpixel_points(points: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, sub: int,
+                    max_depth_step: torch.Tensor | float) -> torch.Tensor:
+    """Surface points at S x S sub-pixel positions of every pixel, interpolated from the per-pixel map.
+
+    points [H, W, 3] (any values where not valid), valid [H, W] bool, depth [H, W] distance along each ray,
+    max_depth_step: scalar or [H, W]; a neighbour joins the interpolation of pixel p's sub-pixels only if it is
+    valid and its depth differs from p's by at most this (same surface, not across an occlusion edge).
+    Returns [S*H, S*W, 3]: sub-pixel (a, b) of pixel (r, c) at row S*r + a, column S*c + b, i.e. at
+    (r + (a + 0.5) / S, c + (b + 0.5) / S) in pixel units; NaN where the owning pixel is not valid.
+    """
+    H, W, _ = points.shape
+    dev = points.device
+    step = torch.as_tensor(max_depth_step, dtype=points.dtype, device=dev).expand(H, W)
+    pts = torch.where(valid[..., None], points, torch.zeros_like(points))
+    dep = torch.where(valid, depth, torch.zeros_like(depth))
+    out = torch.full((sub * H, sub * W, 3), float("nan"), dtype=points.dtype, device=dev)
+    rr = torch.arange(H, device=dev)[:, None]
+    cc = torch.arange(W, device=dev)[None, :]
+    for a in range(sub):
+        fy = (a + 0.5) / sub - 0.5  # offset from the pixel centre, in (-0.5, 0.5)
+        dy = 1 if fy >= 0 else -1
+        wy = abs(fy)
+        for b in range(sub):
+            fx = (b + 0.5) / sub - 0.5
+            dx = 1 if fx >= 0 else -1
+            wx = abs(fx)
+            num = torch.zeros_like(points)
+            den = torch.zeros(H, W, dtype=points.dtype, device=dev)
+            for oy, oyw in ((0, 1 - wy), (dy, wy)):
+                for ox, oxw in ((0, 1 - wx), (dx, wx)):
+                    r2 = (rr + oy).clamp(0, H - 1).expand(H, W)
+                    c2 = (cc + ox).clamp(0, W - 1).expand(H, W)
+                    inside = ((rr + oy >= 0) & (rr + oy < H) & (cc + ox >= 0) & (cc + ox < W))
+                    ok = inside & valid[r2, c2] & ((dep[r2, c2] - dep).abs() <= step)
+                    w = oyw * oxw * ok.to(points.dtype)
+                    num += w[..., None] * pts[r2, c2]
+                    den += w
+            sp = num / den.clamp_min(1e-12)[..., None]  # the pixel itself always counts (weight >= 1/4)
+            out[a::sub, b::sub] = torch.where(valid[..., None], sp, torch.full_like(sp, float("nan")))
+    return out
+
+
+def filter_down(values: torch.Tensor, on: torch.Tensor, sub: int, width: float = FILTER_WIDTH) -> torch.Tensor:
+    """Pixel values from sub-pixel values with the Blackman-Harris footprint, renormalised over `on`.
+
+    values [C, S*H, S*W], on [S*H, S*W] bool (sub-pixels on the object). Returns [C, H, W]: for every pixel the
+    filter-weighted mean of the `on` sub-pixels in its footprint (NaN where none is).
+    """
+    C, SH, SW = values.shape
+    k = blackman_harris_taps(sub, width).to(values.device, values.dtype)
+    m = k.numel()
+    pad_lo = (m - sub) // 2  # the footprint is centred on the pixel: taps from S*r - pad_lo
+    pad_hi = m - sub - pad_lo
+    w = on.to(values.dtype)[None]
+    stack = torch.cat([torch.where(on[None], values, torch.zeros_like(values)) * w, w], 0)[:, None]  # [C+1,1,SH,SW]
+    stack = F.pad(stack, (pad_lo, pad_hi, pad_lo, pad_hi))
+    y = F.conv2d(stack, k.view(1, 1, 1, -1), stride=(1, sub))
+    y = F.conv2d(y, k.view(1, 1, -1, 1), stride=(sub, 1))[:, 0]  # [C+1, H, W]
+    den = y[-1]
+    return torch.where(den > 1e-8, y[:-1] / den.clamp_min(1e-12), torch.full_like(y[:-1], float("nan")))

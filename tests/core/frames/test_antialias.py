@@ -1,0 +1,108 @@
+"""Anti-aliased lookups: filter taps, sub-pixel interpolation and the filter against plain loop references."""
+import math
+
+import pytest
+import torch
+
+from core.frames.antialias import blackman_harris_taps, filter_down, subpixel_points
+
+
+@pytest.mark.parametrize("sub", [1, 2, 3, 4])
+def test_taps_are_a_normalised_symmetric_blackman_harris(sub):
+    k = blackman_harris_taps(sub)
+    m = round(3.0 * sub)
+    assert k.shape == (m,) and abs(float(k.sum()) - 1.0) < 1e-6
+    assert torch.allclose(k, k.flip(0), atol=1e-7)
+    t = (torch.arange(m, dtype=torch.float64) + 0.5) / m  # plain formula, normalised
+    w = torch.tensor([0.35875 - 0.48829 * math.cos(2 * math.pi * v) + 0.14128 * math.cos(4 * math.pi * v)
+                      - 0.01168 * math.cos(6 * math.pi * v) for v in t], dtype=torch.float64)
+    assert torch.allclose(k.double(), w / w.sum(), atol=1e-7)
+    with pytest.raises(ValueError):
+        blackman_harris_taps(0)
+
+
+def _filter_reference(values, on, sub, width=3.0):
+    """Loop over pixels and taps: each pixel's footprint centred on it, weights = outer product of the taps."""
+    C, SH, SW = values.shape
+    H, W = SH // sub, SW // sub
+    k = blackman_harris_taps(sub, width).double()
+    m = len(k)
+    out = torch.full((C, H, W), float("nan"), dtype=torch.float64)
+    for r in range(H):
+        for c in range(W):
+            num, den = torch.zeros(C, dtype=torch.float64), 0.0
+            for i in range(m):
+                for j in range(m):
+                    y = sub * r - (m - sub) // 2 + i
+                    x = sub * c - (m - sub) // 2 + j
+                    if 0 <= y < SH and 0 <= x < SW and on[y, x]:
+                        w = float(k[i] * k[j])
+                        num += w * values[:, y, x].double()
+                        den += w
+            if den > 0:
+                out[:, r, c] = num / den
+    return out
+
+
+@pytest.mark.parametrize("sub", [1, 2, 3])
+def test_filter_down_matches_the_loop_reference(sub):
+    g = torch.Generator().manual_seed(sub)
+    H, W = 5, 7
+    vals = torch.rand(4, sub * H, sub * W, generator=g)
+    on = torch.rand(sub * H, sub * W, generator=g) > 0.3
+    on[: sub * 2, : sub * 2] = False  # a region with no object at all -> NaN pixel
+    got = filter_down(vals, on, sub)
+    ref = _filter_reference(vals, on, sub)
+    assert got.shape == (4, H, W)
+    assert torch.equal(torch.isnan(got), torch.isnan(ref.float()))
+    ok = ~torch.isnan(ref)
+    assert torch.allclose(got[ok].double(), ref[ok], atol=1e-5)
+    # values where `on` is False never leak in, even if they are NaN
+    vals2 = vals.clone()
+    vals2[:, ~on] = float("nan")
+    assert torch.equal(torch.isnan(filter_down(vals2, on, sub)), torch.isnan(got))
+
+
+def test_filter_of_a_constant_is_the_constant():
+    on = torch.ones(8, 8, dtype=torch.bool)
+    out = filter_down(torch.full((3, 8, 8), 0.25), on, 2)
+    assert torch.allclose(out, torch.full((3, 4, 4), 0.25))
+
+
+def test_subpixel_points_interpolate_a_plane_exactly():
+    """A planar point map (linear in pixel coordinates) gives exactly the plane at every sub-pixel centre."""
+    H, W, sub = 6, 5, 2
+    r, c = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    plane = lambda rr, cc: torch.stack([0.1 * cc, -0.2 * rr, 1.0 + 0.03 * cc + 0.01 * rr], -1)
+    pts = plane(r.double(), c.double())
+    valid = torch.ones(H, W, dtype=torch.bool)
+    sp = subpixel_points(pts, valid, pts[..., 2], sub, max_depth_step=1.0)
+    sr, sc = torch.meshgrid((torch.arange(sub * H) + 0.5) / sub, (torch.arange(sub * W) + 0.5) / sub, indexing="ij")
+    want = plane(sr.double(), sc.double())
+    # the border sub-pixels (outside the outermost centres) are clamped to their pixel's row/column
+    inner = (sr > 0.5) & (sr < H - 0.5) & (sc > 0.5) & (sc < W - 0.5)
+    assert torch.allclose(sp[inner], want[inner], atol=1e-12)
+    assert torch.isfinite(sp).all()
+
+
+def test_subpixel_points_do_not_mix_surfaces_across_an_occlusion_edge():
+    """Left half near (depth 1), right half far (depth 5): sub-pixels stay on their own pixel's surface; invalid
+    pixels give NaN."""
+    H, W, sub = 4, 6, 2
+    near = torch.zeros(H, W, dtype=torch.bool)
+    near[:, :3] = True
+    depth = torch.where(near, torch.tensor(1.0), torch.tensor(5.0))
+    pts = torch.zeros(H, W, 3)
+    pts[..., 2] = depth
+    valid = torch.ones(H, W, dtype=torch.bool)
+    valid[0, 5] = False
+    sp = subpixel_points(pts, valid, depth, sub, max_depth_step=0.5)
+    z = sp[..., 2]
+    owner_near = near.repeat_interleave(sub, 0).repeat_interleave(sub, 1)
+    owner_valid = valid.repeat_interleave(sub, 0).repeat_interleave(sub, 1)
+    assert torch.isnan(z[~owner_valid]).all()
+    assert torch.equal(z[owner_near & owner_valid], torch.ones(int((owner_near & owner_valid).sum())))
+    assert torch.equal(z[~owner_near & owner_valid], torch.full((int((~owner_near & owner_valid).sum()),), 5.0))
+    # a generous step would mix them: the check is what keeps the surfaces apart
+    mixed = subpixel_points(pts, valid, depth, sub, max_depth_step=10.0)[..., 2]
+    assert ((mixed[owner_valid] > 1.0) & (mixed[owner_valid] < 5.0)).any()
