@@ -2,7 +2,8 @@
 
 Why: a texture lookup at the one surface point of a pixel's centre ray samples the texture, it does not filter it.
 Cycles (the ground truth here, and what an artist compares against) averages the radiance over a pixel footprint
-with a Blackman-Harris filter 3 pixels wide (its default 1.5-pixel setting), in linear light. On the cloth scene,
+with a Blackman-Harris filter (default width setting 1.5; a 3-pixel support reproduces its frames), in linear
+light. On the cloth scene,
 the true texture on the true mesh scores 19.4 dB object PSNR against the Cycles frames sampled at pixel centres and
 31.7 dB filtered this way (`python -m tools.bench.pixel_filter_bound`, docs/atlas.md): fine stripes and painted
 strokes alias without it.
@@ -19,7 +20,9 @@ import math
 import torch
 import torch.nn.functional as F
 
-FILTER_WIDTH = 3.0  # pixels: Cycles' Blackman-Harris at its default width setting of 1.5 spans 3 pixels
+# pixels: Cycles' Blackman-Harris at its default width setting (1.5) — a 3-pixel support matches its frames best
+# (`python -m tools.bench.pixel_filter_bound`, docs/atlas.md)
+FILTER_WIDTH = 3.0
 
 
 def blackman_harris_taps(sub: int, width: float = FILTER_WIDTH) -> torch.Tensor:
@@ -85,11 +88,13 @@ def filter_down(values: torch.Tensor, on: torch.Tensor, sub: int, width: float =
     C, SH, SW = values.shape
     k = blackman_harris_taps(sub, width).to(values.device, values.dtype)
     m = k.numel()
-    pad_lo = (m - sub) // 2  # the footprint is centred on the pixel: taps from S*r - pad_lo
-    pad_hi = m - sub - pad_lo
+    if (m - sub) % 2:
+        raise ValueError(f"a {width:g}-pixel filter with {sub} sub-pixels per side is not centred on the pixel; "
+                         "choose width * sub - sub even")
+    pad = (m - sub) // 2  # the footprint is centred on the pixel: taps from S*r - pad
     w = on.to(values.dtype)[None]
     stack = torch.cat([torch.where(on[None], values, torch.zeros_like(values)) * w, w], 0)[:, None]  # [C+1,1,SH,SW]
-    stack = F.pad(stack, (pad_lo, pad_hi, pad_lo, pad_hi))
+    stack = F.pad(stack, (pad, pad, pad, pad))
     y = F.conv2d(stack, k.view(1, 1, 1, -1), stride=(1, sub))
     y = F.conv2d(y, k.view(1, 1, -1, 1), stride=(sub, 1))[:, 0]  # [C+1, H, W]
     den = y[-1]

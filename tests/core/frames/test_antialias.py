@@ -106,3 +106,8 @@ def test_subpixel_points_do_not_mix_surfaces_across_an_occlusion_edge():
     # a generous step would mix them: the check is what keeps the surfaces apart
     mixed = subpixel_points(pts, valid, depth, sub, max_depth_step=10.0)[..., 2]
     assert ((mixed[owner_valid] > 1.0) & (mixed[owner_valid] < 5.0)).any()
+
+
+def test_off_centre_filters_are_refused():
+    with pytest.raises(ValueError, match="centred"):
+        filter_down(torch.zeros(1, 4, 4), torch.ones(4, 4, dtype=torch.bool), 2, width=1.5)

@@ -1,0 +1,152 @@
+"""How much of a test frame can texture lookups reproduce, with one lookup per pixel or pixel-filtered (needs bpy)?
+
+    python -m tools.bench.pixel_filter_bound --scene DIR [--model M.pgt] [--every 2] [--sub 4] [--json OUT]
+
+DIR is a scene made by `pointgt make-scene`: its `scene.blend` holds the true mesh and `scene.json` names the
+procedural base texture the ground truth was rendered with, so the *true* colour of every surface point is known.
+Each test view's object pixels are coloured from that true texture, composited with the image's own alpha (no model
+colour and no model coverage anywhere), in these ways:
+
+- true hit at the pixel centre: one ray per pixel cast against the mesh, the texture at its hit — what one lookup
+  per pixel can reach with perfect geometry and a perfect texture;
+- true hits, Blackman-Harris filter over a support of w pixels, display space or linear light: `--sub` x `--sub`
+  rays per pixel, hits filtered like `core/frames/antialias.py` does (which supports match Cycles' default width
+  setting of 1.5 is what these rows measure);
+- with --model: the model's surface points x_i (on their rays) instead of the true hits, at the pixel centre and
+  filtered (3-pixel support) in linear light from 2 x 2 interpolated sub-pixel points, exactly as an edited frame is rendered —
+  what the model's geometry allows with a perfect texture.
+
+Object PSNR over ground-truth alpha > 0.5 ∪ the rows' own coverage, as elsewhere.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tools.bench.machine import machine_line
+
+
+def _subpixel_grid(height: int, width: int, sub: int) -> torch.Tensor:
+    """Sub-pixel centres [sub*H*sub*W, 2] (col, row), row-major over the fine grid."""
+    r = (torch.arange(sub * height, dtype=torch.float64) + 0.5) / sub
+    c = (torch.arange(sub * width, dtype=torch.float64) + 0.5) / sub
+    rr, cc = torch.meshgrid(r, c, indexing="ij")
+    return torch.stack([cc.reshape(-1), rr.reshape(-1)], -1)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", required=True, help="scene folder made by `pointgt make-scene` (scene.blend)")
+    ap.add_argument("--model", default=None, help="model file (.pgt): adds the rows with its surface points")
+    ap.add_argument("--every", type=int, default=2, help="use every n-th test view")
+    ap.add_argument("--sub", type=int, default=4, help="rays per pixel side for the filtered true-hit rows")
+    ap.add_argument("--supports", default="1.5,3", help="filter supports (pixels) to compare; support * sub - sub "
+                    "must be even")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    ap.add_argument("--json", help="write the figures here")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(max(args.threads, 1))
+    from core.edits.procedural import evaluate, linear_to_srgb, srgb_to_linear
+    from core.frames.antialias import filter_down, subpixel_points
+    from core.frames.metrics import object_mask, psnr
+    from core.images.cameras import rays_for_pixels
+    from core.images.dataset import load_split
+    from tools.bench.colour_field_bound import mesh_ray_caster
+
+    t_start = time.perf_counter()
+    scene = Path(args.scene)
+    meta = json.loads((scene / "scene.json").read_text())
+    box, texture = meta["bbox"], meta["texture"]["base"]
+    cast = mesh_ray_caster(scene)
+    test = load_split(scene, "test")
+    H, W, focal = test.height, test.width, test.focal
+    widths = [float(w) for w in args.supports.split(",") if w.strip()]
+
+    def colour(pts: torch.Tensor) -> torch.Tensor:
+        return evaluate(texture, pts.double(), box["center"], box["half_size"])[0]
+
+    def true_hits(c2w, px):
+        o, d = rays_for_pixels(c2w.double(), px, H, W, focal)
+        return torch.from_numpy(cast(o.expand_as(d).contiguous().numpy(), d.numpy()))
+
+    model = None
+    if args.model:
+        from core.bundle import load_bundle
+        from core.frames.render import trace_frame
+        from core.points.regularizers import project_on_ray
+        model = load_bundle(args.model, "cpu").model
+
+    scores: dict[str, list[float]] = {}
+    centres = _subpixel_grid(H, W, 1)
+    fine = _subpixel_grid(H, W, args.sub)
+    for i in range(0, len(test), args.every):
+        gt, alpha = test.images[i], test.alphas[i]
+        a = alpha[..., None].double()
+        frames = {}
+
+        def composite(obj_rgb: torch.Tensor, on: torch.Tensor) -> torch.Tensor:
+            """obj_rgb [H, W, 3] object colour where on [H, W]; white elsewhere; true alpha as coverage."""
+            out = torch.where(on[..., None], a * obj_rgb.double() + (1 - a), torch.ones_like(a).expand(H, W, 3))
+            return out.float()
+
+        hits = true_hits(test.c2w[i], centres).reshape(H, W, 3)
+        on = torch.isfinite(hits).all(-1)
+        rgb = torch.ones(H, W, 3, dtype=torch.float64)
+        rgb[on] = colour(hits[on])
+        frames["true hit at the pixel centre"] = composite(rgb, on)
+        hits_f = true_hits(test.c2w[i], fine).reshape(args.sub * H, args.sub * W, 3)
+        on_f = torch.isfinite(hits_f).all(-1)
+        col_f = torch.zeros(3, *on_f.shape, dtype=torch.float64)
+        col_f[:, on_f] = colour(hits_f[on_f]).T
+        for w in widths:
+            for space in ("display", "linear"):
+                vals = srgb_to_linear(col_f) if space == "linear" else col_f
+                px = filter_down(vals, on_f, args.sub, w).permute(1, 2, 0)
+                ok = torch.isfinite(px).all(-1)
+                px = linear_to_srgb(px) if space == "linear" else px
+                frames[f"true hits, filter over {w:g} px, {space}"] = composite(torch.nan_to_num(px, nan=1.0), ok)
+        if model is not None:
+            tr = trace_frame(model, test.c2w[i], H, W, focal)
+            fg = (1 - tr["bg"]).reshape(H, W)
+            x = project_on_ray(tr["x"], tr["origins"], tr["dirs"]).reshape(H, W, 3)
+            valid = fg > 0.5
+            rgb = torch.ones(H, W, 3, dtype=torch.float64)
+            rgb[valid] = colour(x[valid])
+            frames["model x_i at the pixel centre"] = composite(rgb, valid)
+            depth = ((x - tr["origins"].reshape(H, W, 3)) * tr["dirs"].reshape(H, W, 3)).sum(-1)
+            sp = subpixel_points(x, valid, depth, 2, 3.0 * depth.abs() / focal)
+            on_s = torch.isfinite(sp).all(-1)
+            vals = torch.zeros(3, *on_s.shape, dtype=torch.float64)
+            vals[:, on_s] = srgb_to_linear(colour(sp[on_s])).T
+            px = filter_down(vals, on_s, 2).permute(1, 2, 0)
+            ok = torch.isfinite(px).all(-1)
+            frames["model x_i, 2 x 2 sub-pixel points, filter over 3 px, linear"] = composite(
+                torch.nan_to_num(linear_to_srgb(px), nan=1.0), ok)
+        mask = object_mask(alpha, None)
+        for name, frame in frames.items():
+            scores.setdefault(name, []).append(psnr(frame, gt, mask))
+        print(f"view {i}: " + ", ".join(f"{v[-1]:.2f}" for v in scores.values()), flush=True)
+
+    result = {"scene": str(scene), "texture": texture, "model": args.model, "every": args.every, "sub": args.sub,
+              "object_psnr": {k: float(np.mean(v)) for k, v in scores.items()},
+              "seconds": round(time.perf_counter() - t_start, 1)}
+    print(machine_line())
+    print(f"{scene} (texture {texture}): test views every {args.every}, {args.sub}x{args.sub} rays per pixel for the "
+          f"filtered true-hit rows, {result['seconds']} s")
+    print("| object colour from the true texture at | object PSNR (dB) |")
+    print("|---|---|")
+    for k, v in result["object_psnr"].items():
+        print(f"| {k} | {v:.2f} |")
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
