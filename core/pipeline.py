@@ -51,3 +51,25 @@ def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True,
     history = {**history, "samples": int(xyz.shape[0]), "sample_seconds": round(t_samples, 2)}
     bundle.meta["atlas_fit"] = {k: v for k, v in history.items() if not isinstance(v, list)}
     return history
+
+
+def refresh_texel_map(bundle, split, cfg: AtlasConfig) -> dict:
+    """Recompute the texel->surface map of a fitted atlas with the current rules (cfg.texel_map, texel_max_dist,
+    texel_max_cycle), keeping charts, maps and texture: surface samples from `split`, no refit. Models made before
+    the forward-splat map (whose map came from the surface-coordinate net) gain the accurate map this way."""
+    from core.util.errors import InputError
+
+    if bundle.atlas is None:
+        raise InputError("this model has no atlas to refresh; run `pointgt atlas MODEL DATA` to fit one")
+    t0 = time.perf_counter()
+    xyz, _ = surface_samples(bundle.model, split, seed=cfg.seed)
+    spacing = bundle.meta.get("atlas_fit", {}).get("spacing")
+    if not spacing:
+        from core.atlas.fit import sample_spacing
+
+        spacing = sample_spacing(xyz.cpu().double().numpy())[0]
+    tp = bundle.atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle, cfg.texel_map,
+                                           cfg.texture_sigma)
+    valid = int(torch.isfinite(tp).all(-1).sum())
+    bundle.meta.setdefault("atlas_fit", {})["texel_map"] = cfg.texel_map
+    return {"samples": int(xyz.shape[0]), "valid_texels": valid, "seconds": round(time.perf_counter() - t0, 2)}

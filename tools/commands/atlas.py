@@ -14,6 +14,9 @@ def add_arguments(p):
     p.add_argument("data", help="the dataset the model was trained on (NeRF-synthetic layout)")
     p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--texel-map-only", action="store_true",
+                   help="keep charts and texture; only recompute the texel->surface map with the current rules "
+                        "(seconds; for models made before the forward-splat texel map)")
     add_to_parser(p, AtlasConfig, prefix="atlas")
 
 
@@ -25,11 +28,17 @@ def run(args) -> int:
     from core.config import from_args, to_dict
     from core.frames.report import write_history
     from core.images.dataset import load_split
-    from core.pipeline import fit_atlas_stage
+    from core.pipeline import fit_atlas_stage, refresh_texel_map
 
     cfg = from_args(AtlasConfig, args, prefix="atlas")
     bundle = load_bundle(args.model, device=cfg.device)
     train = load_split(args.data, "train", downscale=args.downscale)
+    if args.texel_map_only:
+        info = refresh_texel_map(bundle, train, cfg)
+        save_bundle(args.model, bundle)
+        print(f"texel map ({cfg.texel_map}): {info['valid_texels']} texels with a surface point, from "
+              f"{info['samples']} samples in {info['seconds']:.1f} s -> {args.model} (previous version: .bak)")
+        return 0
     hist = fit_atlas_stage(bundle, train, cfg, show_progress=not args.no_progress)
     save_bundle(args.model, bundle)
     write_history(Path(args.model).with_suffix(".atlas_history.json"), [], {"atlas": hist, "config": to_dict(cfg)})

@@ -1,0 +1,27 @@
+"""Stage glue: refreshing the texel map of a fitted model keeps its charts and texture."""
+import copy
+
+import pytest
+import torch
+
+from core.atlas.config import AtlasConfig
+from core.bundle import Bundle
+from core.pipeline import refresh_texel_map
+from core.util.errors import InputError
+from tests.helpers.tiny_model import tiny_card
+
+
+def test_refresh_texel_map_recomputes_only_the_map():
+    bundle, train, _ = tiny_card()
+    b = copy.deepcopy(bundle)  # the cached tiny model is shared: work on a copy
+    tex, image = b.atlas.textures.detach().clone(), b.atlas.packed_image().clone()
+    b.atlas.texel_xyz.fill_(float("nan"))
+    info = refresh_texel_map(b, train, AtlasConfig(device="cpu"))
+    tp = b.atlas.texel_points()
+    assert info["valid_texels"] == int(torch.isfinite(tp).all(-1).sum()) > 50
+    assert torch.equal(b.atlas.textures, tex) and torch.equal(b.atlas.packed_image(), image)
+    assert torch.equal(torch.isfinite(tp), torch.isfinite(bundle.atlas.texel_points()))
+    assert torch.allclose(tp.nan_to_num(0), bundle.atlas.texel_points().nan_to_num(0), atol=1e-5)
+    assert b.meta["atlas_fit"]["texel_map"] == "splat"
+    with pytest.raises(InputError, match="no atlas"):
+        refresh_texel_map(Bundle(model=bundle.model, meta={}), train, AtlasConfig(device="cpu"))
