@@ -161,8 +161,12 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     tr = trace if trace is not None else trace_frame(model, c2w, height, width, focal, points=state.points,
                                                      influence=state.influence, temperature=cfg.temperature)
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
-    rgb = shade_frame(model, tr, background, features=state.features).reshape(-1, 3)
+    rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True)
+    rgb = rgb.reshape(-1, 3)
     fg = 1.0 - tr["bg"]
+    # Coverage of painted rays: the decoder's mask head when it has one (sharp silhouettes, opaque interior),
+    # else the attention's foreground weight.
+    cover = fg if dec_alpha is None else dec_alpha.reshape(-1)
     hit = tr["active"] & (fg > 1e-4)
     x_can = torch.full_like(tr["x"], float("nan"))
     stats = {"rays": int(tr["idx"].shape[0]), "rays_shaded": int(tr["active"].sum()),
@@ -188,8 +192,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
             looked = (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)   # [S, 6]
             tex, m = looked[:, :3], looked[:, 3]
         bgc = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
-        f = fg[sel][:, None]
-        # The point render is fg·c + (1 − fg)·background; edit the object colour c, keep the coverage fg.
+        f = cover[sel][:, None]
+        # The point render is f·c + (1 − f)·background; edit the object colour c, keep the coverage f.
         c = ((rgb[sel] - (1 - f) * bgc) / f.clamp_min(1e-4)).clamp(0, 1)
         rgb[sel] = f * blend(c, tex, m, cfg.blend) + (1 - f) * bgc
         x_can[sel] = xc

@@ -63,9 +63,10 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
 
 @torch.no_grad()
 def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chunk: int = 16384,
-                features: torch.Tensor | None = None) -> torch.Tensor:
+                features: torch.Tensor | None = None, with_alpha: bool = False):
     """Colours of a traced frame from the point values: rgb [H, W, 3] in [0, 1].
-    features [M, h]: per-point features of the traced points when they are not the model's own (ids)."""
+    features [M, h]: per-point features of the traced points when they are not the model's own (ids).
+    with_alpha: return (rgb, alpha [H, W] from the decoder's mask head, or None without one)."""
     h, w = trace["shape"]
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
@@ -73,12 +74,16 @@ def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chun
         sl = slice(s, s + chunk)
         att = {"weights": trace["weights"][sl], "bg": trace["bg"][sl]}
         parts.append(model.shade(att, trace["dirs"][sl], trace["idx"][sl], bg, features=features))
+    alpha = None
     if model.decoder is None:
         rgb = torch.cat([p["rgb"] for p in parts]).reshape(h, w, 3)
     else:
         feat = torch.cat([p["feature"] for p in parts]).reshape(h, w, -1).permute(2, 0, 1)[None]
-        rgb = model.decode(feat)[0].permute(1, 2, 0)
-    return rgb.clamp(0.0, 1.0)
+        rgb, alpha = model.decode_with_alpha(feat)
+        rgb = rgb[0].permute(1, 2, 0)
+        alpha = None if alpha is None else alpha[0]
+    rgb = rgb.clamp(0.0, 1.0)
+    return (rgb, alpha) if with_alpha else rgb
 
 
 @torch.no_grad()

@@ -12,17 +12,18 @@ def _block(c_in: int, c_out: int) -> nn.Sequential:
 
 
 class UNetDecoder(nn.Module):
-    """A small two-level UNet: feature image [B, h, H, W] -> RGB logits [B, 3, H, W].
+    """A small two-level UNet: feature image [B, h, H, W] -> logits [B, out, H, W] (3 = RGB; 4 = RGB + alpha, the
+    separate mask head).
 
     Any H, W work (odd sizes are padded to even and cropped back), so patches and full frames share it.
     """
 
-    def __init__(self, c_in: int, width: int = 32):
+    def __init__(self, c_in: int, width: int = 32, out: int = 3):
         super().__init__()
         self.enc1 = _block(c_in, width)
         self.enc2 = _block(width, 2 * width)
         self.dec1 = _block(3 * width, width)
-        self.out = nn.Conv2d(width, 3, 1)
+        self.out = nn.Conv2d(width, out, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, w = x.shape[-2:]

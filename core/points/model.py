@@ -31,6 +31,8 @@ class ModelConfig:
                          choices=("screen", "screen_depth", "perpendicular"))
     decoder: str = opt("none", "decoder: none (value = RGB) | unet (small UNet on the feature image)",
                        choices=("none", "unet"))
+    decoder_alpha: bool = opt(True, "the unet decoder also predicts foreground alpha (a separate mask head): the "
+                                    "coverage of atlas-coloured and painted rays")
     key_width: int = opt(64, "width of the attention key MLP")
     key_freqs: int = opt(4, "Fourier frequencies of the ray-relative key features")
     value_width: int = opt(64, "width of the value MLP")
@@ -84,7 +86,7 @@ class PointModel(nn.Module):
         else:
             self.value_mlp = _mlp(cfg.feature_dim + dir_in, cfg.value_width, cfg.feature_dim, layers=1)
             self.bg_value = nn.Parameter(torch.zeros(cfg.feature_dim))
-            self.decoder = UNetDecoder(cfg.feature_dim)
+            self.decoder = UNetDecoder(cfg.feature_dim, out=4 if cfg.decoder_alpha else 3)
 
     @property
     def num_points(self) -> int:
@@ -156,7 +158,12 @@ class PointModel(nn.Module):
 
     def decode(self, feature_image: torch.Tensor) -> torch.Tensor:
         """feature_image [B, h, H, W] -> rgb [B, 3, H, W] (UNet decoder only)."""
-        return torch.sigmoid(self.decoder(feature_image))
+        return torch.sigmoid(self.decoder(feature_image)[:, :3])
+
+    def decode_with_alpha(self, feature_image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """feature_image [B, h, H, W] -> (rgb [B, 3, H, W], alpha [B, H, W] or None without the mask head)."""
+        y = torch.sigmoid(self.decoder(feature_image))
+        return y[:, :3], (y[:, 3] if y.shape[1] > 3 else None)
 
     # ---- (de)serialisation helpers ---------------------------------------------------------------------------
     def config_dict(self) -> dict:

@@ -41,6 +41,7 @@ class TrainConfig:
     lr_networks: float = opt(2e-3, "attention / value / decoder learning rate")
     lr_final: float = opt(0.05, "learning rates decay exponentially to this fraction")
     alpha_weight: float = opt(0.05, "weight of the foreground-mask loss (1 - background weight vs alpha)")
+    decoder_alpha_weight: float = opt(0.5, "weight of the decoder mask head's loss (MSE against alpha)")
     ssim_weight: float = opt(0.0, "weight of the (1 - SSIM) loss on patches")
     close2ray: bool = opt(True, "use the close-to-ray regularizer")
     close2ray_weight: float = opt(0.002, "close-to-ray weight gamma")
@@ -231,8 +232,11 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             else:
                 p = cfg.patches
                 feat = sh["feature"].reshape(p, size, size, -1).permute(0, 3, 1, 2)
-                rgb = model.decode(feat).permute(0, 2, 3, 1).reshape(-1, 3)
+                rgb, dec_alpha = model.decode_with_alpha(feat)
+                rgb = rgb.permute(0, 2, 3, 1).reshape(-1, 3)
             loss = F.mse_loss(rgb, gt)
+            if model.decoder is not None and dec_alpha is not None and cfg.decoder_alpha_weight > 0:
+                loss = loss + cfg.decoder_alpha_weight * F.mse_loss(dec_alpha.reshape(-1), gt_a)
             if cfg.alpha_weight > 0:
                 loss = loss + cfg.alpha_weight * F.mse_loss(1.0 - att["bg"], gt_a)
             if cfg.ssim_weight > 0:

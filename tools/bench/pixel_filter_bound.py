@@ -14,7 +14,10 @@ colour and no model coverage anywhere), in these ways:
   setting of 1.5 is what these rows measure);
 - with --model: the model's surface points x_i (on their rays) instead of the true hits, at the pixel centre and
   filtered (3-pixel support) in linear light from 2 x 2 interpolated sub-pixel points, exactly as an edited frame is rendered —
-  what the model's geometry allows with a perfect texture.
+  what the model's geometry allows with a perfect texture;
+- with --model and an atlas: the true texture *baked through the model's texel map* (core/edits/bake.py) and
+  looked up at x_i, one lookup or filtered — what the texel map loses. `--texel-maps splat,inverse` recomputes the
+  map in memory with each rule first (the model file is not written).
 
 Object PSNR over ground-truth alpha > 0.5 ∪ the rows' own coverage, as elsewhere.
 """
@@ -48,6 +51,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sub", type=int, default=4, help="rays per pixel side for the filtered true-hit rows")
     ap.add_argument("--supports", default="1.5,3", help="filter supports (pixels) to compare; support * sub - sub "
                     "must be even")
+    ap.add_argument("--texel-maps", default="", help="comma-separated texel-map rules (splat, inverse) to recompute "
+                    "and compare; empty = the model's stored map")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args(argv)
@@ -75,12 +80,25 @@ def main(argv=None) -> int:
         o, d = rays_for_pixels(c2w.double(), px, H, W, focal)
         return torch.from_numpy(cast(o.expand_as(d).contiguous().numpy(), d.numpy()))
 
-    model = None
+    model, baked = None, {}
     if args.model:
         from core.bundle import load_bundle
+        from core.edits.bake import bake
         from core.frames.render import trace_frame
         from core.points.regularizers import project_on_ray
-        model = load_bundle(args.model, "cpu").model
+        bundle = load_bundle(args.model, "cpu")
+        model = bundle.model
+        if bundle.atlas is not None:
+            atlas = bundle.atlas
+            rules = [r.strip() for r in args.texel_maps.split(",") if r.strip()]
+            if rules:
+                from core.atlas.config import AtlasConfig
+                from core.pipeline import refresh_texel_map
+                train = load_split(scene, "train")
+            for rule in rules or ["stored"]:
+                if rule != "stored":
+                    refresh_texel_map(bundle, train, AtlasConfig(texel_map=rule, device="cpu"))
+                baked[rule] = bake(atlas, lambda p: (colour(p).float(), None))
 
     scores: dict[str, list[float]] = {}
     centres = _subpixel_grid(H, W, 1)
@@ -128,6 +146,15 @@ def main(argv=None) -> int:
             ok = torch.isfinite(px).all(-1)
             frames["model x_i, 2 x 2 sub-pixel points, filter over 3 px, linear"] = composite(
                 torch.nan_to_num(linear_to_srgb(px), nan=1.0), ok)
+            for rule, tex in baked.items():
+                rgb = torch.ones(H, W, 3, dtype=torch.float64)
+                rgb[valid] = atlas.lookup(x[valid], image=tex).double()
+                frames[f"model x_i, baked through the texel map ({rule}), pixel centre"] = composite(rgb, valid)
+                vals = torch.zeros(3, *on_s.shape, dtype=torch.float64)
+                vals[:, on_s] = srgb_to_linear(atlas.lookup(sp[on_s], image=tex).double()).T
+                px = filter_down(vals, on_s, 2).permute(1, 2, 0)
+                frames[f"model x_i, baked through the texel map ({rule}), filter over 3 px, linear"] = composite(
+                    torch.nan_to_num(linear_to_srgb(px), nan=1.0), torch.isfinite(px).all(-1))
         mask = object_mask(alpha, None)
         for name, frame in frames.items():
             scores.setdefault(name, []).append(psnr(frame, gt, mask))

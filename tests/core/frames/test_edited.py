@@ -173,3 +173,25 @@ def test_antialiased_lookups_keep_flat_colours_and_the_one_lookup_path(tiny):
                 assert d.mean() < tol and d.quantile(0.95) < 7 * tol, f"antialias {aa}: flat colour changed"
             else:
                 assert 0 < d.mean() < 0.05
+
+
+def test_painted_rays_take_the_decoder_mask_as_coverage():
+    """With the UNet's mask head, atlas-coloured rays are composited with the decoder's alpha: force it to 0 and
+    they show the background; to 1 and no background is mixed into their atlas colour."""
+    import copy
+
+    bundle, _, test = tiny_card(steps=400, decoder="unet")
+    assert bundle.model.cfg.decoder_alpha
+    frames = {}
+    for name, bias in (("none", -60.0), ("full", 60.0)):
+        b = copy.deepcopy(bundle)
+        with torch.no_grad():
+            b.model.decoder.out.bias[3] = bias
+        frames[name] = _render(EditState(b, cfg=EditConfig(colour="atlas", antialias=1)), test)
+    hit = frames["none"]["stats"]["texture_rays"]
+    assert hit > 100
+    painted = (frames["none"]["alpha"] > 1e-4).reshape(-1)
+    assert torch.allclose(frames["none"]["rgb"].reshape(-1, 3)[painted], torch.ones(1, 3), atol=1e-4)
+    full = frames["full"]["rgb"].reshape(-1, 3)[painted]
+    atlas_rgb = bundle.atlas.lookup(frames["full"]["x_can"].reshape(-1, 3)[painted])
+    assert torch.allclose(full, atlas_rgb.clamp(0, 1), atol=1e-3)

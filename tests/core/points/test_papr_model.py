@@ -88,3 +88,24 @@ def test_fourier_shape():
     x = torch.randn(5, 2)
     assert fourier(x, 3).shape == (5, 2 * 7)
     assert math.isclose(float(fourier(torch.zeros(1, 1), 2)[0, 3]), 1.0)  # cos(0)
+
+
+def test_unet_mask_head_and_older_files_without_it():
+    """The UNet's 4th channel is the foreground alpha; files written before the mask head (no `decoder_alpha` in
+    the header, 3-channel UNet) still load, with no alpha."""
+    from core.points.checkpoint import model_from_arrays, model_to_arrays
+
+    m = _model(decoder="unet")
+    feat = torch.randn(1, m.cfg.feature_dim, 9, 8)
+    rgb, alpha = m.decode_with_alpha(feat)
+    assert rgb.shape == (1, 3, 9, 8) and alpha.shape == (1, 9, 8)
+    assert torch.equal(rgb, m.decode(feat)) and bool(((alpha >= 0) & (alpha <= 1)).all())
+    arrays, meta = model_to_arrays(m)
+    back = model_from_arrays(arrays, meta)
+    assert back.cfg.decoder_alpha and torch.equal(back.decode_with_alpha(feat)[1], alpha)
+    old = _model(decoder="unet", decoder_alpha=False)
+    arrays, meta = model_to_arrays(old)
+    del meta["model"]["decoder_alpha"]  # as an older file's header
+    back = model_from_arrays(arrays, meta)
+    assert not back.cfg.decoder_alpha and back.decode_with_alpha(feat)[1] is None
+    assert torch.equal(back.decode(feat), old.decode(feat))
