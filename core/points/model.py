@@ -86,7 +86,7 @@ class PointModel(nn.Module):
         else:
             self.value_mlp = _mlp(cfg.feature_dim + dir_in, cfg.value_width, cfg.feature_dim, layers=1)
             self.bg_value = nn.Parameter(torch.zeros(cfg.feature_dim))
-            self.decoder = UNetDecoder(cfg.feature_dim, out=4 if cfg.decoder_alpha else 3)
+            self.decoder = UNetDecoder(cfg.feature_dim, alpha=cfg.decoder_alpha)
 
     @property
     def num_points(self) -> int:

@@ -186,7 +186,7 @@ def test_painted_rays_take_the_decoder_mask_as_coverage():
     for name, bias in (("none", -60.0), ("full", 60.0)):
         b = copy.deepcopy(bundle)
         with torch.no_grad():
-            b.model.decoder.out.bias[3] = bias
+            b.model.decoder.alpha_head[-1].bias[0] = bias
         frames[name] = _render(EditState(b, cfg=EditConfig(colour="atlas", antialias=1)), test)
     hit = frames["none"]["stats"]["texture_rays"]
     assert hit > 100
