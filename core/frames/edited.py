@@ -122,8 +122,18 @@ class EditState:
         return self._edit_textures
 
 
+def _lookup(state: EditState, x: torch.Tensor, texture_fn=None) -> torch.Tensor:
+    """Painted colour and mask at canonical points x [M, 3] -> [M, 4] (rgb, mask); texture_fn(x) -> rgb [M, 3]
+    replaces the atlas (mask 1), e.g. a procedural texture evaluated exactly (the perfect-atlas reference)."""
+    if texture_fn is not None:
+        rgb = texture_fn(x).to(x.dtype)
+        return torch.cat([rgb, torch.ones_like(rgb[:, :1])], 1)
+    probs, uv = state.bundle.atlas.chart_uv(x)
+    return (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)[:, :4]  # rgb, first mask channel
+
+
 def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Tensor, height: int, width: int,
-                     focal: float, sub: int) -> tuple[torch.Tensor, torch.Tensor]:
+                     focal: float, sub: int, texture_fn=None) -> tuple[torch.Tensor, torch.Tensor]:
     """Painted colour and mask of the rays `sel` [S] from sub x sub lookups per pixel, Blackman-Harris filtered in
     linear light (core/frames/antialias.py). xc [S, 3] canonical points. Returns (rgb [S, 3], mask [S])."""
     dev = xc.device
@@ -139,8 +149,7 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
     sp = subpixel_points(canon.view(height, width, 3), valid.view(height, width), depth.view(height, width), sub,
                          step.view(height, width))
     on = torch.isfinite(sp).all(-1)
-    probs, uv = state.bundle.atlas.chart_uv(sp[on])
-    looked = (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)  # [K, 6]: rgb, mask x3
+    looked = _lookup(state, sp[on], texture_fn)  # [K, 4]: rgb, mask
     vals = torch.zeros(4, *on.shape, dtype=xc.dtype, device=dev)
     vals[:3, on] = srgb_to_linear(looked[:, :3].clamp(0, 1)).T
     vals[3, on] = looked[:, 3]
@@ -150,11 +159,13 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
 
 @torch.no_grad()
 def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, focal: float,
-                  background=(1.0, 1.0, 1.0), trace: dict | None = None) -> dict:
+                  background=(1.0, 1.0, 1.0), trace: dict | None = None, texture_fn=None) -> dict:
     """One frame: dict(rgb [H, W, 3], alpha [H, W], x_can [H, W, 3] (NaN off the object), stats, trace).
 
     trace: the 'trace' of an earlier render_edited call with the same points, camera and temperature (several
-    texture edits or correspondence modes of one frame then share neighbours and attention)."""
+    texture edits or correspondence modes of one frame then share neighbours and attention).
+    texture_fn(x_can [M, 3]) -> rgb [M, 3]: colour textured rays from this function instead of the painted atlas
+    (same correspondence, filtering and coverage; with colour="atlas" every object ray)."""
     t0 = time.perf_counter()
     bundle, cfg = state.bundle, state.cfg
     model = bundle.model
@@ -186,10 +197,9 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         stats["non_finite_lookups_repaired"] = int(bad.sum())
         xc = torch.where(bad[:, None], x_hat.nan_to_num(0.0), xc)
         if cfg.antialias > 1:
-            tex, m = _filtered_lookup(state, tr, sel, xc, height, width, focal, cfg.antialias)
+            tex, m = _filtered_lookup(state, tr, sel, xc, height, width, focal, cfg.antialias, texture_fn)
         else:
-            probs, uv = bundle.atlas.chart_uv(xc)
-            looked = (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)   # [S, 6]
+            looked = _lookup(state, xc, texture_fn)
             tex, m = looked[:, :3], looked[:, 3]
         bgc = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
         f = cover[sel][:, None]
