@@ -7,6 +7,7 @@ import torch
 
 from core.atlas.config import AtlasConfig
 from core.atlas.fit import fit_atlas
+from core.atlas.footprint import FootprintView, refit_texture_footprint
 from core.atlas.samples import extract_surface_samples
 from core.images.cameras import project_points
 from core.points.select import select_neighbors
@@ -39,6 +40,26 @@ def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0, col
     return extract_surface_samples(render_fn, views(), max_samples=max_samples, seed=seed, colour=colour)
 
 
+@torch.no_grad()
+def footprint_views(model, split) -> list[FootprintView]:
+    """Per training view: the model's surface points (projected on their rays), which rays hit, their depths, and
+    the ground truth — the input of the footprint texture refit."""
+    from core.frames.render import trace_frame
+    from core.points.regularizers import project_on_ray
+
+    views = []
+    dev = model.xyz.device
+    for i in range(len(split)):
+        tr = trace_frame(model, split.c2w[i].to(dev), split.height, split.width, split.focal)
+        h, w = tr["shape"]
+        x = project_on_ray(tr["x"], tr["origins"], tr["dirs"])
+        depth = ((x - tr["origins"]) * tr["dirs"]).sum(-1)
+        views.append(FootprintView(points=x.view(h, w, 3), valid=((1.0 - tr["bg"]) > 0.5).view(h, w),
+                                   depth=depth.view(h, w), image=split.images[i].to(dev),
+                                   alpha=split.alphas[i].to(dev), focal=float(split.focal)))
+    return views
+
+
 def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True, progress_callback=None):
     """Fit stage 2 into `bundle` (sets bundle.atlas and bundle.meta['atlas_fit']); returns the fit history."""
     t0 = time.perf_counter()
@@ -49,6 +70,15 @@ def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True,
     atlas, history = fit_atlas(xyz, rgb, cfg, progress=progress_callback, quiet=not show_progress)
     bundle.atlas = atlas
     history = {**history, "samples": int(xyz.shape[0]), "sample_seconds": round(t_samples, 2)}
+    if cfg.footprint:
+        t1 = time.perf_counter()
+        info = refit_texture_footprint(atlas, footprint_views(bundle.model, split), lam=cfg.footprint_lambda,
+                                       iters=cfg.footprint_iters)
+        history["footprint"] = {**info, "seconds": round(time.perf_counter() - t1, 2)}
+        if show_progress and info.get("pixels"):
+            print(f"texture refit for pixel-filtered lookups: {info['pixels']} pixels, RMSE (linear) "
+                  f"{info['rmse_before']:.4f} -> {info['rmse_after']:.4f} in {history['footprint']['seconds']:.1f} s",
+                  flush=True)
     bundle.meta["atlas_fit"] = {k: v for k, v in history.items() if not isinstance(v, list)}
     return history
 

@@ -27,6 +27,10 @@ class AtlasConfig:
                             "around each texel) or descent (texture_steps of Adam on the per-sample MSE)",
                             choices=("kernel", "descent"))
     texture_sigma: float = opt(1.0, "kernel texture: Gaussian std in units of the mean sample spacing in texel space")
+    footprint: bool = opt(True, "then refit the texture so that pixel-filtered lookups (2x2 points per pixel, "
+                                "as edited frames render) reproduce the training pixels (needs the stage-1 model)")
+    footprint_lambda: float = opt(1.0, "footprint refit: pull towards the kernel texture (relative to the data term)")
+    footprint_iters: int = opt(100, "footprint refit: conjugate-gradient iterations")
     texture_steps: int = opt(300, "descent texture: refinement steps after the maps converge (maps frozen)")
     width_chart: int = opt(64, "hidden width of the chart-assignment MLP")
     depth_chart: int = opt(3, "hidden layers of the chart-assignment MLP")

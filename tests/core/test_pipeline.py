@@ -25,3 +25,9 @@ def test_refresh_texel_map_recomputes_only_the_map():
     assert b.meta["atlas_fit"]["texel_map"] == "splat"
     with pytest.raises(InputError, match="no atlas"):
         refresh_texel_map(Bundle(model=bundle.model, meta={}), train, AtlasConfig(device="cpu"))
+
+
+def test_stage2_refits_the_texture_for_pixel_filtered_lookups():
+    bundle, _, _ = tiny_card()
+    fp = bundle.meta["atlas_fit"]["footprint"]
+    assert fp["pixels"] > 100 and fp["rmse_after"] < fp["rmse_before"]
