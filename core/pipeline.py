@@ -100,6 +100,12 @@ def refresh_texel_map(bundle, split, cfg: AtlasConfig) -> dict:
         spacing = sample_spacing(xyz.cpu().double().numpy())[0]
     tp = bundle.atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle, cfg.texel_map,
                                            cfg.texture_sigma)
-    valid = int(torch.isfinite(tp).all(-1).sum())
+    ok = torch.isfinite(tp).all(-1)
+    _, pix = bundle.atlas.atlas_pixel_coords(tp[ok])
+    rows, cols = torch.nonzero(ok, as_tuple=True)
+    miss = (pix - torch.stack([cols + 0.5, rows + 0.5], -1)).norm(dim=-1)  # texels from t_c(point) to the texel
     bundle.meta.setdefault("atlas_fit", {})["texel_map"] = cfg.texel_map
-    return {"samples": int(xyz.shape[0]), "valid_texels": valid, "seconds": round(time.perf_counter() - t0, 2)}
+    info = {"samples": int(xyz.shape[0]), "valid_texels": int(ok.sum()), "seconds": round(time.perf_counter() - t0, 2)}
+    if miss.numel():
+        info.update(miss_median=float(miss.median()), miss_p90=float(miss.quantile(0.9)))
+    return info
