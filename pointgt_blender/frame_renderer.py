@@ -34,6 +34,7 @@ class ObjectInputs:
     positions: np.ndarray
     ids: np.ndarray
     atlas: np.ndarray | None = None
+    antialias: int = 2        # painted texels per pixel side (EditConfig.antialias)
 
 
 class ModelCache:
@@ -111,7 +112,7 @@ def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCach
         inputs = dataclasses.replace(inputs, atlas=None)  # a points-only model: nothing to paint yet
     if bundle.model.cfg.k != inputs.k:  # the object's K setting; the cached model follows it
         bundle.model.cfg = dataclasses.replace(bundle.model.cfg, k=int(inputs.k))
-    cfg = EditConfig(correspondence=CORRESPONDENCE[inputs.correspondence])
+    cfg = EditConfig(correspondence=CORRESPONDENCE[inputs.correspondence], antialias=int(inputs.antialias))
     state, _ = states.get(inputs, bundle, cfg)
     return state
 

@@ -103,6 +103,7 @@ class POINTGT_PT_image(bpy.types.Panel):
         col.prop(s, "atlas")
         col.prop(s, "preview_resolution")
         col.prop(s, "correspondence")
+        col.prop(s, "antialias")
         col.prop(scene.pointgt, "live_preview")
         col.prop(scene.pointgt, "auto_transfer")
         col.operator("pointgt.refresh_preview", icon='FILE_REFRESH')

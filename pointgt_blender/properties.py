@@ -25,6 +25,9 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
         items=[('DEFORM_AWARE', "Deform-aware", "Map deformed surface points back through their neighbours' "
                                                 "displacements (keeps painted texture glued to the surface)"),
                ('NAIVE', "Naive", "Attention-weighted canonical neighbours (ablation: texture drifts)")])
+    antialias: bpy.props.IntProperty(name="Anti-aliasing", default=2, min=1, max=4,
+                                     description="Painted texels per pixel side, filtered like Cycles' pixel filter "
+                                                 "(1 = one lookup per pixel: faster preview, jagged strokes)")
     device: bpy.props.EnumProperty(
         name="Device", default='CPU',
         items=[('CPU', "CPU", "Run the network on the processor"),

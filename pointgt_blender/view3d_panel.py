@@ -28,6 +28,7 @@ class POINTGT_PT_main(bpy.types.Panel):
         col.prop(s, "preview_resolution")
         col.prop(s, "neighbors")
         col.prop(s, "correspondence")
+        col.prop(s, "antialias")
         row = col.row(align=True)
         row.prop(s, "device")
         row.operator("pointgt.check_device", text="", icon='CHECKMARK')

@@ -75,6 +75,24 @@ def test_state_cache_rebuilds_only_when_inputs_change(monkeypatch):
     assert new3 and new4 and s3 is not s2 and len(built) == 3
 
 
+def test_prepare_passes_the_objects_antialias_setting(monkeypatch):
+    """The object's Anti-aliasing setting reaches EditConfig; changing it rebuilds the state (a new preview)."""
+    import pointgt_blender.frame_renderer as fr
+
+    bundle = type("B", (), {"model": type("M", (), {"num_points": 4, "cfg": type("C", (), {"k": 8})()})(),
+                            "atlas": None})()
+    models = type("Models", (), {"get": lambda self, path, device: bundle})()
+    made = []
+    monkeypatch.setattr(fr, "EditState", lambda b, **k: made.append(k["cfg"]) or object())
+    states = StateCache()
+    pos = np.zeros((4, 3), np.float32)
+    for aa in (2, 1, 1):
+        inputs = _inputs(pos)
+        inputs.antialias = aa
+        fr.prepare(inputs, models, states)
+    assert [c.antialias for c in made] == [2, 1]  # the third call changed nothing
+
+
 def test_model_cache_reloads_changed_files_and_names_missing_ones(tmp_path, monkeypatch):
     import pointgt_blender.frame_renderer as fr
 
