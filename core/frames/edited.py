@@ -160,7 +160,8 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
 @torch.no_grad()
 def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, focal: float,
                   background=(1.0, 1.0, 1.0), trace: dict | None = None, texture_fn=None) -> dict:
-    """One frame: dict(rgb [H, W, 3], alpha [H, W], x_can [H, W, 3] (NaN off the object), stats, trace).
+    """One frame: dict(rgb [H, W, 3] over `background`, alpha [H, W] (the coverage: decoder mask head, else 1 − bg),
+    x_can [H, W, 3] (NaN off the object), stats, trace).
 
     trace: the 'trace' of an earlier render_edited call with the same points, camera and temperature (several
     texture edits or correspondence modes of one frame then share neighbours and attention).
@@ -210,5 +211,5 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         stats["texture_rays"] = int(sel.numel())
     stats["seconds"] = time.perf_counter() - t0
     rgb = torch.nan_to_num(rgb, nan=1.0).clamp(0, 1)
-    return {"rgb": rgb.reshape(height, width, 3), "alpha": fg.reshape(height, width),
+    return {"rgb": rgb.reshape(height, width, 3), "alpha": cover.clamp(0, 1).reshape(height, width),
             "x_can": x_can.reshape(height, width, 3), "stats": stats, "trace": tr}

@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from core.images.cameras import pixel_rays
-from core.points.model import PointModel
+from core.points.model import TRAIN_BACKGROUND, PointModel
 from core.points.select import select_neighbors
 
 
@@ -82,6 +82,12 @@ def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chun
         rgb, alpha = model.decode_with_alpha(feat)
         rgb = rgb[0].permute(1, 2, 0)
         alpha = None if alpha is None else alpha[0]
+        # The decoder paints the background it was trained on (a·c + (1 − a)·white); move that share onto the
+        # requested background. a: the mask head, else the attention's foreground weight (older models).
+        cover = alpha if alpha is not None else (1.0 - trace["bg"]).reshape(h, w)
+        shift = bg - torch.as_tensor(TRAIN_BACKGROUND, dtype=torch.float32, device=bg.device)
+        if bool(shift.abs().max() > 0):
+            rgb = rgb + (1.0 - cover.clamp(0, 1))[..., None] * shift
     rgb = rgb.clamp(0.0, 1.0)
     return (rgb, alpha) if with_alpha else rgb
 
@@ -89,8 +95,21 @@ def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chun
 @torch.no_grad()
 def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
                  background=(1.0, 1.0, 1.0), **kw) -> dict:
-    """Canonical (or re-posed, via points=) render: dict(rgb [H, W, 3], alpha [H, W], x [H, W, 3])."""
+    """Canonical (or re-posed, via points=) render: dict(rgb [H, W, 3], alpha [H, W], x [H, W, 3]).
+    alpha: the decoder's mask head when the model has one (the coverage its colours were composited with), else
+    the attention's foreground weight 1 − bg."""
     tr = trace_frame(model, c2w, height, width, focal, **kw)
-    rgb = shade_frame(model, tr, background)
+    rgb, alpha = shade_frame(model, tr, background, with_alpha=True)
     h, w = tr["shape"]
-    return {"rgb": rgb, "alpha": (1.0 - tr["bg"]).reshape(h, w), "x": tr["x"].reshape(h, w, 3), "trace": tr}
+    if alpha is None:
+        alpha = (1.0 - tr["bg"]).reshape(h, w)
+    return {"rgb": rgb, "alpha": alpha.clamp(0, 1), "x": tr["x"].reshape(h, w, 3), "trace": tr}
+
+
+def straight_colour(premul: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 1.0 / 510) -> torch.Tensor:
+    """Straight (un-premultiplied) colour [H, W, 3] of a frame rendered over black (premul [H, W, 3] = alpha·c),
+    alpha [H, W]: what an RGBA image file holds. 0 where alpha < min_alpha (below one 8-bit level)."""
+    a = alpha.clamp(0, 1)[..., None]
+    c = torch.where(a >= min_alpha, premul / a.clamp_min(min_alpha), torch.zeros_like(premul))
+    return c.clamp(0, 1)
+

@@ -16,6 +16,7 @@ import torch
 from core.bundle import save_bundle
 from core.edits.bake import bake
 from core.frames.edited import EditConfig, EditState, render_edited
+from core.frames.render import render_frame
 from core.images.png import read_png, write_png
 from tests.helpers.tiny_model import tiny_card
 from tools.cli import main
@@ -72,15 +73,21 @@ def test_render_with_points_ids_and_atlas_writes_frames_and_stats(tiny, model_fi
     # the painted colours reach the frame: red and blue object pixels, no green from the original texture left
     obj = img[..., 3] > 0.5
     assert obj.sum() > 20
-    a = img[obj, 3:4]
-    colour = (img[obj, :3] - (1 - a)) / a  # undo the white-background composite of edge pixels
+    colour = img[obj, :3]  # straight alpha: the object's own colour, no background mixed in
     assert (colour[:, 1] < 0.35).mean() > 0.8  # the original texture's green channel spans 0.1..0.9
 
 
-def test_render_without_edit_flags_keeps_the_plain_path(model_files, tmp_path):
+def test_render_without_edit_flags_keeps_the_plain_path(tiny, model_files, tmp_path):
     assert _render(model_files, "--out", str(tmp_path / "f"), "--json", str(tmp_path / "r.json")) == 0
     stats = json.loads((tmp_path / "r.json").read_text())
     assert stats["frames"] == 2 and "edited" not in stats
+    # The PNG holds straight alpha: composited over white it is the render over white (up to 8-bit rounding).
+    bundle, _, test = tiny
+    img = read_png(tmp_path / "f" / "v1.png")
+    over_white = img[..., :3] * img[..., 3:] + (1 - img[..., 3:])
+    ref = render_frame(bundle.model, test.c2w[1], 40, 40, test.focal)["rgb"].numpy()
+    assert (img[..., 3] > 0.5).sum() > 20 and (img[..., 3] < 0.5).sum() > 20
+    np.testing.assert_allclose(over_white, ref, atol=3 / 255)
 
 
 @pytest.mark.parametrize("make, message", [

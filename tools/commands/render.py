@@ -11,7 +11,8 @@ import time
 from pathlib import Path
 
 NAME = "render"
-HELP = "render a model from the cameras of a transforms JSON (one RGBA PNG per camera), optionally posed/painted"
+HELP = ("render a model from the cameras of a transforms JSON (one RGBA PNG per camera, straight alpha), "
+        "optionally posed/painted")
 ORDER = 40
 
 
@@ -78,6 +79,7 @@ def run(args) -> int:
     import torch
 
     from core.bundle import load_bundle
+    from core.frames.render import straight_colour
     from core.images.dataset import load_cameras
     from core.images.png import read_png, write_png
     from core.util.atomic import atomic_write_text
@@ -110,16 +112,20 @@ def run(args) -> int:
             if state is None:
                 from core.frames.render import render_frame
 
-                res = render_frame(bundle.model, cams.c2w[i], cams.height, cams.width, cams.focal)
+                res = render_frame(bundle.model, cams.c2w[i], cams.height, cams.width, cams.focal,
+                                   background=(0.0, 0.0, 0.0))
             else:
                 from core.frames.edited import render_edited
 
-                res = render_edited(state, cams.c2w[i], cams.height, cams.width, cams.focal)
+                res = render_edited(state, cams.c2w[i], cams.height, cams.width, cams.focal,
+                                    background=(0.0, 0.0, 0.0))
                 for k, v in res["stats"].items():
                     if isinstance(v, (int, float)) and k != "seconds":
                         totals[k] = totals.get(k, 0) + v
             times.append(time.perf_counter() - t0)
-            rgba = torch.cat([res["rgb"], res["alpha"][..., None]], dim=-1).cpu().numpy()
+            # Rendered over black, stored straight: viewers composite the PNG over any background themselves.
+            rgba = torch.cat([straight_colour(res["rgb"], res["alpha"]), res["alpha"][..., None]], dim=-1)
+            rgba = rgba.cpu().numpy()
             write_png(out / f"{name}.png", rgba)
             bar.update(1)
     summary = {"frames": len(times), "seconds_per_frame": float(np.mean(times)), "out": str(out)}

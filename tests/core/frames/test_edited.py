@@ -190,8 +190,28 @@ def test_painted_rays_take_the_decoder_mask_as_coverage():
         frames[name] = _render(EditState(b, cfg=EditConfig(colour="atlas", antialias=1)), test)
     hit = frames["none"]["stats"]["texture_rays"]
     assert hit > 100
-    painted = (frames["none"]["alpha"] > 1e-4).reshape(-1)
+    painted = torch.isfinite(frames["none"]["x_can"]).all(-1).reshape(-1)
+    assert painted.sum() == hit and frames["none"]["alpha"].max() < 1e-6  # alpha is the mask head's
     assert torch.allclose(frames["none"]["rgb"].reshape(-1, 3)[painted], torch.ones(1, 3), atol=1e-4)
     full = frames["full"]["rgb"].reshape(-1, 3)[painted]
     atlas_rgb = bundle.atlas.lookup(frames["full"]["x_can"].reshape(-1, 3)[painted])
     assert torch.allclose(full, atlas_rgb.clamp(0, 1), atol=1e-3)
+
+
+@pytest.mark.parametrize("decoder", ["none", "unet"])
+def test_renders_over_any_background(decoder):
+    """A decoder paints the white it was trained on; over another background its share must move there: over
+    black the background pixels are black, and white minus black is the uncovered share 1 − alpha everywhere."""
+    bundle, _, test = tiny_card(steps=400 if decoder == "unet" else 200, decoder=decoder)
+    state = EditState(bundle, cfg=EditConfig(colour="atlas", antialias=1))
+    for render in (lambda bg: render_frame(bundle.model, test.c2w[1], test.height, test.width, test.focal,
+                                           background=bg),
+                   lambda bg: render_edited(state, test.c2w[1], test.height, test.width, test.focal, background=bg)):
+        white, black = render((1.0, 1.0, 1.0)), render((0.0, 0.0, 0.0))
+        assert torch.allclose(white["alpha"], black["alpha"])
+        empty = (test.alphas[1] == 0) & (black["alpha"] < 0.02)
+        assert empty.float().mean() > 0.3
+        assert black["rgb"][empty].max() < 0.03
+        unclamped = (black["rgb"] > 1e-3).all(-1)
+        share = (white["rgb"] - black["rgb"])[unclamped]
+        assert torch.allclose(share, (1 - black["alpha"])[unclamped][:, None].expand_as(share), atol=2e-3)
