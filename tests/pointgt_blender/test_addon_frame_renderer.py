@@ -107,3 +107,26 @@ def test_model_cache_reloads_changed_files_and_names_missing_ones(tmp_path, monk
     assert cache.get(str(path), "cpu") is not a and len(loads) == 2
     with pytest.raises(ModelFileError, match="gone.pgt.*not found"):
         cache.get(str(tmp_path / "gone.pgt"), "cpu")
+
+
+def test_decoder_layer_composites_like_the_render_over_white():
+    """A UNet model's layer is premultiplied over black (no trained-white fringe): composited over white it is
+    the frame rendered over white, over black its empty pixels are black, transparent gives the mask as alpha."""
+    from core.frames.edited import EditConfig, EditState, render_edited
+    from pointgt_blender.frame_renderer import render_layer
+    from tests.helpers.tiny_model import tiny_card
+
+    bundle, _, test = tiny_card(steps=400, decoder="unet")
+    state = EditState(bundle, cfg=EditConfig(colour="atlas", antialias=1))
+    c2w = test.c2w[2]
+    layer = render_layer(state, c2w.numpy(), test.height, test.width, test.focal)
+    ref = render_edited(state, c2w, test.height, test.width, test.focal)["rgb"].numpy()
+    white, _ = composite([layer], background=(1, 1, 1))
+    unclamped = (layer["premul"] > 1e-3).all(-1) | (layer["alpha"] < 1e-3)
+    assert unclamped.mean() > 0.9
+    np.testing.assert_allclose(white[unclamped], ref[unclamped], atol=2e-3)
+    black, alpha = composite([layer], background=(0, 0, 0))
+    empty = (test.alphas[2].numpy() == 0) & (alpha < 0.02)
+    assert empty.mean() > 0.3 and black[empty].max() < 0.03
+    _, alpha_t = composite([layer], transparent=True)
+    np.testing.assert_allclose(alpha_t, layer["alpha"], atol=1e-6)
