@@ -2,7 +2,7 @@
 import bpy
 
 from . import deps
-from .properties import is_pointgt_object
+from .properties import poll_active_model
 
 
 class NeedsTorch:
@@ -35,10 +35,7 @@ class POINTGT_OT_check_device(NeedsTorch, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not is_pointgt_object(context.active_object):
-            cls.poll_message_set("Make an imported PointGT model the active object")
-            return False
-        return super().poll(context)
+        return poll_active_model(cls, context) and super().poll(context)
 
     def execute(self, context):
         device = context.active_object.pointgt.device

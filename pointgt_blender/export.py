@@ -10,7 +10,7 @@ from core.util.atomic import atomic_write_bytes
 from core.util.errors import PointGTError
 
 from .evaluated import evaluated_points
-from .properties import is_pointgt_object
+from .properties import poll_active_model
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
@@ -50,10 +50,7 @@ class POINTGT_OT_export_deformed(bpy.types.Operator, ExportHelper):
 
     @classmethod
     def poll(cls, context):
-        if is_pointgt_object(context.active_object):
-            return True
-        cls.poll_message_set("Make an imported PointGT model the active object")
-        return False
+        return poll_active_model(cls, context)
 
     def invoke(self, context, event):
         if not self.filepath:

@@ -4,7 +4,7 @@ import bpy
 
 from . import preview
 from .preferences import draw_dependency_status
-from .properties import is_pointgt_object
+from .properties import NO_ACTIVE_MODEL, is_pointgt_object
 
 
 def panel_object(context):
@@ -40,7 +40,7 @@ class _ImageEditorOp:
             cls.poll_message_set("Run this from the Image Editor")
             return False
         if panel_object(context) is None:
-            cls.poll_message_set("Make an imported PointGT model the active object")
+            cls.poll_message_set(NO_ACTIVE_MODEL)
             return False
         return True
 

@@ -21,7 +21,7 @@ from core.util.errors import InputError, PointGTError
 
 from . import atlas_image, deps
 from .camera import preview_size, scene_camera
-from .properties import is_pointgt_object
+from .properties import is_pointgt_object, poll_active_model
 
 POLL_SECONDS = 0.5
 _STATUS: dict[str, str] = {}
@@ -348,10 +348,7 @@ class POINTGT_OT_transfer_paint(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not is_pointgt_object(context.active_object):
-            cls.poll_message_set("Make an imported PointGT model the active object")
-            return False
-        return True
+        return poll_active_model(cls, context)
 
     def execute(self, context):
         obj = context.active_object

@@ -57,6 +57,17 @@ def is_pointgt_object(obj) -> bool:
             and ID_ATTRIBUTE in obj.data.attributes)
 
 
+NO_ACTIVE_MODEL = "Make an imported PointGT model the active object"
+
+
+def poll_active_model(cls, context) -> bool:
+    """Operator poll: the active object is an imported PointGT model, else the tooltip says what to do."""
+    if is_pointgt_object(context.active_object):
+        return True
+    cls.poll_message_set(NO_ACTIVE_MODEL)
+    return False
+
+
 CLASSES = (PointGTObjectSettings, PointGTSceneSettings)
 
 

@@ -7,7 +7,7 @@ from core.util.errors import InputError, PointGTError
 
 from .evaluated import read_points
 from .model_import import read_model
-from .properties import is_pointgt_object
+from .properties import poll_active_model
 
 DEFORM_MODIFIERS = {'ARMATURE', 'LATTICE', 'CAST', 'CURVE', 'DISPLACE', 'HOOK', 'LAPLACIANDEFORM', 'MESH_DEFORM',
                     'SIMPLE_DEFORM', 'SMOOTH', 'CORRECTIVE_SMOOTH', 'LAPLACIANSMOOTH', 'SURFACE_DEFORM', 'WARP',
@@ -58,8 +58,7 @@ class POINTGT_OT_reset_canonical(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not is_pointgt_object(context.active_object):
-            cls.poll_message_set("Make an imported PointGT model the active object")
+        if not poll_active_model(cls, context):
             return False
         if context.mode != 'OBJECT':
             cls.poll_message_set("Switch to Object Mode first")

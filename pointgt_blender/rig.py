@@ -6,7 +6,7 @@ import numpy as np
 from core.util.errors import InputError, PointGTError
 
 from .evaluated import to_world
-from .properties import is_pointgt_object
+from .properties import poll_active_model
 
 LATTICE_MODIFIER = "PointGT Lattice"
 ARMATURE_MODIFIER = "PointGT Armature"
@@ -143,13 +143,6 @@ def _pick(context, name: str, kind: str, exclude):
     return None
 
 
-def _poll_points(cls, context) -> bool:
-    if is_pointgt_object(context.active_object):
-        return True
-    cls.poll_message_set("Make an imported PointGT model the active object")
-    return False
-
-
 class POINTGT_OT_add_lattice(bpy.types.Operator):
     """Add a Lattice around the points and deform them with it"""
     bl_idname = "pointgt.add_lattice"
@@ -162,7 +155,7 @@ class POINTGT_OT_add_lattice(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _poll_points(cls, context)
+        return poll_active_model(cls, context)
 
     def execute(self, context):
         obj = context.active_object
@@ -190,7 +183,7 @@ class POINTGT_OT_bind_armature(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _poll_points(cls, context)
+        return poll_active_model(cls, context)
 
     def execute(self, context):
         obj = context.active_object
