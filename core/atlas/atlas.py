@@ -14,6 +14,7 @@ from core.util.errors import InputError, ModelFileError
 
 FORMAT_VERSION = 1
 _CHUNK = 65536
+MAX_BAKE_SAMPLES = 200_000  # stored surface samples for baking (2.4 MB); more are subsampled
 
 
 def check_points(x, name: str = "points") -> torch.Tensor:
@@ -50,6 +51,10 @@ class Atlas(nn.Module):
         self.surf = SurfaceNet(n, width_map, depth_map, fourier_map)
         self.textures = nn.Parameter(torch.full((n, 3, R, R), 0.5))
         self.register_buffer("texel_xyz", torch.full((*self.layout.shape, 3), float("nan")))
+        # Surface samples [S, 3] the texel map was built from, kept for baking (core/edits/bake.py), and the
+        # kernel width they were splatted with; None in files written before they were stored.
+        self.bake_samples: torch.Tensor | None = None
+        self.bake_sigma = 1.0
 
     @property
     def n(self) -> int:
@@ -151,6 +156,10 @@ class Atlas(nn.Module):
             r0, c0 = L.origin(c)
             out[r0:r0 + R, c0:c0 + R] = pts.reshape(R, R, 3)
         self.texel_xyz.copy_(out)
+        keep = samples if samples.shape[0] <= MAX_BAKE_SAMPLES else samples[
+            torch.randperm(samples.shape[0], generator=torch.Generator().manual_seed(0))[:MAX_BAKE_SAMPLES].to(
+                samples.device)]
+        self.bake_samples, self.bake_sigma = keep.detach().float().cpu().clone(), float(sigma)
         return out
 
     # --- serialisation ------------------------------------------------------------------------------
@@ -158,17 +167,20 @@ class Atlas(nn.Module):
         """JSON-able description needed to rebuild the atlas from its arrays."""
         L = self.layout
         return dict(version=FORMAT_VERSION, n=L.n, R=L.R, pad=L.pad, half=self.half, height=L.shape[0],
-                    width=L.shape[1], layout="grid", uv_convention="u->col, v->row, row 0 = top", **self.arch)
+                    width=L.shape[1], layout="grid", uv_convention="u->col, v->row, row 0 = top",
+                    bake_sigma=self.bake_sigma, **self.arch)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """All state as named float32 arrays: 'atlas/image' [H, W, 3], 'atlas/texel_points' [H, W, 3],
-        'atlas/centre' [3] and the network weights under 'atlas/net/...'."""
+        'atlas/centre' [3], the network weights under 'atlas/net/...' and, when known, 'atlas/bake_samples' [S, 3]."""
         arrays = {"atlas/image": pack(self.textures.detach(), self.layout).cpu().numpy().astype(np.float32),
                   "atlas/texel_points": self.texel_xyz.cpu().numpy().astype(np.float32),
                   "atlas/centre": self.centre.cpu().numpy().astype(np.float32)}
         for name, p in self.named_parameters():
             if name != "textures":
                 arrays[f"atlas/net/{name}"] = p.detach().cpu().numpy().astype(np.float32)
+        if self.bake_samples is not None:
+            arrays["atlas/bake_samples"] = self.bake_samples.cpu().numpy().astype(np.float32)
         return arrays
 
     @classmethod
@@ -208,4 +220,14 @@ class Atlas(nn.Module):
         state["centre"] = atlas.centre
         state["texel_xyz"] = torch.from_numpy(np.asarray(arrays["atlas/texel_points"], dtype=np.float32).copy())
         atlas.load_state_dict(state)
+        if "atlas/bake_samples" in arrays:  # optional: older files bake through the texel map alone
+            b = np.asarray(arrays["atlas/bake_samples"])
+            if b.ndim != 2 or b.shape[1] != 3 or b.shape[0] > MAX_BAKE_SAMPLES or not np.isfinite(b).all():
+                raise ModelFileError(f"atlas: array 'atlas/bake_samples' should be finite [S, 3] with S <= "
+                                     f"{MAX_BAKE_SAMPLES}, found shape {b.shape}")
+            atlas.bake_samples = torch.from_numpy(b.astype(np.float32, copy=True))
+            sigma = meta.get("bake_sigma", 1.0)
+            if not isinstance(sigma, (int, float)) or not 0 < float(sigma) < 1e3:
+                raise ModelFileError(f"atlas: bake_sigma must be a positive number, found {sigma!r}")
+            atlas.bake_sigma = float(sigma)
         return atlas.to(device)

@@ -15,8 +15,9 @@ colour and no model coverage anywhere), in these ways:
 - with --model: the model's surface points x_i (on their rays) instead of the true hits, at the pixel centre and
   filtered (3-pixel support) in linear light from 2 x 2 interpolated sub-pixel points, exactly as an edited frame is rendered —
   what the model's geometry allows with a perfect texture;
-- with --model and an atlas: the true texture *baked through the model's texel map* (core/edits/bake.py) and
-  looked up at x_i, one lookup or filtered — what the texel map loses. `--texel-maps splat,inverse` recomputes the
+- with --model and an atlas: the true texture *baked into the atlas* (core/edits/bake.py; `--bake-from`: splatted
+  from the stored surface samples and/or evaluated at each texel's map point) and looked up at x_i, one lookup or
+  filtered — what baking loses. `--texel-maps splat,inverse` recomputes the
   map in memory with each rule first (the model file is not written).
 
 Object PSNR over ground-truth alpha > 0.5 ∪ the rows' own coverage, as elsewhere.
@@ -51,6 +52,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sub", type=int, default=4, help="rays per pixel side for the filtered true-hit rows")
     ap.add_argument("--supports", default="1.5,3", help="filter supports (pixels) to compare; support * sub - sub "
                     "must be even")
+    ap.add_argument("--bake-from", default="samples,points",
+                    help="comma-separated bake sources: samples (fn splatted from the stored surface samples, the "
+                         "default of core/edits/bake.py) and/or points (fn at each texel's map point)")
     ap.add_argument("--texel-maps", default="", help="comma-separated texel-map rules (splat, inverse) to recompute "
                     "and compare; empty = the model's stored map")
     ap.add_argument("--threads", type=int, default=1, help="torch threads")
@@ -95,10 +99,19 @@ def main(argv=None) -> int:
                 from core.atlas.config import AtlasConfig
                 from core.pipeline import refresh_texel_map
                 train = load_split(scene, "train")
+            sources = [b.strip() for b in args.bake_from.split(",") if b.strip()]
             for rule in rules or ["stored"]:
                 if rule != "stored":
                     refresh_texel_map(bundle, train, AtlasConfig(texel_map=rule, device="cpu"))
-                baked[rule] = bake(atlas, lambda p: (colour(p).float(), None))
+                kept = atlas.bake_samples
+                for src in sources:
+                    if src == "samples" and kept is None:
+                        print(f"{args.model}: no stored surface samples (older file); `pointgt atlas M.pgt DIR "
+                              f"--texel-map-only` on a copy stores them")
+                        continue
+                    atlas.bake_samples = kept if src == "samples" else None
+                    baked[f"{rule}, from {src}"] = bake(atlas, lambda p: (colour(p).float(), None))
+                atlas.bake_samples = kept
 
     scores: dict[str, list[float]] = {}
     centres = _subpixel_grid(H, W, 1)
@@ -149,11 +162,11 @@ def main(argv=None) -> int:
             for rule, tex in baked.items():
                 rgb = torch.ones(H, W, 3, dtype=torch.float64)
                 rgb[valid] = atlas.lookup(x[valid], image=tex).double()
-                frames[f"model x_i, baked through the texel map ({rule}), pixel centre"] = composite(rgb, valid)
+                frames[f"model x_i, baked ({rule}), pixel centre"] = composite(rgb, valid)
                 vals = torch.zeros(3, *on_s.shape, dtype=torch.float64)
                 vals[:, on_s] = srgb_to_linear(atlas.lookup(sp[on_s], image=tex).double()).T
                 px = filter_down(vals, on_s, 2).permute(1, 2, 0)
-                frames[f"model x_i, baked through the texel map ({rule}), filter over 3 px, linear"] = composite(
+                frames[f"model x_i, baked ({rule}), filter over 3 px, linear"] = composite(
                     torch.nan_to_num(linear_to_srgb(px), nan=1.0), torch.isfinite(px).all(-1))
         mask = object_mask(alpha, None)
         for name, frame in frames.items():

@@ -78,6 +78,12 @@ def test_round_trip_through_arrays_is_exact(strip_fit):
     assert np.array_equal(b.texel_points().numpy(), a.texel_points().numpy(), equal_nan=True)
     x = strip_fit[2][:500]
     assert torch.equal(b.lookup(x), a.lookup(x))
+    assert a.bake_samples is not None and torch.equal(b.bake_samples, a.bake_samples)
+    assert b.bake_sigma == a.bake_sigma == AtlasConfig().texture_sigma
+    # files written before the samples were stored load without them (bake falls back to the texel map)
+    old = Atlas.from_arrays({k: v for k, v in arrays.items() if k != "atlas/bake_samples"},
+                            {k: v for k, v in meta.items() if k != "bake_sigma"}, "cpu")
+    assert old.bake_samples is None and torch.equal(old.packed_image(), a.packed_image())
 
 
 def test_from_arrays_rejects_missing_or_misshaped_arrays():
@@ -92,6 +98,12 @@ def test_from_arrays_rejects_missing_or_misshaped_arrays():
         Atlas.from_arrays(broken, meta)
     with pytest.raises(ModelFileError, match="version"):
         Atlas.from_arrays(arrays, dict(meta, version=99))
+    for bad in (np.zeros((5, 2), np.float32), np.full((5, 3), np.nan, np.float32)):
+        with pytest.raises(ModelFileError, match="bake_samples"):
+            Atlas.from_arrays(dict(arrays, **{"atlas/bake_samples": bad}), meta)
+    with pytest.raises(ModelFileError, match="bake_sigma"):
+        Atlas.from_arrays(dict(arrays, **{"atlas/bake_samples": np.zeros((5, 3), np.float32)}),
+                          dict(meta, bake_sigma="x"))
 
 
 def test_texel_map_layout(strip_fit):
@@ -203,3 +215,39 @@ def test_texel_map_from_forward_splat_is_consistent_with_lookups(strip_fit):
     with pytest.raises(InputError, match="splat"):
         a.compute_texel_points(xyz, max_dist, mode="nearest")
     a.compute_texel_points(xyz, max_dist)  # leave the fixture's atlas as fit_atlas made it
+
+
+def test_bake_from_samples_matches_texel_points_on_smooth_colour_and_keeps_decal_masks(strip_fit):
+    """Baking splats fn at the stored surface samples; for a smooth fn that is fn at the texel's point (the
+    fallback), and a decal's mask stays a mask: 1 deep inside, 0 far outside, fractional only at its edge."""
+    import copy
+
+    from core.edits.bake import bake
+
+    a, _, xyz, _ = strip_fit
+    lo, hi = xyz.min(0).values, xyz.max(0).values
+    smooth = lambda p: (((p - lo) / (hi - lo)).clamp(0, 1), None)
+    with_samples = bake(a, smooth)
+    fallback = copy.deepcopy(a)
+    fallback.bake_samples = None
+    at_points = bake(fallback, smooth)
+    ok = torch.isfinite(a.texel_points()).all(-1)
+    assert ok.sum() > 100
+    err = (with_samples[ok] - at_points[ok]).abs()
+    assert err.median() < 0.01 and err.max() < 0.1
+    assert not torch.equal(with_samples, at_points)  # the sample path really ran
+
+    centre = xyz.mean(0)
+    radius = 0.3 * float((hi - lo).norm())
+    red = torch.tensor([1.0, 0.0, 0.0])
+    decal = lambda p: (red.expand(p.shape[0], 3), ((p - centre).norm(dim=-1) < radius).float())
+    base = torch.zeros(*a.layout.shape, 3)
+    img = bake(a, decal, base_image=base)
+    d = (a.texel_points() - centre).norm(dim=-1)
+    inside, outside = ok & (d < 0.5 * radius), ok & (d > 1.5 * radius)  # the kernel softens the edge
+    assert inside.sum() > 20 and outside.sum() > 20
+    assert img[inside][:, 1:].abs().max() < 1e-6  # the decal's own colour, nothing else mixed in
+    # Gaussian tails reach a few texels of this coarse 32-texel test atlas: judge the bulk, not every texel
+    assert img[inside][:, 0].median() > 0.99 and (img[inside][:, 0] > 0.95).float().mean() > 0.95
+    assert img[outside].max() < 0.05
+    assert torch.isfinite(img).all() and img.min() >= 0 and img.max() <= 1
