@@ -77,3 +77,26 @@ def render_split(shape: str, c2w: torch.Tensor, size: int, fov: float = 0.69, co
     files = [Path(f"{split}/r_{i}.png") for i in range(len(c2w))]
     return SplitData(split=split, images=torch.stack(ims).float(), alphas=torch.stack(als).float(),
                      c2w=c2w.float(), focal=focal, height=size, width=size, camera_angle_x=fov, files=files)
+
+
+def write_split(root: str | Path, split: SplitData, background=(1.0, 1.0, 1.0)) -> Path:
+    """Write a rendered split (composited over `background`, as render_split made it) as a NeRF-synthetic
+    folder: `<split>/r_<i>.png` (RGBA, straight colour) and `transforms_<split>.json`. Returns root."""
+    import json
+
+    import numpy as np
+
+    from core.images.png import write_png
+
+    root = Path(root)
+    (root / split.split).mkdir(parents=True, exist_ok=True)
+    bg = torch.tensor(background, dtype=torch.float32)
+    frames = []
+    for i, name in enumerate(split.files):
+        a = split.alphas[i][..., None]
+        straight = torch.where(a > 0, (split.images[i] - (1 - a) * bg) / a.clamp_min(1e-6), torch.zeros_like(a))
+        write_png(root / name, np.concatenate([straight.clamp(0, 1).numpy(), a.numpy()], -1), backup=False)
+        frames.append({"file_path": f"./{split.split}/r_{i}", "transform_matrix": split.c2w[i].tolist()})
+    (root / f"transforms_{split.split}.json").write_text(
+        json.dumps({"camera_angle_x": split.camera_angle_x, "frames": frames}))
+    return root

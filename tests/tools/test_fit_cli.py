@@ -1,0 +1,31 @@
+"""`pointgt fit` end to end on a tiny analytic scene written to disk: the summary is measured on every test view."""
+import json
+
+import torch
+
+from core.bundle import load_bundle
+from core.images.dataset import load_split
+from core.points.train import evaluate
+from tests.helpers.synthetic import fibonacci_cameras, render_split, write_split
+from tools.cli import main
+
+
+def test_fit_reports_psnr_on_all_test_views(tmp_path, capsys):
+    root = tmp_path / "card"
+    write_split(root, render_split("card", fibonacci_cameras(6, seed=0), 24))
+    write_split(root, render_split("card", fibonacci_cameras(3, seed=5), 24, split="test"))
+    out = tmp_path / "m.pgt"
+    rc = main(["fit", str(root), "--out", str(out), "--stage", "papr", "--steps", "15", "--points", "300",
+               "--eval-views", "1", "--no-profile", "--no-progress", "--device", "cpu", "--threads", "1"])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "on all 3 test views" in printed and "on the curve's 1)" in printed
+    summary = json.loads(out.with_suffix(".history.json").read_text())["test_all_views"]
+    assert summary["views"] == 3
+    # the stored figures are the saved model's, over the whole test split
+    bundle = load_bundle(out, "cpu")
+    with torch.no_grad():
+        again = evaluate(bundle.model, load_split(root, "test"), range(3), (1.0, 1.0, 1.0))
+    for k in ("psnr", "psnr_object", "ssim"):
+        assert abs(again[k] - summary[k]) < 1e-3, k
+    assert bundle.meta["train"]["test_all_views"]["views"] == 3
