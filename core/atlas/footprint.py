@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from core.edits.procedural import linear_to_srgb, srgb_to_linear
-from core.frames.antialias import FILTER_WIDTH, blackman_harris_taps, subpixel_points
+from core.frames.antialias import FILTER_WIDTH, blackman_harris_taps, subpixel_chart_uv
 
 
 @dataclass
@@ -76,8 +76,11 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
     for v in views:
         H, W = v.valid.shape
         step = 3.0 * v.depth.abs() / v.focal  # same surface: depth within 3 pixel footprints (as edited frames)
-        sp = subpixel_points(v.points.to(dev), v.valid.to(dev), v.depth.to(dev), sub, step.to(dev))
-        on = torch.isfinite(sp).all(-1)
+        # the same sub-pixel lookups as edited frames (core/frames/edited.py): chart nets per pixel, interpolated
+        probs_all, uv_all, on = subpixel_chart_uv(atlas, v.points.to(dev), v.valid.to(dev), v.depth.to(dev), sub,
+                                                  step.to(dev))
+        sub_index = torch.full(on.shape, -1, dtype=torch.long, device=dev)
+        sub_index[on] = torch.arange(int(on.sum()), device=dev)
         use = v.valid.to(dev) & (v.alpha.to(dev) > alpha_min)
         pr, pc = torch.nonzero(use, as_tuple=True)
         if pr.numel() == 0:
@@ -97,8 +100,8 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
         f_rows.append((torch.arange(len(pr), device=dev)[:, None] + n_pix).expand_as(flat).reshape(-1)[keep])
         f_cols.append(remap[flat.reshape(-1)[keep]])
         f_vals.append(w.reshape(-1)[keep])
-        probs, uv = atlas.chart_uv(sp.reshape(-1, 3)[used])
-        r, c, val = _bilinear_rows(probs, uv, R)
+        rows = sub_index.reshape(-1)[used]
+        r, c, val = _bilinear_rows(probs_all[rows], uv_all[rows], R)
         b_rows.append(r + n_sub)
         b_cols.append(c)
         b_vals.append(val)

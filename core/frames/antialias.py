@@ -39,20 +39,20 @@ def blackman_harris_taps(sub: int, width: float = FILTER_WIDTH) -> torch.Tensor:
 
 def subpixel_points(points: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, sub: int,
                     max_depth_step: torch.Tensor | float) -> torch.Tensor:
-    """Surface points at S x S sub-pixel positions of every pixel, interpolated from the per-pixel map.
+    """Surface points (or any per-pixel values) at S x S sub-pixel positions, interpolated from the per-pixel map.
 
-    points [H, W, 3] (any values where not valid), valid [H, W] bool, depth [H, W] distance along each ray,
-    max_depth_step: scalar or [H, W]; a neighbour joins the interpolation of pixel p's sub-pixels only if it is
-    valid and its depth differs from p's by at most this (same surface, not across an occlusion edge).
-    Returns [S*H, S*W, 3]: sub-pixel (a, b) of pixel (r, c) at row S*r + a, column S*c + b, i.e. at
+    points [H, W, C] (any values where not valid; C = 3 for points), valid [H, W] bool, depth [H, W] distance
+    along each ray, max_depth_step: scalar or [H, W]; a neighbour joins the interpolation of pixel p's sub-pixels
+    only if it is valid and its depth differs from p's by at most this (same surface, not across an occlusion
+    edge). Returns [S*H, S*W, C]: sub-pixel (a, b) of pixel (r, c) at row S*r + a, column S*c + b, i.e. at
     (r + (a + 0.5) / S, c + (b + 0.5) / S) in pixel units; NaN where the owning pixel is not valid.
     """
-    H, W, _ = points.shape
+    H, W, C = points.shape
     dev = points.device
     step = torch.as_tensor(max_depth_step, dtype=points.dtype, device=dev).expand(H, W)
     pts = torch.where(valid[..., None], points, torch.zeros_like(points))
     dep = torch.where(valid, depth, torch.zeros_like(depth))
-    out = torch.full((sub * H, sub * W, 3), float("nan"), dtype=points.dtype, device=dev)
+    out = torch.full((sub * H, sub * W, C), float("nan"), dtype=points.dtype, device=dev)
     rr = torch.arange(H, device=dev)[:, None]
     cc = torch.arange(W, device=dev)[None, :]
     for a in range(sub):
@@ -99,3 +99,24 @@ def filter_down(values: torch.Tensor, on: torch.Tensor, sub: int, width: float =
     y = F.conv2d(y, k.view(1, 1, -1, 1), stride=(sub, 1))[:, 0]  # [C+1, H, W]
     den = y[-1]
     return torch.where(den > 1e-8, y[:-1] / den.clamp_min(1e-12), torch.full_like(y[:-1], float("nan")))
+
+
+def subpixel_chart_uv(atlas, points: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, sub: int,
+                      max_depth_step: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Chart probabilities and texture coordinates at the S x S sub-pixel positions of a frame.
+
+    The atlas networks run once per pixel (points [H, W, 3] where valid) and their outputs are interpolated to
+    the sub-pixels like `subpixel_points` interpolates the points: t_c and c are smooth, so this equals evaluating
+    them at the interpolated points up to second-order terms, at 1/S² of the cost. Returns (probs [K, n],
+    uv [K, n, 2] of the K sub-pixels that are on the object, on [S*H, S*W] bool marking them, row-major)."""
+    H, W, _ = points.shape
+    n = atlas.n
+    feat = torch.zeros(H, W, 3 * n, dtype=points.dtype, device=points.device)
+    if bool(valid.any()):
+        probs, uv = atlas.chart_uv(points[valid])
+        feat[valid] = torch.cat([probs, uv.reshape(-1, 2 * n)], 1).to(points.dtype)
+    sp = subpixel_points(feat, valid, depth, sub, max_depth_step)
+    on = torch.isfinite(sp).all(-1)
+    v = sp[on]
+    return v[:, :n], v[:, n:].reshape(-1, n, 2), on
+

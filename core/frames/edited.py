@@ -18,7 +18,7 @@ from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
 from core.edits.procedural import linear_to_srgb, srgb_to_linear
 from core.edits.texture_edit import BLENDS, blend, check_atlas_image, edit_mask
-from core.frames.antialias import filter_down, subpixel_points
+from core.frames.antialias import filter_down, subpixel_chart_uv, subpixel_points
 from core.frames.render import shade_frame, trace_frame
 from core.points.regularizers import project_on_ray
 from core.util.errors import InputError
@@ -146,10 +146,15 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
     depth[sel] = ((tr["x"][sel] - tr["origins"][sel]) * tr["dirs"][sel]).sum(-1)
     # neighbours on the same surface: depth within 3 pixel footprints (an occlusion edge jumps much further)
     step = 3.0 * depth.abs() / focal
-    sp = subpixel_points(canon.view(height, width, 3), valid.view(height, width), depth.view(height, width), sub,
-                         step.view(height, width))
-    on = torch.isfinite(sp).all(-1)
-    looked = _lookup(state, sp[on], texture_fn)  # [K, 4]: rgb, mask
+    if texture_fn is None:  # the atlas: chart nets once per pixel, their outputs interpolated to the sub-pixels
+        probs, uv, on = subpixel_chart_uv(state.bundle.atlas, canon.view(height, width, 3), valid.view(height, width),
+                                          depth.view(height, width), sub, step.view(height, width))
+        looked = (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)[:, :4]  # [K, 4]: rgb, mask
+    else:  # a 3-D function needs the sub-pixel points themselves
+        sp = subpixel_points(canon.view(height, width, 3), valid.view(height, width), depth.view(height, width),
+                             sub, step.view(height, width))
+        on = torch.isfinite(sp).all(-1)
+        looked = _lookup(state, sp[on], texture_fn)
     vals = torch.zeros(4, *on.shape, dtype=xc.dtype, device=dev)
     vals[:3, on] = srgb_to_linear(looked[:, :3].clamp(0, 1)).T
     vals[3, on] = looked[:, 3]

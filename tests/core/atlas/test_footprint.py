@@ -28,11 +28,15 @@ def test_system_matches_plain_filtered_rendering():
     F, B, _ = footprint_system(atlas, [view], sub)
     tex = torch.rand(atlas.n * atlas.layout.R ** 2, 3, generator=torch.Generator().manual_seed(1))
     pred = F @ (B @ tex)  # [P, 3] linear light
-    # plain path: sub-pixel points, one lookup each, filter down (as core/frames/edited.py renders)
+    # plain path, as core/frames/edited.py renders: chart nets at each pixel's point, their outputs interpolated
+    # to the sub-pixels, one lookup each, filter down
     H, W = view.valid.shape
-    sp = subpixel_points(view.points, view.valid, view.depth, sub, 3.0 * view.depth / view.focal)
+    p, u = atlas.chart_uv(view.points[view.valid])
+    feat = torch.zeros(H, W, 3 * atlas.n)
+    feat[view.valid] = torch.cat([p, u.reshape(-1, 2 * atlas.n)], 1)
+    sp = subpixel_points(feat, view.valid, view.depth, sub, 3.0 * view.depth / view.focal)
     on = torch.isfinite(sp).all(-1)
-    probs, uv = atlas.chart_uv(sp[on])
+    probs, uv = sp[on][:, :atlas.n], sp[on][:, atlas.n:].reshape(-1, atlas.n, 2)
     textures = tex.reshape(atlas.n, atlas.layout.R, atlas.layout.R, 3).permute(0, 3, 1, 2)
     vals = torch.zeros(3, *on.shape)
     vals[:, on] = (probs[..., None] * sample_charts(textures, uv)).sum(1).T
