@@ -11,7 +11,9 @@ strokes alias without it.
 How: the ray surface points of a frame form a map [H, W, 3]; S x S sub-pixel points per pixel are interpolated
 bilinearly from it (only across neighbours on the same surface: depth within a few pixel footprints), looked up,
 turned to linear light, and filtered down with a separable Blackman-Harris kernel over the sub-pixel grid,
-renormalised over the sub-pixels that lie on the object.
+renormalised over the sub-pixels that lie on the object. For the atlas the chart networks run once per pixel and
+their outputs (P(c|x), t_c(x)) are interpolated the same way (`subpixel_chart_uv`): S² times fewer network
+evaluations, equal to second order because the maps are smooth.
 """
 from __future__ import annotations
 
