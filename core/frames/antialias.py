@@ -57,6 +57,13 @@ def subpixel_points(points: torch.Tensor, valid: torch.Tensor, depth: torch.Tens
     out = torch.full((sub * H, sub * W, C), float("nan"), dtype=points.dtype, device=dev)
     rr = torch.arange(H, device=dev)[:, None]
     cc = torch.arange(W, device=dev)[None, :]
+    # neighbours by shifted views of edge-padded maps (no gathers); `inside` drops the padding
+    pts_p = F.pad(pts.permute(2, 0, 1)[None], (1, 1, 1, 1), mode="replicate")[0].permute(1, 2, 0)
+    dep_p = F.pad(dep[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    val_p = F.pad(valid[None, None].to(points.dtype), (1, 1, 1, 1))[0, 0] > 0.5
+
+    def shifted(m, oy, ox):
+        return m[1 + oy:1 + oy + H, 1 + ox:1 + ox + W]
     for a in range(sub):
         fy = (a + 0.5) / sub - 0.5  # offset from the pixel centre, in (-0.5, 0.5)
         dy = 1 if fy >= 0 else -1
@@ -69,12 +76,10 @@ def subpixel_points(points: torch.Tensor, valid: torch.Tensor, depth: torch.Tens
             den = torch.zeros(H, W, dtype=points.dtype, device=dev)
             for oy, oyw in ((0, 1 - wy), (dy, wy)):
                 for ox, oxw in ((0, 1 - wx), (dx, wx)):
-                    r2 = (rr + oy).clamp(0, H - 1).expand(H, W)
-                    c2 = (cc + ox).clamp(0, W - 1).expand(H, W)
                     inside = ((rr + oy >= 0) & (rr + oy < H) & (cc + ox >= 0) & (cc + ox < W))
-                    ok = inside & valid[r2, c2] & ((dep[r2, c2] - dep).abs() <= step)
+                    ok = inside & shifted(val_p, oy, ox) & ((shifted(dep_p, oy, ox) - dep).abs() <= step)
                     w = oyw * oxw * ok.to(points.dtype)
-                    num += w[..., None] * pts[r2, c2]
+                    num += w[..., None] * shifted(pts_p, oy, ox)
                     den += w
             sp = num / den.clamp_min(1e-12)[..., None]  # the pixel itself always counts (weight >= 1/4)
             out[a::sub, b::sub] = torch.where(valid[..., None], sp, torch.full_like(sp, float("nan")))

@@ -135,3 +135,40 @@ def test_subpixel_chart_uv_matches_the_nets_at_interpolated_points():
     assert probs.shape == p_ref.shape and uv.shape == uv_ref.shape
     assert (probs - p_ref).abs().max() < 1e-3 and (uv - uv_ref).abs().max() < 1e-3
     assert torch.allclose(probs.sum(-1), torch.ones(len(probs)), atol=1e-5)
+
+
+def _subpixel_loop_reference(points, valid, depth, sub, step):
+    """Per sub-pixel, plainly: bilinear weights of the pixel and its 3 neighbours towards the sub-pixel, keeping
+    neighbours inside the image, valid and within `step` in depth of the owning pixel; renormalised."""
+    H, W, C = points.shape
+    out = torch.full((sub * H, sub * W, C), float("nan"), dtype=points.dtype)
+    for r in range(H):
+        for c in range(W):
+            if not valid[r, c]:
+                continue
+            for a in range(sub):
+                for b in range(sub):
+                    fy, fx = (a + 0.5) / sub - 0.5, (b + 0.5) / sub - 0.5
+                    dy, dx = (1 if fy >= 0 else -1), (1 if fx >= 0 else -1)
+                    num, den = torch.zeros(C, dtype=points.dtype), 0.0
+                    for oy, wy in ((0, 1 - abs(fy)), (dy, abs(fy))):
+                        for ox, wx in ((0, 1 - abs(fx)), (dx, abs(fx))):
+                            r2, c2 = r + oy, c + ox
+                            if 0 <= r2 < H and 0 <= c2 < W and valid[r2, c2] and abs(depth[r2, c2] - depth[r, c]) <= step:
+                                num += wy * wx * points[r2, c2]
+                                den += wy * wx
+                    out[sub * r + a, sub * c + b] = num / den
+    return out
+
+
+@pytest.mark.parametrize("sub, channels", [(1, 3), (2, 3), (2, 12), (3, 5)])
+def test_subpixel_points_match_the_loop_reference(sub, channels):
+    g = torch.Generator().manual_seed(sub * 10 + channels)
+    H, W = 5, 6
+    pts = torch.randn(H, W, channels, generator=g, dtype=torch.float64)
+    valid = torch.rand(H, W, generator=g) > 0.25
+    depth = torch.rand(H, W, generator=g, dtype=torch.float64) * 2
+    got = subpixel_points(pts, valid, depth, sub, 0.7)
+    want = _subpixel_loop_reference(pts, valid, depth, sub, 0.7)
+    assert torch.equal(torch.isnan(got), torch.isnan(want))
+    assert torch.allclose(got.nan_to_num(0), want.nan_to_num(0), atol=1e-12)
