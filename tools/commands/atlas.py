@@ -39,7 +39,8 @@ def run(args) -> int:
         miss = (f"; t_c sends a texel's point {info['miss_median']:.2f} texels from the texel (median), "
                 f"{info['miss_p90']:.2f} (p90)") if "miss_median" in info else ""
         print(f"texel map ({cfg.texel_map}): {info['valid_texels']} texels with a surface point, from "
-              f"{info['samples']} samples in {info['seconds']:.1f} s{miss} -> {args.model} (previous version: .bak)")
+              f"{info['samples']} samples in {info['seconds']:.1f} s{miss}; {len(bundle.atlas.bake_samples)} samples "
+              f"kept for baking -> {args.model} (previous version: .bak)")
         return 0
     hist = fit_atlas_stage(bundle, train, cfg, show_progress=not args.no_progress)
     save_bundle(args.model, bundle)
