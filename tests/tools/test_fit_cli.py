@@ -29,3 +29,28 @@ def test_fit_reports_psnr_on_all_test_views(tmp_path, capsys):
     for k in ("psnr", "psnr_object", "ssim"):
         assert abs(again[k] - summary[k]) < 1e-3, k
     assert bundle.meta["train"]["test_all_views"]["views"] == 3
+
+
+def test_texel_map_refresh_keeps_samples_for_baking_and_a_backup(tmp_path, capsys):
+    """`pointgt fit --stage all` then `pointgt atlas M DATA --texel-map-only` on a model whose stored samples
+    were dropped (an older file): the refresh stores them again, says so, and keeps the previous file as .bak."""
+    from core.bundle import save_bundle
+
+    root = tmp_path / "card"
+    write_split(root, render_split("card", fibonacci_cameras(6, seed=0), 24))
+    write_split(root, render_split("card", fibonacci_cameras(2, seed=5), 24, split="test"))
+    out = tmp_path / "m.pgt"
+    assert main(["fit", str(root), "--out", str(out), "--steps", "15", "--points", "300", "--eval-views", "1",
+                 "--no-profile", "--no-progress", "--device", "cpu", "--threads", "1", "--atlas-charts", "4",
+                 "--atlas-steps", "30", "--atlas-texture-steps", "5", "--atlas-texture-res", "16",
+                 "--no-atlas-footprint"]) == 0
+    bundle = load_bundle(out, "cpu")
+    n_samples = len(bundle.atlas.bake_samples)
+    assert n_samples > 100
+    bundle.atlas.bake_samples = None  # as written before the samples were stored
+    save_bundle(out, bundle, backup=False)
+    capsys.readouterr()
+    assert main(["atlas", str(out), str(root), "--texel-map-only"]) == 0
+    assert f"{n_samples} samples kept for baking" in capsys.readouterr().out
+    assert len(load_bundle(out, "cpu").atlas.bake_samples) == n_samples
+    assert load_bundle(out.with_name("m.pgt.bak"), "cpu").atlas.bake_samples is None
