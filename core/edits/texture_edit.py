@@ -33,9 +33,12 @@ def edit_mask(original: torch.Tensor, edited: torch.Tensor, threshold: float = 0
     return ((edited.float() - original.float()).norm(dim=-1) > threshold).float()
 
 
+BLEND_THRESHOLD = 0.95  # the paper's rule: use the edit where the bilinearly sampled mask exceeds this
+
+
 def blend(render_rgb: torch.Tensor, texture_rgb: torch.Tensor, mask: torch.Tensor, mode: str = "soft") -> torch.Tensor:
     """render_rgb/texture_rgb [R, 3], mask [R] sampled mask in [0, 1] -> [R, 3]."""
     if mode not in BLENDS:
         raise InputError(f"texture blend must be one of {BLENDS}, got {mode!r}")
-    m = (mask > 0.95).float() if mode == "threshold" else mask.clamp(0.0, 1.0)
+    m = (mask > BLEND_THRESHOLD).float() if mode == "threshold" else mask.clamp(0.0, 1.0)
     return m[:, None] * texture_rgb + (1.0 - m[:, None]) * render_rgb

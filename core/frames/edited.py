@@ -17,7 +17,7 @@ from core.atlas.packing import sample_charts, unpack
 from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
 from core.edits.procedural import linear_to_srgb, srgb_to_linear
-from core.edits.texture_edit import BLENDS, blend, check_atlas_image, edit_mask
+from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.frames.antialias import filter_down, subpixel_chart_uv, subpixel_points
 from core.frames.render import shade_frame, trace_frame
 from core.points.regularizers import project_on_ray
@@ -133,9 +133,12 @@ def _lookup(state: EditState, x: torch.Tensor, texture_fn=None) -> torch.Tensor:
 
 
 def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Tensor, height: int, width: int,
-                     focal: float, sub: int, texture_fn=None) -> tuple[torch.Tensor, torch.Tensor]:
+                     focal: float, sub: int, texture_fn=None, threshold: bool = False) -> tuple[torch.Tensor,
+                                                                                               torch.Tensor]:
     """Painted colour and mask of the rays `sel` [S] from sub x sub lookups per pixel, Blackman-Harris filtered in
-    linear light (core/frames/antialias.py). xc [S, 3] canonical points. Returns (rgb [S, 3], mask [S])."""
+    linear light (core/frames/antialias.py). xc [S, 3] canonical points. Returns (rgb [S, 3], mask [S]).
+    threshold: apply the threshold blend's rule to each sub-pixel lookup before filtering (the mask becomes the
+    filtered share of sub-pixels that pass it, the colour their filtered mean): blend the result softly."""
     dev = xc.device
     n = height * width
     valid = torch.zeros(n, dtype=torch.bool, device=dev)
@@ -155,10 +158,13 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
                              sub, step.view(height, width))
         on = torch.isfinite(sp).all(-1)
         looked = _lookup(state, sp[on], texture_fn)
+    m = (looked[:, 3] > BLEND_THRESHOLD).to(xc.dtype) if threshold else looked[:, 3]
     vals = torch.zeros(4, *on.shape, dtype=xc.dtype, device=dev)
-    vals[:3, on] = srgb_to_linear(looked[:, :3].clamp(0, 1)).T
-    vals[3, on] = looked[:, 3]
+    vals[:3, on] = srgb_to_linear(looked[:, :3].clamp(0, 1)).T * (m if threshold else 1.0)
+    vals[3, on] = m
     px = filter_down(vals, on, sub).reshape(4, n)[:, sel]
+    if threshold:  # mean colour of the passing sub-pixels (any colour where none passes: its weight is 0)
+        px[:3] = px[:3] / px[3:4].clamp_min(1e-6)
     return linear_to_srgb(px[:3].T.clamp(0, 1)), px[3]
 
 
@@ -202,8 +208,11 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         bad = ~torch.isfinite(xc).all(1)
         stats["non_finite_lookups_repaired"] = int(bad.sum())
         xc = torch.where(bad[:, None], x_hat.nan_to_num(0.0), xc)
+        mode = cfg.blend
         if cfg.antialias > 1:
-            tex, m = _filtered_lookup(state, tr, sel, xc, height, width, focal, cfg.antialias, texture_fn)
+            tex, m = _filtered_lookup(state, tr, sel, xc, height, width, focal, cfg.antialias, texture_fn,
+                                      threshold=cfg.blend == "threshold")
+            mode = "soft"  # a threshold was applied per sub-pixel, before the filter
         else:
             looked = _lookup(state, xc, texture_fn)
             tex, m = looked[:, :3], looked[:, 3]
@@ -211,7 +220,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         f = cover[sel][:, None]
         # The point render is f·c + (1 − f)·background; edit the object colour c, keep the coverage f.
         c = ((rgb[sel] - (1 - f) * bgc) / f.clamp_min(1e-4)).clamp(0, 1)
-        rgb[sel] = f * blend(c, tex, m, cfg.blend) + (1 - f) * bgc
+        rgb[sel] = f * blend(c, tex, m, mode) + (1 - f) * bgc
         x_can[sel] = xc
         stats["texture_rays"] = int(sel.numel())
     stats["seconds"] = time.perf_counter() - t0

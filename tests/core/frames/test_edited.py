@@ -215,3 +215,28 @@ def test_renders_over_any_background(decoder):
         unclamped = (black["rgb"] > 1e-3).all(-1)
         share = (white["rgb"] - black["rgb"])[unclamped]
         assert torch.allclose(share, (1 - black["alpha"])[unclamped][:, None].expand_as(share), atol=2e-3)
+
+
+def test_threshold_blend_applies_per_subpixel_before_the_filter(tiny):
+    """With filtered lookups the paper's threshold rule (mask > 0.95) is applied to every sub-pixel lookup:
+    a mask just below it everywhere leaves the frame unedited, a full mask paints like the soft blend, and where
+    a painted region's edge crosses a pixel's footprint the pixel is a filtered mix of both (thresholding the
+    filtered mask instead would give every pixel either the painted or the unedited colour)."""
+    bundle, _, test = tiny
+    painted = bake(bundle.atlas, _half_split)
+    stripes = torch.zeros(bundle.atlas.layout.shape)
+    stripes[:, (torch.arange(stripes.shape[1]) // 4) % 2 == 0] = 1.0  # painted texel stripes, 4 texels wide
+    frames = {}
+    for name, mask in (("below", 0.9), ("full", 1.0), ("stripes", stripes[..., None])):
+        for mode in ("soft", "threshold"):
+            state = EditState(bundle, atlas=painted, cfg=EditConfig(blend=mode, antialias=2))
+            state.mask_image = (torch.zeros_like(state.mask_image) + mask).contiguous()
+            state._edit_textures = None
+            frames[name, mode] = _render(state, test)["rgb"]
+    plain = render_frame(bundle.model, test.c2w[0], test.height, test.width, test.focal)["rgb"]
+    assert torch.allclose(frames["below", "threshold"], plain, atol=1e-5)
+    assert not torch.allclose(frames["below", "soft"], plain, atol=1e-2)
+    assert torch.allclose(frames["full", "threshold"], frames["full", "soft"], atol=1e-5)
+    mixed = (((frames["stripes", "threshold"] - plain).abs().amax(-1) > 1e-3)
+             & ((frames["stripes", "threshold"] - frames["full", "threshold"]).abs().amax(-1) > 1e-3))
+    assert mixed.sum() > 10
