@@ -125,6 +125,7 @@ class Atlas(nn.Module):
         texel by ~5 texels (median) on real samples, which shifts anything baked through it (docs/atlas.md).
         A texel keeps its point only where the chart net picks chart c there, the point lies within max_dist of
         some sample, and t_c(point) returns to within max_cycle texels of the texel centre.
+        The samples (at most MAX_BAKE_SAMPLES) and sigma are kept as `bake_samples` / `bake_sigma` for baking.
         """
         if mode not in ("splat", "inverse"):
             raise InputError(f"texel map mode must be 'splat' or 'inverse', got {mode!r}")

@@ -17,24 +17,33 @@ import torch
 
 from core.atlas.packing import dilate_unused, pack, unpack
 from core.atlas.texture import kernel_texture
+from core.util.errors import InputError
 
 
 @torch.no_grad()
 def bake(atlas, fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]],
-         base_image: torch.Tensor | None = None) -> torch.Tensor:
+         base_image: torch.Tensor | None = None, source: str = "auto") -> torch.Tensor:
     """Return a new packed atlas image [H, W, 3].
 
     fn(points [M, 3]) -> (rgb [M, 3], mask [M] or None): colour at canonical surface points and where it applies
     (None = everywhere, a global retexture; a mask composites a local decal over `base_image`).
     base_image: [H, W, 3] to paint over (default: the fitted atlas).
+    source: "samples" (fn splatted from the stored surface samples), "points" (fn at each texel's point) or
+    "auto" (samples when the atlas has them).
     """
+    if source not in ("auto", "samples", "points"):
+        raise InputError(f"bake source must be 'auto', 'samples' or 'points', got {source!r}")
+    have_samples = atlas.bake_samples is not None and atlas.bake_samples.shape[0] > 0
+    if source == "samples" and not have_samples:
+        raise InputError("this atlas keeps no surface samples (an older model file); `pointgt atlas MODEL DATA "
+                         "--texel-map-only` stores them")
     base = atlas.packed_image() if base_image is None else torch.as_tensor(base_image).float().to(atlas.device)
     texels = atlas.texel_points().to(base.device)
     valid = torch.isfinite(texels).all(-1)                                  # [H, W]
     out = base.clone()
     if not bool(valid.any()):
         return out
-    if getattr(atlas, "bake_samples", None) is not None and atlas.bake_samples.shape[0] > 0:
+    if have_samples and source != "points":
         rgb_img, m_img = splat_function(atlas, fn)
         rgb, m = rgb_img.to(out.device)[valid], m_img.to(out.device)[valid]
     else:

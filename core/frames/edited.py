@@ -128,7 +128,11 @@ def _lookup(state: EditState, x: torch.Tensor, texture_fn=None) -> torch.Tensor:
     if texture_fn is not None:
         rgb = texture_fn(x).to(x.dtype)
         return torch.cat([rgb, torch.ones_like(rgb[:, :1])], 1)
-    probs, uv = state.bundle.atlas.chart_uv(x)
+    return _painted(state, *state.bundle.atlas.chart_uv(x))
+
+
+def _painted(state: EditState, probs: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
+    """Painted colour and mask [M, 4] (rgb, mask) from chart probabilities [M, n] and coordinates [M, n, 2]."""
     return (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)[:, :4]  # rgb, first mask channel
 
 
@@ -152,7 +156,7 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
     if texture_fn is None:  # the atlas: chart nets once per pixel, their outputs interpolated to the sub-pixels
         probs, uv, on = subpixel_chart_uv(state.bundle.atlas, canon.view(height, width, 3), valid.view(height, width),
                                           depth.view(height, width), sub, step.view(height, width))
-        looked = (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)[:, :4]  # [K, 4]: rgb, mask
+        looked = _painted(state, probs, uv)  # [K, 4]: rgb, mask
     else:  # a 3-D function needs the sub-pixel points themselves
         sp = subpixel_points(canon.view(height, width, 3), valid.view(height, width), depth.view(height, width),
                              sub, step.view(height, width))

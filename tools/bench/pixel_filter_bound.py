@@ -103,15 +103,12 @@ def main(argv=None) -> int:
             for rule in rules or ["stored"]:
                 if rule != "stored":
                     refresh_texel_map(bundle, train, AtlasConfig(texel_map=rule, device="cpu"))
-                kept = atlas.bake_samples
                 for src in sources:
-                    if src == "samples" and kept is None:
+                    if src == "samples" and atlas.bake_samples is None:
                         print(f"{args.model}: no stored surface samples (older file); `pointgt atlas M.pgt DIR "
                               f"--texel-map-only` on a copy stores them")
                         continue
-                    atlas.bake_samples = kept if src == "samples" else None
-                    baked[f"{rule}, from {src}"] = bake(atlas, lambda p: (colour(p).float(), None))
-                atlas.bake_samples = kept
+                    baked[f"{rule}, from {src}"] = bake(atlas, lambda p: (colour(p).float(), None), source=src)
 
     scores: dict[str, list[float]] = {}
     centres = _subpixel_grid(H, W, 1)

@@ -73,11 +73,9 @@ def run(args) -> int:
         seconds = time.perf_counter() - t0
         final = history[-1]
         # The curve uses a few views (eval_views); the summary is measured on the whole test split.
-        import torch
-
+        from core.points.model import TRAIN_BACKGROUND
         from core.points.train import evaluate
-        with torch.no_grad():
-            all_views = {"views": len(test.files), **evaluate(model, test, range(len(test.files)), (1.0, 1.0, 1.0))}
+        all_views = {"views": len(test.files), **evaluate(model, test, range(len(test.files)), TRAIN_BACKGROUND)}
         meta = {"scene": {"data": str(Path(args.data).resolve()), "width": train.width, "height": train.height,
                           "camera_angle_x": train.camera_angle_x},
                 "profile": profile.to_dict() if profile else None,

@@ -228,9 +228,15 @@ def test_bake_from_samples_matches_texel_points_on_smooth_colour_and_keeps_decal
     lo, hi = xyz.min(0).values, xyz.max(0).values
     smooth = lambda p: (((p - lo) / (hi - lo)).clamp(0, 1), None)
     with_samples = bake(a, smooth)
+    assert torch.equal(bake(a, smooth, source="samples"), with_samples)
+    at_points = bake(a, smooth, source="points")
     fallback = copy.deepcopy(a)
-    fallback.bake_samples = None
-    at_points = bake(fallback, smooth)
+    fallback.bake_samples = None  # an older file: "auto" bakes at the texel points
+    assert torch.equal(bake(fallback, smooth), at_points)
+    with pytest.raises(InputError, match="no surface samples"):
+        bake(fallback, smooth, source="samples")
+    with pytest.raises(InputError, match="source"):
+        bake(a, smooth, source="texels")
     ok = torch.isfinite(a.texel_points()).all(-1)
     assert ok.sum() > 100
     err = (with_samples[ok] - at_points[ok]).abs()
