@@ -58,3 +58,18 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: floa
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
     s = s.mean(1)
     return s.mean() if reduce else s
+
+
+def blank_floor(images: torch.Tensor, alphas: torch.Tensor, background=(1.0, 1.0, 1.0)) -> dict:
+    """What a model that renders nothing scores: the PSNR of the plain background frame against each view.
+    images [V, H, W, 3], alphas [V, H, W] -> dict(psnr, psnr_object) averaged over the views (object = the
+    ground truth's foreground, as `object_mask` with nothing rendered)."""
+    bg = torch.as_tensor(background, dtype=torch.float32, device=images.device)
+    full, obj = [], []
+    for img, a in zip(images, alphas):
+        blank = bg.expand_as(img)
+        full.append(psnr(blank, img))
+        m = object_mask(a, None)
+        if bool(m.any()):
+            obj.append(psnr(blank, img, m))
+    return {"psnr": sum(full) / max(len(full), 1), "psnr_object": sum(obj) / len(obj) if obj else float("nan")}

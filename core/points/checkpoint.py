@@ -29,8 +29,9 @@ def model_from_arrays(arrays: dict[str, np.ndarray], meta: dict, device="cpu", p
     if "model" not in meta:
         raise ModelFileError(f"{path}: no 'model' section in the header; this file holds no point model")
     try:
-        # files from before the decoder's mask head have a 3-channel UNet
-        cfg = from_dict(ModelConfig, {"decoder_alpha": False, **meta["model"]})
+        # files from before the decoder's mask head have a 3-channel UNet; from before the residual decoder, a
+        # sigmoid UNet on the features alone
+        cfg = from_dict(ModelConfig, {"decoder_alpha": False, "decoder_residual": False, **meta["model"]})
     except Exception as exc:  # InputError or TypeError from a damaged config
         raise ModelFileError(f"{path}: the model settings are invalid ({exc})") from exc
     for key, name in _POINT_ARRAYS.items():

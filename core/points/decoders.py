@@ -1,4 +1,12 @@
-"""Decoders from the ray-feature image to RGB. `none` (values are RGB) needs no module; `unet` is below."""
+"""Decoders from the ray-feature image to RGB. `none` (values are RGB) needs no module; `unet` is below.
+
+Residual form (the default): the feature image's first three channels are the decoder-free render (the points' own
+colours blended by attention, over the training background) and the UNet adds a correction to them. Its last layer
+starts at zero, so at initialisation the decoder render *is* the decoder-free render, and the output has no
+saturating non-linearity: a correction that overshoots [0, 1] still gets a gradient (frames are clamped only when
+they are shown). The older form (sigmoid of the UNet's output) is kept for model files that use it; it can
+saturate to the background colour and never recover.
+"""
 from __future__ import annotations
 
 import torch
@@ -12,8 +20,11 @@ def _block(c_in: int, c_out: int) -> nn.Sequential:
 
 
 class UNetDecoder(nn.Module):
-    """A small two-level UNet: feature image [B, h, H, W] -> logits [B, 3, H, W] (RGB), or [B, 4, H, W] with the mask
-    head (RGB + foreground alpha).
+    """A small two-level UNet: feature image [B, c_in, H, W] -> [B, 3, H, W] (RGB), or [B, 4, H, W] with the mask
+    head (RGB + foreground alpha logit).
+
+    residual: the input's channels 0-2 are a base colour and the RGB output is base + correction (no sigmoid);
+    otherwise the RGB output is logits (the caller applies a sigmoid).
 
     The mask head is separate: a small conv net on the feature image with its gradient stopped, so learning alpha
     never takes capacity from the colours (an alpha channel sharing the trunk cost 0.5 dB of object PSNR on the
@@ -21,8 +32,9 @@ class UNetDecoder(nn.Module):
     Any H, W work (odd sizes are padded to even and cropped back), so patches and full frames share it.
     """
 
-    def __init__(self, c_in: int, width: int = 32, alpha: bool = False):
+    def __init__(self, c_in: int, width: int = 32, alpha: bool = False, residual: bool = False):
         super().__init__()
+        self.residual = residual
         self.enc1 = _block(c_in, width)
         self.enc2 = _block(width, 2 * width)
         self.dec1 = _block(3 * width, width)
@@ -30,6 +42,9 @@ class UNetDecoder(nn.Module):
         self.alpha_head = nn.Sequential(nn.Conv2d(c_in, 16, 3, padding=1), nn.ReLU(inplace=True),
                                         nn.Conv2d(16, 16, 3, padding=1), nn.ReLU(inplace=True),
                                         nn.Conv2d(16, 1, 1)) if alpha else None
+        if residual:  # the correction starts at zero: the decoder render equals the decoder-free render
+            nn.init.zeros_(self.out.weight)
+            nn.init.zeros_(self.out.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h, w = x.shape[-2:]
@@ -41,6 +56,8 @@ class UNetDecoder(nn.Module):
         up = F.interpolate(e2, scale_factor=2, mode="bilinear", align_corners=False)
         feat = self.dec1(torch.cat([e1, up], dim=1))
         y = self.out(feat)
+        if self.residual:
+            y = x[:, :3] + y
         if self.alpha_head is not None:
             y = torch.cat([y, self.alpha_head(x.detach())], dim=1)
         return y[..., :h, :w]

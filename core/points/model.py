@@ -35,6 +35,9 @@ class ModelConfig:
                          choices=("screen", "screen_depth", "perpendicular"))
     decoder: str = opt("none", "decoder: none (value = RGB) | unet (small UNet on the feature image)",
                        choices=("none", "unet"))
+    decoder_residual: bool = opt(True, "the unet decoder adds a learned correction (zero at initialisation) to the "
+                                       "points' own colours, so it starts as, and cannot collapse below, the "
+                                       "decoder-free render")
     decoder_alpha: bool = opt(True, "the unet decoder also predicts foreground alpha (a separate mask head): the "
                                     "coverage of atlas-coloured and painted rays")
     key_width: int = opt(64, "width of the attention key MLP")
@@ -88,9 +91,13 @@ class PointModel(nn.Module):
             self.bg_value = None
             self.decoder = None
         else:
-            self.value_mlp = _mlp(cfg.feature_dim + dir_in, cfg.value_width, cfg.feature_dim, layers=1)
+            # Residual decoder: each value also carries an RGB colour (3 leading channels), blended like the
+            # decoder-free render and handed to the UNet as its base.
+            base = 3 if cfg.decoder_residual else 0
+            self.value_mlp = _mlp(cfg.feature_dim + dir_in, cfg.value_width, base + cfg.feature_dim, layers=1)
             self.bg_value = nn.Parameter(torch.zeros(cfg.feature_dim))
-            self.decoder = UNetDecoder(cfg.feature_dim, alpha=cfg.decoder_alpha)
+            self.decoder = UNetDecoder(base + cfg.feature_dim, alpha=cfg.decoder_alpha,
+                                       residual=cfg.decoder_residual)
 
     @property
     def num_points(self) -> int:
@@ -139,7 +146,8 @@ class PointModel(nn.Module):
     # ---- values ------------------------------------------------------------------------------------------------
     def point_values(self, dirs: torch.Tensor | None = None, idx: torch.Tensor | None = None,
                      features: torch.Tensor | None = None) -> torch.Tensor:
-        """Values per neighbour: [R, K, C] (C = 3 RGB in [0,1] without decoder, else feature size).
+        """Values per neighbour: [R, K, C] (C = 3 RGB in [0,1] without decoder; with the residual decoder 3 + h:
+        RGB in [0, 1], then the features; else h).
         features [M, h] overrides the model's (e.g. features gathered by point ids after a part was duplicated)."""
         feats = self.features if features is None else features
         if self.cfg.view_dependent:
@@ -148,26 +156,46 @@ class PointModel(nn.Module):
             v = self.value_mlp(torch.cat([f, d], dim=-1))
         else:  # values depend on the point only: evaluate once per point, then gather (N << R*K)
             v = self.value_mlp(feats)[idx.clamp_min(0)]
-        return torch.sigmoid(v) if self.decoder is None else v
+        if self.decoder is None:
+            return torch.sigmoid(v)
+        if self.cfg.decoder_residual:
+            return torch.cat([torch.sigmoid(v[..., :3]), v[..., 3:]], dim=-1)
+        return v
 
     def shade(self, att: dict, dirs: torch.Tensor, idx: torch.Tensor, background: torch.Tensor,
               features: torch.Tensor | None = None) -> dict:
-        """Ray colours (no decoder) or ray features (decoder) from attention. background [3] display colour."""
+        """Ray colours (no decoder) or ray features (decoder) from attention. background [3] display colour.
+        Returns dict(rgb [R, 3] or None, feature [R, C] or None). With the residual decoder the feature's first
+        three channels are the decoder-free colour over the training background (the decoder's base; frames over
+        another background are moved by core/frames/render.py like any decoder output)."""
         v = self.point_values(dirs, idx, features)
         fv = (att["weights"][..., None] * v).sum(1)
+        bg = att["bg"][:, None]
         if self.decoder is None:
-            rgb = fv + att["bg"][:, None] * background
+            rgb = fv + bg * background
             return {"rgb": rgb, "feature": None}
-        return {"rgb": None, "feature": fv + att["bg"][:, None] * self.bg_value}
+        if self.cfg.decoder_residual:
+            white = torch.as_tensor(TRAIN_BACKGROUND, dtype=fv.dtype, device=fv.device)
+            base = fv[:, :3] + bg * white
+            return {"rgb": None, "feature": torch.cat([base, fv[:, 3:] + bg * self.bg_value], dim=1)}
+        return {"rgb": None, "feature": fv + bg * self.bg_value}
 
     def decode(self, feature_image: torch.Tensor) -> torch.Tensor:
-        """feature_image [B, h, H, W] -> rgb [B, 3, H, W] (UNet decoder only)."""
-        return torch.sigmoid(self.decoder(feature_image)[:, :3])
+        """feature_image [B, C, H, W] -> rgb [B, 3, H, W] (UNet decoder only)."""
+        return self.decode_with_alpha(feature_image)[0]
 
     def decode_with_alpha(self, feature_image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """feature_image [B, h, H, W] -> (rgb [B, 3, H, W], alpha [B, H, W] or None without the mask head)."""
-        y = torch.sigmoid(self.decoder(feature_image))
-        return y[:, :3], (y[:, 3] if y.shape[1] > 3 else None)
+        """feature_image [B, C, H, W] -> (rgb [B, 3, H, W], alpha [B, H, W] or None without the mask head).
+        The residual decoder's rgb is not clamped (training keeps its gradient everywhere): clamp to show it."""
+        y = self.decoder(feature_image)
+        rgb = y[:, :3] if self.cfg.decoder_residual else torch.sigmoid(y[:, :3])
+        return rgb, (torch.sigmoid(y[:, 3]) if y.shape[1] > 3 else None)
+
+    def reset_decoder_correction(self) -> None:
+        """Residual decoder only: zero its last layer, so the decoder render is the decoder-free render again
+        (the collapse guard's recovery, core/points/train.py)."""
+        nn.init.zeros_(self.decoder.out.weight)
+        nn.init.zeros_(self.decoder.out.bias)
 
     # ---- (de)serialisation helpers ---------------------------------------------------------------------------
     def config_dict(self) -> dict:

@@ -7,6 +7,7 @@ give the same shape of training.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -15,7 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from core.config import opt
-from core.frames.metrics import object_mask, psnr, ssim
+from core.frames.metrics import blank_floor, object_mask, psnr, ssim
 from core.frames.render import render_frame
 from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
@@ -55,6 +56,11 @@ class TrainConfig:
     dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)")
     eval_every: float = opt(30.0, "seconds of training between test-PSNR measurements")
     eval_views: int = opt(4, "test views used for the PSNR-vs-time curve")
+    guard: bool = opt(True, "watch stage 1 for a collapsed fit (test renders at the blank-frame floor or without "
+                            "foreground) and non-finite steps, and recover (reset the decoder's correction, then "
+                            "restart without a decoder); what it did is kept in the history and the model file")
+    guard_margin: float = opt(1.0, "dB: a fit whose object PSNR is within this of the blank frame's counts as "
+                                   "collapsed (when the blank frame itself is a poor match for the object)")
     seed: int = opt(0, "random seed")
     device: str = opt("auto", "cpu | cuda | auto")
     threads: int = opt(0, "torch CPU threads (0 = torch default)")
@@ -154,24 +160,118 @@ def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, j
 
 @torch.no_grad()
 def evaluate(model: PointModel, split, views, background) -> dict:
-    """Mean PSNR (full frame and object pixels) and SSIM over the given view indices of a split."""
-    ps, po, ss = [], [], []
+    """Mean PSNR (full frame and object pixels) and SSIM over the given view indices of a split, plus what the
+    collapse guard reads: `coverage`, the share of the ground truth's object pixels (alpha > 0.5) the render covers
+    (alpha > 0.5); `blank_distance`, the mean |render − background| over those pixels; `object_contrast`, the same
+    for the ground truth (how far the object is from a blank frame)."""
+    ps, po, ss, cov, dist, contrast = [], [], [], [], [], []
     for i in views:
         out = render_frame(model, split.c2w[i], split.height, split.width, split.focal, background=background)
         gt = split.images[i].to(out["rgb"].device)
+        gt_a = split.alphas[i].to(gt.device)
         ps.append(psnr(out["rgb"], gt))
-        m = object_mask(split.alphas[i].to(gt.device), out["alpha"])
+        m = object_mask(gt_a, out["alpha"])
         po.append(psnr(out["rgb"], gt, m))
         ss.append(float(ssim(out["rgb"], gt)))
-    return {"psnr": sum(ps) / len(ps), "psnr_object": sum(po) / len(po), "ssim": sum(ss) / len(ss)}
+        obj = gt_a > 0.5
+        if bool(obj.any()):
+            bg = torch.as_tensor(background, dtype=gt.dtype, device=gt.device)
+            cov.append(float((out["alpha"][obj] > 0.5).float().mean()))
+            dist.append(float((out["rgb"][obj] - bg).abs().mean()))
+            contrast.append(float((gt[obj] - bg).abs().mean()))
+
+    def mean(v):
+        return sum(v) / len(v) if v else float("nan")
+
+    return {"psnr": mean(ps), "psnr_object": mean(po), "ssim": mean(ss), "coverage": mean(cov),
+            "blank_distance": mean(dist), "object_contrast": mean(contrast)}
+
+
+MIN_COVERAGE = 0.3  # a render covering less of the object's pixels than this renders nothing
+BLANK_SHARE = 0.25  # a render this much closer to the blank frame than the truth is (over the object) is blank
+
+
+def collapse_reason(scores: dict, floor: dict, margin_db: float) -> str | None:
+    """Why a model's test scores (from `evaluate`) count as a collapsed fit, or None: not finite; covering too
+    little of the object; or rendering (nearly) the blank frame where the truth does not — object PSNR within
+    margin_db of the blank frame's (floor: `blank_floor` of the same views) and the render BLANK_SHARE times
+    closer to the background than the ground truth. A near-white object on white stays fine when rendered right:
+    its ground truth is as close to the background as its render."""
+    vals = [scores.get("psnr"), scores.get("psnr_object")]
+    if any(v is None or not math.isfinite(v) for v in vals):
+        return "the test render is not finite"
+    cov = scores.get("coverage", float("nan"))
+    if math.isfinite(cov) and cov < MIN_COVERAGE:
+        return f"the render covers {100 * cov:.0f} % of the object's pixels"
+    blank = floor["psnr_object"]
+    dist, contrast = scores.get("blank_distance", float("nan")), scores.get("object_contrast", float("nan"))
+    if (math.isfinite(blank) and scores["psnr_object"] < blank + margin_db and math.isfinite(dist)
+            and math.isfinite(contrast) and dist < BLANK_SHARE * contrast):
+        return (f"the render is the blank frame: object PSNR {scores['psnr_object']:.2f} dB against the blank "
+                f"frame's {blank:.2f} dB, {dist:.3f} from the background where the object is {contrast:.3f}")
+    return None
+
+
+class CollapseGuard:
+    """Watches a stage-1 fit and decides how to recover (TrainConfig.guard).
+
+    On a collapse at a test checkpoint (`collapse_reason`): first reset the residual decoder's correction (the
+    render is then the decoder-free one, which trains); on a second collapse, or without a residual decoder,
+    restart the fit without a decoder. Non-finite losses or gradients skip the step; a run of them restarts.
+    Every action is appended to `events` (step, seconds, action, reason)."""
+
+    MAX_BAD_STEPS = 20
+    MIN_FRACTION = 0.05  # no verdict before this share of the budget (and MIN_STEPS): the first steps are rough
+    MIN_STEPS = 50
+
+    def __init__(self, floor: dict, margin_db: float):
+        self.floor = floor
+        self.margin = margin_db
+        self.events: list[dict] = []
+        self.bad_steps = 0
+        self.skipped_steps = 0
+        self.decoder_resets = 0
+        self.restarts = 0
+
+    def record(self, step: int, seconds: float, action: str, reason: str) -> None:
+        self.events.append({"step": step, "seconds": round(seconds, 3), "action": action, "reason": reason})
+        print(f"[fit] guard at step {step}: {reason}; {action}")
+
+    def check(self, model: PointModel, scores: dict, step: int, frac: float) -> str | None:
+        """The action a checkpoint calls for: None, "reset_decoder" or "restart"."""
+        if frac < self.MIN_FRACTION or step < self.MIN_STEPS:
+            return None
+        reason = collapse_reason(scores, self.floor, self.margin)
+        if reason is None:
+            return None
+        self._reason = reason
+        residual = model.decoder is not None and model.cfg.decoder_residual
+        if residual and self.decoder_resets == 0:
+            return "reset_decoder"
+        return "restart" if self.restarts < 2 else None
+
+    def step_ok(self, loss: torch.Tensor, model: PointModel) -> bool:
+        """True when the step's loss and gradients are finite; else the step is to be skipped."""
+        ok = bool(torch.isfinite(loss))
+        if ok:
+            ok = all(bool(torch.isfinite(p.grad).all()) for p in model.parameters() if p.grad is not None)
+        self.bad_steps = 0 if ok else self.bad_steps + 1
+        self.skipped_steps += 0 if ok else 1
+        return ok
+
+    def summary(self) -> dict:
+        return {"events": self.events, "skipped_steps": self.skipped_steps, "decoder_resets": self.decoder_resets,
+                "restarts": self.restarts, "blank_floor": self.floor}
 
 
 def fit_points(train, test, model_cfg: ModelConfig, cfg: TrainConfig, background=(1.0, 1.0, 1.0),
                progress_callback=None, show_progress: bool = True):
     """Train a PointModel. train/test: `SplitData` (images [V,H,W,3], alphas [V,H,W], c2w [V,4,4], focal, ...).
 
-    Returns (model, history) where history is a list of dicts (step, seconds, points, psnr, psnr_object, ssim)
-    measured on `cfg.eval_views` test views; `seconds` is training wall-clock time, evaluation excluded.
+    Returns (model, history) where history is a list of dicts (step, seconds, points, psnr, psnr_object, ssim,
+    coverage) measured on `cfg.eval_views` test views; `seconds` is training wall-clock time, evaluation excluded.
+    The last entry also holds "guard": the collapse guard's events, skipped steps, the blank floor of those views
+    and "collapsed" (None, or why the final model still counts as collapsed).
     """
     threads = torch.get_num_threads()
     if cfg.threads > 0:
@@ -187,27 +287,47 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     gen = torch.Generator().manual_seed(cfg.seed)
     dev = resolve_device(cfg.device)
     xyz = visual_hull_points(train.alphas, train.c2w, train.focal, model_cfg.num_points, seed=cfg.seed)
-    model = PointModel(model_cfg, xyz, mean_spacing(xyz)).to(dev)
-    opt = build_optimizer(model, cfg)
-    base_lrs = [g["lr"] for g in opt.param_groups]
-    dens = Densifier(model.num_points, dev)
+
+    def start(mcfg):
+        m = PointModel(mcfg, xyz, mean_spacing(xyz)).to(dev)
+        o = build_optimizer(m, cfg)
+        return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev)
+
+    model, opt, base_lrs, dens = start(model_cfg)
     bg = torch.as_tensor(background, dtype=torch.float32, device=dev)
     images, alphas, c2ws = train.images, train.alphas, train.c2w
     eval_ids = list(range(0, len(test.files), max(1, len(test.files) // max(cfg.eval_views, 1))))[: cfg.eval_views]
+    guard = CollapseGuard(blank_floor(test.images[eval_ids], test.alphas[eval_ids], background), cfg.guard_margin)
     history: list[dict] = []
     budget_s = cfg.minutes * 60.0 if cfg.minutes > 0 else float("inf")
     train_s = 0.0
     next_eval = 0.0
     step = 0
+    # A restart (the guard's last resort) runs the schedules again over what is left of the budget.
+    step0, sec0 = 0, 0.0
     by_time = budget_s < float("inf")
     with Progress(1000 if by_time else cfg.steps, "fit", callback=progress_callback, enabled=show_progress) as bar:
         while step < cfg.steps and train_s < budget_s:
+            frac = max((step - step0) / max(cfg.steps - step0, 1), (train_s - sec0) / (budget_s - sec0))
             if train_s >= next_eval:
-                history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points,
-                                **evaluate(model, test, eval_ids, background)})
+                scores = evaluate(model, test, eval_ids, background)
+                history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores})
                 next_eval = train_s + cfg.eval_every
+                action = guard.check(model, scores, step, frac) if cfg.guard else None
+                if action == "reset_decoder":
+                    guard.decoder_resets += 1
+                    guard.record(step, train_s, "reset the decoder's correction to zero", guard._reason)
+                    model.reset_decoder_correction()
+                    for p in model.decoder.out.parameters():
+                        opt.state.pop(p, None)
+                elif action == "restart":
+                    guard.restarts += 1
+                    model_cfg = dataclasses.replace(model_cfg, decoder="none")
+                    guard.record(step, train_s, "restarted the fit without a decoder", guard._reason)
+                    model, opt, base_lrs, dens = start(model_cfg)
+                    step0, sec0 = step, train_s
+                    frac = 0.0
             t0 = time.perf_counter()
-            frac = max(step / cfg.steps, train_s / budget_s)
             decay = cfg.lr_final ** frac
             for g, lr in zip(opt.param_groups, base_lrs):
                 g["lr"] = lr * decay
@@ -253,6 +373,20 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                     loss = loss + cfg.close2surface_weight * c2s
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            if cfg.guard and not guard.step_ok(loss, model):
+                # a non-finite loss or gradient: skip the update; a run of them starts the fit again
+                opt.zero_grad(set_to_none=True)
+                if guard.bad_steps >= guard.MAX_BAD_STEPS and guard.restarts < 2:
+                    guard.restarts += 1
+                    model_cfg = dataclasses.replace(model_cfg, decoder="none")
+                    guard.record(step, train_s, "restarted the fit without a decoder",
+                                 f"{guard.bad_steps} steps in a row had a non-finite loss or gradient")
+                    model, opt, base_lrs, dens = start(model_cfg)
+                    step0, sec0 = step, train_s
+                    guard.bad_steps = 0
+                step += 1
+                train_s += time.perf_counter() - t0
+                continue
             dens.accumulate(model, idx, att["weights"])
             opt.step()
             step += 1
@@ -278,6 +412,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 bar.set_fraction(max(step / cfg.steps, train_s / budget_s), **info)
             else:
                 bar.update(1, **info)
-    history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points,
-                    **evaluate(model, test, eval_ids, background)})
+    scores = evaluate(model, test, eval_ids, background)
+    reason = collapse_reason(scores, guard.floor, cfg.guard_margin)
+    history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,
+                    "guard": {**guard.summary(), "collapsed": reason}})
     return model, history

@@ -78,10 +78,13 @@ def test_gradients_reach_points_features_and_attention():
 
 
 def test_unet_decoder_any_size():
-    m = _model(decoder="unet")
+    m = _model(decoder="unet", decoder_residual=False)
     feat = torch.randn(2, m.cfg.feature_dim, 17, 23)
     out = m.decode(feat)
     assert out.shape == (2, 3, 17, 23) and bool(((out >= 0) & (out <= 1)).all())
+    r = _model(decoder="unet")  # residual: 3 base colour channels before the features
+    feat = torch.randn(2, 3 + r.cfg.feature_dim, 17, 23)
+    assert r.decode(feat).shape == (2, 3, 17, 23)
 
 
 def test_fourier_shape():
@@ -96,16 +99,18 @@ def test_unet_mask_head_and_older_files_without_it():
     from core.points.checkpoint import model_from_arrays, model_to_arrays
 
     m = _model(decoder="unet")
-    feat = torch.randn(1, m.cfg.feature_dim, 9, 8)
+    feat = torch.randn(1, 3 + m.cfg.feature_dim, 9, 8)
     rgb, alpha = m.decode_with_alpha(feat)
     assert rgb.shape == (1, 3, 9, 8) and alpha.shape == (1, 9, 8)
     assert torch.equal(rgb, m.decode(feat)) and bool(((alpha >= 0) & (alpha <= 1)).all())
     arrays, meta = model_to_arrays(m)
     back = model_from_arrays(arrays, meta)
     assert back.cfg.decoder_alpha and torch.equal(back.decode_with_alpha(feat)[1], alpha)
-    old = _model(decoder="unet", decoder_alpha=False)
+    old = _model(decoder="unet", decoder_alpha=False, decoder_residual=False)
+    feat = torch.randn(1, m.cfg.feature_dim, 9, 8)
     arrays, meta = model_to_arrays(old)
     del meta["model"]["decoder_alpha"]  # as an older file's header
+    del meta["model"]["decoder_residual"]
     back = model_from_arrays(arrays, meta)
     assert not back.cfg.decoder_alpha and back.decode_with_alpha(feat)[1] is None
     assert torch.equal(back.decode(feat), old.decode(feat))
