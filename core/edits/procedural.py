@@ -201,6 +201,122 @@ def _planks(g, o: ExprOps, cells=12.0):
     return o.mix_rgb(seam, wood, (0.18, 0.1, 0.05)), None
 
 
+def _hash(o: ExprOps, a, b=0.0, c=0.0, seed=0.0):
+    """A pseudo-random value in [0, 1) per integer lattice cell (a, b, c): fract(sin(dot) · 437.5453). The
+    arguments stay small (cells index < ~40), so float32 sines agree between torch and Blender to ~1e-3."""
+    dot = o.add(o.add(o.mul(a, 1.29898), o.mul(b, 7.8233)), o.add(o.mul(c, 3.7719), seed))
+    return o.fract(o.mul(o.sin(dot), 437.5453))
+
+
+def _flat(g, o: ExprOps, color_a=(0.78, 0.32, 0.18), color_b=(0.2, 0.42, 0.62), split=0.72):
+    """Flat colours: one colour below Generated z = split, another above (a part's top in its own colour)."""
+    return o.mix_rgb(o.lt(split, g[2]), color_a, color_b), None
+
+
+def _gradient(g, o: ExprOps):
+    """A smooth three-colour gradient along Generated z with a gentle ramp across x (no edges at all)."""
+    t = o.clamp01(o.add(o.mul(g[2], 0.85), o.mul(g[0], 0.15)))
+    low = o.mix_rgb(o.clamp01(o.mul(t, 2.0)), (0.85, 0.2, 0.35), (0.95, 0.75, 0.3))
+    return o.mix_rgb(o.clamp01(o.sub(o.mul(t, 2.0), 1.0)), low, (0.2, 0.55, 0.85)), None
+
+
+def _noise_field(g, o: ExprOps, freq=9.0):
+    """A smooth pseudo-noise in [0, 1]: three octaves of products of sines along skewed directions."""
+    total, amp = 0.0, 0.5
+    for k, (a, b, c) in enumerate(((1.0, 0.6, 0.3), (-0.4, 1.0, 0.7), (0.5, -0.8, 1.0))):
+        f = freq * (1.9 ** k)
+        u = o.add(o.add(o.mul(g[0], a * f), o.mul(g[1], b * f)), o.add(o.mul(g[2], c * f), 0.7 * k))
+        v = o.add(o.add(o.mul(g[1], a * f), o.mul(g[2], b * f)), o.add(o.mul(g[0], c * f), 1.3 * k))
+        total = o.add(total, o.mul(o.mul(o.sin(u), o.sin(v)), amp))
+        amp *= 0.55
+    return o.clamp01(o.add(o.mul(total, 0.9), 0.5))
+
+
+def _noise(g, o: ExprOps):
+    """High-frequency pseudo-noise mapped through three colours (mossy / marbled)."""
+    n = _noise_field(g, o)
+    low = o.mix_rgb(o.clamp01(o.mul(n, 2.0)), (0.1, 0.25, 0.12), (0.45, 0.62, 0.2))
+    return o.mix_rgb(o.clamp01(o.sub(o.mul(n, 2.0), 1.0)), low, (0.93, 0.88, 0.6)), None
+
+
+def _cells(g, o: ExprOps, scale=5.0):
+    """Voronoi cells: every point takes the colour of the nearest of one jittered seed per lattice cell, searched
+    over the 2 × 2 × 2 cells nearest the point (8 instead of 27: the shader stays small enough for Cycles to
+    compile quickly; the pattern is defined by this search, so torch and Blender still agree), with dark borders
+    where the nearest two seeds are about as near."""
+    q = [o.add(o.mul(c, scale), 0.25) for c in g]
+    base = [o.floor(o.sub(c, 0.5)) for c in q]
+    best, second, col = 9.0, 9.0, (0.0, 0.0, 0.0)
+    for dx in (0.0, 1.0):
+        for dy in (0.0, 1.0):
+            for dz in (0.0, 1.0):
+                cell = (o.add(base[0], dx), o.add(base[1], dy), o.add(base[2], dz))
+                seed = [o.add(cell[i], o.add(0.15, o.mul(_hash(o, *cell, seed=float(i)), 0.7))) for i in range(3)]
+                d2 = 0.0
+                for i in range(3):
+                    diff = o.sub(q[i], seed[i])
+                    d2 = o.add(d2, o.mul(diff, diff))
+                nearer = o.lt(d2, best)
+                h = _hash(o, *cell, seed=5.0)
+                c = (o.add(0.2, o.mul(h, 0.75)), o.add(0.25, o.mul(_hash(o, *cell, seed=6.0), 0.6)),
+                     o.sub(0.95, o.mul(h, 0.7)))
+                second = o.min(second, o.max(d2, best))
+                col = o.mix_rgb(nearer, col, c)
+                best = o.min(best, d2)
+    border = o.lt(o.sub(second, best), 0.12)
+    return o.mix_rgb(border, col, (0.08, 0.07, 0.1)), None
+
+
+def _bricks(g, o: ExprOps, rows=9.0, per_row=5.0):
+    """Running-bond bricks around the object: rows along Generated z, every other row shifted by half a brick,
+    light mortar, each brick's red varied by a hash."""
+    zr = o.add(o.mul(g[2], rows), 0.25)
+    row = o.floor(zr)
+    shift = o.mul(o.mod(row, 2.0), 0.5)
+    u = o.add(o.mul(o.add(g[0], g[1]), per_row), o.add(shift, 0.25))
+    brick = o.floor(u)
+    mortar = o.max(o.lt(o.fract(zr), 0.12), o.lt(o.fract(u), 0.08))
+    h = _hash(o, brick, row, 0.0, seed=2.0)
+    red = (o.add(0.55, o.mul(h, 0.3)), o.add(0.2, o.mul(h, 0.12)), o.add(0.12, o.mul(h, 0.06)))
+    return o.mix_rgb(mortar, red, (0.85, 0.83, 0.78)), None
+
+
+def _fine_lines(g, o: ExprOps, scale=28.0):
+    """Fine dark lines on a light ground: 28 per Generated unit along z, a few pixels apart at 128²."""
+    line = o.lt(o.fract(o.add(o.mul(g[2], scale), 0.25)), 0.3)
+    return o.mix_rgb(line, (0.92, 0.9, 0.82), (0.15, 0.12, 0.3)), None
+
+
+def _small_text(g, o: ExprOps, lines=16.0, chars=36.0, background=(0.96, 0.95, 0.92), ink=(0.12, 0.12, 0.16)):
+    """Rows of tiny glyph-like marks (a 3 × 4 dot bitmap per character, dots set by a hash, gaps between words)
+    on near-white paper: small text, near-white on a white background."""
+    a, b = o.add(o.mul(g[0], chars), 0.25), o.add(o.mul(g[1], lines), 0.25)
+    col, row = o.floor(a), o.floor(b)
+    fa, fb = o.fract(a), o.fract(b)
+    in_glyph = o.mul(o.mul(o.lt(0.1, fa), o.lt(fa, 0.85)), o.mul(o.lt(0.2, fb), o.lt(fb, 0.8)))
+    sx, sy = o.floor(o.mul(o.sub(fa, 0.1), 4.0)), o.floor(o.mul(o.sub(fb, 0.2), 6.6666))
+    dot = o.lt(_hash(o, o.add(o.mul(col, 3.0), sx), o.add(o.mul(row, 4.0), sy), 0.0, seed=3.0), 0.35)
+    word = o.lt(0.18, _hash(o, col, row, 1.0, seed=4.0))  # ~1 in 6 characters is a space
+    return o.mix_rgb(o.mul(o.mul(in_glyph, dot), word), background, ink), None
+
+
+def _near_black(g, o: ExprOps):
+    """Near-black rubber with a dark-grey tread of diagonal ribs (detail that is hard to see)."""
+    rib = o.lt(o.fract(o.add(o.mul(o.add(g[0], g[2]), 10.0), 0.25)), 0.35)
+    return o.mix_rgb(rib, (0.05, 0.05, 0.06), (0.2, 0.2, 0.22)), None
+
+
+def _multi(g, o: ExprOps):
+    """A rich multi-colour mix: Voronoi cells in one band, bricks in another, noise between (the kind of texture a
+    decoder must not flatten)."""
+    cells, _ = _cells(g, o, scale=4.0)
+    bricks, _ = _bricks(g, o, rows=12.0, per_row=7.0)
+    noise, _ = _noise(g, o)
+    band = o.fract(o.mul(g[0], 3.0))
+    first, second = o.lt(band, 0.34), o.lt(band, 0.67)
+    return o.mix_rgb(first, o.mix_rgb(second, noise, bricks), cells), None
+
+
 @dataclasses.dataclass(frozen=True)
 class Texture:
     name: str
@@ -216,6 +332,15 @@ TEXTURES: dict[str, Texture] = {t.name: t for t in [
     Texture("flag", _flag, False, "base texture of `cloth`: bands, a disc and fine pinstripes"),
     Texture("tiger", _tiger, False, "base texture of `suzanne`: wavy bands over a gradient"),
     Texture("planks", _planks, False, "base texture of `crate`: fine checker with seams and grain"),
+    Texture("flat", _flat, False, "flat colours: one below Generated z = 0.72, another above"),
+    Texture("gradient", _gradient, False, "a smooth three-colour gradient (no edges)"),
+    Texture("noise", _noise, False, "high-frequency pseudo-noise through three colours"),
+    Texture("cells", _cells, False, "Voronoi cells with hashed colours and dark borders"),
+    Texture("bricks", _bricks, False, "running-bond bricks with mortar, hashed reds"),
+    Texture("fine_lines", _fine_lines, False, "fine dark lines, 28 per Generated unit along z"),
+    Texture("small_text", _small_text, False, "rows of tiny glyph-like marks on near-white paper"),
+    Texture("near_black", _near_black, False, "near-black with dark-grey diagonal ribs"),
+    Texture("multi", _multi, False, "cells, bricks and noise in three bands (rich multi-colour)"),
 ]}
 
 

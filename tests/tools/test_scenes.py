@@ -21,8 +21,9 @@ def _run(*args, check=True):
 
 def test_list_prints_scene_names_default_first():
     res = _run("--list")
-    names = res.stdout.split()
-    assert names[0] == "cloth" and {"suzanne", "crate"} <= set(names)
+    names = [line.split()[0] for line in res.stdout.splitlines()]
+    assert names[0] == "cloth" and {"suzanne", "crate", "strip", "tube", "paper", "stick"} <= set(names)
+    assert len(names) >= 10
 
 
 def test_camera_sets_are_distinct_and_look_at_the_centre():

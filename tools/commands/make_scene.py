@@ -3,7 +3,7 @@ retextured variant of an existing one."""
 from __future__ import annotations
 
 NAME = "make-scene"
-HELP = "render a built-in scene (cloth, suzanne, crate) with its rig, poses and ground-truth variants"
+HELP = "render a built-in scene of the library (--list) with its rig, poses and ground-truth variants"
 DESCRIPTION = (
     "Render a built-in scene with Blender (Cycles, CPU) into DIR in the NeRF-synthetic layout "
     "(transforms_{train,val,test}.json + RGBA PNGs, scene.blend, scene.json). With --pose and/or --texture, "
@@ -14,19 +14,21 @@ ORDER = 10
 
 def add_arguments(parser) -> None:
     parser.add_argument("name", nargs="?", help="scene name (see --list)")
-    parser.add_argument("--list", action="store_true", help="print the scene names, one a line, the default first")
+    parser.add_argument("--list", action="store_true", help="print the library, one scene a line (name, base texture, lighting, description), the default first")
     parser.add_argument("--out", help="output directory")
     parser.add_argument("--size", type=int, default=128, help="image width = height in pixels")
     parser.add_argument("--views-train", type=int, default=60, help="training views")
     parser.add_argument("--views-val", type=int, default=8, help="validation views (a third camera set)")
     parser.add_argument("--views-test", type=int, default=20, help="test views (also used by --pose/--texture)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the camera sets")
-    parser.add_argument("--lit", action="store_true", help="lit variant: Principled BSDF + sun instead of emission")
+    parser.add_argument("--lit", action="store_true", help="lit variant: Principled BSDF + sun instead of emission "
+                                                            "(scenes marked lit in --list are always lit)")
     parser.add_argument("--samples", type=int, default=None, help="Cycles samples (default 16, or 64 with --lit)")
     parser.add_argument("--pose", default=None, help="render the existing scene in DIR in this pose (e.g. bend, rest)")
     parser.add_argument("--magnitude", type=float, default=1.0, help="pose magnitude: 0 = rest, 1 = the named pose")
     parser.add_argument("--texture", default=None,
-                        help="render the existing scene with this texture (checker, stripes, decal, flag, tiger, planks)")
+                        help="render the existing scene with this texture (a name of core/edits/procedural.py's "
+                             "TEXTURES, e.g. checker, stripes, decal)")
     parser.add_argument("--force", action="store_true", help="re-render a scene that already exists in --out")
 
 
@@ -35,7 +37,8 @@ def run(args) -> int:
 
     if args.list:
         for name in scene_names():
-            print(name)
+            sdef = SCENES[name]
+            print(f"{name:8s} {sdef.texture:11s} {'lit' if sdef.lit else 'emission':8s} {sdef.help}")
         return 0
     from core.util.errors import InputError
 

@@ -61,8 +61,9 @@ def make_scene(name: str, out, size: int = 128, views_train: int = 60, views_val
     out = Path(out)
     if (out / "scene.json").exists() and not force:
         raise InputError(f"{out / 'scene.json'} already exists; pass --force to re-render it or choose another --out")
-    samples = int(samples or render.DEFAULT_SAMPLES[lit])
     sdef = library.SCENES[name]
+    lit = bool(lit or sdef.lit)
+    samples = int(samples or render.DEFAULT_SAMPLES[lit])
     t0 = time.perf_counter()
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
