@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -110,6 +111,14 @@ def run_demo(args) -> int:
                                            "train": {"config": to_dict(tcfg), "final": history[-1]}})
         save_bundle(model_path, bundle, backup=False)
         write_history(model_path.with_suffix(".history.json"), history, {"model": to_dict(mcfg), "train": to_dict(tcfg)})
+    collapsed = (history[-1].get("guard") or {}).get("collapsed")
+    for e in (history[-1].get("guard") or {}).get("events", []):
+        print(f"the collapse guard at step {e['step']}: {e['action']} ({e['reason']})")
+    if collapsed:
+        print(f"ERROR: the trained model renders the blank frame ({collapsed}); the atlas, edits and animation "
+              "would all carry a blank model. Pass --allow-blank to carry on anyway.", file=sys.stderr)
+        if not getattr(args, "allow_blank", False):
+            return 3
     plot_curves(out / "curve.png", {"stage 1": history}, f"{name}: test PSNR vs training time")
     stage_done("fit", t0, train_seconds=history[-1]["seconds"], steps=history[-1]["step"])
     report["test_psnr_during_training"] = history[-1]

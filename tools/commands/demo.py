@@ -18,6 +18,8 @@ def add_arguments(p):
     p.add_argument("--quick", action="store_true", help="toy sizes: the same steps in a few minutes (smoke test)")
     p.add_argument("--minutes", type=float, default=None, help="stage-1 training budget (default 10, quick 0.5)")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
+    p.add_argument("--allow-blank", action="store_true",
+                   help="carry on even when the trained model renders the blank frame (otherwise: stop, exit 3)")
 
 
 def run(args) -> int:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -25,6 +26,8 @@ def add_arguments(p):
     p.add_argument("--points", type=int, default=None, help="initial number of points (= --num-points)")
     p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--allow-blank", action="store_true",
+                   help="keep going (exit 0, run stage 2) even when the trained model renders the blank frame")
     p.add_argument("--profile", action=argparse.BooleanOptionalAction, default=True,
                    help="measure the scene and choose decoder, view dependence, K and chart count from it "
                         "(settings given on the command line always win)")
@@ -75,13 +78,19 @@ def run(args) -> int:
         # The curve uses a few views (eval_views); the summary is measured on the whole test split.
         from core.points.model import TRAIN_BACKGROUND
         from core.points.train import evaluate
+        from core.frames.metrics import blank_floor
+        from core.points.train import collapse_reason
+
         all_views = {"views": len(test.files), **evaluate(model, test, range(len(test.files)), TRAIN_BACKGROUND)}
+        floor = blank_floor(test.images, test.alphas, TRAIN_BACKGROUND)
+        guard = {**final.get("guard", {}), "blank_floor_all_views": floor,
+                 "collapsed": collapse_reason(all_views, floor, train_cfg.guard_margin)}
         meta = {"scene": {"data": str(Path(args.data).resolve()), "width": train.width, "height": train.height,
                           "camera_angle_x": train.camera_angle_x},
                 "profile": profile.to_dict() if profile else None,
                 "train": {"config": to_dict(train_cfg), "seconds": round(seconds, 2),
                           "train_seconds": final["seconds"], "steps": final["step"], "final": final,
-                          "test_all_views": all_views}}
+                          "test_all_views": all_views, "guard": guard}}
         bundle = Bundle(model=model, meta=meta)
         save_bundle(out, bundle)
         hist_path = write_history(out.with_suffix(".history.json"), history,
@@ -94,6 +103,15 @@ def run(args) -> int:
               f"test views ({final['psnr']:.2f} / {final['psnr_object']:.2f} dB on the curve's "
               f"{train_cfg.eval_views}), {model.num_points} points -> {out}")
         print(f"[fit] PSNR-vs-time log {hist_path} and plot {out.with_suffix('.curve.png')}")
+        for e in guard.get("events", []):
+            print(f"[fit] the collapse guard at step {e['step']}: {e['action']} ({e['reason']})")
+        if guard["collapsed"]:
+            print(f"[fit] WARNING: the model renders the blank frame: {guard['collapsed']} (blank frame: "
+                  f"{floor['psnr']:.2f} / {floor['psnr_object']:.2f} dB on all test views). It was saved to {out} for "
+                  "inspection; it is not fit to edit. Try `--decoder none`, another --seed, or more --points; "
+                  "pass --allow-blank to keep it anyway.", file=sys.stderr)
+            if not args.allow_blank:
+                return 3
     if args.stage in ("atlas", "all"):
         from core.pipeline import fit_atlas_stage
 
