@@ -54,3 +54,32 @@ def test_texel_map_refresh_keeps_samples_for_baking_and_a_backup(tmp_path, capsy
     assert f"{n_samples} samples kept for baking" in capsys.readouterr().out
     assert len(load_bundle(out, "cpu").atlas.bake_samples) == n_samples
     assert load_bundle(out.with_name("m.pgt.bak"), "cpu").atlas.bake_samples is None
+
+
+def test_fit_refuses_to_hand_over_a_blank_model(tmp_path, capsys, monkeypatch):
+    """A fit whose model still renders the blank frame (the guard could not recover it) is saved for inspection,
+    said loudly, stage 2 skipped, exit 3; --allow-blank carries on."""
+    import core.points.train as train_mod
+
+    real_fit = train_mod.fit_points
+
+    def blank_fit(*a, **kw):
+        model, hist = real_fit(*a, **kw)
+        with torch.no_grad():
+            model.bg_logit.fill_(80.0)  # every ray takes the background
+        return model, hist
+
+    monkeypatch.setattr(train_mod, "fit_points", blank_fit)
+    root = tmp_path / "card"
+    write_split(root, render_split("card", fibonacci_cameras(6, seed=0), 24))
+    write_split(root, render_split("card", fibonacci_cameras(2, seed=5), 24, split="test"))
+    out = tmp_path / "m.pgt"
+    args = ["fit", str(root), "--out", str(out), "--steps", "10", "--points", "300", "--eval-views", "1",
+            "--no-profile", "--no-progress", "--device", "cpu", "--threads", "1", "--decoder", "none"]
+    assert main(args) == 3
+    err = capsys.readouterr().err
+    assert "renders the blank frame" in err and "--allow-blank" in err
+    meta = load_bundle(out, "cpu").meta
+    assert meta["train"]["guard"]["collapsed"] and meta["train"]["guard"]["blank_floor_all_views"]["psnr"] > 0
+    assert load_bundle(out, "cpu").atlas is None  # stage 2 did not run on it
+    assert main(args + ["--stage", "papr", "--allow-blank"]) == 0
