@@ -80,7 +80,7 @@ def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chun
     else:
         feat = torch.cat([p["feature"] for p in parts]).reshape(h, w, -1).permute(2, 0, 1)[None]
         rgb, alpha = model.decode_with_alpha(feat)
-        rgb = rgb[0].permute(1, 2, 0)
+        rgb = rgb[0].permute(1, 2, 0).clamp(0.0, 1.0)  # the frame over white (a residual decoder may overshoot)
         alpha = None if alpha is None else alpha[0]
         # The decoder paints the background it was trained on (a·c + (1 − a)·white); move that share onto the
         # requested background. a: the mask head, else the attention's foreground weight (older models).
