@@ -25,8 +25,13 @@ def run(args) -> int:
     from core.util.errors import ModelFileError
     from tools.cli import UserError
 
+    from core.util.atomic import check_output_file
+
     if not (args.points or args.atlas or args.texels):
         raise UserError("nothing to export: give --points, --atlas and/or --texels")
+    for path, flag in ((args.points, "--points"), (args.atlas, "--atlas"), (args.texels, "--texels")):
+        if path:
+            check_output_file(path, flag)
     with PgtFile(args.model) as f:  # numpy only: export needs no torch and never builds the networks
         names = set(f.names)
         if (args.atlas or args.texels) and "atlas/image" not in names:
