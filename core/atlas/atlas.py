@@ -46,11 +46,11 @@ class Atlas(nn.Module):
         if not (1 <= n <= MAX_CHARTS and 2 <= R <= MAX_CHART_RES and 0 <= pad <= 64 and 0 < half < float("inf")):
             raise InputError(f"atlas: invalid sizes n={n} R={R} pad={pad} half={half} (limits: 1-{MAX_CHARTS} charts "
                              f"of 2-{MAX_CHART_RES} texels, pad 0-64)")
-        for key, val, hi in (("width_chart", width_chart, 4096), ("width_map", width_map, 4096),
-                             ("depth_chart", depth_chart, 16), ("depth_map", depth_map, 16),
-                             ("fourier_chart", fourier_chart, 16), ("fourier_map", fourier_map, 16)):
-            if not 0 <= val <= hi:  # checked before the networks are allocated
-                raise InputError(f"atlas: {key} must lie in [0, {hi}], got {val}")
+        for key, val, lo, hi in (("width_chart", width_chart, 1, 4096), ("width_map", width_map, 1, 4096),
+                                 ("depth_chart", depth_chart, 0, 16), ("depth_map", depth_map, 0, 16),
+                                 ("fourier_chart", fourier_chart, 0, 16), ("fourier_map", fourier_map, 0, 16)):
+            if not lo <= val <= hi:  # checked before the networks are allocated
+                raise InputError(f"atlas: {key} must lie in [{lo}, {hi}], got {val}")
         self.layout = GridLayout(n, R, pad)
         self.arch = dict(width_chart=width_chart, depth_chart=depth_chart, width_map=width_map, depth_map=depth_map,
                          fourier_chart=fourier_chart, fourier_map=fourier_map)

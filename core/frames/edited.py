@@ -68,6 +68,8 @@ class EditState:
             if pts.dim() != 2 or pts.shape[1] != 3:
                 raise InputError(f"points: expected shape [M, 3], got {tuple(pts.shape)}")
             pts = pts.to(dev, torch.float32)
+            if pts.shape[0] == 0:
+                raise InputError("points: the point set is empty (0 positions); there is nothing to render")
             if ids is None:
                 if pts.shape[0] != n:
                     raise InputError(f"points: {pts.shape[0]} positions for a model of {n} points and no ids; "

@@ -47,6 +47,9 @@ def run(args) -> int:
             save_npy(args.points, f.read("points/xyz"))
         if args.atlas:
             img = f.read("atlas/image")
+            if not np.isfinite(img).all():  # a black PNG would hide the damage
+                raise ModelFileError(f"{args.model}: array 'atlas/image' holds NaN or infinite values; the atlas is "
+                                     "damaged, refit it with `pointgt atlas`")
             write_png(args.atlas, img)
             print(f"wrote {args.atlas} {img.shape[1]}x{img.shape[0]}")
         if args.texels:

@@ -61,7 +61,7 @@ def load_npy(path, what: str, kind: str):
         try:
             version = np.lib.format.read_magic(fh)
             shape, fortran, dtype = np.lib.format._read_array_header(fh, version)
-        except (ValueError, EOFError, OSError, SyntaxError, TypeError, RecursionError) as exc:
+        except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, tokenize errors, ...
             raise InputError(f"{path}: {what} has a corrupt .npy header ({exc}); save it again with numpy.save") from exc
         offset = fh.tell()
     if dtype.hasobject:  # object arrays need pickle: refused, loading never runs code
