@@ -31,6 +31,17 @@ def _flag(prefix: str, name: str) -> str:
     return "--" + (f"{prefix}-" if prefix else "") + name.replace("_", "-")
 
 
+def _limits(meta) -> str:
+    """The declared range of a field for its --help line ('; at least 1', '; 0 to 1', ...)."""
+    lo = meta.get("min", meta.get("above"))
+    op = ">" if "above" in meta and "min" not in meta else ">="
+    if lo is not None and "max" in meta:
+        return f" [{op} {lo}, <= {meta['max']}]"
+    if lo is not None:
+        return f" [{op} {lo}]"
+    return f" [<= {meta['max']}]" if "max" in meta else ""
+
+
 def add_to_parser(parser: argparse.ArgumentParser, cls, prefix: str = "", skip: tuple[str, ...] = ()) -> None:
     """Add one `--field` option per dataclass field (bools get `--x/--no-x`)."""
     hints = get_type_hints(cls)
@@ -41,7 +52,7 @@ def add_to_parser(parser: argparse.ArgumentParser, cls, prefix: str = "", skip: 
         typ = hints[f.name]
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
         dest = (f"{prefix}_" if prefix else "") + f.name
-        help_ = f.metadata.get("help", "")
+        help_ = f.metadata.get("help", "") + _limits(f.metadata)
         if typ is bool:
             group.add_argument(_flag(prefix, f.name), dest=dest, action=argparse.BooleanOptionalAction,
                                default=None, help=f"{help_} (default: {default})")
