@@ -21,6 +21,9 @@ from core.util.errors import PointGTError
 class OutputError(PointGTError, OSError):
     """Writing an output file failed (disk full, file size limit, permissions); the previous file is unchanged."""
 
+    def __str__(self) -> str:  # the message alone, without OSError's "[Errno N]" prefix
+        return self.strerror if self.strerror else super().__str__()
+
 
 def _reason(exc: OSError) -> str:
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
@@ -31,8 +34,8 @@ def _reason(exc: OSError) -> str:
 
 
 def _output_error(path: Path, exc: OSError, what: str = "") -> OutputError:
-    err = OutputError(exc.errno, f"{path}: could not write{what} ({_reason(exc)}: {exc}); the previous file and "
-                                 "its .bak are unchanged")
+    err = OutputError(exc.errno, f"{path}: could not write{what} ({_reason(exc)}: {exc}); the existing file and "
+                                 "its .bak were left as they were")
     err.__cause__ = exc
     return err
 
