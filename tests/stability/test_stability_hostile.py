@@ -165,6 +165,20 @@ def test_fit_interrupted_in_stage_1_leaves_out_unchanged(env, tmp_path, capsys, 
     assert out.read_bytes() == old and not (tmp_path / "model.pgt.bak").exists()
 
 
+def test_atlas_interrupted_leaves_the_model_unchanged(env, tmp_path, capsys, monkeypatch):
+    import core.pipeline
+
+    model = tmp_path / "model.pgt"
+    shutil.copy(env.model, model)
+    old = model.read_bytes()
+    monkeypatch.setattr(core.pipeline, "fit_atlas_stage", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+    for argv in (["atlas", model, env.data, "--atlas-device", "cpu"],
+                 ["fit", env.data, "--out", model, "--stage", "atlas", *FAST_FIT]):
+        code, err = run_cli(capsys, *argv)
+        assert code == 130 and "unchanged" in err and str(model) in err, err
+        assert model.read_bytes() == old and not (tmp_path / "model.pgt.bak").exists()
+
+
 _FULL_DISK = r"""
 import os, resource, sys
 from core.util import atomic

@@ -50,7 +50,10 @@ def run(args) -> int:
               f"{info['samples']} samples in {info['seconds']:.1f} s{miss}; {len(bundle.atlas.bake_samples)} samples "
               f"kept for baking -> {args.model} (previous version: .bak)")
         return 0
-    hist = fit_atlas_stage(bundle, train, cfg, show_progress=not args.no_progress)
+    try:
+        hist = fit_atlas_stage(bundle, train, cfg, show_progress=not args.no_progress)
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(f"nothing was saved; {args.model} is unchanged") from None
     save_bundle(args.model, bundle)
     write_history(Path(args.model).with_suffix(".atlas_history.json"), [], {"atlas": hist, "config": to_dict(cfg)})
     print(f"stage 2: {hist['n']} charts from {hist['samples']} samples in {hist['total_seconds']:.0f} s "

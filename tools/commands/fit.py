@@ -127,6 +127,8 @@ def run(args) -> int:
             save_bundle(out, bundle, backup=args.stage == "atlas")
         except (KeyboardInterrupt, PointGTError) as exc:
             if args.stage == "atlas":
+                if isinstance(exc, KeyboardInterrupt):
+                    raise KeyboardInterrupt(f"nothing was saved; {out} is unchanged") from None
                 raise
             note = (f"{out} holds this fit's stage-1 model (points, no atlas: it renders, but painting needs an "
                     f"atlas)" + (f"; the model that was there before is {out.name}.bak" if existed else "")
