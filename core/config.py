@@ -32,7 +32,7 @@ def _flag(prefix: str, name: str) -> str:
 
 
 def _limits(meta) -> str:
-    """The declared range of a field for its --help line ('; at least 1', '; 0 to 1', ...)."""
+    """The declared range of a field for its --help line (' [>= 1]', ' [>= 0.0, <= 1.0]', ...)."""
     lo = meta.get("min", meta.get("above"))
     op = ">" if "above" in meta and "min" not in meta else ">="
     if lo is not None and "max" in meta:
