@@ -121,6 +121,8 @@ def run(args) -> int:
     if args.stage in ("atlas", "all"):
         from core.pipeline import fit_atlas_stage
 
+        if args.stage == "all":
+            bundle = load_bundle(out, device=train_cfg.device)  # stage 2 starts from the saved stage-1 model
         try:
             hist = fit_atlas_stage(bundle, train, atlas_cfg, show_progress=not args.no_progress)
             # After stage 1 of this fit, --out.bak already holds the user's previous model: no second backup.
