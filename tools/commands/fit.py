@@ -121,9 +121,9 @@ def run(args) -> int:
     if args.stage in ("atlas", "all"):
         from core.pipeline import fit_atlas_stage
 
-        if args.stage == "all":
-            bundle = load_bundle(out, device=train_cfg.device)  # stage 2 starts from the saved stage-1 model
         try:
+            if args.stage == "all":
+                bundle = load_bundle(out, device=train_cfg.device)  # stage 2 starts from the saved stage-1 model
             hist = fit_atlas_stage(bundle, train, atlas_cfg, show_progress=not args.no_progress)
             # After stage 1 of this fit, --out.bak already holds the user's previous model: no second backup.
             save_bundle(out, bundle, backup=args.stage == "atlas")
