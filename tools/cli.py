@@ -51,8 +51,13 @@ def main(argv: list[str] | None = None) -> int:
     except (UserError, PointGTError) as exc:
         print(f"pointgt {args.command}: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"pointgt {args.command}: interrupted", file=sys.stderr)
+    except MemoryError:
+        print(f"pointgt {args.command}: error: out of memory; the inputs are too large for this machine (try "
+              "--downscale, a smaller --size or fewer points)", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as exc:
+        # A command may say what its outputs hold now (e.g. fit interrupted between its two saves).
+        print(f"pointgt {args.command}: interrupted{f'; {exc}' if str(exc) else ''}", file=sys.stderr)
         return 130
 
 

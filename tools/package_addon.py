@@ -153,7 +153,9 @@ def build_addon(out_dir: str | Path, legacy: bool = False) -> Path:
     """Stage, validate and build `pointgt-<version>.zip` in `out_dir` (created); returns the zip's path.
     `legacy=True` builds `pointgt-<version>-legacy.zip` (top folder `pointgt/`, for Install from Disk as a
     legacy add-on). An existing zip of the same name is kept as `<name>.bak`."""
-    out_dir = Path(out_dir)
+    from core.util.atomic import check_output_dir
+
+    out_dir = check_output_dir(out_dir, "--out")
     out_dir.mkdir(parents=True, exist_ok=True)
     version = check_versions()
     target = out_dir / f"pointgt-{version}{'-legacy' if legacy else ''}.zip"
@@ -167,7 +169,8 @@ def build_addon(out_dir: str | Path, legacy: bool = False) -> Path:
             _run_cli(["build", "--source-dir", str(src), "--output-filepath", str(built),
                       "--valid-tags", str(blender_valid_tags())], str(src))
             validate(built)
-        if target.exists():
-            shutil.copy2(target, target.with_name(target.name + ".bak"))
-        shutil.move(str(built), target)
+        from core.util.atomic import atomic_path
+
+        with atomic_path(target) as part:  # the temp folder may be on another disk: copy, then rename in place
+            shutil.copyfile(built, part)
     return target

@@ -7,6 +7,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import nn
 
+from core.atlas.config import MAX_CHART_RES
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet
 from core.atlas.packing import GridLayout, pack, sample_charts, texel_uv, unpack, uv_to_pixel
 from core.atlas.texture import kernel_texture
@@ -28,6 +29,9 @@ def check_points(x, name: str = "points") -> torch.Tensor:
     return x
 
 
+MAX_CHARTS = 64
+
+
 class Atlas(nn.Module):
     """n charts with R x R texels each; points are normalised as (x - centre) / half before the networks.
 
@@ -39,8 +43,14 @@ class Atlas(nn.Module):
     def __init__(self, n: int, R: int, pad: int, centre, half: float, width_chart: int = 64, depth_chart: int = 3,
                  width_map: int = 128, depth_map: int = 4, fourier_chart: int = 1, fourier_map: int = 4):
         super().__init__()
-        if n < 1 or R < 2 or pad < 0 or not half > 0:
-            raise InputError(f"atlas: invalid sizes n={n} R={R} pad={pad} half={half}")
+        if not (1 <= n <= MAX_CHARTS and 2 <= R <= MAX_CHART_RES and 0 <= pad <= 64 and 0 < half < float("inf")):
+            raise InputError(f"atlas: invalid sizes n={n} R={R} pad={pad} half={half} (limits: 1-{MAX_CHARTS} charts "
+                             f"of 2-{MAX_CHART_RES} texels, pad 0-64)")
+        for key, val, lo, hi in (("width_chart", width_chart, 1, 4096), ("width_map", width_map, 1, 4096),
+                                 ("depth_chart", depth_chart, 0, 16), ("depth_map", depth_map, 0, 16),
+                                 ("fourier_chart", fourier_chart, 0, 16), ("fourier_map", fourier_map, 0, 16)):
+            if not lo <= val <= hi:  # checked before the networks are allocated
+                raise InputError(f"atlas: {key} must lie in [{lo}, {hi}], got {val}")
         self.layout = GridLayout(n, R, pad)
         self.arch = dict(width_chart=width_chart, depth_chart=depth_chart, width_map=width_map, depth_map=depth_map,
                          fourier_chart=fourier_chart, fourier_map=fourier_map)

@@ -7,63 +7,76 @@ from dataclasses import dataclass
 from core.config import opt
 from core.util.errors import InputError
 
+MAX_CHART_RES = 4096  # texels per chart side: 8 charts of 4096² pack into a 12k x 12k image (1.7 GB of float32 RGB)
+
 
 @dataclass
 class AtlasConfig:
     """Stage 2: learn Nuvo-style UV charts and a packed, paintable texture atlas from surface samples."""
 
     charts: str = opt("auto", "number of charts: auto (from sample complexity), 4 or 8", choices=("auto", "4", "8"))
-    auto_flatness: float = opt(0.3, "auto charts: use 8 when the mean out-of-plane spread of 4 clusters exceeds this")
+    auto_flatness: float = opt(0.3, "auto charts: use 8 when the mean out-of-plane spread of 4 clusters exceeds this",
+                               min=0.0)
     sample_colour: str = opt("render", "colour of the surface samples: render (the stage-1 model's object colour of "
                              "the ray; models without an image decoder) or image (the ground-truth pixel, paper)",
                              choices=("render", "image"))
-    steps: int = opt(1500, "optimisation steps of the UV maps (joint with the texture)")
-    batch: int = opt(512, "surface samples per step")
-    uv_batch: int = opt(128, "random texture coordinates per chart per step (2D->3D->2D cycle, consistency, Chamfer)")
-    distortion_batch: int = opt(128, "samples per step on which the Jacobian distortion loss is evaluated")
-    lr: float = opt(2e-3, "Adam learning rate of the networks (decays x0.1 over the run)")
-    texture_lr: float = opt(3e-2, "Adam learning rate of the chart textures")
+    steps: int = opt(1500, "optimisation steps of the UV maps (joint with the texture)", min=1)
+    batch: int = opt(512, "surface samples per step", min=1, max=1 << 22)
+    uv_batch: int = opt(128, "random texture coordinates per chart per step (2D->3D->2D cycle, consistency, Chamfer)",
+                        min=1, max=1 << 20)
+    distortion_batch: int = opt(128, "samples per step on which the Jacobian distortion loss is evaluated",
+                                min=1, max=1 << 20)
+    lr: float = opt(2e-3, "Adam learning rate of the networks (decays x0.1 over the run)", above=0.0)
+    texture_lr: float = opt(3e-2, "Adam learning rate of the chart textures", min=0.0)
     texture_mode: str = opt("kernel", "final texture with the maps frozen: kernel (weighted mean colour of the samples "
                             "around each texel) or descent (texture_steps of Adam on the per-sample MSE)",
                             choices=("kernel", "descent"))
-    texture_sigma: float = opt(1.0, "kernel texture: Gaussian std in units of the mean sample spacing in texel space")
+    texture_sigma: float = opt(1.0, "kernel texture: Gaussian std in units of the mean sample spacing in texel space",
+                               above=0.0)
     footprint: bool = opt(True, "then refit the texture so that pixel-filtered lookups (2x2 points per pixel, "
                                 "as edited frames render) reproduce the training pixels (needs the stage-1 model)")
-    footprint_lambda: float = opt(1.0, "footprint refit: pull towards the kernel texture (relative to the data term)")
-    footprint_iters: int = opt(100, "footprint refit: conjugate-gradient iterations")
-    texture_steps: int = opt(300, "descent texture: refinement steps after the maps converge (maps frozen)")
-    width_chart: int = opt(64, "hidden width of the chart-assignment MLP")
-    depth_chart: int = opt(3, "hidden layers of the chart-assignment MLP")
-    width_map: int = opt(96, "hidden width of the texture-coordinate and surface-coordinate MLPs")
-    depth_map: int = opt(3, "hidden layers of the texture-coordinate and surface-coordinate MLPs")
-    fourier_chart: int = opt(1, "Fourier degree of the chart-assignment input encoding")
-    fourier_map: int = opt(1, "Fourier degree of the map input encodings (reference: 4; 1 measured better at these sizes)")
-    w_cycle3d: float = opt(1.0, "weight of the 3D->2D->3D cycle loss")
-    w_cycle2d: float = opt(1.0, "weight of the 2D->3D->2D cycle loss")
-    w_consistency: float = opt(0.04, "weight of the chart-consistency loss -log c_c(s_c(u))")
-    w_surface: float = opt(10.0, "weight of the Chamfer surface loss between samples and s_c(u)")
-    w_compact: float = opt(0.5, "weight of the cluster-compactness loss")
-    w_range: float = opt(1.0, "weight of the UV range hinge")
-    w_distortion: float = opt(0.4, "weight of the normal-free distortion loss L_scaling + L_area")
-    w_texture: float = opt(1.0, "weight of the colour MSE in the joint map + texture optimisation")
+    footprint_lambda: float = opt(1.0, "footprint refit: pull towards the kernel texture (relative to the data term)",
+                                  min=0.0)
+    footprint_iters: int = opt(100, "footprint refit: conjugate-gradient iterations", min=0)
+    texture_steps: int = opt(300, "descent texture: refinement steps after the maps converge (maps frozen)", min=0)
+    width_chart: int = opt(64, "hidden width of the chart-assignment MLP", min=1, max=4096)
+    depth_chart: int = opt(3, "hidden layers of the chart-assignment MLP", min=1, max=16)
+    width_map: int = opt(96, "hidden width of the texture-coordinate and surface-coordinate MLPs", min=1, max=4096)
+    depth_map: int = opt(3, "hidden layers of the texture-coordinate and surface-coordinate MLPs", min=1, max=16)
+    fourier_chart: int = opt(1, "Fourier degree of the chart-assignment input encoding", min=0, max=16)
+    fourier_map: int = opt(1, "Fourier degree of the map input encodings (reference: 4; 1 measured better at these sizes)",
+                           min=0, max=16)
+    w_cycle3d: float = opt(1.0, "weight of the 3D->2D->3D cycle loss", min=0.0)
+    w_cycle2d: float = opt(1.0, "weight of the 2D->3D->2D cycle loss", min=0.0)
+    w_consistency: float = opt(0.04, "weight of the chart-consistency loss -log c_c(s_c(u))", min=0.0)
+    w_surface: float = opt(10.0, "weight of the Chamfer surface loss between samples and s_c(u)", min=0.0)
+    w_compact: float = opt(0.5, "weight of the cluster-compactness loss", min=0.0)
+    w_range: float = opt(1.0, "weight of the UV range hinge", min=0.0)
+    w_distortion: float = opt(0.4, "weight of the normal-free distortion loss L_scaling + L_area", min=0.0)
+    w_texture: float = opt(1.0, "weight of the colour MSE in the joint map + texture optimisation", min=0.0)
     distortion: bool = opt(True, "use the normal-free distortion loss")
     distortion_weighting: str = opt("prob", "weight each chart's distortion by P(c|x) (prob) or not (uniform, paper formula)",
                                     choices=("prob", "uniform"))
-    chart_fill: float = opt(0.5, "target fraction of each chart square the surface covers (sets the UV scale)")
-    texture_res: int = opt(0, "texels per chart side; 0 = round(256*sqrt(2/n)) as in the paper")
-    pad: int = opt(4, "padding texels around each chart in the packed image (edge-replicated, no bleeding)")
-    texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings")
+    chart_fill: float = opt(0.5, "target fraction of each chart square the surface covers (sets the UV scale)",
+                            above=0.0, max=1.0)
+    texture_res: int = opt(0, "texels per chart side; 0 = round(256*sqrt(2/n)) as in the paper",
+                           min=0, max=MAX_CHART_RES)
+    pad: int = opt(4, "padding texels around each chart in the packed image (edge-replicated, no bleeding)",
+                   min=0, max=64)
+    texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings",
+                                above=0.0)
     texel_map: str = opt("splat", "texel map from the forward map (splat: kernel mean of the sample positions around each "
                                    "texel) or the surface-coordinate net (inverse: s_c at texel centres)",
                          choices=("splat", "inverse"))
     texel_max_cycle: float = opt(2.0, "texel map: NaN where t_c of the texel's point misses the texel centre by more than "
-                                      "this many texels (folds, outside the used region)")
-    eval_samples: int = opt(8192, "samples used for the fitting-PSNR history")
-    log_every: int = opt(50, "steps between history entries")
+                                      "this many texels (folds, outside the used region)", above=0.0)
+    eval_samples: int = opt(8192, "samples used for the fitting-PSNR history", min=1, max=1 << 22)
+    log_every: int = opt(50, "steps between history entries", min=1)
     threads: int = opt(1, "torch CPU threads while fitting (0 = keep torch's setting); small matrices: 2 threads "
-                          "on a shared 2-core box took 1611 s where 1 thread takes ~200 s (docs/atlas.md)")
+                          "on a shared 2-core box took 1611 s where 1 thread takes ~200 s (docs/atlas.md)",
+                          min=0, max=1024)
     device: str = opt("auto", "torch device: auto, cpu, cuda")
-    seed: int = opt(0, "random seed (same seed, same atlas)")
+    seed: int = opt(0, "random seed (same seed, same atlas)", min=0)
 
     def n_charts(self) -> int | None:
         """The forced chart count, or None for auto."""

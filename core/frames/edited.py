@@ -31,12 +31,14 @@ class EditConfig:
     correspondence: str = opt("deform-aware", "canonical correspondence: deform-aware | naive", choices=MODES)
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
                      choices=BLENDS)
-    mask_threshold: float = opt(0.01, "a texel counts as painted when its colour changed by more than this (L2)")
-    temperature: float = opt(1.0, "attention softmax temperature at render time (< 1 sharpens attention)")
+    mask_threshold: float = opt(0.01, "a texel counts as painted when its colour changed by more than this (L2)",
+                                min=0.0)
+    temperature: float = opt(1.0, "attention softmax temperature at render time (< 1 sharpens attention)",
+                             min=1e-3, max=1e3)
     colour: str = opt("points", "object colour: points (point render, painted texels from the atlas) | atlas "
                       "(every ray coloured from the atlas texture)", choices=("points", "atlas"))
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
-                            "(1 = one lookup at each ray's surface point: cheaper, aliased)")
+                            "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
 
 
 class EditState:
@@ -66,6 +68,8 @@ class EditState:
             if pts.dim() != 2 or pts.shape[1] != 3:
                 raise InputError(f"points: expected shape [M, 3], got {tuple(pts.shape)}")
             pts = pts.to(dev, torch.float32)
+            if pts.shape[0] == 0:
+                raise InputError("points: the point set is empty (0 positions); there is nothing to render")
             if ids is None:
                 if pts.shape[0] != n:
                     raise InputError(f"points: {pts.shape[0]} positions for a model of {n} points and no ids; "

@@ -146,6 +146,10 @@ def _read_json(json_path: Path, root: Path) -> dict:
     except json.JSONDecodeError as exc:
         raise DataError(f"{json_path}: invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}; "
                         "fix the syntax (a JSON validator shows the spot)") from exc
+    except RecursionError as exc:
+        raise DataError(f"{json_path}: JSON nested too deeply to be a transforms file") from exc
+    except OSError as exc:
+        raise DataError(f"{json_path}: cannot be read ({exc})") from exc
     if not isinstance(doc, dict):
         raise DataError(f"{json_path}: expected a JSON object with 'camera_angle_x' and 'frames', "
                         f"got a {type(doc).__name__}")
@@ -206,7 +210,12 @@ def _frame_matrix(frame: dict, where: str) -> np.ndarray:
 
 
 def _image_path(root: Path, file_path: str, where: str) -> Path:
-    """'./train/r_0' -> <root>/train/r_0.png; an explicit extension is kept."""
+    """'./train/r_0' -> <root>/train/r_0.png; an explicit extension is kept. Paths must stay inside the dataset
+    folder (no absolute paths, no '..' out of it): a dataset never reads files elsewhere on the system."""
+    inside = os.path.normpath(os.path.join(os.path.abspath(root), file_path))
+    if os.path.isabs(file_path) or os.path.commonpath([inside, os.path.abspath(root)]) != os.path.abspath(root):
+        raise DataError(f"{where}: 'file_path' {file_path!r} points outside the dataset folder {root}; file paths "
+                        "must be relative to the dataset folder (e.g. './train/r_0')")
     base = root / file_path
     with_png = base.with_name(base.name + ".png")
     if base.suffix.lower() != ".png" and with_png.is_file():
@@ -268,7 +277,7 @@ def _referenced_quietly(json_path: Path, root: Path) -> set[str]:
             for p in (base.with_name(base.name + ".png"), base):
                 out.add(os.path.normcase(os.path.abspath(p)))
         return out
-    except (OSError, ValueError, TypeError, AttributeError, KeyError):
+    except (OSError, ValueError, TypeError, AttributeError, KeyError, RecursionError):
         return set()
 
 
@@ -276,8 +285,16 @@ def _read_images(files: list[Path], json_path: Path) -> tuple[np.ndarray, np.nda
     """rgb [V, H, W, 3] and alpha [V, H, W] float32 from the frames' PNGs, all of one size."""
     first = read_png(files[0])
     v, (h, w) = len(files), first.shape[:2]
-    rgb = np.empty((v, h, w, 3), dtype=np.float32)
-    alpha = np.ones((v, h, w), dtype=np.float32)
+    need = v * h * w * 4 * 4  # rgb + alpha, float32
+    if need > _memory_limit():
+        raise DataError(f"{json_path}: {v} images of {w}x{h} need {need / 2**30:.1f} GiB as float32, more than this "
+                        f"machine's memory ({_memory_limit() / 2**30:.1f} GiB); use fewer frames or --downscale")
+    try:
+        rgb = np.empty((v, h, w, 3), dtype=np.float32)
+        alpha = np.ones((v, h, w), dtype=np.float32)
+    except MemoryError as exc:
+        raise DataError(f"{json_path}: not enough memory for {v} images of {w}x{h} "
+                        f"({need / 2**30:.1f} GiB); use fewer frames or --downscale") from exc
 
     def fill(i: int) -> None:  # each call writes only its own slot, so threads never overlap
         img = first if i == 0 else read_png(files[i])
@@ -293,6 +310,14 @@ def _read_images(files: list[Path], json_path: Path) -> tuple[np.ndarray, np.nda
         for _ in pool.map(fill, range(v)):  # re-raises the first error in frame order
             pass
     return rgb, alpha
+
+
+def _memory_limit() -> int:
+    """Bytes of physical memory (a dataset larger than this cannot be loaded); 1 TiB when unknown."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 1 << 40
 
 
 @dataclass

@@ -25,7 +25,9 @@ _TO_RGB = {"1", "L", "P", "RGB", "CMYK", "YCbCr", "LAB", "HSV"}
 _TO_RGBA = {"LA", "La", "PA", "RGBA", "RGBa"}
 _SIXTEEN_BIT_GREY = {"I;16", "I;16B", "I;16L", "I;16N", "I"}
 _SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_MAX_PIXELS = 1 << 28  # 16k x 16k; larger 16-bit PNGs are taken as corrupt headers
+MAX_SIDE = 16384  # pixels per side of any image read
+MAX_PIXELS = 1 << 26  # 8192 x 8192 (a 4096² atlas is a quarter of it); checked from the header, before decoding
+_BAND_BYTES = 1 << 25  # work memory of the 16-bit unfilter per band of rows
 
 
 def read_png(path: str | os.PathLike) -> np.ndarray:
@@ -42,9 +44,16 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
     data = path.read_bytes()
     if data.startswith(_SIGNATURE):
         try:
-            deep = _decode_16bit_colour(_png_chunks(data))
+            chunks = _png_chunks(data)
+            _check_size(chunks)
+            deep = _decode_16bit_colour(chunks)
+        except _TooLarge as exc:
+            raise DataError(f"{path}: image is too large ({exc}); PointGT reads images of up to {MAX_SIDE} pixels "
+                            f"per side and {MAX_PIXELS} pixels in all") from exc
         except (ValueError, zlib.error) as exc:
             raise DataError(f"{path}: PNG is truncated or corrupt ({exc}); re-export or re-copy the file") from exc
+        except MemoryError as exc:
+            raise DataError(f"{path}: not enough memory to decode this image") from exc
         if deep is not None:
             return deep
     try:
@@ -60,6 +69,23 @@ def read_png(path: str | os.PathLike) -> np.ndarray:
     except (OSError, SyntaxError, ValueError) as exc:
         # Pillow reports truncated data and bad CRC/zlib streams as OSError/SyntaxError/ValueError.
         raise DataError(f"{path}: image is truncated or corrupt ({exc}); re-export or re-copy the file") from exc
+    except MemoryError as exc:
+        raise DataError(f"{path}: not enough memory to decode this image") from exc
+
+
+class _TooLarge(ValueError):
+    """The header declares an image beyond MAX_SIDE / MAX_PIXELS."""
+
+
+def _check_size(chunks) -> None:
+    """Refuse PNGs whose IHDR declares more pixels than MAX_PIXELS (or a side beyond MAX_SIDE), before decoding."""
+    if not chunks or chunks[0][0] != b"IHDR" or len(chunks[0][1]) != 13:
+        raise ValueError("first chunk is not a valid IHDR")
+    width, height = struct.unpack(">II", chunks[0][1][:8])
+    if width == 0 or height == 0:
+        raise ValueError(f"the header declares an empty image ({width}x{height})")
+    if width > MAX_SIDE or height > MAX_SIDE or width * height > MAX_PIXELS:
+        raise _TooLarge(f"the header declares {width}x{height} pixels")
 
 
 def _png_chunks(data: bytes) -> list[tuple[bytes, memoryview]]:
@@ -90,8 +116,7 @@ def _decode_16bit_colour(chunks) -> np.ndarray | None:
     if depth != 16 or channels is None or interlace != 0:
         return None  # Pillow reads these at full precision (or interlaced: 8-bit, rare)
     bpp = 2 * channels
-    if width * height > _MAX_PIXELS or width == 0 or height == 0:
-        raise ValueError(f"implausible image size {width}x{height}")
+    _check_size(chunks)
     expected = height * (1 + width * bpp)
     # max_length caps memory if the stream inflates to more than the header promises.
     raw = zlib.decompressobj().decompress(b"".join(bytes(p) for k, p in chunks if k == b"IDAT"), expected + 1)
@@ -113,26 +138,45 @@ def _decode_16bit_colour(chunks) -> np.ndarray | None:
 def _unfilter(ftype: np.ndarray, filt: np.ndarray) -> np.ndarray:
     """Undo PNG row filters: ftype [H] in 0..4, filtered bytes [H, W, bpp] -> raw bytes [H, W, bpp] uint8.
 
-    Each pixel depends on its left, upper and upper-left neighbours, so the pixels of one anti-diagonal
-    (r + x = d) are independent: H + W - 1 vectorised steps instead of a loop over pixels. The work array is
-    stored skewed, diag[d + 1, r + 1] = pixel (r, d - r), so each step reads and writes contiguous slices;
-    row/column 0 and never-written cells are PNG's zero "outside the image" neighbours.
+    Rows are processed in bands whose work memory stays near _BAND_BYTES whatever the image size (a band's work
+    arrays grow with rows x (rows + W)); each band continues from the last row of the one above.
     """
     h, w, bpp = filt.shape
     if np.any(ftype > 4):
         raise ValueError(f"unknown row filter type {int(ftype.max())}")
+    band = int(max(1, min(h, _BAND_BYTES // (4 * bpp * (w + 1)))))
+    out = np.empty((h, w, bpp), np.uint8)
+    above = np.zeros((w, bpp), np.int16)  # the row above the image is zero
+    for r0 in range(0, h, band):
+        r1 = min(h, r0 + band)
+        out[r0:r1] = _unfilter_band(ftype[r0:r1], filt[r0:r1], above)
+        above = out[r1 - 1].astype(np.int16)
+    return out
+
+
+def _unfilter_band(ftype: np.ndarray, filt: np.ndarray, above: np.ndarray) -> np.ndarray:
+    """_unfilter for rows [B, W, bpp] below the already decoded row `above` [W, bpp].
+
+    Each pixel depends on its left, upper and upper-left neighbours, so the pixels of one anti-diagonal
+    (r + x = d) are independent: B + W - 1 vectorised steps instead of a loop over pixels. The work array is
+    stored skewed, diag[d + 1, r + 1] = pixel (r, d - r), so each step reads and writes contiguous slices;
+    column 0 holds `above` (diag[x, 0] = above[x]); never-written cells are PNG's zero "outside the image".
+    """
+    h, w, bpp = filt.shape
     r_idx = np.arange(h)[:, None]
-    d_idx = r_idx + np.arange(w)[None, :]  # [H, W] diagonal of each pixel
+    d_idx = r_idx + np.arange(w)[None, :]  # [B, W] diagonal of each pixel
     f_skew = np.zeros((h + w - 1, h, bpp), np.int16)
     f_skew[d_idx, r_idx] = filt
     diag = np.zeros((h + w, h + 1, bpp), np.int16)
+    diag[:w, 0] = above
+    zero = np.zeros((1, bpp), np.int16)
     # One 0/1 weight per row and filter type: pred = sum_k use[k] * predictor_k (cheaper than np.select).
     use = [(ftype == k).astype(np.int16)[:, None] for k in range(1, 5)]
     for d in range(h + w - 1):
         lo, hi = max(0, d - w + 1), min(h, d + 1)  # rows that have a pixel on this diagonal
         a = diag[d, lo + 1:hi + 1]
         b = diag[d, lo:hi]
-        c = diag[d - 1, lo:hi] if d else diag[0, lo:hi]
+        c = diag[d - 1, lo:hi] if d else zero  # pixel (0, 0) has no upper-left neighbour
         p = a + b - c
         pa, pb, pc = np.abs(p - a), np.abs(p - b), np.abs(p - c)
         paeth = np.where((pa <= pb) & (pa <= pc), a, np.where(pb <= pc, b, c))

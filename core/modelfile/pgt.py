@@ -141,6 +141,7 @@ class PgtFile:
             raise
         self.meta: dict = self.header["meta"]
         self.index: dict = self.header["arrays"]
+        self.allow_nonfinite: set[str] = set(self.header.get("allow_nonfinite", []))
 
     @property
     def names(self) -> list[str]:
@@ -153,10 +154,15 @@ class PgtFile:
         return np.dtype(self._entry(name)["dtype"])
 
     def read(self, name: str) -> np.ndarray:
-        """The array stored under `name` (native byte order, writable), after its sha256 was verified."""
+        """The array stored under `name` (native byte order, writable), after its sha256 was verified and, for
+        float arrays not listed in the header's allow_nonfinite, after checking that it holds no NaN/inf."""
         entry = self._entry(name)
         dtype = np.dtype(entry["dtype"]).newbyteorder("<")
-        arr = np.empty(tuple(entry["shape"]), dtype=dtype)
+        try:  # the size was checked against the archive on open, so only a real shortage of memory fails here
+            arr = np.empty(tuple(entry["shape"]), dtype=dtype)
+        except MemoryError as exc:
+            raise ModelFileError(f"{self.path}: array {name!r} {entry['shape']} needs more memory than is "
+                                 "available; close other programs or use a machine with more memory") from exc
         buf = _raw(arr)
         digest = hashlib.sha256()
         try:
@@ -177,6 +183,11 @@ class PgtFile:
         if digest.hexdigest() != entry["sha256"]:
             raise ModelFileError(f"{self.path}: array {name!r} is corrupt (sha256 checksum mismatch); "
                                  f"{_recover_hint(self.path)}")
+        if arr.dtype.kind == "f" and name not in self.allow_nonfinite:
+            bad = int(arr.size - np.count_nonzero(np.isfinite(arr)))
+            if bad:
+                raise ModelFileError(f"{self.path}: array {name!r} holds {bad} NaN/inf values, which the file does "
+                                     f"not allow for it (a damaged or badly trained model); {_recover_hint(self.path)}")
         return arr.astype(arr.dtype.newbyteorder("="), copy=False)
 
     def _entry(self, name: str) -> dict:
@@ -237,8 +248,10 @@ def _recover_hint(path: Path) -> str:
 def _open_zip(path: Path) -> zipfile.ZipFile:
     if not path.exists():
         raise ModelFileError(f"{path}: model file not found; check the path (a .pgt is made by `pointgt fit`)")
-    if not path.is_file():
+    if path.is_dir():
         raise ModelFileError(f"{path}: is a folder, not a .pgt model file")
+    if not path.is_file():
+        raise ModelFileError(f"{path}: is not a regular file (a device, pipe or socket), not a .pgt model file")
     with open(path, "rb") as fh:
         head = fh.read(4)
     try:
@@ -271,6 +284,9 @@ def _read_header(path: Path, zf: zipfile.ZipFile) -> dict:
         raise ModelFileError(f"{path}: {HEADER} is corrupt ({exc}); {_recover_hint(path)}") from exc
     except (UnicodeDecodeError, ValueError) as exc:
         raise ModelFileError(f"{path}: {HEADER} is not valid JSON ({exc}); {_recover_hint(path)}") from exc
+    except RecursionError as exc:
+        raise ModelFileError(f"{path}: {HEADER} is nested too deeply to be a PointGT header; the file is corrupt or "
+                             "was not written by PointGT") from exc
     if not isinstance(header, dict) or header.get("magic") != MAGIC:
         raise ModelFileError(f"{path}: not a PointGT model (magic is "
                              f"{header.get('magic') if isinstance(header, dict) else None!r}, "
@@ -290,12 +306,21 @@ def _read_header(path: Path, zf: zipfile.ZipFile) -> dict:
     index = header.get("arrays")
     if not isinstance(index, dict):
         raise ModelFileError(f"{path}: header 'arrays' must be an object; the header is corrupt")
+    allow = header.get("allow_nonfinite", [])
+    if not isinstance(allow, list) or not all(isinstance(n, str) for n in allow):
+        raise ModelFileError(f"{path}: header 'allow_nonfinite' must be a list of array names; the header is corrupt")
+    file_size = path.stat().st_size
+    total = 0
     for name, entry in index.items():
-        _check_entry(path, zf, name, entry, members)
+        total += _check_entry(path, zf, name, entry, members, file_size)
+    if total > file_size:  # members may not overlap: together they cannot hold more bytes than the file
+        raise ModelFileError(f"{path}: the arrays declare {total} bytes but the file has {file_size}; the archive "
+                             f"is corrupt or crafted; {_recover_hint(path)}")
     return header
 
 
-def _check_entry(path: Path, zf: zipfile.ZipFile, name: str, entry, members: set[str]) -> None:
+def _check_entry(path: Path, zf: zipfile.ZipFile, name: str, entry, members: set[str], file_size: int) -> int:
+    """Check one index entry against the archive (before anything is allocated); returns its size in bytes."""
     where = f"{path}: array {name!r}"
     if not isinstance(entry, dict):
         raise ModelFileError(f"{where}: index entry is not an object; the header is corrupt")
@@ -314,7 +339,15 @@ def _check_entry(path: Path, zf: zipfile.ZipFile, name: str, entry, members: set
         raise ModelFileError(f"{where}: its data member {member!r} is missing from the archive; "
                              f"{_recover_hint(path)}")
     expected = int(np.prod(shape, dtype=object)) * np.dtype(dtype).itemsize
-    actual = zf.getinfo(member).file_size
+    info = zf.getinfo(member)
+    actual = info.file_size
     if actual != expected:
         raise ModelFileError(f"{where}: data member holds {actual} bytes but dtype {dtype} and shape {shape} "
                              f"need {expected}; {_recover_hint(path)}")
+    # Sizes in the zip directory are claims: a stored member's bytes must really be inside the file.
+    if info.compress_type != zipfile.ZIP_STORED or info.compress_size != actual \
+            or info.header_offset + info.compress_size > file_size:
+        raise ModelFileError(f"{where}: data member claims {actual} bytes (stored as {info.compress_size} at byte "
+                             f"{info.header_offset}) that the {file_size}-byte file does not hold; the archive is "
+                             f"corrupt or crafted; {_recover_hint(path)}")
+    return expected

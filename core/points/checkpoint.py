@@ -53,6 +53,8 @@ def model_from_arrays(arrays: dict[str, np.ndarray], meta: dict, device="cpu", p
         if tuple(arr.shape) != tuple(ref.shape):
             raise ModelFileError(f"{path}: array '{name}' has shape {tuple(arr.shape)}, expected {tuple(ref.shape)}"
                                  " for these model settings")
+        if arr.is_floating_point() and not bool(torch.isfinite(arr).all()):  # even if the header allowed it
+            raise ModelFileError(f"{path}: array '{name}' holds NaN or infinite values; the file is damaged")
         new_state[key] = arr.to(ref.dtype)
     model.load_state_dict(new_state)
     return model.to(device)

@@ -28,9 +28,9 @@ TRAIN_BACKGROUND = (1.0, 1.0, 1.0)
 class ModelConfig:
     """The PAPR point model (points, attention, decoder)."""
 
-    num_points: int = opt(4000, "initial number of points (seeded inside the visual hull)")
-    feature_dim: int = opt(32, "per-point feature size h")
-    k: int = opt(20, "neighbours per ray K")
+    num_points: int = opt(4000, "initial number of points (seeded inside the visual hull)", min=1, max=10_000_000)
+    feature_dim: int = opt(32, "per-point feature size h", min=1, max=1024)
+    k: int = opt(20, "neighbours per ray K", min=1, max=256)
     neighbors: str = opt("screen_depth", "neighbour search: screen | screen_depth | perpendicular",
                          choices=("screen", "screen_depth", "perpendicular"))
     decoder: str = opt("none", "decoder: none (value = RGB) | unet (small UNet on the feature image)",
@@ -40,11 +40,11 @@ class ModelConfig:
                                        "decoder-free render")
     decoder_alpha: bool = opt(True, "the unet decoder also predicts foreground alpha (a separate mask head): the "
                                     "coverage of atlas-coloured and painted rays")
-    key_width: int = opt(64, "width of the attention key MLP")
-    key_freqs: int = opt(4, "Fourier frequencies of the ray-relative key features")
-    value_width: int = opt(64, "width of the value MLP")
+    key_width: int = opt(64, "width of the attention key MLP", min=1, max=4096)
+    key_freqs: int = opt(4, "Fourier frequencies of the ray-relative key features", min=0, max=16)
+    value_width: int = opt(64, "width of the value MLP", min=1, max=4096)
     view_dependent: bool = opt(False, "let colours depend on the viewing direction (off for emission scenes)")
-    temperature: float = opt(1.0, "softmax temperature at render time (< 1 sharpens attention)")
+    temperature: float = opt(1.0, "softmax temperature at render time (< 1 sharpens attention)", min=1e-3, max=1e3)
 
 
 def fourier(x: torch.Tensor, freqs: int) -> torch.Tensor:

@@ -31,39 +31,42 @@ from core.util.progress import Progress
 class TrainConfig:
     """Stage-1 training (PAPR + geometry regularizers)."""
 
-    steps: int = opt(6000, "maximum optimisation steps")
-    minutes: float = opt(0.0, "wall-clock budget in minutes (0 = no limit; training ends at whichever comes first)")
-    patches: int = opt(16, "image patches per step")
-    patch_size: int = opt(16, "patch side in pixels")
-    fg_patch_frac: float = opt(0.75, "fraction of patches centred on foreground pixels")
-    lr_points: float = opt(0.1, "point position learning rate, in units of the initial point spacing")
-    lr_features: float = opt(1e-2, "point feature learning rate")
-    lr_influence: float = opt(1e-2, "point influence learning rate")
-    lr_networks: float = opt(2e-3, "attention / value / decoder learning rate")
-    lr_final: float = opt(0.05, "learning rates decay exponentially to this fraction")
-    alpha_weight: float = opt(0.05, "weight of the foreground-mask loss (1 - background weight vs alpha)")
-    decoder_alpha_weight: float = opt(0.5, "weight of the decoder mask head's loss (MSE against alpha)")
-    ssim_weight: float = opt(0.0, "weight of the (1 - SSIM) loss on patches")
+    steps: int = opt(6000, "maximum optimisation steps", min=1)
+    minutes: float = opt(0.0, "wall-clock budget in minutes (0 = no limit; training ends at whichever comes first)",
+                         min=0.0)
+    patches: int = opt(16, "image patches per step", min=1, max=4096)
+    patch_size: int = opt(16, "patch side in pixels", min=1, max=4096)
+    fg_patch_frac: float = opt(0.75, "fraction of patches centred on foreground pixels", min=0.0, max=1.0)
+    lr_points: float = opt(0.1, "point position learning rate, in units of the initial point spacing", min=0.0)
+    lr_features: float = opt(1e-2, "point feature learning rate", min=0.0)
+    lr_influence: float = opt(1e-2, "point influence learning rate", min=0.0)
+    lr_networks: float = opt(2e-3, "attention / value / decoder learning rate", min=0.0)
+    lr_final: float = opt(0.05, "learning rates decay exponentially to this fraction", above=0.0, max=1.0)
+    alpha_weight: float = opt(0.05, "weight of the foreground-mask loss (1 - background weight vs alpha)", min=0.0)
+    decoder_alpha_weight: float = opt(0.5, "weight of the decoder mask head's loss (MSE against alpha)", min=0.0)
+    ssim_weight: float = opt(0.0, "weight of the (1 - SSIM) loss on patches", min=0.0)
     close2ray: bool = opt(True, "use the close-to-ray regularizer")
-    close2ray_weight: float = opt(0.002, "close-to-ray weight gamma")
+    close2ray_weight: float = opt(0.002, "close-to-ray weight gamma", min=0.0)
     close2surface: bool = opt(True, "use the close-to-surface regularizer")
-    close2surface_weight: float = opt(0.01, "close-to-surface weight eta")
-    reg_start: float = opt(0.1, "fraction of training after which the regularizers start")
-    prune_every: int = opt(500, "prune unused points every N steps (0 = never)")
-    clone_every: int = opt(1000, "clone the points with the largest position gradient every N steps (0 = never)")
-    clone_frac: float = opt(0.1, "fraction of points cloned each time")
-    max_points: int = opt(12000, "densification stops at this many points")
-    dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)")
-    eval_every: float = opt(30.0, "seconds of training between test-PSNR measurements")
-    eval_views: int = opt(4, "test views used for the PSNR-vs-time curve")
+    close2surface_weight: float = opt(0.01, "close-to-surface weight eta", min=0.0)
+    reg_start: float = opt(0.1, "fraction of training after which the regularizers start", min=0.0, max=1.0)
+    prune_every: int = opt(500, "prune unused points every N steps (0 = never)", min=0)
+    clone_every: int = opt(1000, "clone the points with the largest position gradient every N steps (0 = never)", min=0)
+    clone_frac: float = opt(0.1, "fraction of points cloned each time", min=0.0, max=1.0)
+    max_points: int = opt(12000, "densification stops at this many points", min=1, max=10_000_000)
+    dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)",
+                         min=0.0, max=0.95)
+    eval_every: float = opt(30.0, "seconds of training between test-PSNR measurements", above=0.0)
+    eval_views: int = opt(4, "test views used for the PSNR-vs-time curve", min=1)
     guard: bool = opt(True, "watch stage 1 for a collapsed fit (test renders at the blank-frame floor or without "
                             "foreground) and non-finite steps, and recover (reset the decoder's correction, then "
                             "restart without a decoder); what it did is kept in the history and the model file")
     guard_margin: float = opt(1.0, "dB: a fit whose object PSNR is within this of the blank frame's counts as "
-                                   "collapsed (when the blank frame itself is a poor match for the object)")
-    seed: int = opt(0, "random seed")
+                                   "collapsed (when the blank frame itself is a poor match for the object)", min=0.0,
+                              max=100.0)
+    seed: int = opt(0, "random seed", min=0)
     device: str = opt("auto", "cpu | cuda | auto")
-    threads: int = opt(0, "torch CPU threads (0 = torch default)")
+    threads: int = opt(0, "torch CPU threads (0 = torch default)", min=0, max=1024)
 
 
 def _cosine(frac: float) -> float:

@@ -30,7 +30,15 @@ def run(args) -> int:
     from core.images.dataset import load_split
     from core.pipeline import fit_atlas_stage, refresh_texel_map
 
+    from core.config import check_flag
+    from core.util.atomic import check_output_file
+    from core.util.device import check_device
+
+    check_output_file(args.model, "MODEL")  # rewritten in place at the end: checked before the work
+    check_output_file(Path(args.model).with_suffix(".atlas_history.json"), "MODEL (atlas history)")
+    check_flag(args.downscale, "--downscale", min=1, max=64)
     cfg = from_args(AtlasConfig, args, prefix="atlas")
+    check_device(cfg.device, "--atlas-device")
     bundle = load_bundle(args.model, device=cfg.device)
     train = load_split(args.data, "train", downscale=args.downscale)
     if args.texel_map_only:
@@ -42,7 +50,10 @@ def run(args) -> int:
               f"{info['samples']} samples in {info['seconds']:.1f} s{miss}; {len(bundle.atlas.bake_samples)} samples "
               f"kept for baking -> {args.model} (previous version: .bak)")
         return 0
-    hist = fit_atlas_stage(bundle, train, cfg, show_progress=not args.no_progress)
+    try:
+        hist = fit_atlas_stage(bundle, train, cfg, show_progress=not args.no_progress)
+    except KeyboardInterrupt:
+        raise KeyboardInterrupt(f"nothing was saved; {args.model} is unchanged") from None
     save_bundle(args.model, bundle)
     write_history(Path(args.model).with_suffix(".atlas_history.json"), [], {"atlas": hist, "config": to_dict(cfg)})
     print(f"stage 2: {hist['n']} charts from {hist['samples']} samples in {hist['total_seconds']:.0f} s "

@@ -23,6 +23,13 @@ def add_arguments(p):
 
 
 def run(args) -> int:
+    from core.config import check_flag
+    from core.util.atomic import check_output_dir
+    from core.util.device import check_device
     from tools.demo import run_demo
+
+    check_output_dir(args.out, "--out")
+    check_flag(args.minutes, "--minutes", min=0.0)
+    check_device(args.device, "--device")
 
     return run_demo(args)

@@ -28,6 +28,15 @@ def run(args) -> int:
     from core.images.dataset import load_split
     from core.util.atomic import atomic_write_text
 
+    from core.config import check_flag
+    from core.util.atomic import check_output_file
+    from core.util.device import check_device
+
+    if args.json:
+        check_output_file(args.json, "--json")
+    check_flag(args.downscale, "--downscale", min=1, max=64)
+    check_flag(args.limit, "--limit", min=0)
+    check_device(args.device, "--device")
     bundle = load_bundle(args.model, device=args.device)
     split = load_split(args.data, args.split, downscale=args.downscale)
     n = len(split) if args.limit <= 0 else min(args.limit, len(split))

@@ -35,6 +35,11 @@ def run(args) -> int:
     from core.util.atomic import atomic_write_text
     from tools.eval_edits import markdown, parse_floats, run_eval
 
+    from core.util.atomic import check_output_file
+
+    for path, flag in ((args.json, "--json"), (args.markdown, "--markdown")):
+        if path:
+            check_output_file(path, flag)  # before the (long) evaluation
     poses = [p.strip() for p in args.poses.split(",") if p.strip()] if args.poses else None
     result = run_eval(args.model, args.scene, poses=poses, magnitudes=parse_floats(args.magnitudes, "--magnitudes"),
                       views=args.views, temperatures=parse_floats(args.temperatures, "--temperatures"),

@@ -25,8 +25,13 @@ def run(args) -> int:
     from core.util.errors import ModelFileError
     from tools.cli import UserError
 
+    from core.util.atomic import check_output_file
+
     if not (args.points or args.atlas or args.texels):
         raise UserError("nothing to export: give --points, --atlas and/or --texels")
+    for path, flag in ((args.points, "--points"), (args.atlas, "--atlas"), (args.texels, "--texels")):
+        if path:
+            check_output_file(path, flag)
     with PgtFile(args.model) as f:  # numpy only: export needs no torch and never builds the networks
         names = set(f.names)
         if (args.atlas or args.texels) and "atlas/image" not in names:
@@ -42,6 +47,9 @@ def run(args) -> int:
             save_npy(args.points, f.read("points/xyz"))
         if args.atlas:
             img = f.read("atlas/image")
+            if not np.isfinite(img).all():  # a black PNG would hide the damage
+                raise ModelFileError(f"{args.model}: array 'atlas/image' holds NaN or infinite values; the atlas is "
+                                     "damaged, refit it with `pointgt atlas`")
             write_png(args.atlas, img)
             print(f"wrote {args.atlas} {img.shape[1]}x{img.shape[0]}")
         if args.texels:

@@ -20,11 +20,12 @@ ORDER = 20
 
 def add_arguments(p):
     p.add_argument("data", help="dataset folder in the NeRF-synthetic layout (transforms_train.json, ...)")
-    p.add_argument("--out", required=True, help="model file to write (.pgt); an existing file is kept as .bak")
+    p.add_argument("--out", required=True, help="model file to write (.pgt); the file that was there before the command is kept as .bak (one backup "
+                        "per fit)")
     p.add_argument("--stage", choices=("papr", "atlas", "all"), default="all",
                    help="papr = points only; atlas = refit stage 2 on an existing --out model; all = both")
     p.add_argument("--points", type=int, default=None, help="initial number of points (= --num-points)")
-    p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
+    p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor (1-64)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--allow-blank", action="store_true",
                    help="keep going (exit 0, run stage 2) even when the trained model renders the blank frame")
@@ -36,29 +37,49 @@ def add_arguments(p):
     add_to_parser(p, AtlasConfig, prefix="atlas")
 
 
+def _outputs(out: Path) -> list[tuple[Path, str]]:
+    """The files a fit writes: the model and its history / curve side files."""
+    return [(out, "--out"), (out.with_suffix(".history.json"), "--out (history)"),
+            (out.with_suffix(".curve.png"), "--out (curve)"),
+            (out.with_suffix(".atlas_history.json"), "--out (atlas history)")]
+
+
 def run(args) -> int:
     from core.bundle import Bundle, load_bundle, save_bundle
+    from core.config import check_flag
     from core.frames.report import plot_curves, write_history
     from core.images.dataset import load_dataset
     from core.points.train import fit_points
+    from core.util.atomic import check_output_file
+    from core.util.errors import PointGTError
 
     out = Path(args.out)
     if out.suffix != ".pgt":
         from tools.cli import UserError
         raise UserError(f"--out must end in .pgt, got {out}")
-    model_cfg = from_args(ModelConfig, args)
+    # Everything the user typed is checked before the dataset is read or a step is trained.
+    for path, flag in _outputs(out):
+        check_output_file(path, flag)
+    check_flag(args.downscale, "--downscale", min=1, max=64)
     if args.points is not None:
-        model_cfg = dataclasses.replace(model_cfg, num_points=args.points)
+        args.num_points = args.points
+    model_cfg = from_args(ModelConfig, args, names={"num_points": "--points"} if args.points is not None else None)
     train_cfg = from_args(TrainConfig, args)
     atlas_cfg = from_args(AtlasConfig, args, prefix="atlas")
+    from core.util.device import check_device
+
+    check_device(train_cfg.device, "--device")
+    check_device(atlas_cfg.device, "--atlas-device")
+    existed = out.exists()
+    bundle = None
+    if args.stage == "atlas":
+        bundle = load_bundle(out, device=train_cfg.device)  # before the images: a missing model is found at once
     data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"), downscale=args.downscale)
     train, test = data["train"], data["test"]
     print(f"[fit] {args.data}: {len(train)} train / {len(test)} test views at {train.width}x{train.height}")
     profile = None
     if args.profile and args.stage in ("papr", "all"):
         from core.profile import apply_profile, explicit_fields, scene_profile
-
-        from core.util.device import resolve_device
 
         profile = scene_profile(train, seed=train_cfg.seed, device=str(resolve_device(train_cfg.device)),
                                 num_points=model_cfg.num_points)
@@ -72,7 +93,10 @@ def run(args) -> int:
               f"{m['hull_flatness']:.2f}, {m['pixels_per_point']:.2f} foreground pixels per point); applied {applied or 'nothing (set on the command line)'}")
     if args.stage in ("papr", "all"):
         t0 = time.perf_counter()
-        model, history = fit_points(train, test, model_cfg, train_cfg, show_progress=not args.no_progress)
+        try:
+            model, history = fit_points(train, test, model_cfg, train_cfg, show_progress=not args.no_progress)
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt(f"nothing was saved; {out} is unchanged") from None
         seconds = time.perf_counter() - t0
         final = history[-1]
         # The curve uses a few views (eval_views); the summary is measured on the whole test split.
@@ -92,7 +116,7 @@ def run(args) -> int:
                           "train_seconds": final["seconds"], "steps": final["step"], "final": final,
                           "test_all_views": all_views, "guard": guard}}
         bundle = Bundle(model=model, meta=meta)
-        save_bundle(out, bundle)
+        save_bundle(out, bundle)  # the one backup of this fit: what was at --out before the command ran
         hist_path = write_history(out.with_suffix(".history.json"), history,
                                   {"model": to_dict(model_cfg), "train": to_dict(train_cfg),
                                    "test_all_views": all_views})
@@ -115,9 +139,23 @@ def run(args) -> int:
     if args.stage in ("atlas", "all"):
         from core.pipeline import fit_atlas_stage
 
-        bundle = load_bundle(out, device=train_cfg.device)
-        hist = fit_atlas_stage(bundle, train, atlas_cfg, show_progress=not args.no_progress)
-        save_bundle(out, bundle)
+        try:
+            if args.stage == "all":
+                bundle = load_bundle(out, device=train_cfg.device)  # stage 2 starts from the saved stage-1 model
+            hist = fit_atlas_stage(bundle, train, atlas_cfg, show_progress=not args.no_progress)
+            # After stage 1 of this fit, --out.bak already holds the user's previous model: no second backup.
+            save_bundle(out, bundle, backup=args.stage == "atlas")
+        except (KeyboardInterrupt, PointGTError) as exc:
+            if args.stage == "atlas":
+                if isinstance(exc, KeyboardInterrupt):
+                    raise KeyboardInterrupt(f"nothing was saved; {out} is unchanged") from None
+                raise
+            note = (f"{out} holds this fit's stage-1 model (points, no atlas: it renders, but painting needs an "
+                    f"atlas)" + (f"; the model that was there before is {out.name}.bak" if existed else "")
+                    + f"; add the atlas with `pointgt atlas {out} {args.data}`")
+            if isinstance(exc, KeyboardInterrupt):
+                raise KeyboardInterrupt(note) from None
+            raise type(exc)(f"{exc}; {note}") from exc
         write_history(out.with_suffix(".atlas_history.json"), [], {"atlas": hist, "config": to_dict(atlas_cfg)})
         print(f"[fit] stage 2: {hist['n']} charts from {hist['samples']} surface samples in "
               f"{hist['total_seconds']:.0f} s (fitting PSNR {hist['psnr'][-1]:.2f} dB) -> {out}")

@@ -48,6 +48,16 @@ def run(args) -> int:
         raise InputError(f"unknown scene '{args.name}'; choose one of {', '.join(scene_names())}")
     if not args.out:
         raise InputError("--out DIR is required")
+    from core.config import check_flag
+    from core.util.atomic import check_output_dir
+
+    check_output_dir(args.out, "--out")
+    check_flag(args.size, "--size", min=8, max=4096)
+    for flag in ("views_train", "views_val", "views_test"):
+        check_flag(getattr(args, flag), "--" + flag.replace("_", "-"), min=0 if flag == "views_val" else 1,
+                   max=10_000)
+    check_flag(args.samples, "--samples", min=1)
+    check_flag(args.magnitude, "--magnitude")
 
     from tools.scenes import build  # imports bpy: only now
 

@@ -14,13 +14,15 @@ NAME = "render"
 HELP = ("render a model from the cameras of a transforms JSON (one RGBA PNG per camera, straight alpha), "
         "optionally posed/painted")
 ORDER = 40
+MAX_RENDER_SIZE = 8192  # --size: pixels per side
 
 
 def add_arguments(p):
     p.add_argument("model", help="model file (.pgt)")
     p.add_argument("--cameras", required=True, help="transforms_*.json whose cameras to render")
     p.add_argument("--out", required=True, help="output folder for the PNGs")
-    p.add_argument("--size", type=int, default=None, help="square image size (default: size of the JSON's images)")
+    p.add_argument("--size", type=int, default=None,
+                   help="square image size, 1-8192 (default: size of the JSON's images)")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
     p.add_argument("--json", default=None, help="write timings and counts to this JSON file")
     p.add_argument("--points", default=None, help="deformed point positions: .npy float [M, 3]")
@@ -31,36 +33,56 @@ def add_arguments(p):
                    help="canonical correspondence for texture lookups of moved points")
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
-    p.add_argument("--temperature", type=float, default=1.0, help="attention temperature (< 1 sharpens attention)")
+    p.add_argument("--temperature", type=float, default=None,
+                   help="attention temperature (< 1 sharpens attention; default: 1, plain renders: the model's)")
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side, pixel-filtered (1 = one per ray, no filter)")
 
 
+MAX_FILE_POINTS = 10_000_000  # points per --points/--ids file (a model holds far fewer; 200k is a large one)
+
+
 def load_npy(path, what: str, kind: str):
     """Read a .npy array without unpickling. kind 'points' -> float32 [M, 3]; 'ids' -> int64 [M].
-    Raises InputError naming the file and the problem (missing, corrupt, pickled, wrong shape/dtype)."""
+    The header (shape, dtype) is checked against the file's real size and MAX_FILE_POINTS before anything is
+    allocated. Raises InputError naming the file and the problem (missing, corrupt, pickled, wrong shape/dtype)."""
     import numpy as np
 
     from core.util.errors import InputError
 
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{path}: {what} file does not exist")
+        raise InputError(f"{path}: {what} file does not exist" if not path.exists() else
+                         f"{path}: {what} is not a regular file (a folder or device); give a .npy file")
     with open(path, "rb") as fh:
         magic = fh.read(6)
-    if magic != b"\x93NUMPY":
-        raise InputError(f"{path}: {what} is not a .npy file (no NumPy header); save the array with numpy.save")
+        if magic != b"\x93NUMPY":
+            raise InputError(f"{path}: {what} is not a .npy file (no NumPy header); save the array with numpy.save")
+        fh.seek(0)
+        try:
+            version = np.lib.format.read_magic(fh)
+            shape, fortran, dtype = np.lib.format._read_array_header(fh, version)
+        except Exception as exc:  # numpy's header parser raises ValueError, SyntaxError, tokenize errors, ...
+            raise InputError(f"{path}: {what} has a corrupt .npy header ({exc}); save it again with numpy.save") from exc
+        offset = fh.tell()
+    if dtype.hasobject:  # object arrays need pickle: refused, loading never runs code
+        raise InputError(f"{path}: {what} holds Python objects (pickled data), which is never loaded; "
+                         f"save a plain numeric array with numpy.save")
+    count = int(np.prod(shape, dtype=object))
+    if count > 3 * MAX_FILE_POINTS:
+        raise InputError(f"{path}: {what} declares shape {list(shape)}, more than {MAX_FILE_POINTS} points; "
+                         "the header is corrupt or the file is not a point set")
+    expected, actual = count * dtype.itemsize, path.stat().st_size - offset
+    if actual != expected:
+        state = "truncated" if actual < expected else "longer than its header says"
+        raise InputError(f"{path}: {what} is {state} (header: shape {list(shape)} {dtype} = {expected} bytes, file "
+                         f"holds {actual}); save it again with numpy.save")
     try:
         arr = np.load(path, allow_pickle=False)
     except ValueError as exc:
-        if "pickle" in str(exc):  # object arrays need pickle: refused, loading never runs code
-            raise InputError(f"{path}: {what} holds Python objects (pickled data), which is never loaded; "
-                             f"save a plain numeric array with numpy.save") from exc
         raise InputError(f"{path}: {what} is truncated or corrupt ({exc}); save it again with numpy.save") from exc
     except (OSError, EOFError) as exc:
         raise InputError(f"{path}: {what} is not a readable .npy file ({exc}); save it with numpy.save") from exc
-    if not isinstance(arr, np.ndarray):
-        raise InputError(f"{path}: {what} must be a single .npy array, not an .npz archive")
     if kind == "points":
         if arr.ndim != 2 or arr.shape[1] != 3:
             raise InputError(f"{path}: {what} must have shape [M, 3], got {list(arr.shape)}")
@@ -71,6 +93,9 @@ def load_npy(path, what: str, kind: str):
         raise InputError(f"{path}: {what} must have shape [M], got {list(arr.shape)}")
     if arr.dtype.kind not in "iu":
         raise InputError(f"{path}: {what} must be integers, got dtype {arr.dtype}")
+    if arr.dtype.kind == "u" and arr.size and int(arr.max()) > np.iinfo(np.int64).max:
+        raise InputError(f"{path}: {what} holds the id {int(arr.max())}, beyond any point index; ids are the "
+                         "canonical indices 0..N-1 of the model's points")
     return arr.astype(np.int64)
 
 
@@ -79,31 +104,39 @@ def run(args) -> int:
     import torch
 
     from core.bundle import load_bundle
+    from core.config import check_flag, validate
+    from core.frames.edited import EditConfig
     from core.frames.render import straight_colour
     from core.images.dataset import load_cameras
     from core.images.png import read_png, write_png
-    from core.util.atomic import atomic_write_text
+    from core.util.atomic import atomic_write_text, check_output_dir, check_output_file
+    from core.util.device import check_device
     from core.util.errors import InputError
     from core.util.progress import Progress
 
+    # Flags and output paths first: a typo is reported before the model is read or a frame rendered.
+    out = check_output_dir(args.out, "--out")
+    if args.json:
+        check_output_file(args.json, "--json")
+    check_flag(args.size, "--size", min=1, max=MAX_RENDER_SIZE)
+    cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
+                              **({} if args.temperature is None else {"temperature": args.temperature})))
+    check_device(args.device, "--device")
     bundle = load_bundle(args.model, device=args.device)
     cams = load_cameras(args.cameras, size=args.size)
     edited = args.points is not None or args.ids is not None or args.atlas is not None
     state = None
     if edited:
-        from core.frames.edited import EditConfig, EditState
+        from core.frames.edited import EditState
 
         points = load_npy(args.points, "--points", "points") if args.points else None
         ids = load_npy(args.ids, "--ids", "ids") if args.ids else None
         atlas = read_png(args.atlas) if args.atlas else None
-        cfg = EditConfig(correspondence=args.correspondence, blend=args.blend, temperature=args.temperature,
-                         antialias=args.antialias)
         try:
             state = EditState(bundle, points=points, ids=ids, atlas=atlas, cfg=cfg)
         except InputError as exc:  # name the files the arrays came from
             files = ", ".join(f for f in (args.points, args.ids, args.atlas) if f)
             raise InputError(f"{files}: {exc}") from exc
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     times, totals = [], {}
     with Progress(len(cams.names), "render") as bar:
@@ -113,7 +146,7 @@ def run(args) -> int:
                 from core.frames.render import render_frame
 
                 res = render_frame(bundle.model, cams.c2w[i], cams.height, cams.width, cams.focal,
-                                   background=(0.0, 0.0, 0.0))
+                                   background=(0.0, 0.0, 0.0), temperature=args.temperature)
             else:
                 from core.frames.edited import render_edited
 
@@ -131,7 +164,7 @@ def run(args) -> int:
     summary = {"frames": len(times), "seconds_per_frame": float(np.mean(times)), "out": str(out)}
     if state is not None:
         summary.update(edited=True, correspondence=args.correspondence if state.moved else "skipped",
-                       blend=args.blend, temperature=args.temperature, textured=state.textured,
+                       blend=args.blend, temperature=cfg.temperature, textured=state.textured,
                        points=int(state.points.shape[0]), non_finite_points=state.non_finite_points,
                        non_finite_lookups_repaired=int(totals.get("non_finite_lookups_repaired", 0)),
                        rays=int(totals.get("rays", 0)), rays_shaded=int(totals.get("rays_shaded", 0)),
