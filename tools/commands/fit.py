@@ -80,6 +80,7 @@ def run(args) -> int:
     profile = None
     if args.profile and args.stage in ("papr", "all"):
         from core.profile import apply_profile, explicit_fields, scene_profile
+        from core.util.device import resolve_device
 
         profile = scene_profile(train, seed=train_cfg.seed, device=str(resolve_device(train_cfg.device)),
                                 num_points=model_cfg.num_points)
