@@ -5,8 +5,8 @@ reproduces their pixels.
 Why: the kernel texture (texture.py) is the mean colour of the pixels around each texel — pixel colours are already
 filtered by the renderer, so looking that texture up through the filter again blurs twice. Fitting through the same
 filter is a linear least-squares problem in linear-light texels (a deconvolution, regularised towards the kernel
-texture so texels no pixel constrains keep it). On the cloth demo model: +0.6 dB object PSNR on the test views for
-the atlas-coloured render (docs/atlas.md).
+texture so texels no pixel constrains keep it); its gain is measured in docs/atlas.md ("Texture refit through
+the pixel filter").
 """
 from __future__ import annotations
 

@@ -3,10 +3,8 @@
 Why: a texture lookup at the one surface point of a pixel's centre ray samples the texture, it does not filter it.
 Cycles (the ground truth here, and what an artist compares against) averages the radiance over a pixel footprint
 with a Blackman-Harris filter (default width setting 1.5; a 3-pixel support reproduces its frames), in linear
-light. On the cloth scene,
-the true texture on the true mesh scores 19.4 dB object PSNR against the Cycles frames sampled at pixel centres and
-31.7 dB filtered this way (`python -m tools.bench.pixel_filter_bound`, docs/atlas.md): fine stripes and painted
-strokes alias without it.
+light. Fine stripes and painted strokes alias without it: the true texture on the true mesh, sampled at pixel
+centres or filtered this way, is measured in docs/atlas.md ("One lookup per pixel vs the pixel filter").
 
 How: the ray surface points of a frame form a map [H, W, 3]; S x S sub-pixel points per pixel are interpolated
 bilinearly from it (only across neighbours on the same surface: depth within a few pixel footprints), looked up,

@@ -2,7 +2,7 @@
 from the atlas (lookup at the ray's surface point x_i), and print PSNR against the ground truth, full frame and on
 the object's pixels.
 
-    python -m tools.bench.atlas_vs_papr --model m.pgt --data /work/data/cloth128
+    python -m tools.bench.atlas_vs_papr --model m.pgt --data DIR
     python -m tools.bench.atlas_vs_papr --model m.pgt --data D --fit render --steps 1500 ...
 
 --fit image|render extracts surface samples from the model's training views (colour = ground-truth pixel or the
