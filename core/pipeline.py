@@ -44,7 +44,7 @@ def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0, col
 def footprint_views(model, split) -> list[FootprintView]:
     """Per training view: the model's surface points (projected on their rays), which rays hit, their depths, and
     the ground truth — the input of the footprint texture refit."""
-    from core.frames.render import trace_frame
+    from core.points.render import trace_frame
     from core.points.regularizers import project_on_ray
 
     views = []

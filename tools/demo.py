@@ -176,7 +176,7 @@ def run_demo(args) -> int:
 def evaluate_views(bundle, split) -> dict:
     """PSNR/SSIM of the point render and of the atlas-coloured render on every view of a split."""
     from core.frames.edited import EditConfig, EditState, render_edited
-    from core.frames.metrics import object_mask, psnr, ssim
+    from core.images.metrics import object_mask, psnr, ssim
 
     rows = []
     plain = EditState(bundle)

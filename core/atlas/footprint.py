@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 
 from core.edits.procedural import linear_to_srgb, srgb_to_linear
-from core.frames.antialias import FILTER_WIDTH, blackman_harris_taps, subpixel_chart_uv
+from core.images.filter import FILTER_WIDTH, blackman_harris_taps, subpixel_chart_uv
 
 
 @dataclass

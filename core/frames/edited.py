@@ -18,8 +18,8 @@ from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
 from core.edits.procedural import linear_to_srgb, srgb_to_linear
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
-from core.frames.antialias import filter_down, subpixel_chart_uv, subpixel_points
-from core.frames.render import shade_frame, trace_frame
+from core.images.filter import filter_down, subpixel_chart_uv, subpixel_points
+from core.points.render import shade_frame, trace_frame
 from core.points.regularizers import project_on_ray
 from core.util.errors import InputError
 

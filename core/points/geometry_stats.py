@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from core.frames.render import trace_frame
+from core.points.render import trace_frame
 from core.points.model import PointModel
 from core.points.regularizers import distance_to_ray
 

@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 
 from core.config import opt
-from core.frames.metrics import object_mask, psnr, ssim
-from core.frames.render import render_frame
+from core.images.metrics import object_mask, psnr, ssim
+from core.points.render import render_frame
 from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
 from core.points.model import ModelConfig, PointModel, mean_spacing

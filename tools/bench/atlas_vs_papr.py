@@ -142,8 +142,8 @@ def main(argv=None) -> int:
 
     from core.bundle import load_bundle
     from core.frames.edited import EditConfig, EditState, render_edited
-    from core.frames.metrics import object_mask, psnr
-    from core.frames.render import shade_frame
+    from core.images.metrics import object_mask, psnr
+    from core.points.render import shade_frame
     from core.images.dataset import load_split
 
     bundle = load_bundle(args.model, "cpu")

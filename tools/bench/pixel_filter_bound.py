@@ -62,8 +62,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(max(args.threads, 1))
     from core.edits.procedural import evaluate, linear_to_srgb, srgb_to_linear
-    from core.frames.antialias import filter_down, subpixel_points
-    from core.frames.metrics import object_mask, psnr
+    from core.images.filter import filter_down, subpixel_points
+    from core.images.metrics import object_mask, psnr
     from core.images.cameras import rays_for_pixels
     from core.images.dataset import load_split
     from tools.bench.colour_field_bound import mesh_ray_caster
@@ -88,7 +88,7 @@ def main(argv=None) -> int:
     if args.model:
         from core.bundle import load_bundle
         from core.edits.bake import bake
-        from core.frames.render import trace_frame
+        from core.points.render import trace_frame
         from core.points.regularizers import project_on_ray
         bundle = load_bundle(args.model, "cpu")
         model = bundle.model

@@ -23,8 +23,8 @@ def run(args) -> int:
     import torch
 
     from core.bundle import load_bundle
-    from core.frames.metrics import object_mask, psnr, ssim
-    from core.frames.render import render_frame
+    from core.images.metrics import object_mask, psnr, ssim
+    from core.points.render import render_frame
     from core.images.dataset import load_split
     from core.util.atomic import atomic_write_text
 
