@@ -45,7 +45,7 @@ def footprint_views(model, split) -> list[FootprintView]:
     """Per training view: the model's surface points (projected on their rays), which rays hit, their depths, and
     the ground truth — the input of the footprint texture refit."""
     from core.points.render import trace_frame
-    from core.points.regularizers import project_on_ray
+    from core.images.rays import project_on_ray
 
     views = []
     dev = model.xyz.device

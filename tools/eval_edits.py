@@ -26,7 +26,7 @@ from core.edits.correspondence import canonical_points
 from core.edits.procedural import evaluate, get_texture
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.images.metrics import object_mask, psnr, ssim
-from core.points.regularizers import project_on_ray
+from core.images.rays import project_on_ray
 from core.util.atomic import atomic_write_text
 from core.util.errors import DataError, InputError
 

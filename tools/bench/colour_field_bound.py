@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     from core.images.metrics import object_mask, psnr
     from core.points.render import shade_frame, trace_frame
     from core.images.dataset import load_split
-    from core.points.regularizers import project_on_ray
+    from core.images.rays import project_on_ray
     from tools.bench.atlas_vs_papr import composite, knn_colour
 
     t_start = time.perf_counter()

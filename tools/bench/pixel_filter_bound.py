@@ -10,7 +10,7 @@ colour and no model coverage anywhere), in these ways:
 - true hit at the pixel centre: one ray per pixel cast against the mesh, the texture at its hit — what one lookup
   per pixel can reach with perfect geometry and a perfect texture;
 - true hits, Blackman-Harris filter over a support of w pixels, display space or linear light: `--sub` x `--sub`
-  rays per pixel, hits filtered like `core/frames/antialias.py` does (which supports match Cycles' default width
+  rays per pixel, hits filtered like `core/images/filter.py` does (which supports match Cycles' default width
   setting of 1.5 is what these rows measure);
 - with --model: the model's surface points x_i (on their rays) instead of the true hits, at the pixel centre and
   filtered (3-pixel support) in linear light from 2 x 2 interpolated sub-pixel points, exactly as an edited frame is rendered —
@@ -61,7 +61,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args(argv)
     torch.set_num_threads(max(args.threads, 1))
-    from core.edits.procedural import evaluate, linear_to_srgb, srgb_to_linear
+    from core.edits.procedural import evaluate
+    from core.images.colour import linear_to_srgb, srgb_to_linear
     from core.images.filter import filter_down, subpixel_points
     from core.images.metrics import object_mask, psnr
     from core.images.cameras import rays_for_pixels
@@ -89,7 +90,7 @@ def main(argv=None) -> int:
         from core.bundle import load_bundle
         from core.edits.bake import bake
         from core.points.render import trace_frame
-        from core.points.regularizers import project_on_ray
+        from core.images.rays import project_on_ray
         bundle = load_bundle(args.model, "cpu")
         model = bundle.model
         if bundle.atlas is not None:
