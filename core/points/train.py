@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from core.config import opt
-from core.images.metrics import object_mask, psnr, ssim
+from core.images.metrics import mean_scores, score_views, ssim
 from core.points.render import render_frame
 from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
@@ -155,15 +155,9 @@ def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, j
 @torch.no_grad()
 def evaluate(model: PointModel, split, views, background) -> dict:
     """Mean PSNR (full frame and object pixels) and SSIM over the given view indices of a split."""
-    ps, po, ss = [], [], []
-    for i in views:
-        out = render_frame(model, split.c2w[i], split.height, split.width, split.focal, background=background)
-        gt = split.images[i].to(out["rgb"].device)
-        ps.append(psnr(out["rgb"], gt))
-        m = object_mask(split.alphas[i].to(gt.device), out["alpha"])
-        po.append(psnr(out["rgb"], gt, m))
-        ss.append(float(ssim(out["rgb"], gt)))
-    return {"psnr": sum(ps) / len(ps), "psnr_object": sum(po) / len(po), "ssim": sum(ss) / len(ss)}
+    def render(i):
+        return render_frame(model, split.c2w[i], split.height, split.width, split.focal, background=background)
+    return mean_scores(score_views(render, split.images, split.alphas, views))
 
 
 def fit_points(train, test, model_cfg: ModelConfig, cfg: TrainConfig, background=(1.0, 1.0, 1.0),
