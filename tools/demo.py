@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from core.util.atomic import atomic_write_text
-from tools.bench.machine import machine_info
+from tools.machine import machine_info
 
 
 @dataclass

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 
 
 def mesh_ray_caster(scene_dir: Path):

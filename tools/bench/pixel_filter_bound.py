@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 
 
 def _subpixel_grid(height: int, width: int, sub: int) -> torch.Tensor:

@@ -33,7 +33,7 @@ import math
 import statistics
 import time
 
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 
 
 def build_model(n: int, atlas_steps: int, seed: int = 0):
