@@ -20,7 +20,7 @@ from core.config import opt
 from core.points.decoders import UNetDecoder
 
 # Every model trains over white (datasets are composited onto it, `load_split`'s default): a decoder learns to
-# paint this background itself, so renders over another colour must move its share (core/frames/render.py).
+# paint this background itself, so renders over another colour must move its share (core/points/render.py).
 TRAIN_BACKGROUND = (1.0, 1.0, 1.0)
 
 
