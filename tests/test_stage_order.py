@@ -77,3 +77,28 @@ def test_checker_flags_backwards_glue_and_bpy_imports():
     assert len(violations(CORE / "frames" / "fake.py", src)) == 2
     assert violations(CORE / "images" / "fake.py", "from core.points import model\n")
     assert violations(CORE / "util" / "fake.py", "from core.atlas.atlas import Atlas\n")
+
+
+def stage_imports() -> dict[str, set[str]]:
+    """For each stage, the other stages its files import."""
+    out = {s: set() for s in STAGES}
+    for s in STAGES:
+        for f in (CORE / s).rglob("*.py"):
+            module = ".".join(f.relative_to(CORE.parent).with_suffix("").parts)
+            for _, name in imported_modules(f.read_text(encoding="utf-8"), module):
+                top = name.split(".")
+                if top[0] == "core" and len(top) > 1 and top[1] in STAGES and top[1] != s:
+                    out[s].add(top[1])
+    return out
+
+
+def test_architecture_page_lists_what_each_stage_imports():
+    """docs/ARCHITECTURE.md's table names, per stage, the stages it imports: it must match the code."""
+    page = (CORE.parent / "docs" / "ARCHITECTURE.md").read_text(encoding="utf-8")
+    listed = {}
+    for line in page.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 4 and cells[0] in STAGES:
+            listed[cells[0]] = set() if cells[3] in ("–", "-") else {c.strip() for c in cells[3].split(",")}
+    assert set(listed) == set(STAGES), listed
+    assert listed == stage_imports()
