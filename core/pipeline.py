@@ -16,7 +16,7 @@ from core.points.select import select_neighbors
 def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0, colour: str = "image"):
     """Stage-2 input from a stage-1 model: xyz [S, 3], rgb [S, 3] over all views of `split` (SplitData).
     colour: "image" pairs each surface point with its pixel's colour, "render" with the model's own colour there
-    (the same colour the point render shows; measured +0.3 dB for the atlas on the cloth scene, docs/atlas.md)."""
+    (the same colour the point render shows; measured in docs/atlas.md, "Sample colour")."""
     current = {}
 
     def views():
@@ -44,8 +44,8 @@ def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0, col
 def footprint_views(model, split) -> list[FootprintView]:
     """Per training view: the model's surface points (projected on their rays), which rays hit, their depths, and
     the ground truth — the input of the footprint texture refit."""
-    from core.frames.render import trace_frame
-    from core.points.regularizers import project_on_ray
+    from core.points.render import trace_frame
+    from core.images.rays import project_on_ray
 
     views = []
     dev = model.xyz.device

@@ -10,9 +10,8 @@ Measured from the data (all numbers are returned with the choices, JSON-able):
 - image detail per point: foreground pixels per training view / the number of points. Without a decoder each ray's
   colour is a blend of a few point colours (the attention learns to be sharp: ~2 effective neighbours), so detail
   finer than the projected point spacing is lost and gaps between points leak background. Above
-  DETAIL_PIXELS_PER_POINT the UNet decoder restores it. Measured on the cloth scene (128², 1291 foreground pixels a
-  view, 4000 points: 0.32): object PSNR on all 20 test views 22.0 dB without the decoder, 25.6 dB with it (same
-  2000 steps); the crude 64² prototype of the PAPR issue (~0.11) reached 24 dB without one.
+  DETAIL_PIXELS_PER_POINT the UNet decoder restores it; the cloth scene (128², 1291 foreground pixels a view, 4000
+  points: 0.32) is measured with and without it in docs/results.md ("The decoder").
 - thin sheets: the mean out-of-plane spread of the visual hull's clusters (`flatness` of core/atlas/fit.py, on the
   hull's volume points): a sheet's hull is a thin slab (low), a solid's hull is chunky (high). Thin → K = 40
   (the reference's cloth setting), else K = 20.

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from core.util.atomic import atomic_write_text
-from tools.bench.machine import machine_info
+from tools.machine import machine_info
 
 
 @dataclass
@@ -185,23 +185,19 @@ def run_demo(args) -> int:
 def evaluate_views(bundle, split) -> dict:
     """PSNR/SSIM of the point render and of the atlas-coloured render on every view of a split."""
     from core.frames.edited import EditConfig, EditState, render_edited
-    from core.frames.metrics import object_mask, psnr, ssim
+    from core.images.metrics import mean_scores, score_views
 
-    rows = []
     plain = EditState(bundle)
     atlas = EditState(bundle, cfg=EditConfig(colour="atlas")) if bundle.atlas is not None else None
-    for i in range(len(split)):
-        gt = split.images[i]
-        r = render_edited(plain, split.c2w[i], split.height, split.width, split.focal)
-        m = object_mask(split.alphas[i], r["alpha"].cpu())
-        row = {"psnr": psnr(r["rgb"].cpu(), gt), "psnr_object": psnr(r["rgb"].cpu(), gt, m),
-               "ssim": float(ssim(r["rgb"].cpu(), gt)), "seconds": r["stats"]["seconds"]}
+
+    def render(i):
+        view = (split.c2w[i], split.height, split.width, split.focal)
+        r = render_edited(plain, *view)
+        out = {"rgb": r["rgb"].cpu(), "alpha": r["alpha"].cpu(), "extra": {"seconds": r["stats"]["seconds"]}}
         if atlas is not None:
-            ra = render_edited(atlas, split.c2w[i], split.height, split.width, split.focal)
-            row["atlas_psnr"] = psnr(ra["rgb"].cpu(), gt)
-            row["atlas_psnr_object"] = psnr(ra["rgb"].cpu(), gt, m)
-        rows.append(row)
-    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+            out["also"] = {"atlas_{}": render_edited(atlas, *view)["rgb"].cpu()}
+        return out
+    return mean_scores(score_views(render, split.images, split.alphas))
 
 
 @torch.no_grad()

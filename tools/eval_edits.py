@@ -25,8 +25,8 @@ from core.edits.bake import bake
 from core.edits.correspondence import canonical_points
 from core.edits.procedural import evaluate, get_texture
 from core.frames.edited import EditConfig, EditState, render_edited
-from core.frames.metrics import object_mask, psnr, ssim
-from core.points.regularizers import project_on_ray
+from core.images.metrics import blank_floor, mean_scores, score_views
+from core.images.rays import project_on_ray
 from core.util.atomic import atomic_write_text
 from core.util.errors import DataError, InputError
 
@@ -218,32 +218,26 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
     oracle = (texture, scene spec): also score the texture evaluated exactly at x_can (psnr*_oracle).
     traces: a dict shared by the methods of one pose: neighbours + attention of a (view, temperature) are computed
     once; the reported seconds still include the time that trace took, so every row is a whole frame's cost."""
-    rows = []
-    for i in range(len(gt)):
+    def render(i):
         key = (i, state.cfg.temperature)
         cached = traces.get(key) if traces is not None else None
-        out = render_edited(state, gt.c2w[i], gt.height, gt.width, gt.focal, background,
-                            trace=cached[0] if cached else None)
+        view = (gt.c2w[i], gt.height, gt.width, gt.focal)
+        out = render_edited(state, *view, background, trace=cached[0] if cached else None)
         seconds = out["stats"]["seconds"]
         if cached:
             seconds += cached[1]
         elif traces is not None:
             traces[key] = (out["trace"], out["stats"]["trace_seconds"])
-        img, alpha = gt.images[i].to(out["rgb"].device), gt.alphas[i].to(out["rgb"].device)
-        m = object_mask(alpha, out["alpha"])
         st = out["stats"]
-        row = {"psnr": psnr(out["rgb"], img), "psnr_object": psnr(out["rgb"], img, m),
-               "ssim": float(ssim(out["rgb"], img)), "seconds": seconds,
-               "texture_rays": st["texture_rays"], "repaired": st.get("non_finite_lookups_repaired", 0),
-               **diagnostics(out, state)}
+        out["extra"] = {"seconds": seconds, "texture_rays": st["texture_rays"],
+                        "repaired": st.get("non_finite_lookups_repaired", 0), **diagnostics(out, state)}
         if oracle is not None:
-            view = (gt.c2w[i], gt.height, gt.width, gt.focal)
-            ideal = oracle_retexture(state, view, out["trace"], *oracle, background=background)
-            row.update(psnr_oracle=psnr(ideal, img), psnr_object_oracle=psnr(ideal, img, m))
-        rows.append(row)
+            out["also"] = {"{}_oracle": oracle_retexture(state, view, out["trace"], *oracle, background=background)}
+        return out
+    rows = score_views(render, gt.images, gt.alphas)
     keys = ("psnr", "psnr_object", "ssim", "seconds", "max_weight", "ray_dist", "ray_dist_spacings", "corr_gap")
     keys += ("psnr_oracle", "psnr_object_oracle") if oracle is not None else ()
-    res = {k: float(np.nanmean([r[k] for r in rows])) for k in keys}
+    res = mean_scores(rows, keys)
     res["seconds_per_frame"] = res.pop("seconds")
     res["texture_rays"] = int(sum(r["texture_rays"] for r in rows))
     res["non_finite_lookups_repaired"] = int(sum(r["repaired"] for r in rows))
@@ -253,10 +247,7 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
 
 def blank_scores(gt) -> dict:
     """The floor: a blank white frame against the ground truth (full frame and on the object's pixels)."""
-    blank = torch.ones_like(gt.images[0])
-    full = [psnr(blank, gt.images[i]) for i in range(len(gt))]
-    obj = [psnr(blank, gt.images[i], gt.alphas[i] > 0.5) for i in range(len(gt))]
-    return {"psnr": float(np.nanmean(full)), "psnr_object": float(np.nanmean(obj))}
+    return blank_floor(gt.images, gt.alphas)
 
 
 # --- the whole evaluation ---------------------------------------------------------------------------------------

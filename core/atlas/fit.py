@@ -15,6 +15,7 @@ from core.atlas.config import AtlasConfig
 from core.atlas.distortion import distortion_terms, uv_jacobian
 from core.atlas.packing import dilate_unused, sample_charts
 from core.atlas.texture import kernel_texture
+from core.images.metrics import psnr
 from core.util.device import resolve_device
 from core.util.errors import InputError
 from core.util.progress import Progress
@@ -188,7 +189,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     def log(step: int, phase: str) -> float:
         probs, uv = _predict(atlas, xn[ev])
         with torch.no_grad():
-            p = losses.psnr((probs[..., None] * sample_charts(atlas.textures, uv)).sum(1), rgb[ev])
+            p = psnr((probs[..., None] * sample_charts(atlas.textures, uv)).sum(1), rgb[ev])
         hist["steps"].append(step)
         hist["seconds"].append(time.perf_counter() - t0)
         hist["psnr"].append(p)
@@ -288,7 +289,7 @@ def quality_report(atlas: Atlas, xyz, rgb, area: float, chart_fill: float = 0.5,
     L = atlas.layout
     interior = L.n * L.R * L.R
     return {
-        "psnr": losses.psnr(atlas.lookup(xyz), rgb),
+        "psnr": psnr(atlas.lookup(xyz), rgb),
         "utilisation": utilisation(pix.cpu().numpy(), L.shape),
         "utilisation_interior": utilisation(pix.cpu().numpy(), L.shape) * L.shape[0] * L.shape[1] / interior,
         "texel_valid": float(torch.isfinite(tp).all(-1).sum()) / interior,

@@ -1,12 +1,12 @@
 """Texture refit for pixel-filtered lookups: choose the texels so that rendering the training views the way edited
-frames are rendered (S x S surface points per pixel, Blackman-Harris filter in linear light, core/frames/antialias.py)
+frames are rendered (S x S surface points per pixel, Blackman-Harris filter in linear light, core/images/filter.py)
 reproduces their pixels.
 
 Why: the kernel texture (texture.py) is the mean colour of the pixels around each texel — pixel colours are already
 filtered by the renderer, so looking that texture up through the filter again blurs twice. Fitting through the same
 filter is a linear least-squares problem in linear-light texels (a deconvolution, regularised towards the kernel
-texture so texels no pixel constrains keep it). On the cloth demo model: +0.6 dB object PSNR on the test views for
-the atlas-coloured render (docs/atlas.md).
+texture so texels no pixel constrains keep it); its gain is measured in docs/atlas.md ("Texture refit through
+the pixel filter").
 """
 from __future__ import annotations
 
@@ -15,8 +15,9 @@ from dataclasses import dataclass
 
 import torch
 
-from core.edits.procedural import linear_to_srgb, srgb_to_linear
-from core.frames.antialias import FILTER_WIDTH, blackman_harris_taps, subpixel_chart_uv
+from core.atlas.subpixel import subpixel_chart_uv
+from core.images.colour import linear_to_srgb, srgb_to_linear
+from core.images.filter import FILTER_WIDTH, blackman_harris_taps
 
 
 @dataclass

@@ -41,9 +41,3 @@ def compactness(x: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
 def uv_range(uv: torch.Tensor) -> torch.Tensor:
     """Hinge keeping texture coordinates in [0, 1]^2: mean of squared excess. uv [B, n, 2]."""
     return (F.relu(-uv) + F.relu(uv - 1)).pow(2).sum(-1).mean()
-
-
-def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
-    """PSNR in dB of colours in [0, 1]. pred, target [M, 3]."""
-    mse = (pred - target).pow(2).mean().clamp_min(1e-12)
-    return float(-10 * torch.log10(mse))

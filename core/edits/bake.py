@@ -7,7 +7,7 @@ Where the atlas keeps its surface samples (models fitted since they are stored),
 and splatted into the texels with the texture's own kernel — a texel gets the mean of fn over the surface points
 that look it up, as the fitted texture holds the mean colour. Evaluating fn at the texel's single point (the
 mean position of those samples, the fallback for older files) is sharper in 3-D but off by how far the views'
-surface points scatter, and loses 0.55 dB on the cloth (docs/atlas.md).
+surface points scatter (measured in docs/atlas.md, "Texel map").
 """
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import torch
 
-from core.points.regularizers import project_on_ray
+from core.images.rays import project_on_ray
 
 MODES = ("deform-aware", "naive")
 

@@ -396,14 +396,3 @@ def composite(base_rgb: torch.Tensor, rgb: torch.Tensor, mask: torch.Tensor) -> 
     """Decal over base in display space: base [N, 3], rgb [N, 3], mask [N] -> [N, 3]."""
     m = mask[..., None]
     return base_rgb + m * (rgb - base_rgb)
-
-
-def srgb_to_linear(c: torch.Tensor) -> torch.Tensor:
-    """Display (sRGB) [..., C] in [0, 1] -> linear."""
-    return torch.where(c < 0.04045, c / 12.92, ((c.clamp_min(0.0) + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(c: torch.Tensor) -> torch.Tensor:
-    """Linear [..., C] -> display (sRGB) encoding, clamped to [0, 1]."""
-    c = c.clamp(0.0, 1.0)
-    return torch.where(c < 0.0031308, c * 12.92, 1.055 * c.clamp_min(1e-12) ** (1.0 / 2.4) - 0.055)

@@ -14,13 +14,14 @@ from dataclasses import dataclass
 import torch
 
 from core.atlas.packing import sample_charts, unpack
+from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
-from core.edits.procedural import linear_to_srgb, srgb_to_linear
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
-from core.frames.antialias import filter_down, subpixel_chart_uv, subpixel_points
-from core.frames.render import shade_frame, trace_frame
-from core.points.regularizers import project_on_ray
+from core.images.colour import linear_to_srgb, srgb_to_linear
+from core.images.filter import filter_down, subpixel_points
+from core.images.rays import project_on_ray
+from core.points.render import shade_frame, trace_frame
 from core.util.errors import InputError
 
 
@@ -144,7 +145,7 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
                      focal: float, sub: int, texture_fn=None, threshold: bool = False) -> tuple[torch.Tensor,
                                                                                                torch.Tensor]:
     """Painted colour and mask of the rays `sel` [S] from sub x sub lookups per pixel, Blackman-Harris filtered in
-    linear light (core/frames/antialias.py). xc [S, 3] canonical points. Returns (rgb [S, 3], mask [S]).
+    linear light (core/images/filter.py). xc [S, 3] canonical points. Returns (rgb [S, 3], mask [S]).
     threshold: apply the threshold blend's rule to each sub-pixel lookup before filtering (the mask becomes the
     filtered share of sub-pixels that pass it, the colour their filtered mean): blend the result softly."""
     dev = xc.device

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import torch
 
-from core.frames.render import trace_frame
+from core.images.rays import distance_to_ray
 from core.points.model import PointModel
-from core.points.regularizers import distance_to_ray
+from core.points.render import trace_frame
 
 
 @torch.no_grad()

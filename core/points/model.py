@@ -20,7 +20,7 @@ from core.config import opt
 from core.points.decoders import UNetDecoder
 
 # Every model trains over white (datasets are composited onto it, `load_split`'s default): a decoder learns to
-# paint this background itself, so renders over another colour must move its share (core/frames/render.py).
+# paint this background itself, so renders over another colour must move its share (core/points/render.py).
 TRAIN_BACKGROUND = (1.0, 1.0, 1.0)
 
 
@@ -167,7 +167,7 @@ class PointModel(nn.Module):
         """Ray colours (no decoder) or ray features (decoder) from attention. background [3] display colour.
         Returns dict(rgb [R, 3] or None, feature [R, C] or None). With the residual decoder the feature's first
         three channels are the decoder-free colour over the training background (the decoder's base; frames over
-        another background are moved by core/frames/render.py like any decoder output)."""
+        another background are moved by core/points/render.py like any decoder output)."""
         v = self.point_values(dirs, idx, features)
         fv = (att["weights"][..., None] * v).sum(1)
         bg = att["bg"][:, None]

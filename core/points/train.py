@@ -16,8 +16,8 @@ import torch
 import torch.nn.functional as F
 
 from core.config import opt
-from core.frames.metrics import blank_floor, object_mask, psnr, ssim
-from core.frames.render import render_frame
+from core.images.metrics import blank_floor, mean_scores, score_views, ssim
+from core.points.render import render_frame
 from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
 from core.points.model import ModelConfig, PointModel, mean_spacing
@@ -163,31 +163,23 @@ def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, j
 
 @torch.no_grad()
 def evaluate(model: PointModel, split, views, background) -> dict:
-    """Mean PSNR (full frame and object pixels) and SSIM over the given view indices of a split, plus what the
-    collapse guard reads: `coverage`, the share of the ground truth's object pixels (alpha > 0.5) the render covers
-    (alpha > 0.5); `blank_distance`, the mean |render − background| over those pixels; `object_contrast`, the same
-    for the ground truth (how far the object is from a blank frame)."""
-    ps, po, ss, cov, dist, contrast = [], [], [], [], [], []
-    for i in views:
+    """Mean PSNR (full frame and object pixels) and SSIM over the given view indices of a split (the evaluation
+    loop of core/images/metrics.py), plus what the collapse guard reads: `coverage`, the share of the ground
+    truth's object pixels (alpha > 0.5) the render covers (alpha > 0.5); `blank_distance`, the mean
+    |render − background| over those pixels; `object_contrast`, the same for the ground truth (how far the object
+    is from a blank frame). NaN where a view has no object pixel (left out of the means)."""
+    def render(i):
         out = render_frame(model, split.c2w[i], split.height, split.width, split.focal, background=background)
         gt = split.images[i].to(out["rgb"].device)
-        gt_a = split.alphas[i].to(gt.device)
-        ps.append(psnr(out["rgb"], gt))
-        m = object_mask(gt_a, out["alpha"])
-        po.append(psnr(out["rgb"], gt, m))
-        ss.append(float(ssim(out["rgb"], gt)))
-        obj = gt_a > 0.5
-        if bool(obj.any()):
-            bg = torch.as_tensor(background, dtype=gt.dtype, device=gt.device)
-            cov.append(float((out["alpha"][obj] > 0.5).float().mean()))
-            dist.append(float((out["rgb"][obj] - bg).abs().mean()))
-            contrast.append(float((gt[obj] - bg).abs().mean()))
+        obj = split.alphas[i].to(gt.device) > 0.5
+        bg = torch.as_tensor(background, dtype=gt.dtype, device=gt.device)
+        nan = float("nan")
+        extra = {"coverage": float((out["alpha"][obj] > 0.5).float().mean()) if bool(obj.any()) else nan,
+                 "blank_distance": float((out["rgb"][obj] - bg).abs().mean()) if bool(obj.any()) else nan,
+                 "object_contrast": float((gt[obj] - bg).abs().mean()) if bool(obj.any()) else nan}
+        return {"rgb": out["rgb"], "alpha": out["alpha"], "extra": extra}
 
-    def mean(v):
-        return sum(v) / len(v) if v else float("nan")
-
-    return {"psnr": mean(ps), "psnr_object": mean(po), "ssim": mean(ss), "coverage": mean(cov),
-            "blank_distance": mean(dist), "object_contrast": mean(contrast)}
+    return mean_scores(score_views(render, split.images, split.alphas, views))
 
 
 MIN_COVERAGE = 0.3  # a render covering less of the object's pixels than this renders nothing
@@ -300,7 +292,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     bg = torch.as_tensor(background, dtype=torch.float32, device=dev)
     images, alphas, c2ws = train.images, train.alphas, train.c2w
     eval_ids = list(range(0, len(test.files), max(1, len(test.files) // max(cfg.eval_views, 1))))[: cfg.eval_views]
-    guard = CollapseGuard(blank_floor(test.images[eval_ids], test.alphas[eval_ids], background), cfg.guard_margin)
+    guard = CollapseGuard(blank_floor(test.images, test.alphas, eval_ids, background), cfg.guard_margin)
     history: list[dict] = []
     budget_s = cfg.minutes * 60.0 if cfg.minutes > 0 else float("inf")
     train_s = 0.0

@@ -93,9 +93,28 @@ def test_thin_sheet_gets_more_neighbours_on_a_gpu_only(profiles):
 
 
 def test_profile_is_json_and_charts_follow_the_atlas_rule(profiles):
-    for p in profiles.values():
+    """The atlas's auto rule on the visible hull points: 8 charts when 4 clusters are not flat enough (flatness
+    above AtlasConfig.auto_flatness), else 4; a flat card is one plane, so it gets 4."""
+    limit = AtlasConfig().auto_flatness
+    for key, p in profiles.items():
         d = json.loads(json.dumps(p.to_dict()))
-        assert d["charts"] in ("4", "8") and d["measured"]["points_compared"] > 50
+        assert d["measured"]["points_compared"] > 50 and d["measured"]["surface_points"] >= 64, key
+        flat = d["measured"]["surface_flatness"]
+        assert d["charts"] == ("8" if flat > limit else "4"), (key, flat, limit)
+        assert abs(flat - limit) > 1e-6, key  # not on the threshold, where the rule could go either way
+    assert profiles[("card", "emission")].charts == "4"
+
+
+def test_charts_move_with_the_atlas_threshold(profiles, monkeypatch):
+    """The profile asks the atlas's rule, not a copy of it: with the threshold below the sphere's measured
+    flatness the same scene gets 8 charts."""
+    import core.profile as prof_mod
+
+    flat = profiles[("sphere", "emission")].measured["surface_flatness"]
+    assert flat > 0.01
+    monkeypatch.setattr(prof_mod, "AtlasConfig", lambda: AtlasConfig(auto_flatness=0.5 * flat))
+    p = scene_profile(render_split("sphere", fibonacci_cameras(16, seed=0), SIZE), hull_points=2000)
+    assert p.measured["surface_flatness"] == pytest.approx(flat) and p.charts == "8"
 
 
 def test_view_variation_matches_a_plain_reference():

@@ -71,7 +71,7 @@ def session(tmp_path_factory):
                  tmp)
     second = _run(HERE / "reload_session.py", [str(work / "posed.blend")], env, tmp) \
         if (work / "posed.blend").exists() else {"error": "posed.blend was not saved"}
-    if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows this session's frames
+    if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows this test's frames
         _doc_images(work, Path(os.environ["POINTGT_DOC_IMAGES"]))
     return {"r": first, "reload": second, "work": work, "model": model}
 

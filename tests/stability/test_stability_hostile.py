@@ -512,7 +512,7 @@ def test_dataset_paths_leaving_the_folder_are_refused(env, tmp_path, capsys, fil
 # ---------------------------------------------------------------------------------------- generated inputs
 def _load_or_model_error(path):
     """Loading either works (and the model renders finite) or raises ModelFileError; nothing else."""
-    from core.frames.render import render_frame
+    from core.points.render import render_frame
     from core.util.errors import ModelFileError
 
     try:

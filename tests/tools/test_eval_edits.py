@@ -16,7 +16,7 @@ import torch
 from core.bundle import save_bundle
 from core.edits.bake import bake
 from core.frames.edited import EditConfig, EditState, render_edited
-from core.frames.render import render_frame
+from core.points.render import render_frame
 from core.images.png import read_png, write_png
 from tests.helpers.tiny_model import tiny_card
 from tools.cli import main

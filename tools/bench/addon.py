@@ -1,6 +1,6 @@
 """Benchmark of the Blender add-on's data paths (bpy, CPU): .pgt import, reading deformed points, export.
 
-    /work/venv/bin/python -m tools.bench.addon --points 200000 --atlas 1024
+    .venv/bin/python -m tools.bench.addon --points 200000 --atlas 1024
 
 Registers the add-on from this checkout (not the zip) in Blender-as-a-module, imports a synthetic model,
 binds it to a one-bone armature (envelopes), then times `evaluated_points` per posed frame and one export.

@@ -2,7 +2,7 @@
 from the atlas (lookup at the ray's surface point x_i), and print PSNR against the ground truth, full frame and on
 the object's pixels.
 
-    python -m tools.bench.atlas_vs_papr --model m.pgt --data /work/data/cloth128
+    python -m tools.bench.atlas_vs_papr --model m.pgt --data DIR
     python -m tools.bench.atlas_vs_papr --model m.pgt --data D --fit render --steps 1500 ...
 
 --fit image|render extracts surface samples from the model's training views (colour = ground-truth pixel or the
@@ -81,38 +81,15 @@ def with_kernel_texture(atlas, xyz: torch.Tensor, rgb: torch.Tensor, sigma: floa
     return out
 
 
-def model_samples(bundle, split, colour: str, seed: int = 0, background=(1.0, 1.0, 1.0)):
-    """Surface samples xyz [S, 3], rgb [S, 3] of a stage-1 model (no decoder) over all views of `split`,
-    as core/pipeline.py extracts them, plus the rendered colour for colour='render'."""
-    from core.atlas.samples import extract_surface_samples
-    from core.images.cameras import project_points
-    from core.points.select import select_neighbors
+def model_samples(bundle, split, colour: str, seed: int = 0):
+    """Surface samples xyz [S, 3], rgb [S, 3] of a stage-1 model over all views of `split`, exactly as stage 2
+    extracts them (core/pipeline.py); colour='render' (the model's own colours) needs a model without a decoder."""
+    from core.pipeline import surface_samples
     from core.util.errors import InputError
 
-    model = bundle.model
-    if colour == "render" and model.decoder is not None:
+    if colour == "render" and bundle.model.decoder is not None:
         raise InputError("--fit render: per-ray colours need a model without an image decoder")
-    current = {}
-    bg = torch.as_tensor(background, dtype=torch.float32)
-
-    def views():
-        for i in range(len(split)):
-            current["c2w"] = split.c2w[i]
-            yield split.c2w[i], split.height, split.width, split.focal, split.images[i], split.alphas[i]
-
-    @torch.no_grad()
-    def render_fn(o, d):
-        c2w = current["c2w"]
-        px, _ = project_points(o + d, c2w, split.height, split.width, split.focal)
-        idx = select_neighbors(model.xyz, model.cfg.neighbors, model.cfg.k, c2w, split.height, split.width,
-                               split.focal, px, o, d)
-        att = model.attend(model.xyz, model.influence, o, d, idx)
-        out = {"x": att["x"], "fg": 1.0 - att["bg"]}
-        if colour == "render":
-            out["rgb"] = model.shade(att, d, idx, bg)["rgb"].clamp(0, 1)
-        return out
-
-    return extract_surface_samples(render_fn, views(), seed=seed, colour=colour, background=background)
+    return surface_samples(bundle.model, split, seed=seed, colour=colour)
 
 
 def main(argv=None) -> int:
@@ -142,8 +119,8 @@ def main(argv=None) -> int:
 
     from core.bundle import load_bundle
     from core.frames.edited import EditConfig, EditState, render_edited
-    from core.frames.metrics import object_mask, psnr
-    from core.frames.render import shade_frame
+    from core.images.metrics import object_mask, psnr
+    from core.points.render import shade_frame
     from core.images.dataset import load_split
 
     bundle = load_bundle(args.model, "cpu")

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 
 
 def mesh_ray_caster(scene_dir: Path):
@@ -68,10 +68,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(max(args.threads, 1))
     from core.bundle import load_bundle
-    from core.frames.metrics import object_mask, psnr
-    from core.frames.render import shade_frame, trace_frame
+    from core.images.metrics import object_mask, psnr
+    from core.points.render import shade_frame, trace_frame
     from core.images.dataset import load_split
-    from core.points.regularizers import project_on_ray
+    from core.images.rays import project_on_ray
     from tools.bench.atlas_vs_papr import composite, knn_colour
 
     t_start = time.perf_counter()

@@ -15,7 +15,7 @@ import math
 import statistics
 import time
 
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 
 
 def _median_time(fn, repeats: int):

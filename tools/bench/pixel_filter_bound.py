@@ -10,7 +10,7 @@ colour and no model coverage anywhere), in these ways:
 - true hit at the pixel centre: one ray per pixel cast against the mesh, the texture at its hit — what one lookup
   per pixel can reach with perfect geometry and a perfect texture;
 - true hits, Blackman-Harris filter over a support of w pixels, display space or linear light: `--sub` x `--sub`
-  rays per pixel, hits filtered like `core/frames/antialias.py` does (which supports match Cycles' default width
+  rays per pixel, hits filtered like `core/images/filter.py` does (which supports match Cycles' default width
   setting of 1.5 is what these rows measure);
 - with --model: the model's surface points x_i (on their rays) instead of the true hits, at the pixel centre and
   filtered (3-pixel support) in linear light from 2 x 2 interpolated sub-pixel points, exactly as an edited frame is rendered —
@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 
 
 def _subpixel_grid(height: int, width: int, sub: int) -> torch.Tensor:
@@ -61,9 +61,10 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the figures here")
     args = ap.parse_args(argv)
     torch.set_num_threads(max(args.threads, 1))
-    from core.edits.procedural import evaluate, linear_to_srgb, srgb_to_linear
-    from core.frames.antialias import filter_down, subpixel_points
-    from core.frames.metrics import object_mask, psnr
+    from core.edits.procedural import evaluate
+    from core.images.colour import linear_to_srgb, srgb_to_linear
+    from core.images.filter import filter_down, subpixel_points
+    from core.images.metrics import object_mask, psnr
     from core.images.cameras import rays_for_pixels
     from core.images.dataset import load_split
     from tools.bench.colour_field_bound import mesh_ray_caster
@@ -88,8 +89,8 @@ def main(argv=None) -> int:
     if args.model:
         from core.bundle import load_bundle
         from core.edits.bake import bake
-        from core.frames.render import trace_frame
-        from core.points.regularizers import project_on_ray
+        from core.points.render import trace_frame
+        from core.images.rays import project_on_ray
         bundle = load_bundle(args.model, "cpu")
         model = bundle.model
         if bundle.atlas is not None:

@@ -33,7 +33,7 @@ import math
 import statistics
 import time
 
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 
 
 def build_model(n: int, atlas_steps: int, seed: int = 0):
@@ -104,7 +104,7 @@ def one_texel(atlas):
 @contextlib.contextmanager
 def uncapped_neighbours():
     """Render with the neighbour pixel-radius cap off (max_radius_px = -1) for the duration."""
-    import core.frames.render as render_mod
+    import core.points.render as render_mod
     from core.points import neighbors
 
     original = render_mod.select_neighbors
@@ -151,7 +151,7 @@ def time_frames(states, cams, size, focal, warmup: int = 1) -> list[dict]:
 def timed_parts(bundle, acc: dict):
     """Wrap the parts of render_edited to accumulate their wall time in acc[name]."""
     import core.frames.edited as edited_mod
-    import core.frames.render as render_mod
+    import core.points.render as render_mod
 
     patches = []
 
@@ -188,7 +188,7 @@ def compare_chunks(bundle, points, atlas_image, cams, size, focal, chunks: str) 
     """Edited-frame times for several trace_frame chunk sizes, interleaved per camera: {chunk: (wall s, CPU s)}."""
     import core.frames.edited as edited_mod
     from core.frames.edited import EditState, render_edited
-    from core.frames.render import trace_frame
+    from core.points.render import trace_frame
 
     sizes = [int(c) for c in chunks.split(",") if c.strip()]
     if not sizes:

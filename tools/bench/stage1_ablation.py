@@ -19,7 +19,7 @@ import time
 
 
 from core.images.dataset import load_dataset
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 from core.points.geometry_stats import surface_stats
 from core.points.model import ModelConfig
 from core.points.train import TrainConfig, evaluate, fit_points

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 
 
 def print_curve(history: list[dict]) -> None:

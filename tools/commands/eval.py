@@ -20,12 +20,10 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    import torch
-
     from core.bundle import load_bundle
-    from core.frames.metrics import object_mask, psnr, ssim
-    from core.frames.render import render_frame
     from core.images.dataset import load_split
+    from core.images.metrics import blank_floor, mean_scores, score_views
+    from core.points.render import render_frame
     from core.util.atomic import atomic_write_text
 
     from core.config import check_flag
@@ -40,19 +38,17 @@ def run(args) -> int:
     bundle = load_bundle(args.model, device=args.device)
     split = load_split(args.data, args.split, downscale=args.downscale)
     n = len(split) if args.limit <= 0 else min(args.limit, len(split))
-    rows = []
-    for i in range(n):
+
+    def render(i):
         t0 = time.perf_counter()
         out = render_frame(bundle.model, split.c2w[i], split.height, split.width, split.focal)
-        sec = time.perf_counter() - t0
-        gt = split.images[i].to(out["rgb"].device)
-        m = object_mask(split.alphas[i].to(gt.device), out["alpha"])
-        rows.append({"view": split.files[i].name, "psnr": psnr(out["rgb"], gt), "psnr_object": psnr(out["rgb"], gt, m),
-                     "ssim": float(ssim(out["rgb"], gt)), "seconds": sec})
-    blank = torch.ones_like(split.images[0])
-    summary = {k: sum(r[k] for r in rows) / len(rows) for k in ("psnr", "psnr_object", "ssim", "seconds")}
-    summary["blank_frame_psnr"] = sum(psnr(blank, split.images[i]) for i in range(n)) / n
-    summary["blank_frame_psnr_object"] = sum(psnr(blank, split.images[i], split.alphas[i] > 0.5) for i in range(n)) / n
+        out["extra"] = {"seconds": time.perf_counter() - t0}
+        return out
+    rows = [{"view": split.files[i].name, **row}
+            for i, row in enumerate(score_views(render, split.images, split.alphas, range(n)))]
+    summary = mean_scores(rows, ("psnr", "psnr_object", "ssim", "seconds"))
+    blank = blank_floor(split.images, split.alphas, range(n))
+    summary["blank_frame_psnr"], summary["blank_frame_psnr_object"] = blank["psnr"], blank["psnr_object"]
     result = {"model": str(args.model), "data": str(args.data), "split": args.split, "views": n,
               "width": split.width, "height": split.height, **summary, "per_view": rows}
     print(f"{args.split}: {n} views  PSNR {summary['psnr']:.2f} dB  object PSNR {summary['psnr_object']:.2f} dB  "

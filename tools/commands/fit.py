@@ -103,11 +103,11 @@ def run(args) -> int:
         # The curve uses a few views (eval_views); the summary is measured on the whole test split.
         from core.points.model import TRAIN_BACKGROUND
         from core.points.train import evaluate
-        from core.frames.metrics import blank_floor
+        from core.images.metrics import blank_floor
         from core.points.train import collapse_reason
 
         all_views = {"views": len(test.files), **evaluate(model, test, range(len(test.files)), TRAIN_BACKGROUND)}
-        floor = blank_floor(test.images, test.alphas, TRAIN_BACKGROUND)
+        floor = blank_floor(test.images, test.alphas, value=TRAIN_BACKGROUND)
         guard = {**final.get("guard", {}), "blank_floor_all_views": floor,
                  "collapsed": collapse_reason(all_views, floor, train_cfg.guard_margin)}
         meta = {"scene": {"data": str(Path(args.data).resolve()), "width": train.width, "height": train.height,

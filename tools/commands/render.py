@@ -106,7 +106,7 @@ def run(args) -> int:
     from core.bundle import load_bundle
     from core.config import check_flag, validate
     from core.frames.edited import EditConfig
-    from core.frames.render import straight_colour
+    from core.points.render import straight_colour
     from core.images.dataset import load_cameras
     from core.images.png import read_png, write_png
     from core.util.atomic import atomic_write_text, check_output_dir, check_output_file
@@ -143,7 +143,7 @@ def run(args) -> int:
         for i, name in enumerate(cams.names):
             t0 = time.perf_counter()
             if state is None:
-                from core.frames.render import render_frame
+                from core.points.render import render_frame
 
                 res = render_frame(bundle.model, cams.c2w[i], cams.height, cams.width, cams.focal,
                                    background=(0.0, 0.0, 0.0), temperature=args.temperature)

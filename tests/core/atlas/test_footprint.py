@@ -5,8 +5,8 @@ import torch
 from core.atlas.atlas import Atlas
 from core.atlas.footprint import FootprintView, footprint_system, solve_footprint_texture
 from core.atlas.packing import sample_charts
-from core.edits.procedural import linear_to_srgb
-from core.frames.antialias import filter_down, subpixel_points
+from core.images.colour import linear_to_srgb
+from core.images.filter import filter_down, subpixel_points
 
 
 def _setup(H=10, W=12, sub=2):

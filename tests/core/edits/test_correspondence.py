@@ -2,7 +2,7 @@
 import torch
 
 from core.edits.correspondence import canonical_points
-from core.points.regularizers import project_on_ray
+from core.images.rays import project_on_ray
 
 
 def _reference(w, idx, x_hat, o, d, p_def, p_can, mode):

@@ -4,7 +4,7 @@ import torch
 
 from core.edits.bake import bake
 from core.frames.edited import EditConfig, EditState, render_edited
-from core.frames.render import render_frame
+from core.points.render import render_frame
 from core.util.errors import InputError
 from tests.helpers.tiny_model import tiny_card
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import core.points.train as train_mod
-from core.frames.render import render_frame
+from core.points.render import render_frame
 from core.points.model import ModelConfig, PointModel, mean_spacing
 from core.points.train import CollapseGuard, TrainConfig, collapse_reason, evaluate, fit_points
 from tests.helpers.synthetic import fibonacci_cameras, render_split

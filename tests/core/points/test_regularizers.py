@@ -1,7 +1,8 @@
 """Geometry regularizers: values, zeros where they must be zero, gradient routing, finiteness."""
 import torch
 
-from core.points.regularizers import close_to_ray, close_to_surface, distance_to_ray
+from core.images.rays import distance_to_ray
+from core.points.regularizers import close_to_ray, close_to_surface
 
 
 def _att_on_ray(r=8, k=4):

@@ -2,7 +2,7 @@
 import torch
 
 from core.bundle import Bundle, load_bundle, save_bundle
-from core.frames.render import render_frame
+from core.points.render import render_frame
 from core.points.model import ModelConfig
 from core.points.train import TrainConfig, fit_points
 from tests.helpers.synthetic import fibonacci_cameras, render_split

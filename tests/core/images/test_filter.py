@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from core.frames.antialias import blackman_harris_taps, filter_down, subpixel_points
+from core.images.filter import blackman_harris_taps, filter_down, subpixel_points
 
 
 @pytest.mark.parametrize("sub", [1, 2, 3, 4])
@@ -117,7 +117,7 @@ def test_subpixel_chart_uv_matches_the_nets_at_interpolated_points():
     """Interpolating the chart nets' outputs per pixel is what evaluating them at the interpolated sub-pixel
     points gives, to second order: on a finely sampled plane the two agree closely, and the layout matches."""
     from core.atlas.atlas import Atlas
-    from core.frames.antialias import subpixel_chart_uv
+    from core.atlas.subpixel import subpixel_chart_uv
 
     torch.manual_seed(0)
     atlas = Atlas(4, 16, 2, torch.zeros(3), 1.0, width_chart=16, depth_chart=2, width_map=16, depth_map=2,

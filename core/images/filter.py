@@ -3,10 +3,8 @@
 Why: a texture lookup at the one surface point of a pixel's centre ray samples the texture, it does not filter it.
 Cycles (the ground truth here, and what an artist compares against) averages the radiance over a pixel footprint
 with a Blackman-Harris filter (default width setting 1.5; a 3-pixel support reproduces its frames), in linear
-light. On the cloth scene,
-the true texture on the true mesh scores 19.4 dB object PSNR against the Cycles frames sampled at pixel centres and
-31.7 dB filtered this way (`python -m tools.bench.pixel_filter_bound`, docs/atlas.md): fine stripes and painted
-strokes alias without it.
+light. Fine stripes and painted strokes alias without it: the true texture on the true mesh, sampled at pixel
+centres or filtered this way, is measured in docs/atlas.md ("One lookup per pixel vs the pixel filter").
 
 How: the ray surface points of a frame form a map [H, W, 3]; S x S sub-pixel points per pixel are interpolated
 bilinearly from it (only across neighbours on the same surface: depth within a few pixel footprints), looked up,
@@ -106,24 +104,3 @@ def filter_down(values: torch.Tensor, on: torch.Tensor, sub: int, width: float =
     y = F.conv2d(y, k.view(1, 1, -1, 1), stride=(sub, 1))[:, 0]  # [C+1, H, W]
     den = y[-1]
     return torch.where(den > 1e-8, y[:-1] / den.clamp_min(1e-12), torch.full_like(y[:-1], float("nan")))
-
-
-def subpixel_chart_uv(atlas, points: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, sub: int,
-                      max_depth_step: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Chart probabilities and texture coordinates at the S x S sub-pixel positions of a frame.
-
-    The atlas networks run once per pixel (points [H, W, 3] where valid) and their outputs are interpolated to
-    the sub-pixels like `subpixel_points` interpolates the points: t_c and c are smooth, so this equals evaluating
-    them at the interpolated points up to second-order terms, at 1/S² of the cost. Returns (probs [K, n],
-    uv [K, n, 2] of the K sub-pixels that are on the object, on [S*H, S*W] bool marking them, row-major)."""
-    H, W, _ = points.shape
-    n = atlas.n
-    feat = torch.zeros(H, W, 3 * n, dtype=points.dtype, device=points.device)
-    if bool(valid.any()):
-        probs, uv = atlas.chart_uv(points[valid])
-        feat[valid] = torch.cat([probs, uv.reshape(-1, 2 * n)], 1).to(points.dtype)
-    sp = subpixel_points(feat, valid, depth, sub, max_depth_step)
-    on = torch.isfinite(sp).all(-1)
-    v = sp[on]
-    return v[:, :n], v[:, n:].reshape(-1, n, 2), on
-

@@ -1,0 +1,28 @@
+"""Atlas lookups at sub-pixel positions: the chart networks once per pixel, their outputs interpolated like the
+surface points (`core.images.filter.subpixel_points`)."""
+from __future__ import annotations
+
+import torch
+
+from core.images.filter import subpixel_points
+
+
+def subpixel_chart_uv(atlas, points: torch.Tensor, valid: torch.Tensor, depth: torch.Tensor, sub: int,
+                      max_depth_step: torch.Tensor | float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Chart probabilities and texture coordinates at the S x S sub-pixel positions of a frame.
+
+    The atlas networks run once per pixel (points [H, W, 3] where valid) and their outputs are interpolated to
+    the sub-pixels like `subpixel_points` interpolates the points: t_c and c are smooth, so this equals evaluating
+    them at the interpolated points up to second-order terms, at 1/S² of the cost. Returns (probs [K, n],
+    uv [K, n, 2] of the K sub-pixels that are on the object, on [S*H, S*W] bool marking them, row-major)."""
+    H, W, _ = points.shape
+    n = atlas.n
+    feat = torch.zeros(H, W, 3 * n, dtype=points.dtype, device=points.device)
+    if bool(valid.any()):
+        probs, uv = atlas.chart_uv(points[valid])
+        feat[valid] = torch.cat([probs, uv.reshape(-1, 2 * n)], 1).to(points.dtype)
+    sp = subpixel_points(feat, valid, depth, sub, max_depth_step)
+    on = torch.isfinite(sp).all(-1)
+    v = sp[on]
+    return v[:, :n], v[:, n:].reshape(-1, n, 2), on
+
