@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from tools.bench.machine import machine_line
+from tools.machine import machine_line
 
 
 def _run(cmd: list[str], log) -> int:
