@@ -232,18 +232,17 @@ class CollapseGuard:
         self.events.append({"step": step, "seconds": round(seconds, 3), "action": action, "reason": reason})
         print(f"[fit] guard at step {step}: {reason}; {action}")
 
-    def check(self, model: PointModel, scores: dict, step: int, frac: float) -> str | None:
-        """The action a checkpoint calls for: None, "reset_decoder" or "restart"."""
+    def check(self, model: PointModel, scores: dict, step: int, frac: float) -> tuple[str | None, str | None]:
+        """(action, reason) a checkpoint calls for: action None, "reset_decoder" or "restart"."""
         if frac < self.MIN_FRACTION or step < self.MIN_STEPS:
-            return None
+            return None, None
         reason = collapse_reason(scores, self.floor, self.margin)
         if reason is None:
-            return None
-        self._reason = reason
+            return None, None
         residual = model.decoder is not None and model.cfg.decoder_residual
         if residual and self.decoder_resets == 0:
-            return "reset_decoder"
-        return "restart" if self.restarts < 2 else None
+            return "reset_decoder", reason
+        return ("restart" if self.restarts < 2 else None), reason
 
     def step_ok(self, loss: torch.Tensor, model: PointModel) -> bool:
         """True when the step's loss and gradients are finite; else the step is to be skipped."""
@@ -288,6 +287,13 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
         o = build_optimizer(m, cfg)
         return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev)
 
+    def restart(mcfg, reason):
+        """The guard's last resort: a new model without a decoder (schedules rerun over the remaining budget)."""
+        guard.restarts += 1
+        guard.record(step, train_s, "restarted the fit without a decoder", reason)
+        mcfg = dataclasses.replace(mcfg, decoder="none")
+        return (mcfg, *start(mcfg))
+
     model, opt, base_lrs, dens = start(model_cfg)
     bg = torch.as_tensor(background, dtype=torch.float32, device=dev)
     images, alphas, c2ws = train.images, train.alphas, train.c2w
@@ -308,18 +314,15 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 scores = evaluate(model, test, eval_ids, background)
                 history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores})
                 next_eval = train_s + cfg.eval_every
-                action = guard.check(model, scores, step, frac) if cfg.guard else None
+                action, reason = guard.check(model, scores, step, frac) if cfg.guard else (None, None)
                 if action == "reset_decoder":
                     guard.decoder_resets += 1
-                    guard.record(step, train_s, "reset the decoder's correction to zero", guard._reason)
+                    guard.record(step, train_s, "reset the decoder's correction to zero", reason)
                     model.reset_decoder_correction()
                     for p in model.decoder.out.parameters():
                         opt.state.pop(p, None)
                 elif action == "restart":
-                    guard.restarts += 1
-                    model_cfg = dataclasses.replace(model_cfg, decoder="none")
-                    guard.record(step, train_s, "restarted the fit without a decoder", guard._reason)
-                    model, opt, base_lrs, dens = start(model_cfg)
+                    model_cfg, model, opt, base_lrs, dens = restart(model_cfg, reason)
                     step0, sec0 = step, train_s
                     frac = 0.0
             t0 = time.perf_counter()
@@ -372,11 +375,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 # a non-finite loss or gradient: skip the update; a run of them starts the fit again
                 opt.zero_grad(set_to_none=True)
                 if guard.bad_steps >= guard.MAX_BAD_STEPS and guard.restarts < 2:
-                    guard.restarts += 1
-                    model_cfg = dataclasses.replace(model_cfg, decoder="none")
-                    guard.record(step, train_s, "restarted the fit without a decoder",
-                                 f"{guard.bad_steps} steps in a row had a non-finite loss or gradient")
-                    model, opt, base_lrs, dens = start(model_cfg)
+                    model_cfg, model, opt, base_lrs, dens = restart(
+                        model_cfg, f"{guard.bad_steps} steps in a row had a non-finite loss or gradient")
                     step0, sec0 = step, train_s
                     guard.bad_steps = 0
                 step += 1

@@ -113,11 +113,12 @@ def test_guard_actions_order():
     dec = PointModel(ModelConfig(decoder="unet", **SMALL), xyz, mean_spacing(xyz))
     g = CollapseGuard(FLOOR, 1.0)
     blank = {**GOOD, "psnr_object": 8.0, "blank_distance": 0.0}
-    assert g.check(dec, blank, step=10, frac=0.5) is None  # too early for a verdict
-    assert g.check(dec, GOOD, step=500, frac=0.5) is None
-    assert g.check(dec, blank, step=500, frac=0.5) == "reset_decoder"
+    assert g.check(dec, blank, step=10, frac=0.5) == (None, None)  # too early for a verdict
+    assert g.check(dec, GOOD, step=500, frac=0.5) == (None, None)
+    action, reason = g.check(dec, blank, step=500, frac=0.5)
+    assert action == "reset_decoder" and "blank frame" in reason
     g.decoder_resets = 1
-    assert g.check(dec, blank, step=600, frac=0.6) == "restart"
+    assert g.check(dec, blank, step=600, frac=0.6)[0] == "restart"
     assert not g.step_ok(torch.tensor(float("nan")), dec) and g.skipped_steps == 1
 
 
