@@ -16,6 +16,7 @@ import torch
 from core.atlas.packing import sample_charts, unpack
 from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
+from core.edits.deformation import DeformationConfig, field_for, inverse, stretch
 from core.edits.procedural import linear_to_srgb, srgb_to_linear
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.frames.antialias import filter_down, subpixel_chart_uv, subpixel_points
@@ -24,11 +25,21 @@ from core.points.regularizers import project_on_ray
 from core.util.errors import InputError
 
 
+RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
+
+
 @dataclass
 class EditConfig:
     """Edited rendering (correspondence and texture blending)."""
 
-    correspondence: str = opt("deform-aware", "canonical correspondence: deform-aware | naive", choices=MODES)
+    correspondence: str = opt("deform-aware", "canonical correspondence: deform-aware (paper) | naive (paper's "
+                              "ablation) | deform-gradient (undoes each neighbour's local rotation and stretch too)",
+                              choices=MODES)
+    f_attention: bool = opt(False, "moved points: measure the attention's key geometry in each neighbour's "
+                                   "canonical frame (its inverse local deformation gradient applied to the "
+                                   "ray-to-point offset); rest frames are unchanged")
+    f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
+                                "stretch (90th percentile of the largest local stretch, at least 1)")
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
                      choices=BLENDS)
     mask_threshold: float = opt(0.01, "a texel counts as painted when its colour changed by more than this (L2)")
@@ -47,9 +58,13 @@ class EditState:
     counted and treated as absent points.
     """
 
-    def __init__(self, bundle, points=None, ids=None, atlas=None, cfg: EditConfig | None = None):
+    def __init__(self, bundle, points=None, ids=None, atlas=None, cfg: EditConfig | None = None,
+                 deformation: DeformationConfig | None = None):
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
+        self.deformation_cfg = deformation or DeformationConfig()
+        self._inv_f = None
+        self._radius_scale = None
         if not 1 <= int(self.cfg.antialias) <= 8:
             raise InputError(f"antialias: texture lookups per pixel side must be 1-8, got {self.cfg.antialias}")
         model = bundle.model
@@ -108,6 +123,27 @@ class EditState:
             if self.atlas_image is None:
                 self.atlas_image = atl.packed_image().to(dev)
             self.mask_image = torch.ones_like(self.atlas_image)
+
+    @property
+    def inv_f(self) -> torch.Tensor | None:
+        """Inverse local deformation gradients of the points [M, 3, 3] (None when nothing moved), computed on first
+        use from the model's cached canonical neighbourhoods (core/edits/deformation.py)."""
+        if not self.moved:
+            return None
+        if self._inv_f is None:
+            f = field_for(self.bundle.model, self.deformation_cfg).gradients(self.points, self.ids)
+            self._inv_f = inverse(f)
+            st = stretch(f)[torch.isfinite(self.points).all(1)]
+            q = float(torch.quantile(st, 0.9)) if st.numel() else 1.0
+            self._radius_scale = q if q > RADIUS_SCALE_MIN else 1.0
+        return self._inv_f
+
+    @property
+    def radius_scale(self) -> float:
+        """Factor on the neighbour search's pixel radius cap for these points (1 when nothing moved or stretched)."""
+        if self.inv_f is None:
+            return 1.0
+        return self._radius_scale
 
     @property
     def textured(self) -> bool:
@@ -185,8 +221,12 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     t0 = time.perf_counter()
     bundle, cfg = state.bundle, state.cfg
     model = bundle.model
-    tr = trace if trace is not None else trace_frame(model, c2w, height, width, focal, points=state.points,
-                                                     influence=state.influence, temperature=cfg.temperature)
+    if trace is None:
+        tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
+                         temperature=cfg.temperature, inv_f=state.inv_f if cfg.f_attention else None,
+                         radius_scale=state.radius_scale if cfg.f_radius else 1.0)
+    else:
+        tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
     rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True)
     rgb = rgb.reshape(-1, 3)
@@ -205,7 +245,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         if state.moved:
             pts = torch.nan_to_num(state.points, nan=0.0, posinf=0.0, neginf=0.0)
             xc = canonical_points(tr["fg_weights"][sel], tr["idx"][sel], x_hat, tr["origins"][sel],
-                                  tr["dirs"][sel], pts, state.p_can, cfg.correspondence)
+                                  tr["dirs"][sel], pts, state.p_can, cfg.correspondence,
+                                  inv_f=state.inv_f if cfg.correspondence == "deform-gradient" else None)
             stats["correspondence"] = cfg.correspondence
         else:  # nothing moved: the canonical point is the ray's surface point on its ray (as the atlas saw it)
             xc = project_on_ray(x_hat, tr["origins"][sel], tr["dirs"][sel])
