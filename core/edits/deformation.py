@@ -263,6 +263,13 @@ def inverse(f: torch.Tensor) -> torch.Tensor:
     return torch.linalg.inv(f.double()).to(f.dtype)
 
 
+def expansion_inverse(f: torch.Tensor) -> torch.Tensor:
+    """Inverse [M, 3, 3] of F [M, 3, 3] with its singular values raised to at least 1: undoes the stretch of a
+    neighbourhood (and its rotation / mirror), leaves its compression. F = U Σ Vᵀ -> V max(Σ, 1)⁻¹ Uᵀ."""
+    u, sv, vh = torch.linalg.svd(f.double())
+    return (vh.transpose(1, 2) @ torch.diag_embed(1.0 / sv.clamp_min(1.0)) @ u.transpose(1, 2)).to(f.dtype)
+
+
 def stretch(f: torch.Tensor) -> torch.Tensor:
     """Largest singular value of F [M, 3, 3] -> [M]: how much a point's neighbourhood grew in its most stretched
     direction (1 at rest)."""

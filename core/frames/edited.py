@@ -16,7 +16,7 @@ import torch
 from core.atlas.packing import sample_charts, unpack
 from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
-from core.edits.deformation import DeformationConfig, field_for, inverse, stretch
+from core.edits.deformation import DeformationConfig, expansion_inverse, field_for, inverse, stretch
 from core.edits.procedural import linear_to_srgb, srgb_to_linear
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.frames.antialias import filter_down, subpixel_chart_uv, subpixel_points
@@ -38,6 +38,8 @@ class EditConfig:
     f_attention: bool = opt(False, "moved points: measure the attention's key geometry in each neighbour's "
                                    "canonical frame (its inverse local deformation gradient applied to the "
                                    "ray-to-point offset); rest frames are unchanged")
+    f_attention_squash: bool = opt(False, "with f_attention: also undo compression (local singular values < 1) in "
+                                          "the keys; off: only stretch is undone, squashed regions keep today's keys")
     f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
                                 "stretch (90th percentile of the largest local stretch, at least 1)")
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
@@ -64,7 +66,9 @@ class EditState:
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
         self._inv_f = None
+        self._inv_f_keys = None
         self._radius_scale = None
+        self.deformation_seconds = 0.0  # time the fit of F took (0 until it is needed)
         if not 1 <= int(self.cfg.antialias) <= 8:
             raise InputError(f"antialias: texture lookups per pixel side must be 1-8, got {self.cfg.antialias}")
         model = bundle.model
@@ -131,12 +135,32 @@ class EditState:
         if not self.moved:
             return None
         if self._inv_f is None:
+            t0 = time.perf_counter()
             f = field_for(self.bundle.model, self.deformation_cfg).gradients(self.points, self.ids)
             self._inv_f = inverse(f)
+            self._inv_f_keys = self._inv_f if self.cfg.f_attention_squash else expansion_inverse(f)
             st = stretch(f)[torch.isfinite(self.points).all(1)]
             q = float(torch.quantile(st, 0.9)) if st.numel() else 1.0
             self._radius_scale = q if q > RADIUS_SCALE_MIN else 1.0
+            self.deformation_seconds = time.perf_counter() - t0
         return self._inv_f
+
+    def share_deformation(self, other: "EditState") -> None:
+        """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose)."""
+        if other.moved and self.moved and other._inv_f is not None:
+            self._inv_f, self._radius_scale = other._inv_f, other._radius_scale
+            self._inv_f_keys = other._inv_f_keys if self.cfg.f_attention_squash == other.cfg.f_attention_squash \
+                else None
+            if self._inv_f_keys is None:  # the other state kept the other variant: recompute it from F
+                f = inverse(self._inv_f)
+                self._inv_f_keys = self._inv_f if self.cfg.f_attention_squash else expansion_inverse(f)
+            self.deformation_seconds = other.deformation_seconds
+
+    @property
+    def inv_f_keys(self) -> torch.Tensor | None:
+        """The inverse gradients the attention keys use [M, 3, 3]: F⁻¹ with f_attention_squash, else the inverse of
+        F with its singular values raised to at least 1 (stretch undone, compression kept)."""
+        return None if self.inv_f is None else self._inv_f_keys
 
     @property
     def radius_scale(self) -> float:
@@ -223,7 +247,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     model = bundle.model
     if trace is None:
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
-                         temperature=cfg.temperature, inv_f=state.inv_f if cfg.f_attention else None,
+                         temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                          radius_scale=state.radius_scale if cfg.f_radius else 1.0)
     else:
         tr = trace

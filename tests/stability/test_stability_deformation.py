@@ -150,3 +150,15 @@ def test_polar_parts_and_inverse():
     assert torch.isfinite(fi).all()
     assert torch.allclose(fi @ f, torch.eye(3).expand(200, 3, 3), atol=1e-3)
     assert torch.equal(bound(torch.eye(3)[None], MAX), torch.eye(3)[None])
+
+
+def test_expansion_inverse_undoes_stretch_only():
+    from core.edits.deformation import expansion_inverse
+
+    r = _rot(0.6, 1)
+    f = (r @ torch.diag(torch.tensor([5.0, 0.2, 1.0])))[None]
+    g = expansion_inverse(f)
+    assert torch.allclose(g, (torch.diag(torch.tensor([0.2, 1.0, 1.0])) @ r.T)[None], atol=1e-5)
+    m = torch.diag(torch.tensor([1.0, 1.0, -1.0]))[None]  # a mirror: undone (it is its own inverse)
+    assert torch.allclose(expansion_inverse(m), m, atol=1e-6)
+    assert torch.isfinite(expansion_inverse(torch.zeros(1, 3, 3))).all()

@@ -6,6 +6,7 @@ painted texture looked up at each ray's canonical correspondence.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -17,6 +18,9 @@ ORDER = 40
 
 
 def add_arguments(p):
+    from core.edits.correspondence import MODES
+    from core.frames.edited import EditConfig
+
     p.add_argument("model", help="model file (.pgt)")
     p.add_argument("--cameras", required=True, help="transforms_*.json whose cameras to render")
     p.add_argument("--out", required=True, help="output folder for the PNGs")
@@ -27,8 +31,13 @@ def add_arguments(p):
     p.add_argument("--ids", default=None,
                    help="canonical index of each deformed point: .npy integer [M] (needed when M != model points)")
     p.add_argument("--atlas", default=None, help="painted atlas image (PNG, same size as the model's atlas)")
-    p.add_argument("--correspondence", default="deform-aware", choices=("deform-aware", "naive"),
-                   help="canonical correspondence for texture lookups of moved points")
+    p.add_argument("--correspondence", default=EditConfig.correspondence, choices=MODES,
+                   help="canonical correspondence for texture lookups of moved points: deform-aware / naive (the "
+                        "paper's) or deform-gradient (also undoes each neighbour's local rotation and stretch)")
+    p.add_argument("--f-attention", action=argparse.BooleanOptionalAction, default=EditConfig.f_attention,
+                   help="moved points: attention keys in each point's canonical frame (local deformation gradient)")
+    p.add_argument("--f-radius", action=argparse.BooleanOptionalAction, default=EditConfig.f_radius,
+                   help="moved points: neighbour search radius cap scaled by the points' stretch")
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
     p.add_argument("--temperature", type=float, default=1.0, help="attention temperature (< 1 sharpens attention)")
@@ -97,7 +106,7 @@ def run(args) -> int:
         ids = load_npy(args.ids, "--ids", "ids") if args.ids else None
         atlas = read_png(args.atlas) if args.atlas else None
         cfg = EditConfig(correspondence=args.correspondence, blend=args.blend, temperature=args.temperature,
-                         antialias=args.antialias)
+                         antialias=args.antialias, f_attention=args.f_attention, f_radius=args.f_radius)
         try:
             state = EditState(bundle, points=points, ids=ids, atlas=atlas, cfg=cfg)
         except InputError as exc:  # name the files the arrays came from
