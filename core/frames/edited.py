@@ -38,8 +38,9 @@ class EditConfig:
     f_attention: bool = opt(False, "moved points: measure the attention's key geometry in each neighbour's "
                                    "canonical frame (its inverse local deformation gradient applied to the "
                                    "ray-to-point offset); rest frames are unchanged")
-    f_attention_squash: bool = opt(False, "with f_attention: also undo compression (local singular values < 1) in "
-                                          "the keys; off: only stretch is undone, squashed regions keep today's keys")
+    f_squash: bool = opt(False, "the attention keys (f_attention) and the deform-gradient correspondence also undo "
+                                "compression (local singular values < 1); off: they undo rotation and stretch only, "
+                                "so squashed directions are not amplified")
     f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
                                 "stretch (90th percentile of the largest local stretch, at least 1)")
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
@@ -138,7 +139,7 @@ class EditState:
             t0 = time.perf_counter()
             f = field_for(self.bundle.model, self.deformation_cfg).gradients(self.points, self.ids)
             self._inv_f = inverse(f)
-            self._inv_f_keys = self._inv_f if self.cfg.f_attention_squash else expansion_inverse(f)
+            self._inv_f_keys = self._inv_f if self.cfg.f_squash else expansion_inverse(f)
             st = stretch(f)[torch.isfinite(self.points).all(1)]
             q = float(torch.quantile(st, 0.9)) if st.numel() else 1.0
             self._radius_scale = q if q > RADIUS_SCALE_MIN else 1.0
@@ -149,17 +150,18 @@ class EditState:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose)."""
         if other.moved and self.moved and other._inv_f is not None:
             self._inv_f, self._radius_scale = other._inv_f, other._radius_scale
-            self._inv_f_keys = other._inv_f_keys if self.cfg.f_attention_squash == other.cfg.f_attention_squash \
+            self._inv_f_keys = other._inv_f_keys if self.cfg.f_squash == other.cfg.f_squash \
                 else None
             if self._inv_f_keys is None:  # the other state kept the other variant: recompute it from F
                 f = inverse(self._inv_f)
-                self._inv_f_keys = self._inv_f if self.cfg.f_attention_squash else expansion_inverse(f)
+                self._inv_f_keys = self._inv_f if self.cfg.f_squash else expansion_inverse(f)
             self.deformation_seconds = other.deformation_seconds
 
     @property
     def inv_f_keys(self) -> torch.Tensor | None:
-        """The inverse gradients the attention keys use [M, 3, 3]: F⁻¹ with f_attention_squash, else the inverse of
-        F with its singular values raised to at least 1 (stretch undone, compression kept)."""
+        """The inverse gradients the attention keys and the deform-gradient correspondence use [M, 3, 3]: F⁻¹ with
+        f_squash, else the inverse of F with its singular values raised to at least 1 (rotation and stretch undone,
+        compression kept)."""
         return None if self.inv_f is None else self._inv_f_keys
 
     @property
@@ -270,7 +272,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
             pts = torch.nan_to_num(state.points, nan=0.0, posinf=0.0, neginf=0.0)
             xc = canonical_points(tr["fg_weights"][sel], tr["idx"][sel], x_hat, tr["origins"][sel],
                                   tr["dirs"][sel], pts, state.p_can, cfg.correspondence,
-                                  inv_f=state.inv_f if cfg.correspondence == "deform-gradient" else None)
+                                  inv_f=state.inv_f_keys if cfg.correspondence == "deform-gradient" else None)
             stats["correspondence"] = cfg.correspondence
         else:  # nothing moved: the canonical point is the ray's surface point on its ray (as the atlas saw it)
             xc = project_on_ray(x_hat, tr["origins"][sel], tr["dirs"][sel])

@@ -22,7 +22,8 @@ def add_arguments(p):
     p.add_argument("--temperatures", default="1,0.5", help="attention temperatures (< 1 sharpens attention)")
     p.add_argument("--renderers", default="paper",
                    help="comma-separated renderer variants: paper (today's) | f-attention (attention keys in each "
-                        "point's canonical frame) | f-radius (neighbour radius cap scaled by the stretch) | f-both")
+                        "point's canonical frame, stretch undone) | f-radius (neighbour radius cap scaled by the stretch) | "
+                        "f-both | f-squash (keys and deform-gradient correspondence undo compression too)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

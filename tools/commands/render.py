@@ -36,6 +36,8 @@ def add_arguments(p):
                         "paper's) or deform-gradient (also undoes each neighbour's local rotation and stretch)")
     p.add_argument("--f-attention", action=argparse.BooleanOptionalAction, default=EditConfig.f_attention,
                    help="moved points: attention keys in each point's canonical frame (local deformation gradient)")
+    p.add_argument("--f-squash", action=argparse.BooleanOptionalAction, default=EditConfig.f_squash,
+                   help="the F-aware keys and deform-gradient correspondence also undo compression")
     p.add_argument("--f-radius", action=argparse.BooleanOptionalAction, default=EditConfig.f_radius,
                    help="moved points: neighbour search radius cap scaled by the points' stretch")
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
@@ -106,7 +108,8 @@ def run(args) -> int:
         ids = load_npy(args.ids, "--ids", "ids") if args.ids else None
         atlas = read_png(args.atlas) if args.atlas else None
         cfg = EditConfig(correspondence=args.correspondence, blend=args.blend, temperature=args.temperature,
-                         antialias=args.antialias, f_attention=args.f_attention, f_radius=args.f_radius)
+                         antialias=args.antialias, f_attention=args.f_attention, f_radius=args.f_radius,
+                         f_squash=args.f_squash)
         try:
             state = EditState(bundle, points=points, ids=ids, atlas=atlas, cfg=cfg)
         except InputError as exc:  # name the files the arrays came from
