@@ -238,8 +238,11 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
     f_used = state.moved and (state.cfg.f_attention or state.cfg.f_radius or
                               state.cfg.correspondence == "deform-gradient")
     f_seconds = 0.0
-    if f_used:
-        _ = state.inv_f
+    if f_used:  # what the frame needs of F, before the timed frames
+        if state.cfg.f_attention or state.cfg.correspondence == "deform-gradient":
+            _ = state.inv_f_keys
+        if state.cfg.f_radius:
+            _ = state.radius_scale
         f_seconds = state.deformation_seconds
     for i in range(len(gt)):
         key = (i, state.cfg.temperature, state.cfg.f_attention, state.cfg.f_radius,
@@ -336,10 +339,10 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
             state = EditState(bundle, points=points, atlas=atlases[mt.edit], cfg=cfg)
             if "state" in f_time:  # reuse this pose's fit (same points): F and its measured time
                 state.share_deformation(f_time["state"])
-            elif points is not None:
-                f_time["state"] = state
             res = score_frames(state, gts[mt.edit], oracle=(retexture, spec) if mt.edit == "retexture" else None,
                                traces=traces)
+            if state._f is not None and "state" not in f_time:
+                f_time["state"] = state
             rows.append({"pose": pose, "magnitude": mag, **asdict(mt), **res})
         log(f"[{k + 1}/{len(plan)}] {pose} m={mag:g}: " + "  ".join(
             f"{r['renderer']}/{r['edit'][:4]}/{r['correspondence']}/T{r['temperature']:g}/{r['blend'][:4]} "

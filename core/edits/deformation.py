@@ -115,6 +115,11 @@ class DeformationField:
         self.weights = torch.where(torch.isfinite(dist) & (self.nbr >= 0), w, torch.zeros_like(w))  # [N, k]
         # Length scale per point: zero-spread tests are relative to it.
         self.scale = h.squeeze(1)                                                                 # [N]
+        # The canonical side of the fit with every neighbour present: a frame reuses it for each point whose
+        # neighbours all came through (the common case) and recomputes it for the others only.
+        dc = torch.where(self.nbr[..., None] >= 0, can[self.nbr.clamp_min(0)] - can[:, None, :], 0.0)
+        dc = torch.nan_to_num(dc.double() / self.scale.double().clamp_min(1e-30)[:, None, None], 0.0, 0.0, 0.0)
+        self._terms = self._canonical_terms(self.weights.double(), dc)
 
     @property
     def num_points(self) -> int:
@@ -174,6 +179,31 @@ class DeformationField:
         dd = torch.where(ok[..., None], dd, torch.zeros_like(dd))
         return dc, dd, w, cid, own_ok
 
+    def _canonical_terms(self, w: torch.Tensor, dc: torch.Tensor) -> dict:
+        """What the fit needs of the canonical side, per point: w [M, k], dc [M, k, 3] (float64, in units of the
+        point's scale) -> dict of [M, ...] tensors (the weighted offsets, the eigenbasis of A, the regularised
+        inverse (A + μ I)⁻¹, the tangent-plane pseudo-inverse, μ and the flags)."""
+        a = _moments(w, dc, dc)
+        lam, e = torch.linalg.eigh(a)                                           # ascending
+        lam = lam.clamp_min(0.0)
+        lmax = lam[:, 2]
+        lmax_s = lmax.clamp_min(1e-30)
+        ratio = self.cfg.sheet_ratio
+        e2, e3 = e[:, :, 1], e[:, :, 2]                                         # middle, largest spread
+        e1 = torch.linalg.cross(e3, e2)  # smallest spread, oriented so that F t3 × F t2 is its image
+        line = lam[:, 1] < 1e-6 * lmax_s
+        inv2 = torch.where(line, torch.zeros_like(lmax), 1.0 / lam[:, 1].clamp_min(1e-30))
+        # the fit restricted to the two best-spread directions: g2 = B p2
+        p2 = e3[..., None] @ (e3[:, None, :] / lmax_s[:, None, None]) + e2[..., None] @ (e2[:, None, :] *
+                                                                                         inv2[:, None, None])
+        # μ > 0 only for (partly) flat neighbourhoods: μ = ratio · λmax · (1 − λmin/(ratio λmax))²
+        h = (1.0 - lam[:, 0] / (ratio * lmax_s)).clamp(0.0, 1.0)
+        mu = ratio * lmax * h * h
+        inv = e @ torch.diag_embed(1.0 / (lam + mu[:, None]).clamp_min(1e-30)) @ e.transpose(1, 2)
+        wdc = w[..., None] * dc / w.sum(1).clamp_min(1e-30)[:, None, None]     # B = Σ_l dd_l wdc_lᵀ
+        return {"wdc": wdc, "e1": e1, "e2": e2, "e3": e3, "p2": p2, "inv": inv, "mu": mu, "line": line,
+                "empty": lmax < 1e-12}
+
     @torch.no_grad()
     def gradients(self, points: torch.Tensor, ids: torch.Tensor | None = None) -> torch.Tensor:
         """Deformation gradients F [M, 3, 3] (float32, finite, singular values in [1/max_stretch, max_stretch]).
@@ -188,63 +218,84 @@ class DeformationField:
         dc, dd, w, cid, own_ok = self._gather_deformed(pts, ids)
         # Work in float64 and in units of each point's neighbourhood size: scale-free and well conditioned.
         s = self.scale[cid].double().clamp_min(1e-30)[:, None, None]
-        dc, dd, w = dc.double() / s, dd.double() / s, w.double()
         # a deformation sent to 1e18 must not overflow the squares: bound offsets (F is clamped anyway)
-        dd = dd.clamp(-1e6, 1e6)
-        wsum = w.sum(1).clamp_min(1e-30)[:, None, None]
-        a = torch.einsum("mk,mki,mkj->mij", w, dc, dc) / wsum                   # [M, 3, 3]
-        b = torch.einsum("mk,mki,mkj->mij", w, dd, dc) / wsum                   # [M, 3, 3]
-        lam, e = torch.linalg.eigh(a)                                           # ascending
-        lam = lam.clamp_min(0.0)
-        lmax = lam[:, 2]
-        empty = lmax < 1e-12                                                    # no spread: no information
-        lmax_s = lmax.clamp_min(1e-30)
-        ratio = self.cfg.sheet_ratio
-        e2, e3 = e[:, :, 1], e[:, :, 2]                                         # middle, largest spread
-        e1 = torch.linalg.cross(e3, e2)  # smallest spread, oriented so that F t3 × F t2 is its image
-        line = lam[:, 1] < 1e-6 * lmax_s
-        # prior P: the fit on the well-spread directions + a completion of the missing ones
-        inv2 = torch.where(line, torch.zeros_like(lmax), 1.0 / lam[:, 1].clamp_min(1e-30))
-        g2 = (b @ e3[..., None]) @ (e3[:, None, :] / lmax_s[:, None, None]) + \
-            (b @ e2[..., None]) @ (e2[:, None, :] * inv2[:, None, None])         # [M, 3, 3]
-        ft1, ft2 = (g2 @ e3[..., None]).squeeze(-1), (g2 @ e2[..., None]).squeeze(-1)
-        cross = torch.linalg.cross(ft1, ft2)
-        cn = cross.norm(dim=-1, keepdim=True)
-        sheet_ok = (cn.squeeze(-1) > 1e-9 * (ft1.norm(dim=-1) * ft2.norm(dim=-1)).clamp_min(1e-30)) & ~line
-        # Kabsch rotation (proper) for lines and degenerate sheets
-        u, _, vh = torch.linalg.svd(b + 1e-12 * torch.eye(3, dtype=b.dtype, device=b.device))
-        det = torch.linalg.det(u @ vh)
-        dfix = torch.ones(b.shape[0], 3, dtype=b.dtype, device=b.device)
-        dfix[:, 2] = torch.where(det < 0, -1.0, 1.0)
-        rot = u @ (dfix[..., None] * vh)
-        normal_img = torch.where(sheet_ok[:, None], cross / cn.clamp_min(1e-30), (rot @ e1[..., None]).squeeze(-1))
-        prior = g2 + normal_img[..., None] @ e1[:, None, :]
-        prior = torch.where(line[:, None, None], g2 + rot @ (e1[..., None] @ e1[:, None, :] +
-                                                             e2[..., None] @ e2[:, None, :]), prior)
-        # μ > 0 only for (partly) flat neighbourhoods: μ = ratio · λmax · (1 − λmin/(ratio λmax))²
-        h = (1.0 - lam[:, 0] / (ratio * lmax_s)).clamp(0.0, 1.0)
-        mu = ratio * lmax * h * h
-        inv = e @ torch.diag_embed(1.0 / (lam + mu[:, None]).clamp_min(1e-30)) @ e.transpose(1, 2)
-        f = (b + mu[:, None, None] * prior) @ inv
+        dd = (dd.double() / s).clamp(-1e6, 1e6)
+        # canonical terms: cached for points whose neighbours all came through, recomputed for the others
+        whole = self._terms
+        if ids is None:
+            t = dict(whole)
+        else:
+            t = {k: v[cid] for k, v in whole.items()}
+        dirty = (w != self.weights[cid]).any(1)
+        if bool(dirty.any()):
+            t = {k: v.clone() for k, v in t.items()}
+            sub = self._canonical_terms(w[dirty].double(), dc[dirty].double() / s[dirty])
+            for k, v in sub.items():
+                t[k][dirty] = v
+        b = torch.einsum("mki,mkj->mij", dd, t["wdc"])                          # [M, 3, 3]
+        f = b @ t["inv"]
+        flat = t["mu"] > 0
+        if bool(flat.any()):  # (partly) flat neighbourhoods: regularise towards the prior P
+            bf, e1, e2 = b[flat], t["e1"][flat], t["e2"][flat]
+            line = t["line"][flat]
+            g2 = bf @ t["p2"][flat]
+            ft1, ft2 = (g2 @ t["e3"][flat][..., None]).squeeze(-1), (g2 @ e2[..., None]).squeeze(-1)
+            cross = torch.linalg.cross(ft1, ft2)
+            cn = cross.norm(dim=-1, keepdim=True)
+            sheet_ok = (cn.squeeze(-1) > 1e-9 * (ft1.norm(dim=-1) * ft2.norm(dim=-1)).clamp_min(1e-30)) & ~line
+            # Kabsch rotation (proper) for lines and degenerate sheets (only where it is used)
+            rot = torch.eye(3, dtype=b.dtype, device=b.device).repeat(bf.shape[0], 1, 1)
+            need = line | ~sheet_ok
+            if bool(need.any()):
+                u, _, vh = torch.linalg.svd(bf[need] + 1e-12 * torch.eye(3, dtype=b.dtype, device=b.device))
+                dfix = torch.ones(u.shape[0], 3, dtype=b.dtype, device=b.device)
+                dfix[:, 2] = torch.where(torch.linalg.det(u @ vh) < 0, -1.0, 1.0)
+                rot[need] = u @ (dfix[..., None] * vh)
+            normal_img = torch.where(sheet_ok[:, None], cross / cn.clamp_min(1e-30),
+                                     (rot @ e1[..., None]).squeeze(-1))
+            prior = g2 + normal_img[..., None] @ e1[:, None, :]
+            prior = torch.where(line[:, None, None], g2 + rot @ (e1[..., None] @ e1[:, None, :] +
+                                                                 e2[..., None] @ e2[:, None, :]), prior)
+            mu = t["mu"][flat][:, None, None]
+            f[flat] = (bf + mu * prior) @ t["inv"][flat]
         eye = torch.eye(3, dtype=f.dtype, device=f.device).expand_as(f)
-        f = torch.where((empty | ~own_ok)[:, None, None] | ~torch.isfinite(f).all(-1).all(-1)[:, None, None], eye, f)
+        f = torch.where((t["empty"] | ~own_ok)[:, None, None] | ~torch.isfinite(f).all(-1).all(-1)[:, None, None],
+                        eye, f)
         return bound(f, self.cfg.max_stretch).float()
+
+
+def _moments(w: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Weighted mean outer products Σ_l w_l x_l y_lᵀ / Σ_l w_l: w [M, k], x, y [M, k, 3] -> [M, 3, 3]."""
+    return torch.einsum("mk,mki,mkj->mij", w, x, y) / w.sum(1).clamp_min(1e-30)[:, None, None]
+
+
+def _min_sv_at_least(f: torch.Tensor, lo: float) -> torch.Tensor:
+    """[M] bool: certainly every singular value of F [M, 3, 3] is ≥ lo (FᵀF − lo² I positive definite, by its
+    leading principal minors); False where unsure."""
+    c = f.transpose(1, 2) @ f - (lo * lo) * torch.eye(3, dtype=f.dtype, device=f.device)
+    m1 = c[:, 0, 0]
+    m2 = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
+    m3 = torch.linalg.det(c)
+    return (m1 > 0) & (m2 > 0) & (m3 > 0)
 
 
 def bound(f: torch.Tensor, max_stretch: float) -> torch.Tensor:
     """F [M, 3, 3] with the magnitudes of its singular values clamped to [1/max_stretch, max_stretch], sign of
     det F kept (an exactly singular F becomes orientation-preserving). Untouched rows stay bit-identical."""
-    u, sv, vh = torch.linalg.svd(f)
     lo, hi = 1.0 / max_stretch, max_stretch
-    need = ((sv < lo) | (sv > hi)).any(1)
+    # σmax ≤ ‖F‖_F: rows with a small norm and certainly no small singular value need no SVD
+    need = (torch.linalg.matrix_norm(f) > hi) | ~_min_sv_at_least(f, lo)
     if not bool(need.any()):
         return f
+    out = f.clone()
+    f = f[need]
+    u, sv, vh = torch.linalg.svd(f)
     sv = sv.clamp(lo, hi)
     # keep the sign of det F (a singular F: positive); its SVD's own sign is arbitrary when det F = 0
     want = torch.where(torch.linalg.det(f) < 0, -1.0, 1.0).to(sv.dtype)
     sv[:, 2] = sv[:, 2] * want * torch.sign(torch.linalg.det(u @ vh))
-    clamped = u @ torch.diag_embed(sv) @ vh
-    return torch.where(need[:, None, None], clamped, f)
+    out[need] = u @ torch.diag_embed(sv) @ vh
+    return out
 
 
 def polar(f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -266,8 +317,17 @@ def inverse(f: torch.Tensor) -> torch.Tensor:
 def expansion_inverse(f: torch.Tensor) -> torch.Tensor:
     """Inverse [M, 3, 3] of F [M, 3, 3] with its singular values raised to at least 1: undoes the stretch of a
     neighbourhood (and its rotation / mirror), leaves its compression. F = U Σ Vᵀ -> V max(Σ, 1)⁻¹ Uᵀ."""
-    u, sv, vh = torch.linalg.svd(f.double())
-    return (vh.transpose(1, 2) @ torch.diag_embed(1.0 / sv.clamp_min(1.0)) @ u.transpose(1, 2)).to(f.dtype)
+    fd = f.double()
+    out, info = torch.linalg.inv_ex(fd)
+    # no singular value below 1 - 1e-3: F⁻¹ as it is (within 0.1 % of undoing no compression); SVD for the others
+    need = ~_min_sv_at_least(fd, 1.0 - 1e-3) | (info != 0) | ~torch.isfinite(out).all(-1).all(-1)
+    if bool(need.any()):
+        # with FᵀF = V diag(σ²) Vᵀ (eigh: cheaper than an SVD), V max(Σ, 1)⁻¹ Uᵀ = V diag(1/(σ max(σ, 1))) Vᵀ Fᵀ
+        fn = fd[need]
+        lam, v = torch.linalg.eigh(fn.transpose(1, 2) @ fn)
+        sv = lam.clamp_min(0.0).sqrt().clamp_min(1e-6)
+        out[need] = v @ torch.diag_embed(1.0 / (sv * sv.clamp_min(1.0))) @ v.transpose(1, 2) @ fn.transpose(1, 2)
+    return out.to(f.dtype)
 
 
 def stretch(f: torch.Tensor) -> torch.Tensor:

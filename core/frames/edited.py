@@ -35,9 +35,9 @@ class EditConfig:
     correspondence: str = opt("deform-aware", "canonical correspondence: deform-aware (paper) | naive (paper's "
                               "ablation) | deform-gradient (undoes each neighbour's local rotation and stretch too)",
                               choices=MODES)
-    f_attention: bool = opt(False, "moved points: measure the attention's key geometry in each neighbour's "
-                                   "canonical frame (its inverse local deformation gradient applied to the "
-                                   "ray-to-point offset); rest frames are unchanged")
+    f_attention: bool = opt(True, "moved points: measure the attention's key geometry in each neighbour's "
+                                  "canonical frame (its inverse local deformation gradient applied to the "
+                                  "ray-to-point offset; docs/editing.md has the ablation); rest frames are unchanged")
     f_squash: bool = opt(False, "the attention keys (f_attention) and the deform-gradient correspondence also undo "
                                 "compression (local singular values < 1); off: they undo rotation and stretch only, "
                                 "so squashed directions are not amplified")
@@ -66,10 +66,9 @@ class EditState:
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
-        self._inv_f = None
-        self._inv_f_keys = None
-        self._radius_scale = None
-        self.deformation_seconds = 0.0  # time the fit of F took (0 until it is needed)
+        self._f = self._inv_f = self._inv_f_keys = self._radius_scale = None
+        self.deformation_seconds = 0.0  # time spent on F and what derives from it (0 until it is needed)
+        self.fit_seconds = 0.0  # of which the fit of F
         if not 1 <= int(self.cfg.antialias) <= 8:
             raise InputError(f"antialias: texture lookups per pixel side must be 1-8, got {self.cfg.antialias}")
         model = bundle.model
@@ -129,47 +128,64 @@ class EditState:
                 self.atlas_image = atl.packed_image().to(dev)
             self.mask_image = torch.ones_like(self.atlas_image)
 
+    def _timed(self, fn):
+        t0 = time.perf_counter()
+        out = fn()
+        self.deformation_seconds += time.perf_counter() - t0
+        return out
+
     @property
-    def inv_f(self) -> torch.Tensor | None:
-        """Inverse local deformation gradients of the points [M, 3, 3] (None when nothing moved), computed on first
-        use from the model's cached canonical neighbourhoods (core/edits/deformation.py)."""
+    def f(self) -> torch.Tensor | None:
+        """Local deformation gradients of the points [M, 3, 3] (None when nothing moved), fitted on first use from
+        the model's cached canonical neighbourhoods (core/edits/deformation.py)."""
         if not self.moved:
             return None
-        if self._inv_f is None:
-            t0 = time.perf_counter()
-            f = field_for(self.bundle.model, self.deformation_cfg).gradients(self.points, self.ids)
-            self._inv_f = inverse(f)
-            self._inv_f_keys = self._inv_f if self.cfg.f_squash else expansion_inverse(f)
-            st = stretch(f)[torch.isfinite(self.points).all(1)]
-            q = float(torch.quantile(st, 0.9)) if st.numel() else 1.0
-            self._radius_scale = q if q > RADIUS_SCALE_MIN else 1.0
-            self.deformation_seconds = time.perf_counter() - t0
-        return self._inv_f
+        if self._f is None:
+            self._f = self._timed(lambda: field_for(self.bundle.model, self.deformation_cfg).gradients(self.points,
+                                                                                                      self.ids))
+            self.fit_seconds = self.deformation_seconds
+        return self._f
 
-    def share_deformation(self, other: "EditState") -> None:
-        """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose)."""
-        if other.moved and self.moved and other._inv_f is not None:
-            self._inv_f, self._radius_scale = other._inv_f, other._radius_scale
-            self._inv_f_keys = other._inv_f_keys if self.cfg.f_squash == other.cfg.f_squash \
-                else None
-            if self._inv_f_keys is None:  # the other state kept the other variant: recompute it from F
-                f = inverse(self._inv_f)
-                self._inv_f_keys = self._inv_f if self.cfg.f_squash else expansion_inverse(f)
-            self.deformation_seconds = other.deformation_seconds
+    @property
+    def inv_f(self) -> torch.Tensor | None:
+        """F⁻¹ [M, 3, 3] (None when nothing moved)."""
+        if self.f is None:
+            return None
+        if self._inv_f is None:
+            self._inv_f = self._timed(lambda: inverse(self._f))
+        return self._inv_f
 
     @property
     def inv_f_keys(self) -> torch.Tensor | None:
         """The inverse gradients the attention keys and the deform-gradient correspondence use [M, 3, 3]: F⁻¹ with
         f_squash, else the inverse of F with its singular values raised to at least 1 (rotation and stretch undone,
-        compression kept)."""
-        return None if self.inv_f is None else self._inv_f_keys
+        compression kept). None when nothing moved."""
+        if self.cfg.f_squash or self.f is None:
+            return self.inv_f
+        if self._inv_f_keys is None:
+            self._inv_f_keys = self._timed(lambda: expansion_inverse(self._f))
+        return self._inv_f_keys
 
     @property
     def radius_scale(self) -> float:
-        """Factor on the neighbour search's pixel radius cap for these points (1 when nothing moved or stretched)."""
-        if self.inv_f is None:
+        """Factor on the neighbour search's pixel radius cap for these points: the 90th percentile of the largest
+        local stretch, 1 when nothing moved or it is below RADIUS_SCALE_MIN."""
+        if self.f is None:
             return 1.0
+        if self._radius_scale is None:
+            def scale():
+                st = stretch(self._f)[torch.isfinite(self.points).all(1)]
+                q = float(torch.quantile(st, 0.9)) if st.numel() else 1.0
+                return q if q > RADIUS_SCALE_MIN else 1.0
+            self._radius_scale = self._timed(scale)
         return self._radius_scale
+
+    def share_deformation(self, other: "EditState") -> None:
+        """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
+        fit took; what this state derives from F is computed (and timed) here."""
+        if other.moved and self.moved and other._f is not None and self._f is None:
+            self._f = other._f
+            self.fit_seconds = self.deformation_seconds = other.fit_seconds
 
     @property
     def textured(self) -> bool:

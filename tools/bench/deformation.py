@@ -1,6 +1,7 @@
 """Frame cost of the deformation-gradient parts of the edit path, against today's renderer (needs bpy).
 
-Run: `python -m tools.bench.deformation MODEL.pgt --scene DIR [--pose stretch] [--views 4] [--repeats 3]`.
+Run: `python -m tools.bench.deformation MODEL.pgt --scene DIR [--pose stretch] [--views 4] [--repeats 3]
+[--size 128]`.
 
 The model's points are posed by the scene's rig (as `pointgt eval-edits` does) and a global retexture is baked
 into the atlas; every frame then builds a fresh EditState, as an animation does when the points move each frame,
@@ -24,7 +25,8 @@ VARIANTS = {  # name: EditConfig overrides
 }
 
 
-def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats: int, log=print) -> dict:
+def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats: int, size: int | None = None,
+        log=print) -> dict:
     import torch
 
     from core.bundle import load_bundle
@@ -46,6 +48,8 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
     points = torch.from_numpy(deform_points(bundle.model.xyz.detach().numpy(), scene_dir, pose, magnitude))
     test = load_split(scene_dir, "test")
     cams = [round(i * (len(test) - 1) / max(views - 1, 1)) for i in range(views)]
+    hw = size or test.width
+    focal = test.focal * hw / test.width  # the same field of view at another resolution
     wall = {v: [] for v in VARIANTS}
     cpu = {v: [] for v in VARIANTS}
     for rep in range(repeats + 1):  # the first round warms up (caches the canonical neighbourhoods)
@@ -53,7 +57,7 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
             for name, over in VARIANTS.items():
                 t, tc = time.perf_counter(), time.process_time()
                 state = EditState(bundle, points=points, atlas=atlas, cfg=EditConfig(**over))
-                render_edited(state, test.c2w[i], test.height, test.width, test.focal)
+                render_edited(state, test.c2w[i], hw, hw, focal)
                 if rep:
                     wall[name].append(time.perf_counter() - t)
                     cpu[name].append(time.process_time() - tc)
@@ -61,7 +65,7 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
     rows = [{"variant": v, "wall": statistics.median(wall[v]), "cpu": statistics.median(cpu[v]),
              "cpu_ratio": statistics.median(cpu[v]) / base} for v in VARIANTS]
     return {"model": str(model_path), "scene": spec.get("name"), "pose": pose, "magnitude": magnitude,
-            "size": f"{test.width}x{test.height}", "points": bundle.model.num_points, "frames": len(cams) * repeats,
+            "size": f"{hw}x{hw}", "points": bundle.model.num_points, "frames": len(cams) * repeats,
             "machine": machine_info(), "rows": rows}
 
 
@@ -82,9 +86,10 @@ def main(argv=None) -> int:
     ap.add_argument("--pose", default="stretch", help="rig pose of the scene")
     ap.add_argument("--magnitude", type=float, default=1.0, help="pose magnitude")
     ap.add_argument("--views", type=int, default=4, help="test cameras")
+    ap.add_argument("--size", type=int, default=None, help="frame size in pixels (default: the scene's)")
     ap.add_argument("--repeats", type=int, default=3, help="timed rounds over the cameras (after one warm-up)")
     args = ap.parse_args(argv)
-    res = run(args.model, args.scene, args.pose, args.magnitude, args.views, args.repeats)
+    res = run(args.model, args.scene, args.pose, args.magnitude, args.views, args.repeats, args.size)
     print(markdown(res))
     return 0
 

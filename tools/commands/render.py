@@ -18,7 +18,9 @@ ORDER = 40
 
 
 def add_arguments(p):
+    from core.config import add_to_parser
     from core.edits.correspondence import MODES
+    from core.edits.deformation import DeformationConfig
     from core.frames.edited import EditConfig
 
     p.add_argument("model", help="model file (.pgt)")
@@ -40,6 +42,7 @@ def add_arguments(p):
                    help="the F-aware keys and deform-gradient correspondence also undo compression")
     p.add_argument("--f-radius", action=argparse.BooleanOptionalAction, default=EditConfig.f_radius,
                    help="moved points: neighbour search radius cap scaled by the points' stretch")
+    add_to_parser(p, DeformationConfig, prefix="deformation")
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
     p.add_argument("--temperature", type=float, default=1.0, help="attention temperature (< 1 sharpens attention)")
@@ -111,7 +114,11 @@ def run(args) -> int:
                          antialias=args.antialias, f_attention=args.f_attention, f_radius=args.f_radius,
                          f_squash=args.f_squash)
         try:
-            state = EditState(bundle, points=points, ids=ids, atlas=atlas, cfg=cfg)
+            from core.config import from_args
+            from core.edits.deformation import DeformationConfig
+
+            state = EditState(bundle, points=points, ids=ids, atlas=atlas, cfg=cfg,
+                              deformation=from_args(DeformationConfig, args, prefix="deformation"))
         except InputError as exc:  # name the files the arrays came from
             files = ", ".join(f for f in (args.points, args.ids, args.atlas) if f)
             raise InputError(f"{files}: {exc}") from exc
