@@ -32,10 +32,16 @@ import math
 import weakref
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from core.config import opt
 from core.util.errors import InputError
+
+try:  # optional: torch does the same work without it
+    import numba
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    numba = None
 
 
 @dataclass
@@ -120,6 +126,8 @@ class DeformationField:
         dc = torch.where(self.nbr[..., None] >= 0, can[self.nbr.clamp_min(0)] - can[:, None, :], 0.0)
         dc = torch.nan_to_num(dc.double() / self.scale.double().clamp_min(1e-30)[:, None, None], 0.0, 0.0, 0.0)
         self._terms = self._canonical_terms(self.weights.double(), dc)
+        self._dc = torch.nan_to_num(torch.where(self.nbr[..., None] >= 0, can[self.nbr.clamp_min(0)] - can[:, None, :],
+                                                0.0), 0.0, 0.0, 0.0)  # [N, k, 3] canonical offsets (float32)
 
     @property
     def num_points(self) -> int:
@@ -165,8 +173,7 @@ class DeformationField:
             pick = cand.gather(-1, best).squeeze(-1)                             # [M, k]
             ok = (pick >= 0) & own_ok[:, None]
             p_nb = pts[pick.clamp_min(0)]
-        dc = self.canonical[nbr.clamp_min(0)] - self.canonical[cid][:, None, :]
-        dc = torch.where(torch.isfinite(dc), dc, torch.zeros_like(dc))
+        dc = self._dc if ids is None else self._dc[cid]
         dd = p_nb - pts[:, None, :]
         ok = ok & torch.isfinite(dd).all(-1) & (dd.abs() < 1e18).all(-1)
         if ids is not None:
@@ -235,17 +242,20 @@ class DeformationField:
         b = torch.einsum("mki,mkj->mij", dd, t["wdc"])                          # [M, 3, 3]
         f = b @ t["inv"]
         flat = t["mu"] > 0
-        if bool(flat.any()):  # (partly) flat neighbourhoods: regularise towards the prior P
-            bf, e1, e2 = b[flat], t["e1"][flat], t["e2"][flat]
-            line = t["line"][flat]
-            g2 = bf @ t["p2"][flat]
-            ft1, ft2 = (g2 @ t["e3"][flat][..., None]).squeeze(-1), (g2 @ e2[..., None]).squeeze(-1)
+        n_flat = int(flat.sum())
+        if n_flat:  # (partly) flat neighbourhoods: regularise towards the prior P
+            every = n_flat > flat.shape[0] // 4  # many: work on every row (μ = 0 cancels P) instead of gathering
+            sel = slice(None) if every else flat
+            bf, e1, e2 = b[sel], t["e1"][sel], t["e2"][sel]
+            line = t["line"][sel]
+            g2 = bf @ t["p2"][sel]
+            ft1, ft2 = (g2 @ t["e3"][sel][..., None]).squeeze(-1), (g2 @ e2[..., None]).squeeze(-1)
             cross = torch.linalg.cross(ft1, ft2)
             cn = cross.norm(dim=-1, keepdim=True)
             sheet_ok = (cn.squeeze(-1) > 1e-9 * (ft1.norm(dim=-1) * ft2.norm(dim=-1)).clamp_min(1e-30)) & ~line
             # Kabsch rotation (proper) for lines and degenerate sheets (only where it is used)
             rot = torch.eye(3, dtype=b.dtype, device=b.device).repeat(bf.shape[0], 1, 1)
-            need = line | ~sheet_ok
+            need = (line | ~sheet_ok) & flat[sel]
             if bool(need.any()):
                 u, _, vh = torch.linalg.svd(bf[need] + 1e-12 * torch.eye(3, dtype=b.dtype, device=b.device))
                 dfix = torch.ones(u.shape[0], 3, dtype=b.dtype, device=b.device)
@@ -256,8 +266,11 @@ class DeformationField:
             prior = g2 + normal_img[..., None] @ e1[:, None, :]
             prior = torch.where(line[:, None, None], g2 + rot @ (e1[..., None] @ e1[:, None, :] +
                                                                  e2[..., None] @ e2[:, None, :]), prior)
-            mu = t["mu"][flat][:, None, None]
-            f[flat] = (bf + mu * prior) @ t["inv"][flat]
+            mu = t["mu"][sel][:, None, None]
+            if every:
+                f = (bf + mu * prior) @ t["inv"]
+            else:
+                f[flat] = (bf + mu * prior) @ t["inv"][flat]
         eye = torch.eye(3, dtype=f.dtype, device=f.device).expand_as(f)
         f = torch.where((t["empty"] | ~own_ok)[:, None, None] | ~torch.isfinite(f).all(-1).all(-1)[:, None, None],
                         eye, f)
@@ -314,9 +327,78 @@ def inverse(f: torch.Tensor) -> torch.Tensor:
     return torch.linalg.inv(f.double()).to(f.dtype)
 
 
+def _expansion_inverse_loop(f, out):
+    """The compiled path of expansion_inverse: f [M, 3, 3] float64 -> out [M, 3, 3]. Per row: FᵀF = V diag(σ²) Vᵀ
+    by cyclic Jacobi rotations, then V diag(1/(σ max(σ, 1))) Vᵀ Fᵀ."""
+    a = np.empty((3, 3))
+    v = np.empty((3, 3))
+    h = np.empty(3)
+    for m in range(f.shape[0]):
+        for i in range(3):
+            for j in range(3):
+                a[i, j] = f[m, 0, i] * f[m, 0, j] + f[m, 1, i] * f[m, 1, j] + f[m, 2, i] * f[m, 2, j]
+                v[i, j] = 1.0 if i == j else 0.0
+        for _sweep in range(16):
+            off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+            if off <= 1e-30 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:
+                break
+            for p, q in ((0, 1), (0, 2), (1, 2)):
+                if a[p, q] == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(3):
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
+                for k in range(3):
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
+                for k in range(3):
+                    vkp, vkq = v[k, p], v[k, q]
+                    v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+        for i in range(3):
+            sv = max(math.sqrt(max(a[i, i], 0.0)), 1e-6)
+            h[i] = 1.0 / (sv * max(sv, 1.0))
+        for i in range(3):
+            for j in range(3):  # (V diag(h) Vᵀ)[i, j], then times Fᵀ
+                a[i, j] = v[i, 0] * h[0] * v[j, 0] + v[i, 1] * h[1] * v[j, 1] + v[i, 2] * h[2] * v[j, 2]
+        for i in range(3):
+            for j in range(3):
+                out[m, i, j] = a[i, 0] * f[m, j, 0] + a[i, 1] * f[m, j, 1] + a[i, 2] * f[m, j, 2]
+
+
+_compiled_loop = None
+
+
+def _compiled():
+    global _compiled_loop
+    if _compiled_loop is None and numba is not None:
+        try:
+            _compiled_loop = numba.njit(cache=True, nogil=True)(_expansion_inverse_loop)
+        except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
+            _compiled_loop = numba.njit(cache=False, nogil=True)(_expansion_inverse_loop)
+    return _compiled_loop
+
+
 def expansion_inverse(f: torch.Tensor) -> torch.Tensor:
     """Inverse [M, 3, 3] of F [M, 3, 3] with its singular values raised to at least 1: undoes the stretch of a
-    neighbourhood (and its rotation / mirror), leaves its compression. F = U Σ Vᵀ -> V max(Σ, 1)⁻¹ Uᵀ."""
+    neighbourhood (and its rotation / mirror), leaves its compression. F = U Σ Vᵀ -> V max(Σ, 1)⁻¹ Uᵀ.
+    Compiled (numba) on CPU tensors, else torch."""
+    loop = _compiled() if f.device.type == "cpu" else None
+    if loop is not None and f.shape[0]:
+        fd = np.ascontiguousarray(torch.nan_to_num(f.detach(), 0.0, 0.0, 0.0).double().numpy())
+        out = np.empty_like(fd)
+        loop(fd, out)
+        return torch.from_numpy(out).to(f.dtype)
+    return _expansion_inverse_torch(f)
+
+
+def _expansion_inverse_torch(f: torch.Tensor) -> torch.Tensor:
+    """expansion_inverse in torch (any device; the reference the compiled path is tested against)."""
     fd = f.double()
     out, info = torch.linalg.inv_ex(fd)
     # no singular value below 1 - 1e-3: F⁻¹ as it is (within 0.1 % of undoing no compression); SVD for the others

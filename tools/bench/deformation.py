@@ -16,12 +16,14 @@ import statistics
 import time
 from pathlib import Path
 
-VARIANTS = {  # name: EditConfig overrides
-    "paper (today), deform-aware": {},
-    "f-attention, deform-aware": {"f_attention": True},
-    "f-attention, deform-gradient": {"f_attention": True, "correspondence": "deform-gradient"},
-    "f-attention + f-radius, deform-gradient": {"f_attention": True, "f_radius": True,
+_OFF = {"f_attention": False, "f_radius": False, "f_squash": False, "correspondence": "deform-aware"}
+VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
+    "paper (today), deform-aware": _OFF,
+    "f-attention, deform-aware": {**_OFF, "f_attention": True},
+    "f-attention, deform-gradient": {**_OFF, "f_attention": True, "correspondence": "deform-gradient"},
+    "f-attention + f-radius, deform-gradient": {**_OFF, "f_attention": True, "f_radius": True,
                                                 "correspondence": "deform-gradient"},
+    "f-squash, deform-gradient": {**_OFF, "f_attention": True, "f_squash": True, "correspondence": "deform-gradient"},
 }
 
 
@@ -52,6 +54,7 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
     focal = test.focal * hw / test.width  # the same field of view at another resolution
     wall = {v: [] for v in VARIANTS}
     cpu = {v: [] for v in VARIANTS}
+    fit = {v: [] for v in VARIANTS}
     for rep in range(repeats + 1):  # the first round warms up (caches the canonical neighbourhoods)
         for i in cams:
             for name, over in VARIANTS.items():
@@ -61,9 +64,11 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
                 if rep:
                     wall[name].append(time.perf_counter() - t)
                     cpu[name].append(time.process_time() - tc)
+                    fit[name].append(state.deformation_seconds)
     base = statistics.median(cpu[next(iter(VARIANTS))])
     rows = [{"variant": v, "wall": statistics.median(wall[v]), "cpu": statistics.median(cpu[v]),
-             "cpu_ratio": statistics.median(cpu[v]) / base} for v in VARIANTS]
+             "cpu_ratio": statistics.median(cpu[v]) / base, "f_seconds": statistics.median(fit[v])}
+            for v in VARIANTS]
     return {"model": str(model_path), "scene": spec.get("name"), "pose": pose, "magnitude": magnitude,
             "size": f"{hw}x{hw}", "points": bundle.model.num_points, "frames": len(cams) * repeats,
             "machine": machine_info(), "rows": rows}
@@ -73,9 +78,11 @@ def markdown(res: dict) -> str:
     lines = [f"Scene `{res['scene']}`, pose {res['pose']} m={res['magnitude']:g}, {res['size']}, "
              f"{res['points']} points, {res['frames']} frames per variant; machine: {res['machine'].get('cpu')}, "
              f"{res['machine'].get('cores')} cores, 1 torch thread", "",
-             "| variant | median wall s/frame | median CPU s/frame | CPU vs today |", "|---|---|---|---|"]
+             "| variant | median wall s/frame | median CPU s/frame | CPU vs today | of which F (wall s) |",
+             "|---|---|---|---|---|"]
     for r in res["rows"]:
-        lines.append(f"| {r['variant']} | {r['wall']:.3f} | {r['cpu']:.3f} | {100 * (r['cpu_ratio'] - 1):+.0f} % |")
+        lines.append(f"| {r['variant']} | {r['wall']:.3f} | {r['cpu']:.3f} | {100 * (r['cpu_ratio'] - 1):+.0f} % | "
+                     f"{r['f_seconds']:.3f} |")
     return "\n".join(lines) + "\n"
 
 

@@ -20,7 +20,7 @@ def add_arguments(p):
     p.add_argument("--magnitudes", default="0.25,0.5,1", help="comma-separated pose magnitudes (1 = the named pose)")
     p.add_argument("--views", type=int, default=4, help="test views per case (evenly spaced over the scene's)")
     p.add_argument("--temperatures", default="1,0.5", help="attention temperatures (< 1 sharpens attention)")
-    p.add_argument("--renderers", default="paper",
+    p.add_argument("--renderers", default="paper,f-attention",
                    help="comma-separated renderer variants: paper (today's) | f-attention (attention keys in each "
                         "point's canonical frame, stretch undone) | f-radius (neighbour radius cap scaled by the stretch) | "
                         "f-both | f-squash (keys and deform-gradient correspondence undo compression too)")
