@@ -32,16 +32,17 @@ from core.util.atomic import atomic_write_text
 from core.util.errors import DataError, InputError
 
 EDITS = ("geometry", "retexture", "decal")
-# renderer variants: EditConfig's (f_attention, f_radius, f_squash); "paper" = today's renderer. f_squash also
-# changes the deform-gradient correspondence (full F⁻¹ instead of the stretch-only inverse).
-RENDERERS = {"paper": (False, False, False), "f-attention": (True, False, False), "f-radius": (False, True, False),
-             "f-both": (True, True, False), "f-squash": (True, False, True)}
+# renderer variants: EditConfig's (f_attention, f_radius, f_compression); "paper" = today's renderer. f_compression
+# also changes the deform-gradient correspondence.
+RENDERERS = {"paper": (False, False, "tangent"), "f-attention": (True, False, "tangent"),
+             "f-radius": (False, True, "tangent"), "f-both": (True, True, "tangent"),
+             "f-keep": (True, False, "keep"), "f-squash": (True, False, "undo")}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
 def default_renderer() -> str:
     """The RENDERERS key of EditConfig's default f_attention / f_radius (what `pointgt render` does by default)."""
-    want = (EditConfig.f_attention, EditConfig.f_radius, EditConfig.f_squash)
+    want = (EditConfig.f_attention, EditConfig.f_radius, EditConfig.f_compression)
     return next(k for k, v in RENDERERS.items() if v == want)
 GT_TEXTURE = {"geometry": None, "retexture": "retexture", "decal": "decal"}  # "retexture" = the chosen texture
 REST = ("rest", 0.0)
@@ -246,7 +247,7 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
         f_seconds = state.deformation_seconds
     for i in range(len(gt)):
         key = (i, state.cfg.temperature, state.cfg.f_attention, state.cfg.f_radius,
-               state.cfg.f_squash and state.cfg.f_attention)
+               state.cfg.f_compression if state.cfg.f_attention else "-")
         cached = traces.get(key) if traces is not None else None
         out = render_edited(state, gt.c2w[i], gt.height, gt.width, gt.focal, background,
                             trace=cached[0] if cached else None)
@@ -335,7 +336,7 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
             f_att, f_rad, f_sq = RENDERERS[mt.renderer]
             cfg = EditConfig(correspondence=mt.correspondence if mt.correspondence != "-" else "deform-aware",
                              blend=mt.blend, temperature=mt.temperature, antialias=antialias,
-                             f_attention=f_att, f_radius=f_rad, f_squash=f_sq)
+                             f_attention=f_att, f_radius=f_rad, f_compression=f_sq)
             state = EditState(bundle, points=points, atlas=atlases[mt.edit], cfg=cfg)
             if "state" in f_time:  # reuse this pose's fit (same points): F and its measured time
                 state.share_deformation(f_time["state"])
@@ -440,9 +441,9 @@ def markdown(result: dict) -> str:
              f"model {result['model_points']} points (spacing {result['point_spacing']:.4f}), "
              f"retexture `{result['retexture']}`, total {result['seconds_total']:.0f} s.", ""]
     lines += ["**Ablation** (object PSNR, dB; renderer: paper = today's, f-attention = attention keys in each "
-              "point's canonical frame (rotation and stretch undone), f-radius = neighbour radius cap scaled by the "
-              "stretch, f-both = both, f-squash = f-attention also undoing compression (and so does its "
-              "deform-gradient correspondence); first temperature, soft blend; s/frame = mean over the row's "
+              "point's canonical frame (rotation, stretch and compression along the surface undone), f-radius = "
+              "neighbour radius cap scaled by the stretch, f-both = both, f-keep / f-squash = f-attention undoing no "
+              "compression / all compression (and so does their deform-gradient correspondence); first temperature, soft blend; s/frame = mean over the row's "
               "renders)", "",
               ablation_markdown(result)]
     # summary: mean over poses per magnitude, per method

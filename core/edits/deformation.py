@@ -211,6 +211,12 @@ class DeformationField:
         return {"wdc": wdc, "e1": e1, "e2": e2, "e3": e3, "p2": p2, "inv": inv, "mu": mu, "line": line,
                 "empty": lmax < 1e-12}
 
+    def normals(self, ids: torch.Tensor | None = None) -> torch.Tensor:
+        """Unit direction of least canonical spread of each point's neighbourhood (a surface's normal) [M, 3]
+        float64; ids [M] as in `gradients` (None: every canonical point)."""
+        n = self._terms["e1"]
+        return n if ids is None else n[ids.to(n.device, torch.long)]
+
     @torch.no_grad()
     def gradients(self, points: torch.Tensor, ids: torch.Tensor | None = None) -> torch.Tensor:
         """Deformation gradients F [M, 3, 3] (float32, finite, singular values in [1/max_stretch, max_stretch]).

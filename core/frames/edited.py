@@ -25,6 +25,7 @@ from core.points.regularizers import project_on_ray
 from core.util.errors import InputError
 
 
+COMPRESSION = ("tangent", "keep", "undo")
 RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
 
 
@@ -38,9 +39,10 @@ class EditConfig:
     f_attention: bool = opt(True, "moved points: measure the attention's key geometry in each neighbour's "
                                   "canonical frame (its inverse local deformation gradient applied to the "
                                   "ray-to-point offset; docs/editing.md has the ablation); rest frames are unchanged")
-    f_squash: bool = opt(False, "the attention keys (f_attention) and the deform-gradient correspondence also undo "
-                                "compression (local singular values < 1); off: they undo rotation and stretch only, "
-                                "so squashed directions are not amplified")
+    f_compression: str = opt("tangent", "what the F-aware keys (f_attention) and the deform-gradient correspondence "
+                                        "undo of a local compression: tangent (along the canonical neighbourhood's "
+                                        "surface, not across it) | keep (none: stretch only) | undo (all, full F⁻¹)",
+                             choices=COMPRESSION)
     f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
                                 "stretch (90th percentile of the largest local stretch, at least 1)")
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
@@ -157,13 +159,26 @@ class EditState:
 
     @property
     def inv_f_keys(self) -> torch.Tensor | None:
-        """The inverse gradients the attention keys and the deform-gradient correspondence use [M, 3, 3]: F⁻¹ with
-        f_squash, else the inverse of F with its singular values raised to at least 1 (rotation and stretch undone,
-        compression kept). None when nothing moved."""
-        if self.cfg.f_squash or self.f is None:
+        """The inverse gradients the attention keys and the deform-gradient correspondence use [M, 3, 3], by
+        f_compression: undo = F⁻¹; keep = the inverse of F with its singular values raised to at least 1 (rotation
+        and stretch undone, compression kept); tangent = the inverse of G = F + (max(|F n|, 1)/|F n| − 1) F n nᵀ,
+        n the canonical neighbourhood's normal (least-spread direction): F as it is along the surface, its
+        compression across it not undone. None when nothing moved."""
+        mode = self.cfg.f_compression
+        if mode == "undo" or self.f is None:
             return self.inv_f
         if self._inv_f_keys is None:
-            self._inv_f_keys = self._timed(lambda: expansion_inverse(self._f))
+            if mode == "keep":
+                self._inv_f_keys = self._timed(lambda: expansion_inverse(self._f))
+            else:
+                def tangent():
+                    n = field_for(self.bundle.model, self.deformation_cfg).normals(self.ids)     # [M, 3]
+                    fi = self.inv_f.double()
+                    fn = (self._f.double() @ n[..., None]).squeeze(-1).norm(dim=-1).clamp_min(1e-12)
+                    k = fn / fn.clamp_min(1.0) - 1.0  # 1/scale − 1, scale = max(|F n|, 1) / |F n|
+                    # G⁻¹ = (I + (1/scale − 1) n nᵀ) F⁻¹
+                    return (fi + k[:, None, None] * n[..., None] @ (n[:, None, :] @ fi)).float()
+                self._inv_f_keys = self._timed(tangent)
         return self._inv_f_keys
 
     @property

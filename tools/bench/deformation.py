@@ -16,14 +16,17 @@ import statistics
 import time
 from pathlib import Path
 
-_OFF = {"f_attention": False, "f_radius": False, "f_squash": False, "correspondence": "deform-aware"}
+_OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware"}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
     "f-attention, deform-gradient": {**_OFF, "f_attention": True, "correspondence": "deform-gradient"},
     "f-attention + f-radius, deform-gradient": {**_OFF, "f_attention": True, "f_radius": True,
                                                 "correspondence": "deform-gradient"},
-    "f-squash, deform-gradient": {**_OFF, "f_attention": True, "f_squash": True, "correspondence": "deform-gradient"},
+    "f-keep, deform-gradient": {**_OFF, "f_attention": True, "f_compression": "keep",
+                                "correspondence": "deform-gradient"},
+    "f-squash, deform-gradient": {**_OFF, "f_attention": True, "f_compression": "undo",
+                                  "correspondence": "deform-gradient"},
 }
 
 

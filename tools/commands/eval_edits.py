@@ -23,7 +23,8 @@ def add_arguments(p):
     p.add_argument("--renderers", default="paper,f-attention",
                    help="comma-separated renderer variants: paper (today's) | f-attention (attention keys in each "
                         "point's canonical frame, stretch undone) | f-radius (neighbour radius cap scaled by the stretch) | "
-                        "f-both | f-squash (keys and deform-gradient correspondence undo compression too)")
+                        "f-both | f-keep / f-squash (as f-attention, undoing no / all compression, also in the deform-gradient "
+                        "correspondence)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

@@ -21,7 +21,7 @@ def add_arguments(p):
     from core.config import add_to_parser
     from core.edits.correspondence import MODES
     from core.edits.deformation import DeformationConfig
-    from core.frames.edited import EditConfig
+    from core.frames.edited import COMPRESSION, EditConfig
 
     p.add_argument("model", help="model file (.pgt)")
     p.add_argument("--cameras", required=True, help="transforms_*.json whose cameras to render")
@@ -38,8 +38,9 @@ def add_arguments(p):
                         "paper's) or deform-gradient (also undoes each neighbour's local rotation and stretch)")
     p.add_argument("--f-attention", action=argparse.BooleanOptionalAction, default=EditConfig.f_attention,
                    help="moved points: attention keys in each point's canonical frame (local deformation gradient)")
-    p.add_argument("--f-squash", action=argparse.BooleanOptionalAction, default=EditConfig.f_squash,
-                   help="the F-aware keys and deform-gradient correspondence also undo compression")
+    p.add_argument("--f-compression", default=EditConfig.f_compression, choices=COMPRESSION,
+                   help="what the F-aware keys and deform-gradient correspondence undo of a local compression: "
+                        "tangent (along the surface) | keep (none) | undo (all)")
     p.add_argument("--f-radius", action=argparse.BooleanOptionalAction, default=EditConfig.f_radius,
                    help="moved points: neighbour search radius cap scaled by the points' stretch")
     add_to_parser(p, DeformationConfig, prefix="deformation")
@@ -112,7 +113,7 @@ def run(args) -> int:
         atlas = read_png(args.atlas) if args.atlas else None
         cfg = EditConfig(correspondence=args.correspondence, blend=args.blend, temperature=args.temperature,
                          antialias=args.antialias, f_attention=args.f_attention, f_radius=args.f_radius,
-                         f_squash=args.f_squash)
+                         f_compression=args.f_compression)
         try:
             from core.config import from_args
             from core.edits.deformation import DeformationConfig
