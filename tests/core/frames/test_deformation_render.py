@@ -83,3 +83,22 @@ def test_deform_gradient_correspondence_undoes_a_stretch(tiny):
         err[mode] = float((out["x_can"].reshape(-1, 3)[hit] - x_def / s).norm(dim=1).mean())
     assert err["deform-gradient"] < 1e-3
     assert err["deform-gradient"] < 0.2 * min(err["naive"], err["deform-aware"]), err
+
+
+def test_extreme_poses_render_finite_with_every_part_on(tiny):
+    """Squash to 0, 1e30 outliers, NaN points and a stretch beyond max_stretch: finite frames, all parts on."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    atlas = bake(bundle.atlas, _half_split)
+    squash = xyz * torch.tensor([1.0, 1.0, 0.0])
+    wild = xyz.clone()
+    wild[::17] = 1e30
+    wild[1::19] = float("nan")
+    for pts in (squash, wild, xyz * torch.tensor([100.0, 1.0, 1.0])):
+        for mode in ("tangent", "keep", "undo"):
+            cfg = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_compression=mode)
+            out = render_edited(EditState(bundle, points=pts, atlas=atlas, cfg=cfg), test.c2w[0], test.height,
+                                test.width, test.focal)
+            assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+            x = out["x_can"][torch.isfinite(out["x_can"]).all(-1)]
+            assert out["stats"]["texture_rays"] == 0 or x.numel() > 0
