@@ -1,5 +1,5 @@
 """Local deformation gradients F_j of a deformed point cloud (beyond the paper: used by F-aware rendering and the
-"deform-local" correspondence).
+"deform-gradient" correspondence).
 
 For every deformed point j with canonical position c_j and deformed position d_j, F_j [3, 3] is the weighted
 least-squares linear map taking its canonical neighbours' offsets to their deformed offsets:
@@ -134,7 +134,8 @@ class DeformationField:
         return self.canonical.shape[0]
 
     def _gather_deformed(self, points: torch.Tensor, ids: torch.Tensor | None):
-        """Neighbour offsets of each deformed point: (dc [M, k, 3] canonical, dd [M, k, 3] deformed, w [M, k])."""
+        """Neighbour offsets of each deformed point: (dc [M, k, 3] canonical, dd [M, k, 3] deformed, w [M, k],
+        cid [M] canonical index, own_ok [M] finite own position)."""
         n, k = self.num_points, self.nbr.shape[1]
         m = points.shape[0]
         own_ok = torch.isfinite(points).all(1)
