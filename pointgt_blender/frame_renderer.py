@@ -17,7 +17,7 @@ from core.bundle import load_bundle
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.util.errors import InputError, ModelFileError
 
-CORRESPONDENCE = {'DEFORM_AWARE': "deform-aware", 'NAIVE': "naive"}
+CORRESPONDENCE = {'DEFORM_AWARE': "deform-aware", 'NAIVE': "naive", 'DEFORM_GRADIENT': "deform-gradient"}
 
 
 @dataclass
@@ -29,7 +29,7 @@ class ObjectInputs:
     model_path: str           # absolute
     device: str               # 'cpu' | 'cuda'
     k: int
-    correspondence: str       # 'DEFORM_AWARE' | 'NAIVE'
+    correspondence: str       # 'DEFORM_AWARE' | 'NAIVE' | 'DEFORM_GRADIENT'
     point_count: int
     positions: np.ndarray
     ids: np.ndarray

@@ -116,7 +116,7 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
                                      description="Neighbour points per ray (unset: the K the model was trained with)")
     correspondence: bpy.props.EnumProperty(
         name="Correspondence", default='DEFORM_AWARE',
-        items=[('DEFORM_AWARE', "Deform-aware", ""), ('NAIVE', "Naive", "")])
+        items=[('DEFORM_AWARE', "Deform-aware", ""), ('NAIVE', "Naive", ""), ('DEFORM_GRADIENT', "Deform-gradient", "")])
     device: bpy.props.EnumProperty(name="Device", default='CPU', items=[('CPU', "CPU", ""), ('CUDA', "CUDA", "")])
 
     def execute(self, context):

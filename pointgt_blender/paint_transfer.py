@@ -36,7 +36,8 @@ def canonical_surface(state, result: dict, min_alpha: float = 0.5) -> np.ndarray
         if state.moved:
             pts = torch.nan_to_num(state.points, nan=0.0, posinf=0.0, neginf=0.0)
             xc = canonical_points(tr["fg_weights"][sel], tr["idx"][sel], x_hat, tr["origins"][sel], tr["dirs"][sel],
-                                  pts, state.p_can, state.cfg.correspondence)
+                                  pts, state.p_can, state.cfg.correspondence,
+                                  inv_f=state.inv_f_keys if state.cfg.correspondence == "deform-gradient" else None)
         else:
             xc = x_hat
         out[sel] = torch.where(torch.isfinite(xc).all(1, keepdim=True), xc, torch.full_like(xc, float("nan")))

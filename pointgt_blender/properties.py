@@ -24,7 +24,9 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
         name="Correspondence", default='DEFORM_AWARE',
         items=[('DEFORM_AWARE', "Deform-aware", "Map deformed surface points back through their neighbours' "
                                                 "displacements (keeps painted texture glued to the surface)"),
-               ('NAIVE', "Naive", "Attention-weighted canonical neighbours (ablation: texture drifts)")])
+               ('NAIVE', "Naive", "Attention-weighted canonical neighbours (ablation: texture drifts)"),
+               ('DEFORM_GRADIENT', "Deform-gradient", "Map deformed surface points back through each neighbour's "
+                                                      "local deformation (undoes stretch and rotation too)")])
     antialias: bpy.props.IntProperty(name="Anti-aliasing", default=2, min=1, max=4,
                                      description="Painted texels per pixel side, filtered like Cycles' pixel filter "
                                                  "(1 = one lookup per pixel: faster preview, jagged strokes)")

@@ -6,8 +6,9 @@ For each rig pose of a built-in scene at increasing magnitudes:
   ours          the model's canonical points deformed by the SAME rig (a vertex-only mesh in the scene.blend with
                 `tools.scenes.poses.apply_pose`, evaluated positions read with foreach_get), rendered by
                 `core.frames.edited.render_edited` with the procedural texture baked into the atlas.
-Every edit is scored for naive and deformation-aware correspondence and at each attention temperature; the decal
-also with the soft and the threshold blend. Attention diagnostics explain the correspondence figures: the two
+Every edit is scored for each correspondence (the paper's naive and deformation-aware, and deform-gradient), at
+each attention temperature and with each renderer variant (`RENDERERS`: today's, or with the local deformation
+gradients in the attention keys and/or the neighbour radius); the decal also with the soft and the threshold blend. Attention diagnostics explain the correspondence figures: the two
 correspondences differ, ray by ray, by exactly the offset of the surface point x̂ from its ray (see `diagnostics`).
 """
 from __future__ import annotations
@@ -31,6 +32,18 @@ from core.util.atomic import atomic_write_text
 from core.util.errors import DataError, InputError
 
 EDITS = ("geometry", "retexture", "decal")
+# renderer variants: EditConfig's (f_attention, f_radius, f_compression); "paper" = today's renderer. f_compression
+# also changes the deform-gradient correspondence.
+RENDERERS = {"paper": (False, False, "tangent"), "f-attention": (True, False, "tangent"),
+             "f-radius": (False, True, "tangent"), "f-both": (True, True, "tangent"),
+             "f-keep": (True, False, "keep"), "f-squash": (True, False, "undo")}
+CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
+
+
+def default_renderer() -> str:
+    """The RENDERERS key of EditConfig's default f_attention / f_radius (what `pointgt render` does by default)."""
+    want = (EditConfig.f_attention, EditConfig.f_radius, EditConfig.f_compression)
+    return next(k for k, v in RENDERERS.items() if v == want)
 GT_TEXTURE = {"geometry": None, "retexture": "retexture", "decal": "decal"}  # "retexture" = the chosen texture
 REST = ("rest", 0.0)
 
@@ -40,26 +53,28 @@ class Method:
     """One way of rendering an edit: which edit, correspondence, attention temperature and texture blend."""
 
     edit: str
-    correspondence: str  # deform-aware | naive ("-" for the geometry-only edit: no texture lookup)
+    correspondence: str  # see CORRESPONDENCES ("-" for the geometry-only edit: no texture lookup)
     temperature: float
     blend: str = "soft"
+    renderer: str = "paper"  # a key of RENDERERS
 
     @property
     def label(self) -> str:
-        return f"{self.edit} {self.correspondence} T={self.temperature:g} {self.blend}"
+        return f"{self.renderer} {self.edit} {self.correspondence} T={self.temperature:g} {self.blend}"
 
 
-def methods(temperatures=(1.0, 0.5)) -> list[Method]:
-    """Geometry only per temperature; retexture and decal per correspondence and temperature (soft blend); the
-    decal also with the threshold blend at the first temperature."""
+def methods(temperatures=(1.0, 0.5), renderers=("paper",), correspondences=("naive", "deform-aware")) -> list[Method]:
+    """Per renderer: geometry only per temperature; retexture and decal per correspondence and temperature (soft
+    blend); the decal also with the threshold blend at the first temperature."""
     out = []
-    for t in temperatures:
-        out.append(Method("geometry", "-", t))
-        for edit in ("retexture", "decal"):
-            for corr in ("naive", "deform-aware"):
-                out.append(Method(edit, corr, t))
-    for corr in ("naive", "deform-aware"):
-        out.append(Method("decal", corr, temperatures[0], "threshold"))
+    for rd in renderers:
+        for t in temperatures:
+            out.append(Method("geometry", "-", t, renderer=rd))
+            for edit in ("retexture", "decal"):
+                for corr in correspondences:
+                    out.append(Method(edit, corr, t, renderer=rd))
+        for corr in correspondences:
+            out.append(Method("decal", corr, temperatures[0], "threshold", renderer=rd))
     return out
 
 
@@ -218,12 +233,25 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
     oracle = (texture, scene spec): also score the texture evaluated exactly at x_can (psnr*_oracle).
     traces: a dict shared by the methods of one pose: neighbours + attention of a (view, temperature) are computed
     once; the reported seconds still include the time that trace took, so every row is a whole frame's cost."""
+    # F is fitted once per state (these views share one pose); an animation fits it once per frame, so every
+    # frame is charged the fit's time
+    f_used = state.moved and (state.cfg.f_attention or state.cfg.f_radius or
+                              state.cfg.correspondence == "deform-gradient")
+    f_seconds = 0.0
+    if f_used:  # what the frame needs of F, before the timed frames
+        if state.cfg.f_attention or state.cfg.correspondence == "deform-gradient":
+            _ = state.inv_f_keys
+        if state.cfg.f_radius:
+            _ = state.radius_scale
+        f_seconds = state.deformation_seconds
+
     def render(i):
-        key = (i, state.cfg.temperature)
+        key = (i, state.cfg.temperature, state.cfg.f_attention, state.cfg.f_radius,
+               state.cfg.f_compression if state.cfg.f_attention else "-")
         cached = traces.get(key) if traces is not None else None
         view = (gt.c2w[i], gt.height, gt.width, gt.focal)
         out = render_edited(state, *view, background, trace=cached[0] if cached else None)
-        seconds = out["stats"]["seconds"]
+        seconds = out["stats"]["seconds"] + f_seconds
         if cached:
             seconds += cached[1]
         elif traces is not None:
@@ -254,7 +282,8 @@ def blank_scores(gt) -> dict:
 
 def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), views: int = 4,
              temperatures=(1.0, 0.5), retexture: str = "stripes", samples=None, device: str = "cpu",
-             antialias: int = EditConfig.antialias, log=print) -> dict:
+             antialias: int = EditConfig.antialias, renderers=("paper",), correspondences=("naive", "deform-aware"),
+             log=print) -> dict:
     """Evaluate a model's edits against Blender ground truth; returns the JSON-able result (see module doc)."""
     from core.bundle import load_bundle
     from tools.scenes.poses import load_scene_spec
@@ -273,11 +302,17 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
                              f"choose from {', '.join(all_poses)}")
     if not magnitudes or any(not math.isfinite(m) for m in magnitudes):
         raise InputError(f"--magnitudes must be finite numbers, got {magnitudes}")
+    for rd in renderers:
+        if rd not in RENDERERS:
+            raise InputError(f"--renderers: unknown renderer '{rd}'; choose from {', '.join(RENDERERS)}")
+    for c in correspondences:
+        if c not in CORRESPONDENCES:
+            raise InputError(f"--correspondences: unknown correspondence '{c}'; choose from {', '.join(CORRESPONDENCES)}")
     bundle = load_bundle(model_path, device=device)
     atlases = edited_atlases(bundle, spec, retexture)
     gt_dir = view_subset_dir(scene_dir, views)
     plan = [REST] + [(p, float(m)) for p in poses for m in magnitudes]
-    meths = methods(tuple(temperatures))
+    meths = methods(tuple(temperatures), tuple(renderers), tuple(correspondences))
     canonical = bundle.model.xyz.detach().cpu().numpy()
     rows, blanks = [], []
     t_start = time.perf_counter()
@@ -287,22 +322,31 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
         for edit, gt in gts.items():
             blanks.append({"pose": pose, "magnitude": mag, "edit": edit, **blank_scores(gt)})
         points = None if pose == "rest" else deform_points(canonical, scene_dir, pose, mag)
-        traces: dict = {}  # neighbours + attention per (view, temperature), shared by this pose's methods
+        traces: dict = {}  # neighbours + attention per (view, temperature, renderer), shared by this pose's methods
+        f_time: dict = {}  # one F fit per pose: its time is charged to every frame that uses F
         for mt in meths:
+            f_att, f_rad, f_sq = RENDERERS[mt.renderer]
             cfg = EditConfig(correspondence=mt.correspondence if mt.correspondence != "-" else "deform-aware",
-                             blend=mt.blend, temperature=mt.temperature, antialias=antialias)
+                             blend=mt.blend, temperature=mt.temperature, antialias=antialias,
+                             f_attention=f_att, f_radius=f_rad, f_compression=f_sq)
             state = EditState(bundle, points=points, atlas=atlases[mt.edit], cfg=cfg)
+            if "state" in f_time:  # reuse this pose's fit (same points): F and its measured time
+                state.share_deformation(f_time["state"])
             res = score_frames(state, gts[mt.edit], oracle=(retexture, spec) if mt.edit == "retexture" else None,
                                traces=traces)
+            if state._f is not None and "state" not in f_time:
+                f_time["state"] = state
             rows.append({"pose": pose, "magnitude": mag, **asdict(mt), **res})
         log(f"[{k + 1}/{len(plan)}] {pose} m={mag:g}: " + "  ".join(
-            f"{r['edit'][:4]}/{r['correspondence'][:5]}/T{r['temperature']:g}/{r['blend'][:4]} {r['psnr_object']:.2f}"
+            f"{r['renderer']}/{r['edit'][:4]}/{r['correspondence']}/T{r['temperature']:g}/{r['blend'][:4]} "
+            f"{r['psnr_object']:.2f}"
             for r in rows[-len(meths):]) + f"  ({time.perf_counter() - t_start:.0f} s)")
     result = {"model": str(model_path), "scene": str(scene_dir), "scene_name": spec.get("name"),
               "views": len(gts["geometry"]), "width": gts["geometry"].width, "height": gts["geometry"].height,
               "model_points": bundle.model.num_points, "point_spacing": float(bundle.model.spacing),
               "retexture": retexture, "decal": spec["texture"]["params"].get("decal"),
               "poses": poses, "magnitudes": list(magnitudes), "temperatures": list(temperatures), "antialias": antialias,
+              "renderers": list(renderers), "correspondences": list(correspondences),
               "seconds_total": time.perf_counter() - t_start, "rows": rows, "blank": blanks}
     result["retexture_gap"] = retexture_gaps(rows)
     result["blend_comparison"] = blend_comparison(rows)
@@ -310,7 +354,36 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
 
 
 def _select(rows, **kw):
-    return [r for r in rows if all(r[k] == v for k, v in kw.items())]
+    return [r for r in rows if all(r.get(k, "paper" if k == "renderer" else None) == v for k, v in kw.items())]
+
+
+def _sel_key(rows, key):
+    """Rows of one method: key = (edit, correspondence, temperature, blend, renderer)."""
+    return _select(rows, edit=key[0], correspondence=key[1], temperature=key[2], blend=key[3], renderer=key[4])
+
+
+def ablation_markdown(result: dict) -> str:
+    """The renderer × correspondence ablation: object PSNR (dB) per pose, magnitude and renderer, one column per
+    edit and correspondence (first temperature, soft blend), and the mean seconds per frame of the row."""
+    rows = result["rows"]
+    t0 = result.get("temperatures", [rows[0]["temperature"]] if rows else [1.0])[0]
+    corrs = result.get("correspondences", ["naive", "deform-aware"])
+    cols = [("geometry", "-")] + [(e, c) for e in ("retexture", "decal") for c in corrs]
+    head = ["geometry"] + [f"{e} {c}" for e, c in cols[1:]]
+    lines = ["| pose | m | renderer | " + " | ".join(head) + " | s/frame |",
+             "|---|---|---|" + "---|" * len(cols) + "---|"]
+    cases = list(dict.fromkeys((r["pose"], r["magnitude"]) for r in rows))
+    for pose, mag in cases:
+        for rd in result.get("renderers", ["paper"]):
+            cells, secs = [], []
+            for edit, corr in cols:
+                sel = _select(rows, pose=pose, magnitude=mag, renderer=rd, edit=edit, correspondence=corr,
+                              temperature=t0, blend="soft")
+                cells.append(_f(sel[0]["psnr_object"]) if sel else "–")
+                secs += [x["seconds_per_frame"] for x in sel]
+            lines.append(f"| {pose} | {mag:g} | {rd} | " + " | ".join(cells) +
+                         f" | {np.mean(secs) if secs else float('nan'):.3f} |")
+    return "\n".join(lines) + "\n"
 
 
 def retexture_gaps(rows: list[dict]) -> list[dict]:
@@ -320,9 +393,9 @@ def retexture_gaps(rows: list[dict]) -> list[dict]:
         if r["pose"] == "rest":
             continue
         rest = _select(rows, edit="retexture", pose="rest", correspondence=r["correspondence"],
-                       temperature=r["temperature"], blend=r["blend"])
+                       temperature=r["temperature"], blend=r["blend"], renderer=r.get("renderer", "paper"))
         if rest:
-            out.append({k: r[k] for k in ("pose", "magnitude", "correspondence", "temperature")} |
+            out.append({k: r.get(k, "paper") for k in ("pose", "magnitude", "renderer", "correspondence", "temperature")} |
                        {"gap_psnr": rest[0]["psnr"] - r["psnr"], "gap_psnr_object": rest[0]["psnr_object"] - r["psnr_object"],
                         "gap_psnr_object_oracle": rest[0]["psnr_object_oracle"] - r["psnr_object_oracle"]})
     return out
@@ -332,17 +405,18 @@ def blend_comparison(rows: list[dict]) -> dict:
     """Soft vs threshold blend for the decal, mean over the posed (non-rest) cases, per correspondence."""
     out = {}
     temps = sorted({r["temperature"] for r in _select(rows, edit="decal", blend="threshold")})
-    for corr in ("naive", "deform-aware"):
+    for rd, corr in dict.fromkeys((r.get("renderer", "paper"), r["correspondence"])
+                                  for r in _select(rows, edit="decal", blend="threshold")):
         for t in temps:
             vals = {}
             for b in ("soft", "threshold"):
                 rs = [r for r in _select(rows, edit="decal", correspondence=corr, temperature=t, blend=b)
-                      if r["pose"] != "rest"]
+                      if r["pose"] != "rest" and r.get("renderer", "paper") == rd]
                 if rs:
                     vals[b] = {k: float(np.mean([r[k] for r in rs])) for k in ("psnr", "psnr_object", "ssim")}
             if len(vals) == 2:
                 vals["better"] = "soft" if vals["soft"]["psnr_object"] >= vals["threshold"]["psnr_object"] else "threshold"
-                out[f"{corr} T={t:g}"] = vals
+                out[(f"{rd} " if rd != "paper" else "") + f"{corr} T={t:g}"] = vals
     return out
 
 
@@ -358,33 +432,39 @@ def markdown(result: dict) -> str:
     lines = [f"Scene `{result['scene_name']}`, {result['views']} views at {result['width']}x{result['height']}, "
              f"model {result['model_points']} points (spacing {result['point_spacing']:.4f}), "
              f"retexture `{result['retexture']}`, total {result['seconds_total']:.0f} s.", ""]
+    lines += ["**Ablation** (object PSNR, dB; renderer: paper = today's, f-attention = attention keys in each "
+              "point's canonical frame (rotation, stretch and compression along the surface undone), f-radius = "
+              "neighbour radius cap scaled by the stretch, f-both = both, f-keep / f-squash = f-attention undoing no "
+              "compression / all compression (and so does their deform-gradient correspondence); first temperature, soft blend; s/frame = mean over the row's "
+              "renders)", "",
+              ablation_markdown(result)]
     # summary: mean over poses per magnitude, per method
     mags = sorted({r["magnitude"] for r in rows if r["pose"] != "rest"})
     lines += ["**Object PSNR (dB), mean over poses, per magnitude** (rest = unposed; s/frame = mean render time)", "",
-              "| edit | correspondence | T | blend | rest | " + " | ".join(f"m={m:g}" for m in mags) + " | s/frame |",
-              "|---|---|---|---|---|" + "---|" * len(mags) + "---|"]
+              "| renderer | edit | correspondence | T | blend | rest | " + " | ".join(f"m={m:g}" for m in mags)
+              + " | s/frame |", "|---|---|---|---|---|---|" + "---|" * len(mags) + "---|"]
     seen = []
     for r in rows:
-        key = (r["edit"], r["correspondence"], r["temperature"], r["blend"])
+        key = (r["edit"], r["correspondence"], r["temperature"], r["blend"], r.get("renderer", "paper"))
         if key in seen:
             continue
         seen.append(key)
-        sel = _select(rows, edit=key[0], correspondence=key[1], temperature=key[2], blend=key[3])
+        sel = _sel_key(rows, key)
         rest = [x["psnr_object"] for x in sel if x["pose"] == "rest"]
         per = [np.mean([x["psnr_object"] for x in sel if x["magnitude"] == m and x["pose"] != "rest"]) for m in mags]
         secs = np.mean([x["seconds_per_frame"] for x in sel])
-        lines.append(f"| {key[0]} | {key[1]} | {key[2]:g} | {key[3]} | {_f(rest[0] if rest else None)} | "
+        lines.append(f"| {key[4]} | {key[0]} | {key[1]} | {key[2]:g} | {key[3]} | {_f(rest[0] if rest else None)} | "
                      + " | ".join(_f(float(v)) for v in per) + f" | {secs:.2f} |")
     lines += ["", "**Retexture with a perfect atlas** (oracle: the texture evaluated exactly at x_can, rendered like the atlas; object PSNR, "
               "dB): the correspondence alone, without atlas error", "",
-              "| correspondence | T | rest | " + " | ".join(f"m={m:g}" for m in mags) + " |",
-              "|---|---|---|" + "---|" * len(mags)]
+              "| renderer | correspondence | T | rest | " + " | ".join(f"m={m:g}" for m in mags) + " |",
+              "|---|---|---|---|" + "---|" * len(mags)]
     for key in [k for k in seen if k[0] == "retexture"]:
-        sel = _select(rows, edit=key[0], correspondence=key[1], temperature=key[2], blend=key[3])
+        sel = _sel_key(rows, key)
         rest = [x["psnr_object_oracle"] for x in sel if x["pose"] == "rest"]
         per = [np.mean([x["psnr_object_oracle"] for x in sel if x["magnitude"] == m and x["pose"] != "rest"])
                for m in mags]
-        lines.append(f"| {key[1]} | {key[2]:g} | {_f(rest[0] if rest else None)} | "
+        lines.append(f"| {key[4]} | {key[1]} | {key[2]:g} | {_f(rest[0] if rest else None)} | "
                      + " | ".join(_f(float(v)) for v in per) + " |")
     lines += ["", "**Blank white frame (the floor)**, mean over poses (full frame / object pixels, dB)", "",
               "| edit | rest | " + " | ".join(f"m={m:g}" for m in mags) + " |", "|---|---|" + "---|" * len(mags)]
@@ -398,19 +478,21 @@ def markdown(result: dict) -> str:
     lines += ["", "**Every case** (PSNR full / object dB, SSIM, s/frame; attention: mean max weight, x̂ distance "
               "to its ray and |naive − aware| correspondence gap, both in world units; for the retexture, object PSNR "
               "with the texture evaluated exactly at x_can (oracle: a perfect atlas))", "",
-              "| pose | m | edit | corr. | T | blend | PSNR | obj PSNR | SSIM | s/frame | max w | ray dist | corr gap "
-              "| oracle obj PSNR |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| pose | m | renderer | edit | corr. | T | blend | PSNR | obj PSNR | SSIM | s/frame | max w | ray dist "
+              "| corr gap | oracle obj PSNR |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['pose']} | {r['magnitude']:g} | {r['edit']} | {r['correspondence']} | "
+        lines.append(f"| {r['pose']} | {r['magnitude']:g} | {r.get('renderer', 'paper')} | {r['edit']} | "
+                     f"{r['correspondence']} | "
                      f"{r['temperature']:g} | {r['blend']} | {_f(r['psnr'])} | {_f(r['psnr_object'])} | "
                      f"{_f(r['ssim'], 4)} | {r['seconds_per_frame']:.2f} | {_f(r['max_weight'], 3)} | "
                      f"{_f(r['ray_dist'], 4)} | {_f(r['corr_gap'], 4)} | {_f(r.get('psnr_object_oracle'))} |")
     lines += ["", "**Texture persistence**: retexture gap = object PSNR at rest − object PSNR in the pose (dB; "
               "smaller is better; oracle = with a perfect atlas)", "",
-              "| pose | m | correspondence | T | gap (object) | gap (full) | gap (object, oracle) |",
-              "|---|---|---|---|---|---|---|"]
+              "| pose | m | renderer | correspondence | T | gap (object) | gap (full) | gap (object, oracle) |",
+              "|---|---|---|---|---|---|---|---|"]
     for g in result["retexture_gap"]:
-        lines.append(f"| {g['pose']} | {g['magnitude']:g} | {g['correspondence']} | {g['temperature']:g} | "
+        lines.append(f"| {g['pose']} | {g['magnitude']:g} | {g.get('renderer', 'paper')} | {g['correspondence']} | "
+                     f"{g['temperature']:g} | "
                      f"{_f(g['gap_psnr_object'])} | {_f(g['gap_psnr'])} | {_f(g['gap_psnr_object_oracle'])} |")
     lines += ["", "**Decal blend**: soft vs threshold, mean over the posed cases (object PSNR / full PSNR / SSIM)", "",
               "| correspondence | soft | threshold | better |", "|---|---|---|---|"]

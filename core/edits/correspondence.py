@@ -2,6 +2,10 @@
 
 deform-aware (the paper's):  x_def = Π_ray(x̂_def);  t_i = Σ_j a_ij (p_can_ij − p_def_ij);  x_can = x_def + t_i
 naive (ablation):            x_can = Σ_j a_ij p_can_ij
+deform-gradient (beyond the paper): x_can = Σ_j a_ij (p_can_ij + F_ij⁻¹ (x_def − p_def_ij)), with F the points'
+                             local deformation gradients (core/edits/deformation.py): each neighbour maps the
+                             ray's surface point back through its own local affine map, so local rotations and
+                             stretches are undone, not only translations (F = I gives deform-aware).
 a_ij are the deformed-space attention weights over the K neighbours (background slot dropped, renormalised).
 """
 from __future__ import annotations
@@ -10,18 +14,19 @@ import torch
 
 from core.images.rays import project_on_ray
 
-MODES = ("deform-aware", "naive")
+MODES = ("deform-aware", "naive", "deform-gradient")
 
 
 def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.Tensor, origins: torch.Tensor,
                      dirs: torch.Tensor, p_def: torch.Tensor, p_can: torch.Tensor,
-                     mode: str = "deform-aware") -> torch.Tensor:
+                     mode: str = "deform-aware", inv_f: torch.Tensor | None = None) -> torch.Tensor:
     """Canonical lookup points x_can [R, 3].
 
     Args: fg_weights [R, K] attention over neighbours (rows sum to 1 where any neighbour exists), idx [R, K]
     (-1 = empty slot), x_hat [R, 3] deformed surface points Σ a p_def, origins/dirs [R, 3] (unit dirs),
     p_def [M, 3] deformed positions, p_can [M, 3] canonical positions of the same points (row j of both is the
-    same point; with ids: p_can = canonical_xyz[ids]).
+    same point; with ids: p_can = canonical_xyz[ids]); inv_f [M, 3, 3] inverse deformation gradients of the
+    points (needed by mode "deform-gradient").
     """
     if mode not in MODES:
         raise ValueError(f"correspondence must be one of {MODES}, got {mode!r}")
@@ -30,5 +35,12 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
     if mode == "naive":
         return (w[..., None] * p_can[safe]).sum(1)
     x_def = project_on_ray(x_hat, origins, dirs)
+    if mode == "deform-gradient":
+        if inv_f is None:
+            raise ValueError("correspondence 'deform-gradient' needs the points' inverse deformation gradients inv_f")
+        off = x_def[:, None, :] - p_def[safe]                                   # [R, K, 3]
+        back = (inv_f[safe] @ off[..., None]).squeeze(-1)
+        # rows whose weights do not sum to one keep the rest at x_def, as the deform-aware sum does
+        return (w[..., None] * (p_can[safe] + back)).sum(1) + (1.0 - w.sum(1, keepdim=True)) * x_def
     disp = (w[..., None] * (p_can[safe] - p_def[safe])).sum(1)
     return x_def + disp

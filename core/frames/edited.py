@@ -17,6 +17,7 @@ from core.atlas.packing import sample_charts, unpack
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, canonical_points
+from core.edits.deformation import DeformationConfig, expansion_inverse, field_for, inverse, stretch
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
@@ -25,11 +26,26 @@ from core.points.render import shade_frame, trace_frame
 from core.util.errors import InputError
 
 
+COMPRESSION = ("tangent", "keep", "undo")
+RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
+
+
 @dataclass
 class EditConfig:
     """Edited rendering (correspondence and texture blending)."""
 
-    correspondence: str = opt("deform-aware", "canonical correspondence: deform-aware | naive", choices=MODES)
+    correspondence: str = opt("deform-aware", "canonical correspondence: deform-aware (paper) | naive (paper's "
+                              "ablation) | deform-gradient (undoes each neighbour's local rotation and stretch too)",
+                              choices=MODES)
+    f_attention: bool = opt(True, "moved points: measure the attention's key geometry in each neighbour's "
+                                  "canonical frame (its inverse local deformation gradient applied to the "
+                                  "ray-to-point offset; docs/editing.md has the ablation); rest frames are unchanged")
+    f_compression: str = opt("tangent", "what the F-aware keys (f_attention) and the deform-gradient correspondence "
+                                        "undo of a local compression: tangent (along the canonical neighbourhood's "
+                                        "surface, not across it) | keep (none: stretch only) | undo (all, full F⁻¹)",
+                             choices=COMPRESSION)
+    f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
+                                "stretch (90th percentile of the largest local stretch, at least 1)")
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
                      choices=BLENDS)
     mask_threshold: float = opt(0.01, "a texel counts as painted when its colour changed by more than this (L2)",
@@ -50,9 +66,14 @@ class EditState:
     counted and treated as absent points.
     """
 
-    def __init__(self, bundle, points=None, ids=None, atlas=None, cfg: EditConfig | None = None):
+    def __init__(self, bundle, points=None, ids=None, atlas=None, cfg: EditConfig | None = None,
+                 deformation: DeformationConfig | None = None):
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
+        self.deformation_cfg = deformation or DeformationConfig()
+        self._f = self._inv_f = self._inv_f_keys = self._radius_scale = None
+        self.deformation_seconds = 0.0  # time spent on F and what derives from it (0 until it is needed)
+        self.fit_seconds = 0.0  # of which the fit of F
         if not 1 <= int(self.cfg.antialias) <= 8:
             raise InputError(f"antialias: texture lookups per pixel side must be 1-8, got {self.cfg.antialias}")
         model = bundle.model
@@ -113,6 +134,78 @@ class EditState:
             if self.atlas_image is None:
                 self.atlas_image = atl.packed_image().to(dev)
             self.mask_image = torch.ones_like(self.atlas_image)
+
+    def _timed(self, fn):
+        t0 = time.perf_counter()
+        out = fn()
+        self.deformation_seconds += time.perf_counter() - t0
+        return out
+
+    @property
+    def f(self) -> torch.Tensor | None:
+        """Local deformation gradients of the points [M, 3, 3] (None when nothing moved), fitted on first use from
+        the model's cached canonical neighbourhoods (core/edits/deformation.py)."""
+        if not self.moved:
+            return None
+        if self._f is None:
+            self._f = self._timed(lambda: field_for(self.bundle.model, self.deformation_cfg).gradients(self.points,
+                                                                                                      self.ids))
+            self.fit_seconds = self.deformation_seconds
+        return self._f
+
+    @property
+    def inv_f(self) -> torch.Tensor | None:
+        """F⁻¹ [M, 3, 3] (None when nothing moved)."""
+        if self.f is None:
+            return None
+        if self._inv_f is None:
+            self._inv_f = self._timed(lambda: inverse(self._f))
+        return self._inv_f
+
+    @property
+    def inv_f_keys(self) -> torch.Tensor | None:
+        """The inverse gradients the attention keys and the deform-gradient correspondence use [M, 3, 3], by
+        f_compression: undo = F⁻¹; keep = the inverse of F with its singular values raised to at least 1 (rotation
+        and stretch undone, compression kept); tangent = the inverse of G = F + (max(|F n|, 1)/|F n| − 1) F n nᵀ,
+        n the canonical neighbourhood's normal (least-spread direction): F as it is along the surface, its
+        compression across it not undone. None when nothing moved."""
+        mode = self.cfg.f_compression
+        if mode == "undo" or self.f is None:
+            return self.inv_f
+        if self._inv_f_keys is None:
+            if mode == "keep":
+                self._inv_f_keys = self._timed(lambda: expansion_inverse(self._f))
+            else:
+                def tangent():
+                    n = field_for(self.bundle.model, self.deformation_cfg).normals(self.ids)     # [M, 3]
+                    fi = self.inv_f.double()
+                    fn = (self._f.double() @ n[..., None]).squeeze(-1).norm(dim=-1).clamp_min(1e-12)
+                    k = fn / fn.clamp_min(1.0) - 1.0  # 1/scale − 1, scale = max(|F n|, 1) / |F n|
+                    # G⁻¹ = (I + (1/scale − 1) n nᵀ) F⁻¹
+                    return (fi + k[:, None, None] * n[..., None] @ (n[:, None, :] @ fi)).float()
+                self._inv_f_keys = self._timed(tangent)
+        return self._inv_f_keys
+
+    @property
+    def radius_scale(self) -> float:
+        """Factor on the neighbour search's pixel radius cap for these points: the 90th percentile of the largest
+        local stretch, 1 when nothing moved or it is below RADIUS_SCALE_MIN."""
+        if self.f is None:
+            return 1.0
+        if self._radius_scale is None:
+            def scale():
+                st = stretch(self._f)[torch.isfinite(self.points).all(1)]
+                q = float(torch.quantile(st, 0.9)) if st.numel() else 1.0
+                return q if q > RADIUS_SCALE_MIN else 1.0
+            self._radius_scale = self._timed(scale)
+        return self._radius_scale
+
+    def share_deformation(self, other: "EditState") -> None:
+        """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
+        fit took; what this state derives from F is computed (and timed) here."""
+        if other.moved and self.moved and other._f is not None and self._f is None:
+            self._f = other._f
+            self.fit_seconds = self.deformation_seconds = other.fit_seconds
 
     @property
     def textured(self) -> bool:
@@ -190,8 +283,12 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     t0 = time.perf_counter()
     bundle, cfg = state.bundle, state.cfg
     model = bundle.model
-    tr = trace if trace is not None else trace_frame(model, c2w, height, width, focal, points=state.points,
-                                                     influence=state.influence, temperature=cfg.temperature)
+    if trace is None:
+        tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
+                         temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
+                         radius_scale=state.radius_scale if cfg.f_radius else 1.0)
+    else:
+        tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
     rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True)
     rgb = rgb.reshape(-1, 3)
@@ -210,7 +307,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         if state.moved:
             pts = torch.nan_to_num(state.points, nan=0.0, posinf=0.0, neginf=0.0)
             xc = canonical_points(tr["fg_weights"][sel], tr["idx"][sel], x_hat, tr["origins"][sel],
-                                  tr["dirs"][sel], pts, state.p_can, cfg.correspondence)
+                                  tr["dirs"][sel], pts, state.p_can, cfg.correspondence,
+                                  inv_f=state.inv_f_keys if cfg.correspondence == "deform-gradient" else None)
             stats["correspondence"] = cfg.correspondence
         else:  # nothing moved: the canonical point is the ray's surface point on its ray (as the atlas saw it)
             xc = project_on_ray(x_hat, tr["origins"][sel], tr["dirs"][sel])

@@ -105,11 +105,15 @@ class PointModel(nn.Module):
 
     # ---- attention -------------------------------------------------------------------------------------------
     def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
-               idx: torch.Tensor, temperature: float | None = None) -> dict:
+               idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None) -> dict:
         """Attention over each ray's neighbours plus the background slot.
 
         Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
         idx [R, K] int64 neighbour indices (-1 = empty slot).
+        inv_f [N, 3, 3]: inverse local deformation gradients of deformed points (core/edits/deformation.py); the
+        key features are then measured in each neighbour's canonical frame: with δ = p − (o + t_min d) the offset
+        from the ray's reference point, u = F⁻¹ δ and the ray direction d' = F⁻¹ d / |F⁻¹ d| mapped the same way,
+        depth = u·d' and distance = |u − (u·d') d'| (the same numbers as without inv_f when F = I).
         Returns dict: weights [R, K] (0 on empty slots), bg [R] background weight, x [R, 3] surface point
         (NaN-free: rays with no neighbour get the ray point at the mean depth 0), t [R, K] depth along the ray.
         """
@@ -125,7 +129,15 @@ class PointModel(nn.Module):
         t_min = torch.where(valid, t.detach(), torch.full_like(t, big)).min(dim=1, keepdim=True).values
         t_min = torch.where(t_min >= big, torch.zeros_like(t_min), t_min)
         # Clamp the key features: points sent far away or huge scene scales must not overflow the Fourier terms.
-        feats = torch.stack([(rho / s).clamp(max=64.0), ((t - t_min) / s).clamp(-64.0, 64.0)], dim=-1)
+        depth = t - t_min
+        if inv_f is not None:  # key geometry in each neighbour's canonical frame
+            fi = inv_f[safe_idx]                                                  # [R, K, 3, 3]
+            delta = rel - t_min[..., None] * dirs[:, None, :]
+            u = (fi @ delta[..., None]).squeeze(-1)
+            dc = safe_normalize((fi @ dirs[:, None, :, None].expand(-1, idx.shape[1], -1, -1)).squeeze(-1))
+            depth = (u * dc).sum(-1)
+            rho = (u - depth[..., None] * dc).norm(dim=-1)
+        feats = torch.stack([(rho / s).clamp(max=64.0), (depth / s).clamp(-64.0, 64.0)], dim=-1)
         # Influence clamped: ±1e30 softmaxes fine (max subtracted), an infinite one (diverged fit) would give inf − inf.
         logits = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1) + influence[safe_idx].clamp(-1e30, 1e30)
         temp = self.cfg.temperature if temperature is None else temperature

@@ -22,13 +22,16 @@ def pixel_grid(height: int, width: int, device) -> torch.Tensor:
 @torch.no_grad()
 def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
-                k: int | None = None, temperature: float | None = None, chunk: int = 1024) -> dict:
+                k: int | None = None, temperature: float | None = None, chunk: int = 1024,
+                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0) -> dict:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
     attention call (1024 keeps the [chunk·K, width] key-MLP activations in cache: 40 % faster than 16384 on a CPU,
     `python -m tools.bench.render`);
-    influence [M] (default: the model's, which requires M == N).
+    influence [M] (default: the model's, which requires M == N);
+    inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
+    `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this.
     Returns dict of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], plus 'shape' (H, W).
     """
@@ -44,7 +47,9 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     finite = torch.isfinite(pts).all(dim=1)
     pts_search = torch.where(finite[:, None], pts, torch.full_like(pts, float("nan")))
     pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
-    idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d)
+    idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
+                           radius_scale=radius_scale)
+    fi = None if inv_f is None else inv_f.to(dev, torch.float32)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.
     active = (idx >= 0).any(dim=1)
@@ -53,7 +58,7 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     act = torch.nonzero(active).squeeze(1)
     for s in range(0, act.shape[0], chunk):
         sl = act[s:s + chunk]
-        att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature)
+        att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi)
         for key in res:
             res[key][sl] = att[key]
     res.update(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),

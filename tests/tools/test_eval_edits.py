@@ -159,9 +159,34 @@ def test_markdown_lists_every_method_and_case():
                         for p, m in (("rest", 0.0), ("bend", 1.0)) for e in ("geometry", "retexture", "decal")],
               "retexture_gap": retexture_gaps(rows), "blend_comparison": blend_comparison(rows)}
     text = markdown(result)
-    assert text.count("| bend | 1 |") == len(meths) + 4  # every case + the 4 retexture gaps
+    assert text.count("| bend | 1 |") == len(meths) + 4 + 1  # every case + the 4 retexture gaps + the ablation row
     assert len(result["retexture_gap"]) == 4 and all(g["gap_psnr_object"] == 0 for g in result["retexture_gap"])
     assert set(result["blend_comparison"]) == {"naive T=1", "deform-aware T=1"}
+
+
+def test_ablation_rows_per_renderer_and_correspondence():
+    meths = methods((1.0,), renderers=("paper", "f-both"), correspondences=("naive", "deform-aware", "deform-gradient"))
+    # per renderer: geometry, 3 retexture, 3 decal soft, 3 decal threshold
+    assert len(meths) == 2 * 10 and {m.renderer for m in meths} == {"paper", "f-both"}
+    rows = [{"pose": p, "magnitude": mg, "edit": m.edit, "correspondence": m.correspondence, "renderer": m.renderer,
+             "temperature": m.temperature, "blend": m.blend, "psnr": 20.0, "psnr_object": 10.0 + i, "ssim": 0.9,
+             "psnr_object_oracle": 15.0, "seconds_per_frame": 0.5 if m.renderer == "paper" else 0.6}
+            for p, mg in (("rest", 0.0), ("stretch", 1.0)) for i, m in enumerate(meths)]
+    from tools.eval_edits import ablation_markdown, blend_comparison, retexture_gaps
+
+    text = ablation_markdown({"rows": rows, "temperatures": [1.0], "renderers": ["paper", "f-both"],
+                              "correspondences": ["naive", "deform-aware", "deform-gradient"]})
+    lines = [ln for ln in text.splitlines() if ln.startswith("| stretch | 1 |")]
+    assert len(lines) == 2 and "| f-both |" in lines[1] and lines[1].endswith("| 0.600 |")
+    assert "retexture deform-gradient" in text.splitlines()[0]
+    # the f-both row's deform-gradient retexture is its own method's figure (index of that method + 10)
+    i = next(i for i, m in enumerate(meths) if (m.renderer, m.edit, m.correspondence) == ("f-both", "retexture",
+                                                                                         "deform-gradient"))
+    assert f"| {10.0 + i:.2f} |" in lines[1]
+    gaps = retexture_gaps(rows)
+    assert len(gaps) == 6 and {g["renderer"] for g in gaps} == {"paper", "f-both"}
+    assert set(blend_comparison(rows)) == {f"{r}{c} T=1" for r in ("", "f-both ")
+                                           for c in ("naive", "deform-aware", "deform-gradient")}
 
 
 SMOKE = textwrap.dedent("""
@@ -202,13 +227,14 @@ def test_eval_edits_smoke_on_a_tiny_scene(tmp_path):
     res = json.loads((tmp_path / "e.json").read_text())
     cases = {(r["pose"], r["magnitude"]) for r in res["rows"]}
     assert cases == {("rest", 0.0), ("bend", 1.0)} and res["views"] == 1
-    assert len(res["rows"]) == 2 * 7  # geometry, 2 retexture, 2 decal soft, 2 decal threshold per case
+    # per case and renderer (paper, f-attention): geometry, 2 retexture, 2 decal soft, 2 decal threshold
+    assert len(res["rows"]) == 2 * 2 * 7 and {r["renderer"] for r in res["rows"]} == {"paper", "f-attention"}
     for r in res["rows"]:
         for k in ("psnr", "psnr_object", "ssim", "seconds_per_frame"):
             assert math.isfinite(r[k]), (r, k)
-    assert len(res["retexture_gap"]) == 2 and all(math.isfinite(g["gap_psnr_object"]) for g in res["retexture_gap"])
+    assert len(res["retexture_gap"]) == 4 and all(math.isfinite(g["gap_psnr_object"]) for g in res["retexture_gap"])
     assert all(math.isfinite(b["psnr"]) for b in res["blank"])
-    assert set(res["blend_comparison"]) == {"naive T=1", "deform-aware T=1"}
+    assert set(res["blend_comparison"]) == {f"{r}{c} T=1" for r in ("", "f-attention ") for c in ("naive", "deform-aware")}
     table = (tmp_path / "e.md").read_text()
-    assert table.count("| bend | 1 | ") == 7 + 2  # every case row + the two retexture gaps
+    assert table.count("| bend | 1 | ") == 2 * (7 + 2 + 1)  # per renderer: every case, 2 retexture gaps, ablation
     assert (tmp_path / "scene" / "eval_views1" / "poses" / "bend_decal" / "variant.json").exists()

@@ -6,8 +6,8 @@ HELP = "score posed + retextured/decal renders of a model against Cycles renders
 DESCRIPTION = (
     "For the rig poses of a built-in scene (pointgt make-scene) at increasing magnitudes: render the posed mesh "
     "with Cycles as ground truth (cached under DIR/poses/), move the model's points with the same rig, render them "
-    "with a geometry edit only, + a global procedural retexture, + the scene's decal, each with naive and "
-    "deformation-aware correspondence and at each attention temperature; report PSNR (full frame and object "
+    "with a geometry edit only, + a global procedural retexture, + the scene's decal, each with the chosen "
+    "correspondences, renderer variants and attention temperatures; report PSNR (full frame and object "
     "pixels), SSIM, seconds per frame, the blank-frame floor, texture persistence and attention diagnostics."
 )
 ORDER = 45
@@ -20,6 +20,14 @@ def add_arguments(p):
     p.add_argument("--magnitudes", default="0.25,0.5,1", help="comma-separated pose magnitudes (1 = the named pose)")
     p.add_argument("--views", type=int, default=4, help="test views per case (evenly spaced over the scene's)")
     p.add_argument("--temperatures", default="1,0.5", help="attention temperatures (< 1 sharpens attention)")
+    p.add_argument("--renderers", default="paper,f-attention",
+                   help="comma-separated renderer variants: paper (today's) | f-attention (attention keys in each "
+                        "point's canonical frame, stretch undone) | f-radius (neighbour radius cap scaled by the stretch) | "
+                        "f-both | f-keep / f-squash (as f-attention, undoing no / all compression, also in the deform-gradient "
+                        "correspondence)")
+    p.add_argument("--correspondences", default="naive,deform-aware",
+                   help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
+                        "(also undoes local rotation and stretch)")
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side (1 = one per ray, no pixel filter)")
     p.add_argument("--retexture", default="stripes", help="global procedural texture for the retexture edit (stripes: along x; checker cells are thinner than a thin object's depth error)")
@@ -44,6 +52,8 @@ def run(args) -> int:
     result = run_eval(args.model, args.scene, poses=poses, magnitudes=parse_floats(args.magnitudes, "--magnitudes"),
                       views=args.views, temperatures=parse_floats(args.temperatures, "--temperatures"),
                       antialias=args.antialias,
+                      renderers=[r.strip() for r in args.renderers.split(",") if r.strip()],
+                      correspondences=[c.strip() for c in args.correspondences.split(",") if c.strip()],
                       retexture=args.retexture, samples=args.samples, device=args.device,
                       log=lambda m: print(m, flush=True))
     table = markdown(result)

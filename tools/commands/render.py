@@ -6,6 +6,7 @@ painted texture looked up at each ray's canonical correspondence.
 """
 from __future__ import annotations
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -18,6 +19,11 @@ MAX_RENDER_SIZE = 8192  # --size: pixels per side
 
 
 def add_arguments(p):
+    from core.config import add_to_parser
+    from core.edits.correspondence import MODES
+    from core.edits.deformation import DeformationConfig
+    from core.frames.edited import COMPRESSION, EditConfig
+
     p.add_argument("model", help="model file (.pgt)")
     p.add_argument("--cameras", required=True, help="transforms_*.json whose cameras to render")
     p.add_argument("--out", required=True, help="output folder for the PNGs")
@@ -29,8 +35,17 @@ def add_arguments(p):
     p.add_argument("--ids", default=None,
                    help="canonical index of each deformed point: .npy integer [M] (needed when M != model points)")
     p.add_argument("--atlas", default=None, help="painted atlas image (PNG, same size as the model's atlas)")
-    p.add_argument("--correspondence", default="deform-aware", choices=("deform-aware", "naive"),
-                   help="canonical correspondence for texture lookups of moved points")
+    p.add_argument("--correspondence", default=EditConfig.correspondence, choices=MODES,
+                   help="canonical correspondence for texture lookups of moved points: deform-aware / naive (the "
+                        "paper's) or deform-gradient (also undoes each neighbour's local rotation and stretch)")
+    p.add_argument("--f-attention", action=argparse.BooleanOptionalAction, default=EditConfig.f_attention,
+                   help="moved points: attention keys in each point's canonical frame (local deformation gradient)")
+    p.add_argument("--f-compression", default=EditConfig.f_compression, choices=COMPRESSION,
+                   help="what the F-aware keys and deform-gradient correspondence undo of a local compression: "
+                        "tangent (along the surface) | keep (none) | undo (all)")
+    p.add_argument("--f-radius", action=argparse.BooleanOptionalAction, default=EditConfig.f_radius,
+                   help="moved points: neighbour search radius cap scaled by the points' stretch")
+    add_to_parser(p, DeformationConfig, prefix="deformation")
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
     p.add_argument("--temperature", type=float, default=None,
@@ -120,6 +135,7 @@ def run(args) -> int:
         check_output_file(args.json, "--json")
     check_flag(args.size, "--size", min=1, max=MAX_RENDER_SIZE)
     cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
+                              f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
                               **({} if args.temperature is None else {"temperature": args.temperature})))
     check_device(args.device, "--device")
     bundle = load_bundle(args.model, device=args.device)
@@ -133,7 +149,11 @@ def run(args) -> int:
         ids = load_npy(args.ids, "--ids", "ids") if args.ids else None
         atlas = read_png(args.atlas) if args.atlas else None
         try:
-            state = EditState(bundle, points=points, ids=ids, atlas=atlas, cfg=cfg)
+            from core.config import from_args
+            from core.edits.deformation import DeformationConfig
+
+            state = EditState(bundle, points=points, ids=ids, atlas=atlas, cfg=cfg,
+                              deformation=from_args(DeformationConfig, args, prefix="deformation"))
         except InputError as exc:  # name the files the arrays came from
             files = ", ".join(f for f in (args.points, args.ids, args.atlas) if f)
             raise InputError(f"{files}: {exc}") from exc

@@ -63,3 +63,40 @@ def test_identity_deformation_deform_aware_is_ray_projection():
     assert torch.allclose(x_can, project_on_ray(x_hat, o, d), atol=1e-6)
     naive = canonical_points(w, idx, x_hat, o, d, p_can, p_can, "naive")
     assert torch.allclose(naive, x_hat, atol=1e-6)
+
+
+def test_deform_gradient_matches_loop_and_reduces_to_deform_aware_at_identity():
+    w, idx, x_hat, o, d, p_def, p_can = _case(4)
+    g = torch.Generator().manual_seed(9)
+    inv_f = torch.eye(3) + 0.3 * torch.randn(p_def.shape[0], 3, 3, generator=g)
+    fast = canonical_points(w, idx, x_hat, o, d, p_def, p_can, "deform-gradient", inv_f=inv_f)
+    x_def = project_on_ray(x_hat, o, d)
+    ref = torch.stack([sum(w[i, j] * (p_can[idx[i, j]] + inv_f[idx[i, j]] @ (x_def[i] - p_def[idx[i, j]]))
+                           for j in range(w.shape[1]) if idx[i, j] >= 0) for i in range(w.shape[0])])
+    assert torch.allclose(fast, ref, atol=1e-5)
+    eye = torch.eye(3).expand(p_def.shape[0], 3, 3)
+    same = canonical_points(w, idx, x_hat, o, d, p_def, p_can, "deform-gradient", inv_f=eye)
+    assert torch.allclose(same, canonical_points(w, idx, x_hat, o, d, p_def, p_can, "deform-aware"), atol=1e-5)
+
+
+def test_deform_gradient_undoes_an_affine_deformation_exactly():
+    """p_def = A p_can + b: every neighbour maps the ray's surface point back to A⁻¹ (x_def − b), whatever the
+    weights; the translation-only deform-aware correspondence misses by the local stretch/rotation."""
+    w, idx, x_hat, o, d, _, p_can = _case(5)
+    a = torch.tensor([[5.0, 0.0, 0.0], [0.0, 0.8, -0.6], [0.0, 0.6, 0.8]])
+    b = torch.tensor([0.3, -1.0, 0.5])
+    p_def = p_can @ a.T + b
+    x_hat = (w[..., None] * p_def[idx.clamp_min(0)]).sum(1)
+    inv_f = torch.linalg.inv(a).expand(p_def.shape[0], 3, 3)
+    x_def = project_on_ray(x_hat, o, d)
+    want = (x_def - b) @ torch.linalg.inv(a).T
+    got = canonical_points(w, idx, x_hat, o, d, p_def, p_can, "deform-gradient", inv_f=inv_f)
+    assert torch.allclose(got, want, atol=1e-4)
+    aware = canonical_points(w, idx, x_hat, o, d, p_def, p_can, "deform-aware")
+    assert float((aware - want).norm(dim=1).mean()) > 0.1
+    try:
+        canonical_points(w, idx, x_hat, o, d, p_def, p_can, "deform-gradient")
+    except ValueError as exc:
+        assert "inv_f" in str(exc)
+    else:
+        raise AssertionError("deform-gradient without inv_f must raise")

@@ -1,0 +1,443 @@
+"""Local deformation gradients F_j of a deformed point cloud (beyond the paper: used by F-aware rendering and the
+"deform-gradient" correspondence).
+
+For every deformed point j with canonical position c_j and deformed position d_j, F_j [3, 3] is the weighted
+least-squares linear map taking its canonical neighbours' offsets to their deformed offsets:
+
+    F_j = argmin_F  Σ_l w_jl |F (c_l − c_j) − (d_l − d_j)|²  =  B_j A_j⁻¹,
+    A_j = Σ w (c_l − c_j)(c_l − c_j)ᵀ,   B_j = Σ w (d_l − d_j)(c_l − c_j)ᵀ.
+
+The canonical k-NN lists and their Gaussian weights depend on the canonical points only: `DeformationField`
+builds them once per model (`field_for` caches it), and each frame costs one vectorised O(N·k) fit.
+
+Robustness (tests/stability/test_stability_deformation.py):
+- thin sheets / lines: where A_j is (nearly) rank deficient the fit is regularised towards a prior P_j,
+  F = (B + μ P)(A + μ I)⁻¹, with μ > 0 only where the smallest eigenvalue of A is below `sheet_ratio` × the
+  largest (so well-spread neighbourhoods stay exact for affine deformations). For a sheet, P maps the canonical
+  normal n to unit(F t₁ × F t₂) (the deformed tangent images' normal; thickness kept, and an in-plane mirror
+  becomes the flip it is for a sheet); for a line the rotation that best aligns the neighbours (Kabsch) fills
+  the two missing directions; no spread at all gives F = I.
+- squash to ~0, huge stretch, folds, inverted (mirrored) neighbourhoods: F is bounded by clamping its singular
+  values' magnitudes to [1 / max_stretch, max_stretch] (the sign of det F is kept, so a true mirror stays one).
+- missing data: neighbours with a non-finite deformed position, removed neighbours and points whose own
+  position is non-finite get weight 0 (F = I where nothing is left). With ids (points duplicated / removed),
+  each canonical neighbour is taken from the copy nearest the deformed point (at most `max_copies` copies), and
+  one whose offset grew > OUTLIER_FACTOR times more than the neighbourhood's median (a neighbour that exists
+  only in another, moved copy) is dropped.
+Polar parts: F = R S with R a rotation (det +1) and S symmetric (`polar`).
+"""
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from core.config import opt
+from core.util.errors import InputError
+
+try:  # optional: torch does the same work without it
+    import numba
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    numba = None
+
+
+@dataclass
+class DeformationConfig:
+    """Local deformation gradients of the deformed points (F-aware rendering and correspondence)."""
+
+    k: int = opt(12, "canonical neighbours per point in the local fit of F")
+    sheet_ratio: float = opt(0.05, "a neighbourhood whose smallest/largest spread (eigenvalue) ratio is below "
+                                   "this counts as (partly) flat: its missing direction comes from the tangents")
+    max_stretch: float = opt(20.0, "bound of F's singular values: |σ| is clamped to [1/max_stretch, max_stretch]")
+    max_copies: int = opt(8, "with ids: copies of one canonical point considered as a neighbour (nearest wins)")
+
+
+def _knn(points: torch.Tensor, k: int, chunk: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
+    """k nearest other points of each point (self excluded): points [N, 3] finite -> (idx [N, k] int64 with -1
+    where N - 1 < k, dist [N, k] float32 with +inf there)."""
+    n = points.shape[0]
+    kk = min(k, max(n - 1, 0))
+    idx = torch.full((n, k), -1, dtype=torch.long, device=points.device)
+    dist = torch.full((n, k), math.inf, dtype=torch.float32, device=points.device)
+    if kk == 0:
+        return idx, dist
+    try:
+        from scipy.spatial import cKDTree  # heavy import kept local
+
+        if points.device.type != "cpu":
+            raise ImportError
+        p = points.detach().double().numpy()
+        d, i = cKDTree(p).query(p, kk + 1)
+        i, d = torch.from_numpy(i.reshape(n, -1)), torch.from_numpy(d.reshape(n, -1))
+        # drop the point itself (the first column unless duplicates tie with it)
+        self_col = i == torch.arange(n)[:, None]
+        keep = ~self_col
+        keep[:, -1] &= self_col.any(1)  # no self found (ties): drop the farthest instead
+        i = i[keep].view(n, kk)
+        d = d[keep].view(n, kk)
+    except ImportError:
+        parts_i, parts_d = [], []
+        for s in range(0, n, chunk):
+            dd = torch.cdist(points[s:s + chunk].double(), points.double())
+            dd[torch.arange(dd.shape[0]), torch.arange(s, s + dd.shape[0])] = math.inf
+            v, j = dd.topk(kk, dim=1, largest=False)
+            parts_i.append(j)
+            parts_d.append(v)
+        i, d = torch.cat(parts_i).cpu(), torch.cat(parts_d).cpu()
+    idx[:, :kk] = i.to(points.device)
+    dist[:, :kk] = d.to(points.device, torch.float32)
+    return idx, dist
+
+
+class DeformationField:
+    """Canonical neighbourhoods of a model's points and per-frame deformation gradients.
+
+    canonical [N, 3]: the model's canonical points (non-finite ones are never anyone's neighbour).
+    """
+
+    def __init__(self, canonical: torch.Tensor, cfg: DeformationConfig | None = None):
+        self.cfg = cfg or DeformationConfig()
+        if int(self.cfg.k) < 1:
+            raise InputError(f"deformation k: neighbours per point must be at least 1, got {self.cfg.k}")
+        if not (self.cfg.max_stretch >= 1.0 and math.isfinite(self.cfg.max_stretch)):
+            raise InputError(f"deformation max_stretch must be a finite number >= 1, got {self.cfg.max_stretch}")
+        can = canonical.detach().to(torch.float32)
+        self.canonical = can
+        self.device = can.device
+        n = can.shape[0]
+        finite = torch.isfinite(can).all(1)
+        ids = torch.nonzero(finite).squeeze(1)
+        sub_idx, sub_dist = _knn(can[ids], int(self.cfg.k))
+        self.nbr = torch.full((n, int(self.cfg.k)), -1, dtype=torch.long, device=self.device)  # [N, k]
+        self.nbr[ids] = torch.where(sub_idx >= 0, ids[sub_idx.clamp_min(0)], -1)
+        dist = torch.full((n, int(self.cfg.k)), math.inf, device=self.device)
+        dist[ids] = sub_dist
+        # Gaussian weights, bandwidth = distance to the farthest neighbour (weight e^-1 there): scale-free.
+        h = torch.where(torch.isfinite(dist), dist, torch.zeros_like(dist)).amax(1, keepdim=True)
+        w = torch.exp(-(dist / h.clamp_min(1e-30)) ** 2)
+        self.weights = torch.where(torch.isfinite(dist) & (self.nbr >= 0), w, torch.zeros_like(w))  # [N, k]
+        # Length scale per point: zero-spread tests are relative to it.
+        self.scale = h.squeeze(1)                                                                 # [N]
+        # The canonical side of the fit with every neighbour present: a frame reuses it for each point whose
+        # neighbours all came through (the common case) and recomputes it for the others only.
+        dc = torch.where(self.nbr[..., None] >= 0, can[self.nbr.clamp_min(0)] - can[:, None, :], 0.0)
+        dc = torch.nan_to_num(dc.double() / self.scale.double().clamp_min(1e-30)[:, None, None], 0.0, 0.0, 0.0)
+        self._terms = self._canonical_terms(self.weights.double(), dc)
+        self._dc = torch.nan_to_num(torch.where(self.nbr[..., None] >= 0, can[self.nbr.clamp_min(0)] - can[:, None, :],
+                                                0.0), 0.0, 0.0, 0.0)  # [N, k, 3] canonical offsets (float32)
+
+    @property
+    def num_points(self) -> int:
+        return self.canonical.shape[0]
+
+    def _gather_deformed(self, points: torch.Tensor, ids: torch.Tensor | None):
+        """Neighbour offsets of each deformed point: (dc [M, k, 3] canonical, dd [M, k, 3] deformed, w [M, k],
+        cid [M] canonical index, own_ok [M] finite own position)."""
+        n, k = self.num_points, self.nbr.shape[1]
+        m = points.shape[0]
+        own_ok = torch.isfinite(points).all(1)
+        pts = torch.where(own_ok[:, None], points, torch.zeros_like(points))
+        if ids is None:
+            if m != n:
+                raise InputError(f"deformation: {m} points for a model of {n} points and no ids")
+            cid = torch.arange(n, device=points.device)
+            nbr = self.nbr                                                       # [M, k] canonical = deformed
+            present = nbr >= 0
+            ok = present & own_ok[:, None] & own_ok[nbr.clamp_min(0)]
+            p_nb = pts[nbr.clamp_min(0)]                                         # [M, k, 3]
+        else:
+            cid = ids.to(points.device, torch.long)
+            if cid.shape != (m,):
+                raise InputError(f"deformation: ids must have shape [{m}], got {tuple(cid.shape)}")
+            if m and (int(cid.min()) < 0 or int(cid.max()) >= n):
+                raise InputError(f"deformation: ids must lie in [0, {n - 1}]")
+            # copies [N, C]: the deformed rows of each canonical point (finite positions only), -1 padded
+            rows = torch.nonzero(own_ok).squeeze(1)
+            order = torch.argsort(cid[rows], stable=True)
+            rows = rows[order]
+            owner = cid[rows]
+            count = torch.bincount(owner, minlength=n)
+            c = max(1, min(int(self.cfg.max_copies), int(count.max()) if count.numel() else 1))
+            start = torch.cumsum(count, 0) - count
+            slot = torch.arange(rows.numel(), device=points.device) - start[owner]
+            copies = torch.full((n, c), -1, dtype=torch.long, device=points.device)
+            keep = slot < c
+            copies[owner[keep], slot[keep]] = rows[keep]
+            nbr = self.nbr[cid]                                                  # [M, k] canonical ids
+            cand = torch.where((nbr >= 0)[..., None], copies[nbr.clamp_min(0)], -1)  # [M, k, C]
+            cp = pts[cand.clamp_min(0)]                                          # [M, k, C, 3]
+            dist = (cp - pts[:, None, None, :]).pow(2).sum(-1).masked_fill(cand < 0, math.inf)
+            best = dist.argmin(-1, keepdim=True)                                  # [M, k, 1]
+            pick = cand.gather(-1, best).squeeze(-1)                             # [M, k]
+            ok = (pick >= 0) & own_ok[:, None]
+            p_nb = pts[pick.clamp_min(0)]
+        dc = self._dc if ids is None else self._dc[cid]
+        dd = p_nb - pts[:, None, :]
+        ok = ok & torch.isfinite(dd).all(-1) & (dd.abs() < 1e18).all(-1)
+        if ids is not None:
+            # a neighbour found only in another copy (a duplicated part moved away) is an outlier: its offset
+            # grew far more than the neighbourhood's typical one
+            ratio = dd.norm(dim=-1) / dc.norm(dim=-1).clamp_min(1e-30)
+            med = torch.where(ok, ratio, torch.full_like(ratio, float("nan"))).nanmedian(1, keepdim=True).values
+            ok = ok & ~(ratio > OUTLIER_FACTOR * med.nan_to_num(math.inf))
+        w = self.weights[cid] * ok
+        dd = torch.where(ok[..., None], dd, torch.zeros_like(dd))
+        return dc, dd, w, cid, own_ok
+
+    def _canonical_terms(self, w: torch.Tensor, dc: torch.Tensor) -> dict:
+        """What the fit needs of the canonical side, per point: w [M, k], dc [M, k, 3] (float64, in units of the
+        point's scale) -> dict of [M, ...] tensors (the weighted offsets, the eigenbasis of A, the regularised
+        inverse (A + μ I)⁻¹, the tangent-plane pseudo-inverse, μ and the flags)."""
+        a = _moments(w, dc, dc)
+        lam, e = torch.linalg.eigh(a)                                           # ascending
+        lam = lam.clamp_min(0.0)
+        lmax = lam[:, 2]
+        lmax_s = lmax.clamp_min(1e-30)
+        ratio = self.cfg.sheet_ratio
+        e2, e3 = e[:, :, 1], e[:, :, 2]                                         # middle, largest spread
+        e1 = torch.linalg.cross(e3, e2)  # smallest spread, oriented so that F t3 × F t2 is its image
+        line = lam[:, 1] < 1e-6 * lmax_s
+        inv2 = torch.where(line, torch.zeros_like(lmax), 1.0 / lam[:, 1].clamp_min(1e-30))
+        # the fit restricted to the two best-spread directions: g2 = B p2
+        p2 = e3[..., None] @ (e3[:, None, :] / lmax_s[:, None, None]) + e2[..., None] @ (e2[:, None, :] *
+                                                                                         inv2[:, None, None])
+        # μ > 0 only for (partly) flat neighbourhoods: μ = ratio · λmax · (1 − λmin/(ratio λmax))²
+        h = (1.0 - lam[:, 0] / (ratio * lmax_s)).clamp(0.0, 1.0)
+        mu = ratio * lmax * h * h
+        inv = e @ torch.diag_embed(1.0 / (lam + mu[:, None]).clamp_min(1e-30)) @ e.transpose(1, 2)
+        wdc = w[..., None] * dc / w.sum(1).clamp_min(1e-30)[:, None, None]     # B = Σ_l dd_l wdc_lᵀ
+        return {"wdc": wdc, "e1": e1, "e2": e2, "e3": e3, "p2": p2, "inv": inv, "mu": mu, "line": line,
+                "empty": lmax < 1e-12}
+
+    def normals(self, ids: torch.Tensor | None = None) -> torch.Tensor:
+        """Unit direction of least canonical spread of each point's neighbourhood (a surface's normal) [M, 3]
+        float64; ids [M] as in `gradients` (None: every canonical point)."""
+        n = self._terms["e1"]
+        return n if ids is None else n[ids.to(n.device, torch.long)]
+
+    @torch.no_grad()
+    def gradients(self, points: torch.Tensor, ids: torch.Tensor | None = None) -> torch.Tensor:
+        """Deformation gradients F [M, 3, 3] (float32, finite, singular values in [1/max_stretch, max_stretch]).
+
+        points [M, 3] deformed positions (non-finite = absent); ids [M] canonical index of each (None: M == N,
+        row j is canonical point j)."""
+        pts = points.detach().to(self.device, torch.float32)
+        if pts.dim() != 2 or pts.shape[1] != 3:
+            raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
+        if pts.shape[0] == 0:
+            return torch.zeros(0, 3, 3, device=self.device)
+        dc, dd, w, cid, own_ok = self._gather_deformed(pts, ids)
+        # Work in float64 and in units of each point's neighbourhood size: scale-free and well conditioned.
+        s = self.scale[cid].double().clamp_min(1e-30)[:, None, None]
+        # a deformation sent to 1e18 must not overflow the squares: bound offsets (F is clamped anyway)
+        dd = (dd.double() / s).clamp(-1e6, 1e6)
+        # canonical terms: cached for points whose neighbours all came through, recomputed for the others
+        whole = self._terms
+        if ids is None:
+            t = dict(whole)
+        else:
+            t = {k: v[cid] for k, v in whole.items()}
+        dirty = (w != self.weights[cid]).any(1)
+        if bool(dirty.any()):
+            t = {k: v.clone() for k, v in t.items()}
+            sub = self._canonical_terms(w[dirty].double(), dc[dirty].double() / s[dirty])
+            for k, v in sub.items():
+                t[k][dirty] = v
+        b = torch.einsum("mki,mkj->mij", dd, t["wdc"])                          # [M, 3, 3]
+        f = b @ t["inv"]
+        flat = t["mu"] > 0
+        n_flat = int(flat.sum())
+        if n_flat:  # (partly) flat neighbourhoods: regularise towards the prior P
+            every = n_flat > flat.shape[0] // 4  # many: work on every row (μ = 0 cancels P) instead of gathering
+            sel = slice(None) if every else flat
+            bf, e1, e2 = b[sel], t["e1"][sel], t["e2"][sel]
+            line = t["line"][sel]
+            g2 = bf @ t["p2"][sel]
+            ft1, ft2 = (g2 @ t["e3"][sel][..., None]).squeeze(-1), (g2 @ e2[..., None]).squeeze(-1)
+            cross = torch.linalg.cross(ft1, ft2)
+            cn = cross.norm(dim=-1, keepdim=True)
+            sheet_ok = (cn.squeeze(-1) > 1e-9 * (ft1.norm(dim=-1) * ft2.norm(dim=-1)).clamp_min(1e-30)) & ~line
+            # Kabsch rotation (proper) for lines and degenerate sheets (only where it is used)
+            rot = torch.eye(3, dtype=b.dtype, device=b.device).repeat(bf.shape[0], 1, 1)
+            need = (line | ~sheet_ok) & flat[sel]
+            if bool(need.any()):
+                u, _, vh = torch.linalg.svd(bf[need] + 1e-12 * torch.eye(3, dtype=b.dtype, device=b.device))
+                dfix = torch.ones(u.shape[0], 3, dtype=b.dtype, device=b.device)
+                dfix[:, 2] = torch.where(torch.linalg.det(u @ vh) < 0, -1.0, 1.0)
+                rot[need] = u @ (dfix[..., None] * vh)
+            normal_img = torch.where(sheet_ok[:, None], cross / cn.clamp_min(1e-30),
+                                     (rot @ e1[..., None]).squeeze(-1))
+            prior = g2 + normal_img[..., None] @ e1[:, None, :]
+            prior = torch.where(line[:, None, None], g2 + rot @ (e1[..., None] @ e1[:, None, :] +
+                                                                 e2[..., None] @ e2[:, None, :]), prior)
+            mu = t["mu"][sel][:, None, None]
+            if every:
+                f = (bf + mu * prior) @ t["inv"]
+            else:
+                f[flat] = (bf + mu * prior) @ t["inv"][flat]
+        eye = torch.eye(3, dtype=f.dtype, device=f.device).expand_as(f)
+        f = torch.where((t["empty"] | ~own_ok)[:, None, None] | ~torch.isfinite(f).all(-1).all(-1)[:, None, None],
+                        eye, f)
+        return bound(f, self.cfg.max_stretch).float()
+
+
+def _moments(w: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Weighted mean outer products Σ_l w_l x_l y_lᵀ / Σ_l w_l: w [M, k], x, y [M, k, 3] -> [M, 3, 3]."""
+    return torch.einsum("mk,mki,mkj->mij", w, x, y) / w.sum(1).clamp_min(1e-30)[:, None, None]
+
+
+def _min_sv_at_least(f: torch.Tensor, lo: float) -> torch.Tensor:
+    """[M] bool: certainly every singular value of F [M, 3, 3] is ≥ lo (FᵀF − lo² I positive definite, by its
+    leading principal minors); False where unsure."""
+    c = f.transpose(1, 2) @ f - (lo * lo) * torch.eye(3, dtype=f.dtype, device=f.device)
+    m1 = c[:, 0, 0]
+    m2 = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
+    m3 = torch.linalg.det(c)
+    return (m1 > 0) & (m2 > 0) & (m3 > 0)
+
+
+def bound(f: torch.Tensor, max_stretch: float) -> torch.Tensor:
+    """F [M, 3, 3] with the magnitudes of its singular values clamped to [1/max_stretch, max_stretch], sign of
+    det F kept (an exactly singular F becomes orientation-preserving). Untouched rows stay bit-identical."""
+    lo, hi = 1.0 / max_stretch, max_stretch
+    # σmax ≤ ‖F‖_F: rows with a small norm and certainly no small singular value need no SVD
+    need = (torch.linalg.matrix_norm(f) > hi) | ~_min_sv_at_least(f, lo)
+    if not bool(need.any()):
+        return f
+    out = f.clone()
+    f = f[need]
+    u, sv, vh = torch.linalg.svd(f)
+    sv = sv.clamp(lo, hi)
+    # keep the sign of det F (a singular F: positive); its SVD's own sign is arbitrary when det F = 0
+    want = torch.where(torch.linalg.det(f) < 0, -1.0, 1.0).to(sv.dtype)
+    sv[:, 2] = sv[:, 2] * want * torch.sign(torch.linalg.det(u @ vh))
+    out[need] = u @ torch.diag_embed(sv) @ vh
+    return out
+
+
+def polar(f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Polar parts of F [M, 3, 3]: (R [M, 3, 3] rotation, det +1; S [M, 3, 3] symmetric) with F = R S.
+    S is positive definite unless det F < 0 (a mirrored neighbourhood: one negative eigenvalue)."""
+    u, sv, vh = torch.linalg.svd(f)
+    d = torch.ones_like(sv)
+    d[:, 2] = torch.where(torch.linalg.det(u @ vh) < 0, -1.0, 1.0).to(sv.dtype)
+    r = u @ (d[..., None] * vh)
+    s = vh.transpose(1, 2) @ torch.diag_embed(d * sv) @ vh
+    return r, s
+
+
+def inverse(f: torch.Tensor) -> torch.Tensor:
+    """F⁻¹ [M, 3, 3] of bounded gradients (their singular values are ≥ 1/max_stretch, so this is finite)."""
+    return torch.linalg.inv(f.double()).to(f.dtype)
+
+
+def _expansion_inverse_loop(f, out):
+    """The compiled path of expansion_inverse: f [M, 3, 3] float64 -> out [M, 3, 3]. Per row: FᵀF = V diag(σ²) Vᵀ
+    by cyclic Jacobi rotations, then V diag(1/(σ max(σ, 1))) Vᵀ Fᵀ."""
+    a = np.empty((3, 3))
+    v = np.empty((3, 3))
+    h = np.empty(3)
+    for m in range(f.shape[0]):
+        for i in range(3):
+            for j in range(3):
+                a[i, j] = f[m, 0, i] * f[m, 0, j] + f[m, 1, i] * f[m, 1, j] + f[m, 2, i] * f[m, 2, j]
+                v[i, j] = 1.0 if i == j else 0.0
+        for _sweep in range(16):
+            off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+            if off <= 1e-30 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:
+                break
+            for p, q in ((0, 1), (0, 2), (1, 2)):
+                if a[p, q] == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(3):
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
+                for k in range(3):
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
+                for k in range(3):
+                    vkp, vkq = v[k, p], v[k, q]
+                    v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+        for i in range(3):
+            sv = max(math.sqrt(max(a[i, i], 0.0)), 1e-6)
+            h[i] = 1.0 / (sv * max(sv, 1.0))
+        for i in range(3):
+            for j in range(3):  # (V diag(h) Vᵀ)[i, j], then times Fᵀ
+                a[i, j] = v[i, 0] * h[0] * v[j, 0] + v[i, 1] * h[1] * v[j, 1] + v[i, 2] * h[2] * v[j, 2]
+        for i in range(3):
+            for j in range(3):
+                out[m, i, j] = a[i, 0] * f[m, j, 0] + a[i, 1] * f[m, j, 1] + a[i, 2] * f[m, j, 2]
+
+
+_compiled_loop = None
+
+
+def _compiled():
+    global _compiled_loop
+    if _compiled_loop is None and numba is not None:
+        try:
+            _compiled_loop = numba.njit(cache=True, nogil=True)(_expansion_inverse_loop)
+        except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
+            _compiled_loop = numba.njit(cache=False, nogil=True)(_expansion_inverse_loop)
+    return _compiled_loop
+
+
+def expansion_inverse(f: torch.Tensor) -> torch.Tensor:
+    """Inverse [M, 3, 3] of F [M, 3, 3] with its singular values raised to at least 1: undoes the stretch of a
+    neighbourhood (and its rotation / mirror), leaves its compression. F = U Σ Vᵀ -> V max(Σ, 1)⁻¹ Uᵀ.
+    Compiled (numba) on CPU tensors, else torch."""
+    loop = _compiled() if f.device.type == "cpu" else None
+    if loop is not None and f.shape[0]:
+        fd = np.ascontiguousarray(torch.nan_to_num(f.detach(), 0.0, 0.0, 0.0).double().numpy())
+        out = np.empty_like(fd)
+        loop(fd, out)
+        return torch.from_numpy(out).to(f.dtype)
+    return _expansion_inverse_torch(f)
+
+
+def _expansion_inverse_torch(f: torch.Tensor) -> torch.Tensor:
+    """expansion_inverse in torch (any device; the reference the compiled path is tested against)."""
+    fd = f.double()
+    out, info = torch.linalg.inv_ex(fd)
+    # no singular value below 1 - 1e-3: F⁻¹ as it is (within 0.1 % of undoing no compression); SVD for the others
+    need = ~_min_sv_at_least(fd, 1.0 - 1e-3) | (info != 0) | ~torch.isfinite(out).all(-1).all(-1)
+    if bool(need.any()):
+        # with FᵀF = V diag(σ²) Vᵀ (eigh: cheaper than an SVD), V max(Σ, 1)⁻¹ Uᵀ = V diag(1/(σ max(σ, 1))) Vᵀ Fᵀ
+        fn = fd[need]
+        lam, v = torch.linalg.eigh(fn.transpose(1, 2) @ fn)
+        sv = lam.clamp_min(0.0).sqrt().clamp_min(1e-6)
+        out[need] = v @ torch.diag_embed(1.0 / (sv * sv.clamp_min(1.0))) @ v.transpose(1, 2) @ fn.transpose(1, 2)
+    return out.to(f.dtype)
+
+
+def stretch(f: torch.Tensor) -> torch.Tensor:
+    """Largest singular value of F [M, 3, 3] -> [M]: how much a point's neighbourhood grew in its most stretched
+    direction (1 at rest)."""
+    return torch.linalg.matrix_norm(f, ord=2)
+
+
+OUTLIER_FACTOR = 8.0  # with ids: neighbours whose offset grew this many times more than the median one are dropped
+
+_FIELDS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def field_for(model, cfg: DeformationConfig | None = None) -> DeformationField:
+    """The model's DeformationField, built on first use and cached while the model lives (rebuilt when its
+    canonical points or the config change)."""
+    cfg = cfg or DeformationConfig()
+    key = (int(model.xyz._version), model.xyz.data_ptr(), tuple(model.xyz.shape), str(model.xyz.device), cfg)
+    hit = _FIELDS.get(model)
+    if hit is not None and hit[0] == key:
+        return hit[1]
+    fld = DeformationField(model.xyz.detach(), cfg)
+    _FIELDS[model] = (key, fld)
+    return fld

@@ -1,0 +1,175 @@
+"""Deformation gradients F on extreme inputs: finite, bounded, identity at rest, exact for affine maps."""
+import math
+
+import pytest
+import torch
+
+from core.edits.deformation import DeformationConfig, DeformationField, bound, inverse, polar, stretch
+
+MAX = DeformationConfig().max_stretch
+
+
+def _volume(n=600, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, 3, generator=g) * 2 - 1
+
+
+def _sheet(n=24, noise=0.0, seed=0):
+    """A flat square sheet in the plane z = 0 (optionally with a little thickness)."""
+    u, v = torch.meshgrid(torch.linspace(-1, 1, n), torch.linspace(-1, 1, n), indexing="ij")
+    p = torch.stack([u.reshape(-1), v.reshape(-1), torch.zeros(n * n)], 1)
+    if noise:
+        g = torch.Generator().manual_seed(seed)
+        p = p + noise * torch.randn(p.shape, generator=g)
+    return p
+
+
+def _rot(angle, axis=2):
+    c, s = math.cos(angle), math.sin(angle)
+    r = torch.eye(3)
+    i, j = [a for a in range(3) if a != axis]
+    r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
+    return r
+
+
+def _check(f, max_stretch=MAX):
+    assert torch.isfinite(f).all()
+    sv = torch.linalg.svdvals(f.double())
+    assert float(sv.max()) <= max_stretch * (1 + 1e-4)
+    assert float(sv.min()) >= (1 / max_stretch) * (1 - 1e-4)
+
+
+@pytest.mark.parametrize("make", [_volume, _sheet, lambda: _sheet(noise=0.01)])
+def test_identity_at_rest(make):
+    p = make()
+    f = DeformationField(p).gradients(p)
+    assert torch.allclose(f, torch.eye(3).expand_as(f), atol=1e-5)
+
+
+def test_exact_for_affine_volume():
+    p = _volume()
+    a = torch.tensor([[1.3, 0.2, -0.1], [0.1, 0.8, 0.4], [-0.3, 0.2, 2.0]]) @ _rot(0.7, 0)
+    q = p @ a.T + torch.tensor([3.0, -1.0, 2.0])
+    f = DeformationField(p).gradients(q)
+    assert torch.allclose(f, a.expand_as(f), atol=1e-4)
+    # a mirror is kept as a mirror
+    m = torch.diag(torch.tensor([1.0, -1.0, 1.0]))
+    fm = DeformationField(p).gradients(p @ m.T)
+    assert torch.allclose(fm, m.expand_as(fm), atol=1e-4)
+
+
+def test_sheet_stretch_exact_in_plane_and_normal_completed():
+    p = _sheet()
+    a = torch.diag(torch.tensor([5.0, 0.5, 1.0]))
+    r = _rot(0.9, 0)
+    q = p @ (r @ a).T
+    f = DeformationField(p).gradients(q)
+    _check(f)
+    tang = f[:, :, :2]
+    assert torch.allclose(tang, (r @ a)[:, :2].expand_as(tang), atol=1e-4)
+    # normal column: unit, along the deformed sheet's normal (r's third column)
+    assert torch.allclose(f[:, :, 2], r[:, 2].expand(f.shape[0], 3), atol=1e-4)
+
+
+def test_sheet_in_plane_mirror_is_a_flip_and_noisy_sheet_stays_near_identity():
+    p = _sheet()
+    f = DeformationField(p).gradients(p * torch.tensor([1.0, -1.0, 1.0]))
+    assert (torch.linalg.det(f) > 0).all()  # a mirrored sheet is the same sheet turned over
+    pn = _sheet(noise=0.003)
+    fn = DeformationField(pn).gradients(pn @ _rot(0.5).T)
+    assert torch.allclose(fn, _rot(0.5).expand_as(fn), atol=1e-3)
+
+
+@pytest.mark.parametrize("scale", [5.0, 1e-3, 0.0, 1e6, 1e-9])
+@pytest.mark.parametrize("make", [_volume, _sheet])
+def test_squash_and_stretch_are_bounded(make, scale):
+    p = make()
+    q = p.clone()
+    q[:, 0] *= scale
+    f = DeformationField(p).gradients(q)
+    _check(f)
+    if scale == 5.0:
+        assert torch.allclose(stretch(f), torch.full((len(p),), 5.0), atol=1e-3)
+    if scale == 0.0:
+        assert torch.allclose(f[:, 0, 0], torch.full((len(p),), 1 / MAX), atol=1e-4)
+
+
+def test_fold_collapse_nan_and_random_inputs():
+    p = _sheet()
+    fold = p.clone()
+    fold[:, 0] = fold[:, 0].abs()  # the sheet folded onto itself along x = 0
+    _check(DeformationField(p).gradients(fold))
+    fld = DeformationField(p)
+    _check(fld.gradients(torch.zeros_like(p)))  # everything collapsed to one point
+    q = p.clone()
+    q[::3] = float("nan")
+    q[1::7] = float("inf")
+    q[2::11] = 1e30
+    f = fld.gradients(q)
+    _check(f)
+    g = torch.Generator().manual_seed(1)
+    _check(fld.gradients(torch.randn(p.shape, generator=g) * 100))  # neighbourhoods scrambled
+    q = p.clone()
+    q[:5] = float("nan")
+    bad = fld.gradients(q)[:5]
+    assert torch.equal(bad, torch.eye(3).expand_as(bad))  # absent points: identity
+
+
+def test_ids_removed_and_duplicated_neighbours():
+    p = _sheet(16)
+    n = len(p)
+    fld = DeformationField(p)
+    a = _rot(0.4) @ torch.diag(torch.tensor([2.0, 1.0, 1.0]))
+    # every other point removed, the first 40 duplicated and moved far away by a translation
+    keep = torch.arange(0, n, 2)
+    dup = torch.arange(40)
+    ids = torch.cat([keep, dup])
+    q = torch.cat([p[keep] @ a.T, p[dup] @ a.T + torch.tensor([50.0, 0.0, 0.0])])
+    f = fld.gradients(q, ids)
+    _check(f)
+    close = ((f[:, :2, :2] - a[:2, :2]).abs().amax((1, 2)) < 1e-3)
+    assert bool(close[:len(keep)].all())  # the original copy: exact
+    assert bool(close[len(keep):].all())  # the moved copy too: its neighbours found only in the other copy are dropped
+    # duplicated canonical points at the same place (a neighbour listed twice) and a single point
+    p2 = torch.cat([p, p[:10]])
+    _check(DeformationField(p2).gradients(p2 * 2))
+    one = torch.zeros(1, 3)
+    assert torch.equal(DeformationField(one).gradients(one + 1), torch.eye(3)[None])
+
+
+def test_polar_parts_and_inverse():
+    g = torch.Generator().manual_seed(3)
+    f = bound(torch.randn(200, 3, 3, generator=g) * 3, MAX)
+    _check(f)
+    r, s = polar(f)
+    assert torch.allclose(r @ s, f, atol=1e-4)
+    assert torch.allclose(torch.linalg.det(r), torch.ones(200), atol=1e-4)
+    assert torch.allclose(r @ r.transpose(1, 2), torch.eye(3).expand(200, 3, 3), atol=1e-4)
+    assert torch.allclose(s, s.transpose(1, 2), atol=1e-5)
+    fi = inverse(f)
+    assert torch.isfinite(fi).all()
+    assert torch.allclose(fi @ f, torch.eye(3).expand(200, 3, 3), atol=1e-3)
+    assert torch.equal(bound(torch.eye(3)[None], MAX), torch.eye(3)[None])
+
+
+def test_expansion_inverse_undoes_stretch_only():
+    from core.edits.deformation import expansion_inverse
+
+    r = _rot(0.6, 1)
+    f = (r @ torch.diag(torch.tensor([5.0, 0.2, 1.0])))[None]
+    g = expansion_inverse(f)
+    assert torch.allclose(g, (torch.diag(torch.tensor([0.2, 1.0, 1.0])) @ r.T)[None], atol=1e-5)
+    m = torch.diag(torch.tensor([1.0, 1.0, -1.0]))[None]  # a mirror: undone (it is its own inverse)
+    assert torch.allclose(expansion_inverse(m), m, atol=1e-6)
+    assert torch.isfinite(expansion_inverse(torch.zeros(1, 3, 3))).all()
+
+
+def test_expansion_inverse_compiled_matches_torch():
+    from core.edits.deformation import _expansion_inverse_torch, expansion_inverse
+
+    g = torch.Generator().manual_seed(4)
+    f = bound(torch.randn(500, 3, 3, generator=g) * torch.rand(500, 1, 1, generator=g) * 4, MAX)
+    f = torch.cat([f, torch.eye(3)[None], torch.diag(torch.tensor([2.0, 2.0, 0.5]))[None],
+                   torch.diag(torch.tensor([1.0, 1.0, -1.0]))[None]])  # repeated singular values, a mirror
+    # (the torch path leaves singular values within 1e-3 below 1 as they are: the paths differ by that much)
+    assert torch.allclose(expansion_inverse(f), _expansion_inverse_torch(f), atol=1e-3)

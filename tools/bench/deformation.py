@@ -1,0 +1,108 @@
+"""Frame cost of the deformation-gradient parts of the edit path, against today's renderer (needs bpy).
+
+Run: `python -m tools.bench.deformation MODEL.pgt --scene DIR [--pose stretch] [--views 4] [--repeats 3]
+[--size 128]`.
+
+The model's points are posed by the scene's rig (as `pointgt eval-edits` does) and a global retexture is baked
+into the atlas; every frame then builds a fresh EditState, as an animation does when the points move each frame,
+so the F fit (canonical neighbourhoods cached per model, one O(N·k) least-squares fit per frame) is charged to
+every frame. Variants are interleaved per camera and repeat (the machine's load drifts alike for all), one torch
+thread; the table gives the median wall and CPU (process) seconds per frame and the CPU ratio to today's.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+_OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware"}
+VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
+    "paper (today), deform-aware": _OFF,
+    "f-attention, deform-aware": {**_OFF, "f_attention": True},
+    "f-attention, deform-gradient": {**_OFF, "f_attention": True, "correspondence": "deform-gradient"},
+    "f-attention + f-radius, deform-gradient": {**_OFF, "f_attention": True, "f_radius": True,
+                                                "correspondence": "deform-gradient"},
+    "f-keep, deform-gradient": {**_OFF, "f_attention": True, "f_compression": "keep",
+                                "correspondence": "deform-gradient"},
+    "f-squash, deform-gradient": {**_OFF, "f_attention": True, "f_compression": "undo",
+                                  "correspondence": "deform-gradient"},
+}
+
+
+def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats: int, size: int | None = None,
+        log=print) -> dict:
+    import torch
+
+    from core.bundle import load_bundle
+    from core.edits.bake import bake
+    from core.edits.procedural import evaluate
+    from core.frames.edited import EditConfig, EditState, render_edited
+    from core.images.dataset import load_split
+    from tools.machine import machine_info
+    from tools.eval_edits import deform_points
+    from tools.scenes.poses import load_scene_spec
+
+    torch.set_num_threads(1)
+    scene_dir = Path(scene_dir)
+    spec = load_scene_spec(scene_dir)
+    bundle = load_bundle(model_path)
+    c, h = spec["bbox"]["center"], spec["bbox"]["half_size"]
+    atlas = bake(bundle.atlas, lambda p: (evaluate("stripes", p, c, h, spec["texture"]["params"].get("stripes"))[0],
+                                          None))
+    points = torch.from_numpy(deform_points(bundle.model.xyz.detach().numpy(), scene_dir, pose, magnitude))
+    test = load_split(scene_dir, "test")
+    cams = [round(i * (len(test) - 1) / max(views - 1, 1)) for i in range(views)]
+    hw = size or test.width
+    focal = test.focal * hw / test.width  # the same field of view at another resolution
+    wall = {v: [] for v in VARIANTS}
+    cpu = {v: [] for v in VARIANTS}
+    fit = {v: [] for v in VARIANTS}
+    for rep in range(repeats + 1):  # the first round warms up (caches the canonical neighbourhoods)
+        for i in cams:
+            for name, over in VARIANTS.items():
+                t, tc = time.perf_counter(), time.process_time()
+                state = EditState(bundle, points=points, atlas=atlas, cfg=EditConfig(**over))
+                render_edited(state, test.c2w[i], hw, hw, focal)
+                if rep:
+                    wall[name].append(time.perf_counter() - t)
+                    cpu[name].append(time.process_time() - tc)
+                    fit[name].append(state.deformation_seconds)
+    base = statistics.median(cpu[next(iter(VARIANTS))])
+    rows = [{"variant": v, "wall": statistics.median(wall[v]), "cpu": statistics.median(cpu[v]),
+             "cpu_ratio": statistics.median(cpu[v]) / base, "f_seconds": statistics.median(fit[v])}
+            for v in VARIANTS]
+    return {"model": str(model_path), "scene": spec.get("name"), "pose": pose, "magnitude": magnitude,
+            "size": f"{hw}x{hw}", "points": bundle.model.num_points, "frames": len(cams) * repeats,
+            "machine": machine_info(), "rows": rows}
+
+
+def markdown(res: dict) -> str:
+    lines = [f"Scene `{res['scene']}`, pose {res['pose']} m={res['magnitude']:g}, {res['size']}, "
+             f"{res['points']} points, {res['frames']} frames per variant; machine: {res['machine'].get('cpu')}, "
+             f"{res['machine'].get('cores')} cores, 1 torch thread", "",
+             "| variant | median wall s/frame | median CPU s/frame | CPU vs today | of which F (wall s) |",
+             "|---|---|---|---|---|"]
+    for r in res["rows"]:
+        lines.append(f"| {r['variant']} | {r['wall']:.3f} | {r['cpu']:.3f} | {100 * (r['cpu_ratio'] - 1):+.0f} % | "
+                     f"{r['f_seconds']:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("model", help="model file (.pgt) with an atlas")
+    ap.add_argument("--scene", required=True, help="the scene directory the model was trained on (make-scene)")
+    ap.add_argument("--pose", default="stretch", help="rig pose of the scene")
+    ap.add_argument("--magnitude", type=float, default=1.0, help="pose magnitude")
+    ap.add_argument("--views", type=int, default=4, help="test cameras")
+    ap.add_argument("--size", type=int, default=None, help="frame size in pixels (default: the scene's)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed rounds over the cameras (after one warm-up)")
+    args = ap.parse_args(argv)
+    res = run(args.model, args.scene, args.pose, args.magnitude, args.views, args.repeats, args.size)
+    print(markdown(res))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
