@@ -7,7 +7,7 @@ from core.edits.bake import bake
 from core.edits.deformation import DeformationConfig
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.points.render import render_frame, trace_frame
-from core.points.regularizers import project_on_ray
+from core.images.rays import project_on_ray
 from tests.helpers.tiny_model import tiny_card
 
 ALL_ON = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True)
