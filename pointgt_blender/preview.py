@@ -39,6 +39,7 @@ class PreviewRecord:
     written: np.ndarray     # the raw pixels written into the image (to notice painting)
     rendered: np.ndarray    # display-space rgb [H, W, 3] (row 0 = top)
     result: dict            # render_edited output (trace: for the canonical surface map)
+    image: str = ""         # the name of the image it was written into (an image this object owns)
     _x_can: np.ndarray | None = None
 
     def x_can(self) -> np.ndarray:
@@ -92,17 +93,49 @@ def _image_pixels(rgb: np.ndarray) -> np.ndarray:
     return atlas_image.atlas_to_pixels(rgb)
 
 
+OWNER = "pointgt_owner"  # custom property of a preview image: the name of the object it belongs to
+
+
+def owned_preview_image(obj):
+    """The object's preview image if this object owns it, else None. A duplicate (Shift+D, Alt+D) copies the
+    pointer to the original's preview; the image's owner tag tells them apart, so a duplicate never draws into
+    (nor reads paint from) another object's preview. An image whose owner is gone (renamed or deleted) is adopted."""
+    img = obj.pointgt.preview_image
+    if img is None:
+        return None
+    owner = img.get(OWNER)
+    if owner == obj.name:
+        return img
+    other = bpy.data.objects.get(owner) if isinstance(owner, str) else None
+    if other is not None and other is not obj and getattr(other, "pointgt", None) is not None \
+            and other.pointgt.preview_image == img:
+        return None  # a duplicate: it gets its own image
+    img[OWNER] = obj.name
+    return img
+
+
 def ensure_preview_image(obj, width: int, height: int):
-    """The object's preview image at `width` x `height` (created or resized as needed)."""
+    """The object's own preview image at `width` x `height` (created or resized as needed)."""
     s = obj.pointgt
-    img = s.preview_image
+    img = owned_preview_image(obj)
     if img is None:
         img = bpy.data.images.new(f"{obj.name} preview", width=width, height=height, alpha=True, float_buffer=True)
         img.colorspace_settings.name = "Linear Rec.709"
+        img[OWNER] = obj.name
         s.preview_image = img
+        _RECORDS.pop(obj.name, None)
     elif tuple(img.size) != (width, height):
         img.scale(width, height)
     return img
+
+
+def atlas_users(obj) -> list:
+    """The other PointGT objects that paint into the same atlas image as `obj` (duplicates share it until
+    Make Atlas Single-User gives one its own copy)."""
+    img = obj.pointgt.atlas
+    if img is None:
+        return []
+    return [o for o in bpy.data.objects if o is not obj and is_pointgt_object(o) and o.pointgt.atlas == img]
 
 
 def _read_raw(image) -> np.ndarray:
@@ -114,8 +147,8 @@ def _read_raw(image) -> np.ndarray:
 
 def _painted_preview(obj, rec: PreviewRecord) -> np.ndarray | None:
     """The preview as the artist left it (display rgb [H, W, 3]) when it differs from what was rendered."""
-    img = obj.pointgt.preview_image
-    if img is None or rec is None:
+    img = owned_preview_image(obj)
+    if img is None or rec is None or rec.image != img.name:
         return None
     raw = _read_raw(img)
     if raw.shape == rec.written.shape and np.array_equal(raw, rec.written):
@@ -185,7 +218,7 @@ def update_object(scene, depsgraph, obj, force: bool = False) -> str:
     c2w, focal = scene_camera(scene, w, h, depsgraph)
     key = (w, h, c2w.tobytes(), focal, tuple(scene.pointgt.background))
     if not force and not did and rec is not None and rec.state is state and rec.key == key \
-            and obj.pointgt.preview_image is not None:
+            and owned_preview_image(obj) is not None and rec.image == obj.pointgt.preview_image.name:
         return "unchanged"
     layer = frame_renderer.render_layer(state, c2w, h, w, focal)
     rgb, _ = frame_renderer.composite([layer], background=tuple(scene.pointgt.background))
@@ -195,7 +228,7 @@ def update_object(scene, depsgraph, obj, force: bool = False) -> str:
     img.update()
     COUNTS["rendered"] += 1
     _RECORDS[obj.name] = PreviewRecord(state=state, key=key, written=_read_raw(img), rendered=rgb,
-                                       result=layer["result"])
+                                       result=layer["result"], image=img.name)
     stats = layer["result"]["stats"]
     set_status(obj, f"Preview {w}x{h}: {stats['rays_shaded']} rays on the model, {stats['seconds'] * 1000:.0f} ms")
     return (did + "+rendered") if did else "rendered"
@@ -260,6 +293,13 @@ def on_load(*_args):
 
 
 @bpy.app.handlers.persistent
+def on_undo(*_args):
+    """undo_post / redo_post: the preview images may hold other pixels now; forget what was written into them, so
+    the difference is never mistaken for paint (no atlas texel changes because of an undo)."""
+    _RECORDS.clear()
+
+
+@bpy.app.handlers.persistent
 def on_save(*_args):
     """save_pre: painted atlases are packed again, or the .blend would keep the atlas as imported."""
     try:
@@ -292,7 +332,8 @@ def _poll():
 
 
 _HANDLERS = (("frame_change_post", on_frame_change), ("depsgraph_update_post", on_depsgraph_update),
-             ("load_post", on_load), ("save_pre", on_save), ("render_init", on_render_start),
+             ("load_post", on_load), ("save_pre", on_save),
+             ("undo_post", on_undo), ("redo_post", on_undo), ("render_init", on_render_start),
              ("render_complete", on_render_end), ("render_cancel", on_render_end))
 
 
@@ -371,4 +412,30 @@ class POINTGT_OT_transfer_paint(bpy.types.Operator):
         return {'FINISHED'}
 
 
-CLASSES = (POINTGT_OT_refresh_preview, POINTGT_OT_transfer_paint)
+class POINTGT_OT_single_user_atlas(bpy.types.Operator):
+    """Give the active model its own copy of the atlas it shares with duplicates, so painting it leaves theirs"""
+    bl_idname = "pointgt.single_user_atlas"
+    bl_label = "Make Atlas Single-User"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        if not poll_active_model(cls, context):
+            return False
+        if not atlas_users(context.active_object):
+            cls.poll_message_set("No other model shares this atlas")
+            return False
+        return True
+
+    def execute(self, context):
+        obj = context.active_object
+        try:
+            obj.pointgt.atlas = atlas_image.copy_atlas_image(obj.pointgt.atlas, f"{obj.name} atlas")
+        except Exception as exc:
+            self.report({'ERROR'}, f"Copying the atlas of '{obj.name}' failed: {type(exc).__name__}: {exc}")
+            return {'CANCELLED'}
+        self.report({'INFO'}, f"'{obj.name}' now paints into its own atlas '{obj.pointgt.atlas.name}'")
+        return {'FINISHED'}
+
+
+CLASSES = (POINTGT_OT_refresh_preview, POINTGT_OT_transfer_paint, POINTGT_OT_single_user_atlas)

@@ -1,6 +1,7 @@
 """The PointGT tab in the 3D Viewport sidebar: dependency status, import, model settings, rig and export."""
 import bpy
 
+from . import preview
 from .preferences import draw_dependency_status
 from .properties import is_pointgt_object
 
@@ -25,6 +26,10 @@ class POINTGT_PT_main(bpy.types.Panel):
         col.prop(s, "model_path")
         col.label(text=f"{s.point_count} points")
         col.prop(s, "atlas")
+        shared = preview.atlas_users(obj)
+        if shared:
+            col.label(text=f"Atlas shared with {len(shared)} other model(s)", icon='LINKED')
+            col.operator("pointgt.single_user_atlas", icon='DUPLICATE')
         col.prop(s, "preview_resolution")
         col.prop(s, "neighbors")
         col.prop(s, "correspondence")

@@ -1,0 +1,125 @@
+"""Run in a fresh bpy subprocess by test_addon_scene.py; prints one JSON line "RESULTS: {...}".
+
+argv after "--": zip model.pgt workdir
+The tiny card model seen from above (64 x 48 px). Steps: duplicates (Shift+D, Alt+D) and moves must leave the
+atlas bit-identical and give each object its own preview. Each step records what it saw (or the error).
+"""
+import importlib
+import json
+import os
+import sys
+import time
+import traceback
+
+import numpy as np
+import bpy
+
+zip_path, model, work = sys.argv[sys.argv.index("--") + 1:]
+R = {}
+PKG = "bl_ext.user_default.pointgt"
+W, H = 64, 48
+
+
+def mod(name):
+    return importlib.import_module(f"{PKG}.{name}")
+
+
+def step(name):
+    def deco(fn):
+        try:
+            R[name] = fn()
+        except Exception as exc:
+            R[name] = {"error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc()[-2000:]}
+        return fn
+    return deco
+
+
+def make_active(obj, *others):
+    for o in bpy.context.view_layer.objects:
+        o.select_set(False)
+    for o in (obj, *others):
+        o.select_set(True)
+    bpy.context.view_layer.objects.active = obj
+
+
+def raw(image):
+    buf = np.empty(image.size[0] * image.size[1] * image.channels, np.float32)
+    image.pixels.foreach_get(buf)
+    return buf
+
+
+def settle():
+    """What the UI would do between events: the depsgraph update (handlers), then idle time for the preview."""
+    bpy.context.view_layer.update()
+    prev = mod("preview")
+    if hasattr(prev, "run_pending"):
+        prev.run_pending()
+
+
+def obj():
+    return bpy.data.objects["card"]
+
+
+@step("install")
+def _():
+    res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
+    return {"result": sorted(res)}
+
+
+@step("scene")
+def _():
+    scene = bpy.context.scene
+    for o in list(bpy.data.objects):
+        if o.type != 'CAMERA':
+            bpy.data.objects.remove(o)
+    cam = scene.camera
+    cam.location = (0.0, 0.0, 3.0)
+    cam.rotation_euler = (0.0, 0.0, 0.0)
+    r = scene.render
+    r.resolution_x, r.resolution_y, r.resolution_percentage = W, H, 100
+    res = bpy.ops.pointgt.import_model(filepath=model, preview_resolution=W)
+    bpy.context.active_object.name = "card"
+    mod("preview").update_previews(scene, force=True)
+    settle()
+    return {"import": sorted(res), "preview": obj().pointgt.preview_image.name}
+
+
+@step("duplicates")
+def _():
+    scene = bpy.context.scene
+    prev = mod("preview")
+    atlas = obj().pointgt.atlas
+    before = raw(atlas)
+    rendered0 = prev.COUNTS["rendered"]
+    make_active(obj())
+    bpy.ops.object.duplicate(linked=False)       # Shift+D
+    dup = bpy.context.active_object
+    settle()
+    make_active(obj())
+    bpy.ops.object.duplicate(linked=True)        # Alt+D
+    linked = bpy.context.active_object
+    settle()
+    for i, (o, dx) in enumerate(((dup, 0.3), (linked, -0.3), (dup, 0.2), (obj(), 0.1))):
+        o.location.x += dx
+        settle()
+        scene.frame_set(scene.frame_current + 1)
+        settle()
+    after = raw(atlas)
+    objs = [obj(), dup, linked]
+    previews = [o.pointgt.preview_image.name if o.pointgt.preview_image else None for o in objs]
+    owners = [o.pointgt.preview_image.get("pointgt_owner") if o.pointgt.preview_image else None for o in objs]
+    shared = [o.name for o in prev.atlas_users(obj())]
+    # Make Atlas Single-User: the duplicate gets its own bit-identical copy, the original's atlas is untouched
+    make_active(dup)
+    res = bpy.ops.pointgt.single_user_atlas()
+    own = dup.pointgt.atlas
+    return {"identical": bool(np.array_equal(before, after)), "max_diff": float(np.abs(before - after).max()),
+            "previews": previews, "owners": owners, "names": [o.name for o in objs],
+            "renders": prev.COUNTS["rendered"] - rendered0, "transfers": prev.COUNTS["transfers"], "shared": shared,
+            "single_user": sorted(res), "own_atlas": own.name, "own_differs": own != atlas,
+            "own_identical": bool(np.array_equal(raw(own), after)), "own_packed": own.packed_file is not None,
+            "shared_after": [o.name for o in prev.atlas_users(obj())],
+            "status": {o.name: prev.status(o) for o in objs}}
+
+
+print("RESULTS: " + json.dumps(R))

@@ -1,0 +1,61 @@
+"""The add-on in a Blender scene with other objects: duplicates, the non-blocking preview, a self-contained
+.blend, warnings and the surface proxy. One Blender subprocess (scene_session.py) runs every step with the tiny
+card model."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.pointgt_blender.tiny_pgt import train_tiny_card
+from tools.package_addon import build_addon
+
+pytestmark = pytest.mark.blender
+HERE = Path(__file__).parent
+
+
+def _run(script: Path, args: list[str], env: dict, cwd: Path) -> dict:
+    proc = subprocess.run([sys.executable, str(script), "--", *args], capture_output=True, text=True, env=env,
+                          timeout=600, cwd=cwd)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
+    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
+    return json.loads(lines[-1][len("RESULTS: "):])
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("scene")
+    zip_path = build_addon(tmp / "dist")
+    model = train_tiny_card(tmp / "card.pgt")
+    work = tmp / "work"
+    work.mkdir()
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), OMP_NUM_THREADS="1")
+    r = _run(HERE / "scene_session.py", [str(zip_path), str(model), str(work)], env, tmp)
+    return {"r": r, "work": work, "model": model, "tmp": tmp, "env": env}
+
+
+def _get(session, step):
+    res = session["r"][step]
+    assert "trace" not in res, f"{step} failed: {res.get('trace')}"
+    return res
+
+
+def test_duplicates_and_moves_leave_the_atlas_bit_identical(session):
+    _get(session, "scene")
+    r = _get(session, "duplicates")
+    assert r["identical"], f"the atlas changed by up to {r['max_diff']}"
+    assert r["transfers"] == 0
+    assert r["renders"] >= 3  # each object's preview was rendered, into its own image
+    assert len(set(r["previews"])) == 3 and None not in r["previews"], r["previews"]
+    assert r["owners"] == r["names"]
+    assert sorted(r["shared"]) == sorted(r["names"][1:])  # the panel shows who shares the atlas
+
+
+def test_make_atlas_single_user_copies_it_bit_identical(session):
+    r = _get(session, "duplicates")
+    assert r["single_user"] == ["FINISHED"] and r["own_differs"] and r["own_identical"] and r["own_packed"]
+    assert r["shared_after"] == [r["names"][2]]  # only the linked duplicate still shares the original's atlas
