@@ -15,6 +15,7 @@ import torch
 
 from core.bundle import load_bundle
 from core.frames.edited import EditConfig, EditState, render_edited
+from core.frames.render import trace_frame
 from core.util.errors import InputError, ModelFileError
 
 CORRESPONDENCE = {'DEFORM_AWARE': "deform-aware", 'NAIVE': "naive"}
@@ -102,7 +103,9 @@ STATES = StateCache()
 
 
 def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCache = STATES):
-    """The EditState for one object's inputs (model loaded and checked against the object)."""
+    """The EditState for one object's inputs (model loaded and checked against the object). The object's K is
+    not stored in the cached model (two objects of one model may use different K): pass `inputs.k` to
+    `trace_layer` / `render_layer`."""
     bundle = models.get(inputs.model_path, inputs.device)
     n = bundle.model.num_points
     if inputs.point_count and inputs.point_count != n:
@@ -110,18 +113,31 @@ def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCach
                              f"{inputs.point_count}; the file was replaced by another model - re-import it")
     if inputs.atlas is not None and bundle.atlas is None:
         inputs = dataclasses.replace(inputs, atlas=None)  # a points-only model: nothing to paint yet
-    if bundle.model.cfg.k != inputs.k:  # the object's K setting; the cached model follows it
-        bundle.model.cfg = dataclasses.replace(bundle.model.cfg, k=int(inputs.k))
     cfg = EditConfig(correspondence=CORRESPONDENCE[inputs.correspondence], antialias=int(inputs.antialias))
     state, _ = states.get(inputs, bundle, cfg)
     return state
 
 
-def render_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float) -> dict:
-    """One model over a black background: premultiplied display-space colour [H, W, 3], alpha [H, W], depth
-    [H, W] along the ray (inf off the object) and the raw result of `render_edited`."""
+def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float,
+                k: int | None = None) -> dict:
+    """Neighbours and attention of one model's frame (core `trace_frame` with the state's points and the
+    object's K; None: the model's own K): the expensive half of `render_layer`, so a preview can yield between
+    the two. Returns the trace dict (flat per-ray tensors, R = height * width)."""
     c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float32))
-    res = render_edited(state, c2w_t, height, width, focal, background=(0.0, 0.0, 0.0))
+    return trace_frame(state.bundle.model, c2w_t, height, width, focal, points=state.points,
+                       influence=state.influence, k=None if k is None else int(k),
+                       temperature=state.cfg.temperature)
+
+
+def render_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float, k: int | None = None,
+                 trace: dict | None = None) -> dict:
+    """One model over a black background: premultiplied display-space colour [H, W, 3], alpha [H, W], depth
+    [H, W] along the ray (inf off the object) and the raw result of `render_edited`. k: neighbours per ray
+    (None: the model's own); trace: from `trace_layer` with the same arguments (skips tracing)."""
+    c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float32))
+    if trace is None:
+        trace = trace_layer(state, c2w, height, width, focal, k)
+    res = render_edited(state, c2w_t, height, width, focal, background=(0.0, 0.0, 0.0), trace=trace)
     tr = res["trace"]
     alpha = res["alpha"].clamp(0, 1)
     depth = ((tr["x"] - tr["origins"]) * tr["dirs"]).sum(-1).reshape(height, width)

@@ -147,19 +147,16 @@ def relative_to(path: str, blend_path: str) -> str:
         return absolute
 
 
-@bpy.app.handlers.persistent
-def _relative_model_paths(filepath, *_args):
-    """save_pre handler: models imported before the .blend had a location get paths relative to where it is
-    saved now (when Blender's 'Default relative paths' preference is on), so a project folder can move."""
-    try:
-        if not filepath or not bpy.context.preferences.filepaths.use_relative_paths:
-            return
-        for obj in bpy.data.objects:
-            s = getattr(obj, "pointgt", None)
-            if s is not None and s.is_model and s.model_path:
-                s.model_path = relative_to(s.model_path, filepath)
-    except Exception as exc:  # a save must never fail because of the add-on
-        print(f"PointGT: could not make model paths relative: {exc}")
+def relative_model_paths(filepath: str) -> None:
+    """Called before saving to `filepath`: models imported before the .blend had a location get paths relative
+    to where it is saved now (when Blender's 'Default relative paths' preference is on), so a project folder can
+    move."""
+    if not filepath or not bpy.context.preferences.filepaths.use_relative_paths:
+        return
+    for obj in bpy.data.objects:
+        s = getattr(obj, "pointgt", None)
+        if s is not None and s.is_model and s.model_path:
+            s.model_path = relative_to(s.model_path, filepath)
 
 
 def menu_import(self, context):
@@ -171,10 +168,7 @@ CLASSES = (POINTGT_OT_import_model,)
 
 def register_menus():
     bpy.types.TOPBAR_MT_file_import.append(menu_import)
-    bpy.app.handlers.save_pre.append(_relative_model_paths)
 
 
 def unregister_menus():
     bpy.types.TOPBAR_MT_file_import.remove(menu_import)
-    if _relative_model_paths in bpy.app.handlers.save_pre:
-        bpy.app.handlers.save_pre.remove(_relative_model_paths)

@@ -48,8 +48,9 @@ def render_pixels(depsgraph, width: int, height: int, progress=None, cancelled=N
         if cancelled is not None and cancelled():
             return None
         scene_inputs.check_device(obj)
-        state = frame_renderer.prepare(scene_inputs.object_inputs(obj, depsgraph))
-        layers.append(frame_renderer.render_layer(state, c2w, height, width, focal))
+        inputs = scene_inputs.object_inputs(obj, depsgraph)
+        state = frame_renderer.prepare(inputs)
+        layers.append(frame_renderer.render_layer(state, c2w, height, width, focal, k=inputs.k))
         if progress is not None:
             progress((i + 1) / len(objs))
     transparent = bool(scene.render.film_transparent)

@@ -84,6 +84,68 @@ def _():
     return {"import": sorted(res), "preview": obj().pointgt.preview_image.name}
 
 
+@step("nonblocking")
+def _():
+    scene = bpy.context.scene
+    prev = mod("preview")
+    S = prev.S
+    o = obj()
+    o.pointgt.preview_resolution = 128  # levels 128x96 <- 64x48
+    prev.run_pending()
+    S.handler_ms.clear()
+    c0 = dict(S.counts)
+    # a batch of operator calls, as a script or an artist building a rig: no render until Blender is idle
+    bpy.ops.object.armature_add(location=(0.0, 0.0, 0.0))
+    arm = bpy.context.active_object
+    bpy.ops.object.mode_set(mode='EDIT')
+    for i in range(4):
+        bpy.ops.armature.bone_primitive_add(name=f"b{i}")
+    bpy.ops.object.mode_set(mode='OBJECT')
+    make_active(o)
+    for f in range(2, 7):
+        scene.frame_set(f)
+        o.location.y += 0.01
+        bpy.context.view_layer.update()
+    batch = {k: S.counts[k] - c0[k] for k in ("rendered", "levels", "requests")}
+    handler_ms = list(S.handler_ms)
+    # idle: slices render coarse-to-fine; the first level is shown before the full one
+    slices, statuses, slice_ms = 0, [], []
+    while True:
+        t0 = time.perf_counter()
+        more = prev.run_slice(budget=0.0)
+        slice_ms.append((time.perf_counter() - t0) * 1000)
+        statuses.append(prev.status(o))
+        slices += 1
+        if not more:
+            break
+    idle = {k: S.counts[k] - c0[k] for k in ("rendered", "levels", "jobs")}
+    # a change while a job runs cancels it; the preview then shows the new state
+    scene.frame_set(1)
+    bpy.context.view_layer.update()
+    o.location.y = 0.0
+    bpy.context.view_layer.update()
+    prev.run_slice(budget=0.0)
+    prev.run_slice(budget=0.0)
+    prev.run_slice(budget=0.0)
+    cancelled0 = S.counts["cancelled"]
+    o.location.x = 0.05
+    bpy.context.view_layer.update()
+    prev.run_pending()
+    rendered_rgb = S.records["card"].rendered.copy()
+    final_state_pos = float(S.records["card"].state.points[:, 0].mean())
+    o.location.x = 0.0
+    bpy.context.view_layer.update()
+    prev.run_pending()
+    bpy.data.objects.remove(arm)
+    o.pointgt.preview_resolution = W
+    prev.run_pending()
+    return {"batch": batch, "handler_max_ms": max(handler_ms), "handler_calls": len(handler_ms), "idle": idle,
+            "slices": slices, "refining_seen": any("refining" in t for t in statuses),
+            "slice_max_ms": max(slice_ms), "cancelled": S.counts["cancelled"] - cancelled0,
+            "mean_x_after_move": final_state_pos, "levels": prev.preview_levels(128, 96),
+            "final_status": statuses[-1]}
+
+
 @step("duplicates")
 def _():
     scene = bpy.context.scene

@@ -59,3 +59,20 @@ def test_make_atlas_single_user_copies_it_bit_identical(session):
     r = _get(session, "duplicates")
     assert r["single_user"] == ["FINISHED"] and r["own_differs"] and r["own_identical"] and r["own_packed"]
     assert r["shared_after"] == [r["names"][2]]  # only the linked duplicate still shares the original's atlas
+
+
+def test_handlers_only_mark_dirty_and_the_preview_renders_coarse_to_fine_when_idle(session):
+    r = _get(session, "nonblocking")
+    b = r["batch"]
+    assert b["requests"] >= 10 and b["rendered"] == 0 and b["levels"] == 0  # a batch of calls renders nothing
+    assert r["handler_calls"] >= 10 and r["handler_max_ms"] <= 100.0, r["handler_max_ms"]
+    assert r["levels"] == [[64, 48], [128, 96]]
+    assert r["idle"] == {"rendered": 1, "levels": 2, "jobs": 1}  # one job for the whole batch, two levels
+    assert r["refining_seen"] and r["final_status"].startswith("Preview 128x96")
+    assert r["slices"] >= 4  # the work came in several slices
+
+
+def test_a_new_change_cancels_the_running_preview(session):
+    r = _get(session, "nonblocking")
+    assert r["cancelled"] == 1
+    assert r["mean_x_after_move"] > 0.03  # the preview that finished shows the points after the last move
