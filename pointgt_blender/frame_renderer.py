@@ -36,6 +36,7 @@ class ObjectInputs:
     ids: np.ndarray
     atlas: np.ndarray | None = None
     antialias: int = 2        # painted texels per pixel side (EditConfig.antialias)
+    rest_extent: float = 0.0  # bounding-box diagonal of the undeformed points in world space (pose warnings)
 
 
 class ModelCache:
@@ -168,3 +169,39 @@ def composite(layers: list[dict], background=(1.0, 1.0, 1.0), transparent: bool 
     else:
         rgb = acc + (1.0 - acc_a)[..., None] * np.asarray(background, dtype=np.float32)
     return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0).astype(np.float32), np.clip(acc_a, 0.0, 1.0)
+
+
+@torch.no_grad()
+def blank_warning(path: str, device: str = "cpu", size: int = 48, models: ModelCache = MODELS,
+                  label: str = "") -> str:
+    """'' when the model at `path` shows something, else a warning: it is rendered at size x size from six
+    cameras around its points (bounding box in view, the model's own K) and counts as blank when no view has
+    at least 1 % of its pixels covered (alpha > 0.5) or no pixel differs from the white it was trained over.
+    label: the model's name in the message (default: the file name)."""
+    from core.frames.render import render_frame
+    from core.images.cameras import look_at
+
+    label = label or os.path.basename(path)
+    bundle = models.get(path, device)
+    xyz = bundle.model.xyz.detach()
+    xyz = xyz[torch.isfinite(xyz).all(1)]
+    if xyz.shape[0] == 0:
+        return f"{label}: the model has no finite points, so it renders blank"
+    lo, hi = xyz.min(0).values, xyz.max(0).values
+    centre, radius = (lo + hi) / 2, float((hi - lo).norm()) / 2 + 1e-6
+    focal = size / 2 / np.tan(np.radians(20.0))
+    best_cover, best_content = 0.0, 0.0
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            d = torch.zeros(3)
+            d[axis] = sign
+            up = (0.0, 1.0, 0.0) if axis == 2 else (0.0, 0.0, 1.0)
+            eye = centre.cpu() + d * radius * 3.2
+            c2w = look_at(eye.tolist(), centre.cpu().tolist(), up)
+            res = render_frame(bundle.model, c2w, size, size, float(focal), background=(1.0, 1.0, 1.0))
+            best_cover = max(best_cover, float((res["alpha"] > 0.5).float().mean()))
+            best_content = max(best_content, float((1.0 - res["rgb"]).abs().max()))
+    if best_cover < 0.01 or best_content < 0.02:
+        return (f"{label} renders blank: seen from six sides it covers {best_cover:.1%} of the "
+                f"view at most; the model may not be trained (refit it), or it was saved from a failed run")
+    return ""

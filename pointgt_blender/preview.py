@@ -19,7 +19,7 @@ import numpy as np
 
 from core.util.errors import InputError, PointGTError
 
-from . import atlas_image, deps
+from . import atlas_image, checks, deps
 from .camera import preview_size, scene_camera
 from .properties import is_pointgt_object, poll_active_model
 from .session import SESSION
@@ -238,6 +238,7 @@ def object_steps(scene, depsgraph, obj, force: bool = False, levels: bool = True
     c2w, focal = scene_camera(scene, w, h, depsgraph)
     background = tuple(scene.pointgt.background)
     key = (w, h, c2w.tobytes(), focal, background, int(inputs.k))
+    warning = checks.pose_warning(obj.name, inputs.positions, inputs.rest_extent, c2w, focal, w, h)
     yield "inputs"
     state = frame_renderer.prepare(inputs)  # loads the model the first time (seconds), else a cache hit
     img = owned_preview_image(obj)
@@ -267,8 +268,9 @@ def object_steps(scene, depsgraph, obj, force: bool = False, levels: bool = True
         S.records[name] = PreviewRecord(state=state, key=key, written=written, rendered=rgb,
                                         result=layer["result"], image=img.name)
         stats = layer["result"]["stats"]
-        set_status(obj, f"Preview {w}x{h}: {stats['rays_shaded']} rays on the model, "
-                        f"{(time.perf_counter() - t0) * 1000:.0f} ms")
+        set_status(obj, f"Warning: {warning}" if warning else
+                   f"Preview {w}x{h}: {stats['rays_shaded']} rays on the model, "
+                   f"{(time.perf_counter() - t0) * 1000:.0f} ms")
     return (did + "+rendered") if did else "rendered"
 
 

@@ -13,6 +13,9 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
                                      description="This object holds the points of a PointGT model")
     model_path: bpy.props.StringProperty(name="Model", subtype='FILE_PATH', options=PATH_OPTIONS,
                                          description="The .pgt model file (relative to the .blend when possible)")
+    packed_model: bpy.props.PointerProperty(name="Packed model", type=bpy.types.Text,
+                                            description="The model packed into the .blend (used instead of the "
+                                                        "model file while set)")
     point_count: bpy.props.IntProperty(name="Points", min=0, description="Number of points in the model")
     atlas: bpy.props.PointerProperty(name="Atlas", type=bpy.types.Image,
                                      description="The paintable texture atlas of the model (packed in the .blend)")

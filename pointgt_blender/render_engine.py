@@ -15,7 +15,7 @@ import numpy as np
 
 from core.util.errors import InputError, PointGTError
 
-from . import atlas_image, deps
+from . import atlas_image, checks, deps
 from .properties import is_pointgt_object
 
 LAST: dict = {}  # the last render's warnings / error / stats (read by tests and the panel)
@@ -43,12 +43,15 @@ def render_pixels(depsgraph, width: int, height: int, progress=None, cancelled=N
         raise InputError(f"scene '{scene.name}' shows no PointGT model to render; import one (File > Import > "
                          f"PointGT Model) or enable its render visibility")
     c2w, focal = scene_camera(scene, width, height, depsgraph)
-    layers = []
+    layers, warnings = [], []
     for i, obj in enumerate(objs):
         if cancelled is not None and cancelled():
             return None
         scene_inputs.check_device(obj)
         inputs = scene_inputs.object_inputs(obj, depsgraph)
+        warning = checks.pose_warning(obj.name, inputs.positions, inputs.rest_extent, c2w, focal, width, height)
+        if warning:
+            warnings.append(warning)
         state = frame_renderer.prepare(inputs)
         layers.append(frame_renderer.render_layer(state, c2w, height, width, focal, k=inputs.k))
         if progress is not None:
@@ -63,6 +66,8 @@ def render_pixels(depsgraph, width: int, height: int, progress=None, cancelled=N
     else:
         rgba[..., 3] = 1.0
     LAST["stats"] = [l["result"]["stats"] for l in layers]
+    if warnings:
+        LAST["pose_warnings"] = warnings
     return np.ascontiguousarray(rgba[::-1]).reshape(-1)
 
 
@@ -88,6 +93,9 @@ class PointGTRenderEngine(bpy.types.RenderEngine):
             self.update_stats("PointGT", f"Frame {scene.frame_current}: rendering")
             pixels = render_pixels(depsgraph, width, height, progress=self.update_progress,
                                    cancelled=self.test_break)
+            for text in LAST.get("pose_warnings", ()):
+                LAST["warning"] = text
+                self.report({'WARNING'}, f"PointGT: {text}")
         except PointGTError as exc:
             self._fail(str(exc))
             return

@@ -30,7 +30,9 @@ def reset_modifiers(obj, action: str = 'DISABLE') -> int:
 def restore_positions(obj) -> int:
     """Write the model's canonical positions back into the mesh, matched by point id (works after points were
     deleted or duplicated in Edit Mode); returns the number of points written."""
-    xyz, _atlas, _meta = read_model(bpy.path.abspath(obj.pointgt.model_path))
+    from .scene_inputs import model_file
+
+    xyz, _atlas, _meta = read_model(model_file(obj))
     _pos, ids = read_points(obj.data)
     if ids is None:
         raise InputError(f"object '{obj.name}' lost its 'pointgt_id' attribute; re-import the model")

@@ -24,6 +24,16 @@ class POINTGT_PT_main(bpy.types.Panel):
         s = obj.pointgt
         col = layout.column()
         col.prop(s, "model_path")
+        row = col.row(align=True)
+        if s.packed_model is not None:
+            row.label(text=f"Packed in the .blend ({s.packed_model.name})", icon='PACKAGE')
+            row.operator("pointgt.unpack_model", text="", icon='UGLYPACKAGE')
+        else:
+            row.label(text="Not packed: the .blend needs the file", icon='ERROR')
+            row.operator("pointgt.pack_model", text="", icon='PACKAGE')
+        text = preview.status(obj)
+        if text.startswith("Warning"):
+            col.label(text=text, icon='ERROR')
         col.label(text=f"{s.point_count} points")
         col.prop(s, "atlas")
         shared = preview.atlas_users(obj)

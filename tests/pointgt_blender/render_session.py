@@ -343,7 +343,9 @@ def _():
     out["count_status"] = prev.status(o)
     out["count_render"] = render_error(write_still=False)
     o.modifiers.remove(gn)
-    # a missing model file, then one from a newer PointGT
+    # a missing model file, then one from a newer PointGT (the model path counts once the model is not packed)
+    packed = o.pointgt.packed_model
+    o.pointgt.packed_model = None
     good = o.pointgt.model_path
     o.pointgt.model_path = os.path.join(work, "gone.pgt")
     out["missing_render"] = render_error(write_still=False)
@@ -360,6 +362,7 @@ def _():
     out["newer_status"] = prev.update_previews(scene, force=True).get("card", "")
     out["newer_render"] = render_error(write_still=False)
     o.pointgt.model_path = good
+    o.pointgt.packed_model = packed
     out["recovered"] = prev.update_previews(scene, force=True).get("card", "")
     out["kept_end"] = open(keep, "rb").read() == b"an earlier good frame"
     return out

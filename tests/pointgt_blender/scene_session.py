@@ -1,6 +1,6 @@
 """Run in a fresh bpy subprocess by test_addon_scene.py; prints one JSON line "RESULTS: {...}".
 
-argv after "--": zip model.pgt workdir
+argv after "--": zip model.pgt blank.pgt workdir
 The tiny card model seen from above (64 x 48 px). Steps: duplicates (Shift+D, Alt+D) and moves must leave the
 atlas bit-identical and give each object its own preview. Each step records what it saw (or the error).
 """
@@ -14,7 +14,7 @@ import traceback
 import numpy as np
 import bpy
 
-zip_path, model, work = sys.argv[sys.argv.index("--") + 1:]
+zip_path, model, blank_model, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
 PKG = "bl_ext.user_default.pointgt"
 W, H = 64, 48
@@ -182,6 +182,83 @@ def _():
             "own_identical": bool(np.array_equal(raw(own), after)), "own_packed": own.packed_file is not None,
             "shared_after": [o.name for o in prev.atlas_users(obj())],
             "status": {o.name: prev.status(o) for o in objs}}
+
+
+def render_still(path):
+    scene = bpy.context.scene
+    scene.render.engine = 'POINTGT'
+    scene.render.filepath = path
+    bpy.ops.render.render(write_still=True)
+    return path
+
+
+@step("warnings")
+def _():
+    scene = bpy.context.scene
+    prev = mod("preview")
+    out = {}
+    # a model that renders blank warns on import
+    bpy.ops.pointgt.import_model(filepath=blank_model, preview_resolution=W)
+    blank = bpy.context.active_object
+    out["blank_status"] = prev.status(blank)
+    bpy.data.objects.remove(blank)
+    out["good_status"] = prev.status(obj())
+    # poses the render cannot show: collapsed, blown up, off-camera (preview status and F12 both say so)
+    ng = bpy.data.node_groups.new("scale", 'GeometryNodeTree')
+    ng.interface.new_socket("Geometry", in_out='INPUT', socket_type='NodeSocketGeometry')
+    ng.interface.new_socket("Geometry", in_out='OUTPUT', socket_type='NodeSocketGeometry')
+    gin, gout = ng.nodes.new('NodeGroupInput'), ng.nodes.new('NodeGroupOutput')
+    tf = ng.nodes.new('GeometryNodeTransform')
+    ng.links.new(gin.outputs[0], tf.inputs[0])
+    ng.links.new(tf.outputs[0], gout.inputs[0])
+    gn = obj().modifiers.new("scale", 'NODES')
+    gn.node_group = ng
+    for label, scale in (("collapsed", 1e-6), ("exploded", 1e6)):  # as a bone or lattice scaled by 1e-6 / 1e6
+        tf.inputs["Scale"].default_value = (scale, scale, scale)
+        settle()
+        out[label] = prev.status(obj())
+    obj().modifiers.remove(gn)
+    obj().location.x = 100.0
+    settle()
+    out["off_camera"] = prev.status(obj())
+    render_still(os.path.join(work, "off.png"))
+    out["off_camera_render"] = mod("render_engine").LAST.get("warning", "")
+    obj().location.x = 0.0
+    settle()
+    out["back"] = prev.status(obj())
+    return out
+
+
+@step("packed")
+def _():
+    out = {}
+    o = obj()
+    text = o.pointgt.packed_model
+    out["packed"] = text is not None and isinstance(text.get("pointgt_model"), bytes)
+    out["packed_size"] = len(text["pointgt_model"]) if out["packed"] else 0
+    for other in [x for x in bpy.data.objects if x.name != "card" and x.type == 'MESH']:
+        bpy.data.objects.remove(other)  # the duplicates of the earlier step
+    render_still(os.path.join(work, "before.png"))
+    blend = os.path.join(work, "scene.blend")
+    bpy.ops.wm.save_as_mainfile(filepath=blend)
+    moved = model + ".away"
+    os.rename(model, moved)  # the .blend must render without its .pgt (a render farm)
+    try:
+        bpy.ops.wm.open_mainfile(filepath=blend)
+        render_still(os.path.join(work, "after.png"))
+        out["error_after"] = mod("render_engine").LAST.get("error", "")
+    finally:
+        os.rename(moved, model)
+    # Unpack Model writes the packed bytes out and points the object at the file
+    make_active(obj())
+    res = bpy.ops.pointgt.unpack_model(filepath=os.path.join(work, "unpacked.pgt"))
+    out["unpack"] = sorted(res)
+    out["unpacked_same"] = open(os.path.join(work, "unpacked.pgt"), "rb").read() == open(model, "rb").read()
+    out["after_unpack"] = {"packed": obj().pointgt.packed_model is not None, "path": obj().pointgt.model_path,
+                           "texts": [t.name for t in bpy.data.texts]}
+    res = bpy.ops.pointgt.pack_model()
+    out["repack"] = sorted(res)
+    return out
 
 
 print("RESULTS: " + json.dumps(R))

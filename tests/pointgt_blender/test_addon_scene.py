@@ -9,7 +9,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from PIL import Image
+
+from core.modelfile import load_pgt, save_pgt
 
 from tests.pointgt_blender.tiny_pgt import train_tiny_card
 from tools.package_addon import build_addon
@@ -31,10 +35,16 @@ def session(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("scene")
     zip_path = build_addon(tmp / "dist")
     model = train_tiny_card(tmp / "card.pgt")
+    arrays, meta = load_pgt(model)
+    # attention goes to the background only
+    arrays["net/bg_logit"] = np.array(np.asarray(arrays["net/bg_logit"], dtype=np.float32) + np.float32(60.0),
+                                      dtype=np.float32, ndmin=1).reshape(np.shape(arrays["net/bg_logit"]))
+    blank = save_pgt(tmp / "blank.pgt", arrays, meta, backup=False,
+                     allow_nonfinite=[n for n in arrays if n.startswith("atlas/texel")])
     work = tmp / "work"
     work.mkdir()
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), OMP_NUM_THREADS="1")
-    r = _run(HERE / "scene_session.py", [str(zip_path), str(model), str(work)], env, tmp)
+    r = _run(HERE / "scene_session.py", [str(zip_path), str(model), str(blank), str(work)], env, tmp)
     return {"r": r, "work": work, "model": model, "tmp": tmp, "env": env}
 
 
@@ -76,3 +86,25 @@ def test_a_new_change_cancels_the_running_preview(session):
     r = _get(session, "nonblocking")
     assert r["cancelled"] == 1
     assert r["mean_x_after_move"] > 0.03  # the preview that finished shows the points after the last move
+
+
+def test_loud_warnings_for_blank_models_and_bad_poses(session):
+    r = _get(session, "warnings")
+    assert "renders blank" in r["blank_status"] and "blank.pgt" in r["blank_status"]
+    assert "Warning" not in r["good_status"]
+    assert "collapsed" in r["collapsed"] and "blew up" in r["exploded"]
+    assert "off-camera" in r["off_camera"] and "off-camera" in r["off_camera_render"]
+    assert r["back"].startswith("Preview ")
+
+
+def test_the_blend_renders_without_its_model_file(session):
+    r = _get(session, "packed")
+    assert r["packed"] and r["packed_size"] == (session["model"]).stat().st_size
+    assert r["error_after"] == ""
+    a = np.asarray(Image.open(session["work"] / "before.png"))
+    b = np.asarray(Image.open(session["work"] / "after.png"))
+    assert a.shape == b.shape and np.array_equal(a, b) and a[..., :3].std() > 0.01
+    assert r["unpack"] == ["FINISHED"] and r["unpacked_same"]
+    assert not r["after_unpack"]["packed"] and r["after_unpack"]["path"].endswith("unpacked.pgt")
+    assert r["after_unpack"]["texts"] == []  # nobody uses the packed copy any more
+    assert r["repack"] == ["FINISHED"]
