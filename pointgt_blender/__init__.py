@@ -27,7 +27,7 @@ bl_info = {
     "category": "Render",
 }
 
-_MODULES = ("properties", "preferences", "model_import", "rig", "reset", "export", "device_check", "view3d_panel",
+_MODULES = ("properties", "preferences", "model_import", "proxy", "rig", "reset", "export", "device_check", "view3d_panel",
             "preview", "render_engine", "image_panel")
 _registered: list = []
 

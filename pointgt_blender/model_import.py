@@ -128,6 +128,10 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
     pack_model: bpy.props.BoolProperty(name="Pack model into .blend", default=True,
                                        description="Keep a copy of the .pgt inside the .blend, so the .blend renders "
                                                    "without the model file (Unpack Model writes it out again)")
+    add_proxy: bpy.props.BoolProperty(name="Surface proxy", default=True,
+                                      description="Also make the surface proxy mesh (UV-mapped into the atlas, "
+                                                  "paintable in 3-D) and let the points follow it")
+    proxy_faces: bpy.props.IntProperty(name="Proxy faces", default=4000, min=50, max=200000)
     check_blank: bpy.props.BoolProperty(name="Check the model renders", default=True,
                                         description="Render the model small from six sides and warn when it shows "
                                                     "nothing (needs PyTorch; about a second)")
@@ -148,6 +152,17 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
         atlas = obj.pointgt.atlas
         extra = f", atlas {atlas.size[0]}x{atlas.size[1]}" if atlas else " (the model has no atlas yet)"
         extra += ", packed into the .blend" if obj.pointgt.packed_model else ""
+        if self.add_proxy and obj.pointgt.atlas is not None:
+            from .proxy import add_proxy
+
+            try:
+                proxy = add_proxy(context, obj, bpy.path.abspath(self.filepath), self.proxy_faces)
+                extra += f", proxy '{proxy.name}' ({len(proxy.data.polygons)} faces)"
+            except PointGTError as exc:
+                self.report({'WARNING'}, f"No surface proxy: {exc}")
+            except Exception as exc:
+                self.report({'WARNING'}, f"No surface proxy: {type(exc).__name__}: {exc}")
+            context.view_layer.objects.active = obj
         self.report({'INFO'}, f"Imported '{obj.name}': {obj.pointgt.point_count} points{extra}")
         warning = blank_warning(obj) if self.check_blank else ""
         if warning:

@@ -35,6 +35,9 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
         name="Device", default='CPU',
         items=[('CPU', "CPU", "Run the network on the processor"),
                ('CUDA', "CUDA", "Run the network on an NVIDIA GPU (needs a CUDA build of PyTorch)")])
+    proxy: bpy.props.PointerProperty(name="Proxy", type=bpy.types.Object,
+                                     description="The surface proxy mesh of this model (UV-mapped into the atlas; "
+                                                 "the points follow it when bound with Surface Deform)")
     preview_image: bpy.props.PointerProperty(name="Preview", type=bpy.types.Image,
                                              description="The live preview of this model from the scene camera "
                                                          "(paint on it to paint the atlas)")

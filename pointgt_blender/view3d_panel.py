@@ -50,6 +50,7 @@ class POINTGT_PT_main(bpy.types.Panel):
 
         layout.label(text="Rig")
         col = layout.column(align=True)
+        col.operator("pointgt.add_proxy", icon='MESH_ICOSPHERE')
         col.operator("pointgt.add_lattice", icon='OUTLINER_OB_LATTICE')
         col.operator("pointgt.bind_armature", text="Bind to Armature (envelopes)",
                      icon='OUTLINER_OB_ARMATURE').mode = 'ENVELOPE'

@@ -6,6 +6,7 @@ atlas bit-identical and give each object its own preview. Each step records what
 """
 import importlib
 import json
+import math
 import os
 import sys
 import time
@@ -236,7 +237,7 @@ def _():
     text = o.pointgt.packed_model
     out["packed"] = text is not None and isinstance(text.get("pointgt_model"), bytes)
     out["packed_size"] = len(text["pointgt_model"]) if out["packed"] else 0
-    for other in [x for x in bpy.data.objects if x.name != "card" and x.type == 'MESH']:
+    for other in [x for x in bpy.data.objects if x.name != "card" and x.pointgt.is_model]:
         bpy.data.objects.remove(other)  # the duplicates of the earlier step
     render_still(os.path.join(work, "before.png"))
     blend = os.path.join(work, "scene.blend")
@@ -258,6 +259,128 @@ def _():
                            "texts": [t.name for t in bpy.data.texts]}
     res = bpy.ops.pointgt.pack_model()
     out["repack"] = sorted(res)
+    return out
+
+
+def paint_through_uvs(proxy, image, centre, radius, colour):
+    """What Texture Paint on the proxy does: the texels inside the UV triangles of the proxy faces whose centre
+    lies within `radius` of `centre` (object space) get `colour` (linear RGB). Returns the number of texels."""
+    m = proxy.data
+    co = np.empty(len(m.vertices) * 3, np.float32)
+    m.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    vi = np.empty(len(m.loops), np.int32)
+    m.loops.foreach_get("vertex_index", vi)
+    uv = np.empty(len(m.loops) * 2, np.float32)
+    m.uv_layers["PointGT atlas"].data.foreach_get("uv", uv)
+    tri_v, tri_uv = vi.reshape(-1, 3), uv.reshape(-1, 3, 2)
+    pick = np.linalg.norm(co[tri_v].mean(1) - np.asarray(centre), axis=1) < radius
+    w, h = image.size
+    px = np.empty(w * h * 4, np.float32)
+    image.pixels.foreach_get(px)
+    px = px.reshape(h, w, 4)
+    yy, xx = np.mgrid[0:h, 0:w]
+    centres = np.stack([(xx + 0.5) / w, (yy + 0.5) / h], -1).reshape(-1, 2)  # Blender rows: 0 = bottom
+    hit = np.zeros(h * w, bool)
+    for t in tri_uv[pick]:
+        a, b, c = t
+        m2 = np.array([b - a, c - a]).T
+        if abs(np.linalg.det(m2)) < 1e-12:
+            continue
+        lam = np.linalg.solve(m2, (centres - a).T).T
+        hit |= (lam >= -1e-6).all(1) & (lam.sum(1) <= 1 + 1e-6)
+    px.reshape(-1, 4)[hit, :3] = colour
+    image.pixels.foreach_set(px.reshape(-1))
+    image.update()
+    return int(hit.sum()), int(pick.sum())
+
+
+def project(points):
+    c2w, focal = mod("camera").scene_camera(bpy.context.scene, W, H)
+    cam = (np.asarray(points) - c2w[:3, 3]) @ c2w[:3, :3]
+    return np.stack([focal * cam[:, 0] / -cam[:, 2] + W / 2, -focal * cam[:, 1] / -cam[:, 2] + H / 2], axis=1)
+
+
+def read_png(path):
+    img = bpy.data.images.load(path)
+    w, h = img.size
+    buf = np.empty(w * h * img.channels, np.float32)
+    img.pixels.foreach_get(buf)
+    bpy.data.images.remove(img)
+    return buf.reshape(h, w, -1)[::-1, :, :3]  # row 0 = top
+
+
+def centroid(rgb, colour):
+    near = np.linalg.norm(rgb - np.asarray(colour, np.float32), axis=-1) < 0.45
+    rows, cols = np.nonzero(near)
+    if not len(rows):
+        return [float("nan"), float("nan")], 0
+    return [float(cols.mean() + 0.5), float(rows.mean() + 0.5)], int(near.sum())
+
+
+@step("proxy")
+def _():
+    out = {}
+    o = obj()
+    proxy = o.pointgt.proxy
+    mat = proxy.data.materials[0]
+    active = mat.node_tree.nodes.active
+    out["faces"] = len(proxy.data.polygons)
+    out["triangles"] = all(len(p.vertices) == 3 for p in proxy.data.polygons)
+    out["uv"] = proxy.data.uv_layers.active.name if proxy.data.uv_layers.active else ""
+    out["material_image"] = active.image.name if getattr(active, "image", None) else ""
+    out["atlas"] = o.pointgt.atlas.name
+    sd = o.modifiers.get("PointGT Surface Deform")
+    out["bound"] = bool(sd and sd.is_bound and sd.target == proxy and o.modifiers[0] == sd)
+    # 3-D paint on the proxy: a red disc on the card's right half, written through the proxy's UV map
+    centre = np.array([0.45, 0.15, 0.0])
+    out["painted_texels"], out["painted_faces"] = paint_through_uvs(proxy, o.pointgt.atlas, centre, 0.12,
+                                                                    (1.0, 0.0, 0.0))
+    scene = bpy.context.scene
+    r = scene.render
+    r.resolution_x, r.resolution_y, r.resolution_percentage = W, H, 100
+    scene.view_settings.view_transform = 'Standard'
+    scene.frame_set(1)
+    rgb = read_png(render_still(os.path.join(work, "proxy_rest.png")))
+    out["rest"] = centroid(rgb, (1.0, 0.0, 0.0))
+    out["rest_expect"] = project(centre[None])[0].tolist()
+    # rig the proxy with Automatic Weights; a 90 degree turn of the right bone poses the neural render
+    bpy.ops.object.armature_add(location=(0.0, 0.0, 0.0))
+    arm = bpy.context.active_object
+    bpy.ops.object.mode_set(mode='EDIT')
+    left = arm.data.edit_bones[0]
+    left.head, left.tail, left.name = (-0.9, 0.0, 0.0), (0.0, 0.0, 0.0), "left"
+    right = arm.data.edit_bones.new("right")
+    right.head, right.tail, right.parent, right.use_connect = (0.0, 0.0, 0.0), (0.9, 0.0, 0.0), left, True
+    bpy.ops.object.mode_set(mode='OBJECT')
+    make_active(arm, proxy)
+    out["parent"] = sorted(bpy.ops.object.parent_set(type='ARMATURE_AUTO'))
+    pb = arm.pose.bones["right"]
+    pb.rotation_mode = 'XYZ'
+
+    def turn(p, degrees):  # (x, y) turned about the bone's head (the origin)
+        a = math.radians(degrees)
+        return np.stack([p[:, 0] * math.cos(a) - p[:, 1] * math.sin(a), p[:, 0] * math.sin(a) + p[:, 1] * math.cos(a),
+                         p[:, 2]], 1)
+
+    # 90 degrees: the points follow the proxy's heat weights (right half turned rigidly, left half still)
+    pb.rotation_euler = (0.0, 0.0, math.radians(90.0))
+    bpy.context.view_layer.update()
+    pos, ids = mod("evaluated").evaluated_points(o, bpy.context.evaluated_depsgraph_get())
+    rest = np.empty(len(o.data.vertices) * 3, np.float32)
+    o.data.vertices.foreach_get("co", rest)
+    rest = rest.reshape(-1, 3)[ids]
+    right, left = rest[:, 0] > 0.3, rest[:, 0] < -0.3
+    out["right_error"] = float(np.linalg.norm(pos[right] - turn(rest[right], 90.0), axis=1).mean())
+    out["left_moved"] = float(np.linalg.norm(pos[left] - rest[left], axis=1).mean())
+    out["right_moved"] = float(np.linalg.norm(pos[right] - rest[right], axis=1).mean())
+    # 45 degrees: the paint follows in the neural render
+    pb.rotation_euler = (0.0, 0.0, math.radians(45.0))
+    bpy.context.view_layer.update()
+    rgb = read_png(render_still(os.path.join(work, "proxy_posed.png")))
+    out["posed"] = centroid(rgb, (1.0, 0.0, 0.0))
+    out["posed_expect"] = project(turn(centre[None], 45.0))[0].tolist()
+    out["error"] = mod("render_engine").LAST.get("error", "")
     return out
 
 

@@ -108,3 +108,24 @@ def test_the_blend_renders_without_its_model_file(session):
     assert not r["after_unpack"]["packed"] and r["after_unpack"]["path"].endswith("unpacked.pgt")
     assert r["after_unpack"]["texts"] == []  # nobody uses the packed copy any more
     assert r["repack"] == ["FINISHED"]
+
+
+def test_surface_proxy_shows_the_atlas_and_paint_through_its_uvs_lands_where_the_render_looks(session):
+    r = _get(session, "proxy")
+    assert 100 <= r["faces"] <= 4000 and r["triangles"] and r["uv"] == "PointGT atlas"
+    assert r["material_image"] == r["atlas"] and r["bound"]
+    assert r["painted_faces"] >= 4 and r["painted_texels"] >= 10
+    c, n = r["rest"]
+    assert n >= 6 and np.hypot(c[0] - r["rest_expect"][0], c[1] - r["rest_expect"][1]) < 3.0, str(r)
+
+
+def test_automatic_weights_on_the_proxy_pose_the_neural_render(session):
+    r = _get(session, "proxy")
+    assert r["parent"] == ["FINISHED"] and r["error"] == ""
+    # a 90 degree turn of the right bone: the points on the right half turn with it, the left half stays
+    assert r["right_moved"] > 0.5 and r["right_error"] < 0.02 and r["left_moved"] < 0.02, r
+    # at 45 degrees the paint sits where its surface went in the neural render
+    c, n = r["posed"]
+    assert n >= 6, r
+    assert np.hypot(c[0] - r["posed_expect"][0], c[1] - r["posed_expect"][1]) < 3.0, r
+    assert np.hypot(c[0] - r["rest"][0][0], c[1] - r["rest"][0][1]) > 5.0  # it did move
