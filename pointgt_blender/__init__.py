@@ -28,7 +28,7 @@ bl_info = {
 }
 
 _MODULES = ("properties", "preferences", "model_import", "proxy", "rig", "reset", "export", "device_check", "view3d_panel",
-            "preview", "render_engine", "image_panel")
+            "preview", "render_engine", "composite", "image_panel")
 _registered: list = []
 
 

@@ -97,13 +97,32 @@ def on_render_start(*_args):
 
 
 @_timed
+def on_render_pre(scene, *_args):
+    """render_pre: with Composite with Scene on and another engine rendering, the PointGT layer of this frame."""
+    if scene is None or not scene.pointgt.composite or scene.render.engine == 'POINTGT':
+        return
+    from . import composite, deps
+
+    st = deps.torch_status()
+    if not st.available:
+        print(f"PointGT: the PointGT layer is not rendered: {st.message}")
+        return
+    try:
+        composite.update_layer(scene)
+    except Exception as exc:
+        composite.clear_layer(scene)  # never a stale model from an earlier frame
+        SESSION.status["__composite__"] = f"PointGT layer failed: {type(exc).__name__}: {exc}"
+        raise
+
+
+@_timed
 def on_render_end(*_args):
     SESSION.rendering = False
 
 
 HANDLERS = (("frame_change_post", on_frame_change), ("depsgraph_update_post", on_depsgraph_update),
             ("load_post", on_load), ("save_pre", on_save), ("undo_post", on_undo), ("redo_post", on_undo),
-            ("render_init", on_render_start), ("render_complete", on_render_end),
+            ("render_init", on_render_start), ("render_pre", on_render_pre), ("render_complete", on_render_end),
             ("render_cancel", on_render_end))
 
 

@@ -53,6 +53,10 @@ class PointGTSceneSettings(bpy.types.PropertyGroup):
     transfer_threshold: bpy.props.FloatProperty(
         name="Paint threshold", default=0.02, min=0.0, max=1.0,
         description="A preview pixel counts as painted when its colour changed by more than this")
+    composite: bpy.props.BoolProperty(
+        name="Composite with scene", default=False,
+        description="Before each frame Cycles or EEVEE renders, render the PointGT models into the 'PointGT layer' "
+                    "and 'PointGT depth' images that the compositor merges with the scene by depth")
     background: bpy.props.FloatVectorProperty(
         name="Background", subtype='COLOR_GAMMA', size=3, default=(1.0, 1.0, 1.0), min=0.0, max=1.0,
         description="Colour behind the models in previews and renders (Film > Transparent renders alpha instead)")

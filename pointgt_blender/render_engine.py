@@ -86,6 +86,9 @@ class PointGTRenderEngine(bpy.types.RenderEngine):
                 raise InputError(st.message)
             from . import scene_inputs
 
+            if scene.pointgt.composite and scene.render.use_compositing:
+                raise InputError("Composite with Scene is set up: render with Cycles or EEVEE (they render the "
+                                 "scene and PointGT adds its layer), or switch the scene's Compositing off")
             warning = scene_inputs.view_transform_warning(scene)
             if warning:
                 LAST["warning"] = warning

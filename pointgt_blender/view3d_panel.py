@@ -58,6 +58,7 @@ class POINTGT_PT_main(bpy.types.Panel):
                      icon='MOD_DATA_TRANSFER').mode = 'PROXY'
         col.operator("pointgt.reset_canonical", icon='LOOP_BACK')
         layout.operator("pointgt.export_deformed", icon='EXPORT')
+        layout.operator("pointgt.setup_composite", icon='NODE_COMPOSITING')
 
 
 CLASSES = (POINTGT_PT_main,)

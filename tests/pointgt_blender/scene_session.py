@@ -185,9 +185,10 @@ def _():
             "status": {o.name: prev.status(o) for o in objs}}
 
 
-def render_still(path):
+def render_still(path, engine='POINTGT'):
     scene = bpy.context.scene
-    scene.render.engine = 'POINTGT'
+    if engine:
+        scene.render.engine = engine
     scene.render.filepath = path
     bpy.ops.render.render(write_still=True)
     return path
@@ -202,6 +203,8 @@ def _():
     bpy.ops.pointgt.import_model(filepath=blank_model, preview_resolution=W)
     blank = bpy.context.active_object
     out["blank_status"] = prev.status(blank)
+    if blank.pointgt.proxy is not None:
+        bpy.data.objects.remove(blank.pointgt.proxy)
     bpy.data.objects.remove(blank)
     out["good_status"] = prev.status(obj())
     # poses the render cannot show: collapsed, blown up, off-camera (preview status and F12 both say so)
@@ -381,6 +384,82 @@ def _():
     out["posed"] = centroid(rgb, (1.0, 0.0, 0.0))
     out["posed_expect"] = project(turn(centre[None], 45.0))[0].tolist()
     out["error"] = mod("render_engine").LAST.get("error", "")
+    return out
+
+
+def diffuse(name, colour):
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    bsdf = next(n for n in mat.node_tree.nodes if n.bl_idname == 'ShaderNodeBsdfPrincipled')
+    bsdf.inputs["Base Color"].default_value = (*colour, 1.0)
+    bsdf.inputs["Roughness"].default_value = 1.0
+    return mat
+
+
+@step("composite")
+def _():
+    out = {}
+    scene = bpy.context.scene
+    o = obj()
+    arm = next(x for x in bpy.data.objects if x.type == 'ARMATURE')
+    arm.pose.bones["right"].rotation_euler = (0.0, 0.0, 0.0)
+    bpy.context.view_layer.update()
+    neural = read_png(render_still(os.path.join(work, "neural_only.png")))  # the PointGT engine alone
+    bpy.ops.mesh.primitive_plane_add(size=6.0, location=(0.0, 0.0, -0.6))
+    floor = bpy.context.active_object
+    floor.data.materials.append(diffuse("floor", (0.8, 0.8, 0.8)))
+    bpy.ops.mesh.primitive_cube_add(size=0.25, location=(0.5, 0.1, 0.35))
+    box = bpy.context.active_object
+    box.data.materials.append(diffuse("box", (0.05, 0.8, 0.05)))
+    # the sun shines from +y at 45 degrees: the card's shadow falls 0.6 towards -y, partly beside the card
+    bpy.ops.object.light_add(type='SUN', location=(0.0, 0.0, 5.0), rotation=(math.radians(-45.0), 0.0, 0.0))
+    sun = bpy.context.active_object
+    sun.data.energy = 3.0
+    sun.data.angle = 0.0
+    make_active(o)
+    out["setup"] = sorted(bpy.ops.pointgt.setup_composite())
+    out["engine"] = scene.render.engine
+    scene.cycles.samples = 16
+    scene.cycles.use_denoising = False
+    scene.view_settings.view_transform = 'Standard'
+    rgb = read_png(render_still(os.path.join(work, "composite.png"), engine=None))
+    layer = mod("composite").bpy.data.images["PointGT layer"]
+    lay = np.empty(W * H * 4, np.float32)
+    layer.pixels.foreach_get(lay)
+    lay = lay.reshape(H, W, 4)[::-1]  # straight scene-linear RGBA, row 0 = top
+    scene.render.use_compositing = False  # the scene alone (Cycles), to check the merge against
+    alone = read_png(render_still(os.path.join(work, "scene_only.png"), engine=None))
+    scene.render.use_compositing = True
+    # which pixels see what: rays through pixel centres against the card (z = 0), the floor and the sun
+    c2w, focal = mod("camera").scene_camera(scene, W, H)
+    rows, cols = np.mgrid[0:H, 0:W] + 0.5
+    d = np.stack([(cols - W / 2) / focal, -(rows - H / 2) / focal, -np.ones_like(cols)], -1) @ c2w[:3, :3].T
+    eye = c2w[:3, 3]
+    card_hit = eye + d * ((0.0 - eye[2]) / d[..., 2])[..., None]
+    floor_hit = eye + d * ((-0.6 - eye[2]) / d[..., 2])[..., None]
+    on_card = (np.abs(card_hit[..., 0]) < 0.95) & (np.abs(card_hit[..., 1]) < 0.55)
+    to_sun = np.array([0.0, math.sin(math.radians(45.0)), math.cos(math.radians(45.0))])
+    up = floor_hit + to_sun * (0.6 / to_sun[2])
+    shadow = (np.abs(up[..., 0]) < 0.8) & (np.abs(up[..., 1]) < 0.4) & ~on_card
+    lit = ~on_card & ~((np.abs(up[..., 0]) < 1.0) & (np.abs(up[..., 1]) < 0.6)) & (np.abs(floor_hit[..., 0]) > 0.2)
+    lum = rgb.mean(-1)
+    out["shadow_px"], out["lit_px"] = int(shadow.sum()), int(lit.sum())
+    out["shadow_lum"], out["lit_lum"] = float(lum[shadow].mean()), float(lum[lit].mean())
+    # the box hides the card; elsewhere on the card the neural colours show, over the floor
+    bc, br = project(np.array([[0.5, 0.1, 0.475]]))[0]
+    out["box_px"] = rgb[int(br), int(bc)].tolist()
+    out["neural_at_box"] = neural[int(br), int(bc)].tolist()
+    bx0, by0 = project(np.array([[0.34, 0.26, 0.475]]))[0]
+    bx1, by1 = project(np.array([[0.66, -0.06, 0.475]]))[0]
+    away = on_card & ~((cols > bx0 - 2) & (cols < bx1 + 2) & (rows > by0 - 2) & (rows < by1 + 2))
+    away &= (np.abs(card_hit[..., 0]) < 0.75) & (np.abs(card_hit[..., 1]) < 0.35)  # inside, no soft edge
+    out["card_px"] = int(away.sum())
+    ai = mod("atlas_image")
+    a = lay[..., 3:4]
+    expect = ai.linear_to_srgb(lay[..., :3] * a + ai.srgb_to_linear(alone) * (1.0 - a))  # the layer over the scene
+    out["card_diff"] = float(np.abs(rgb[away] - expect[away]).mean())
+    out["card_vs_scene_alone"] = float(np.abs(rgb[away] - alone[away]).mean())
+    out["card_alpha"] = float(a[away].mean())
     return out
 
 

@@ -129,3 +129,16 @@ def test_automatic_weights_on_the_proxy_pose_the_neural_render(session):
     assert n >= 6, r
     assert np.hypot(c[0] - r["posed_expect"][0], c[1] - r["posed_expect"][1]) < 3.0, r
     assert np.hypot(c[0] - r["rest"][0][0], c[1] - r["rest"][0][1]) > 5.0  # it did move
+
+
+def test_composite_with_scene_occludes_both_ways_and_casts_the_models_shadow(session):
+    r = _get(session, "composite")
+    assert r["setup"] == ["FINISHED"] and r["engine"] == "CYCLES"
+    g = r["box_px"]
+    assert g[1] > g[0] + 0.15 and g[1] > g[2] + 0.15, r  # the green box hides the card behind it
+    assert np.abs(np.subtract(r["neural_at_box"], g)).max() > 0.1  # (the card alone looks different there)
+    # elsewhere the PointGT layer lies over the floor: the frame is the layer composited over the scene alone
+    assert r["card_px"] >= 100 and r["card_alpha"] > 0.5 and r["card_diff"] < 0.03, r
+    assert r["card_vs_scene_alone"] > 0.1, r
+    assert r["shadow_px"] >= 20 and r["lit_px"] >= 100
+    assert r["shadow_lum"] < 0.7 * r["lit_lum"], r  # the card's shadow (its proxy) falls on the floor
