@@ -14,10 +14,11 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from core.util.errors import InputError, PointGTError
+from core.util.errors import InputError
 
 from . import atlas_image
 from .camera import render_size
+from .reporting import reports_errors
 
 LAYER = "PointGT layer"
 DEPTH = "PointGT depth"
@@ -152,15 +153,9 @@ class POINTGT_OT_setup_composite(bpy.types.Operator):
     bl_label = "Composite with Scene"
     bl_options = {'REGISTER', 'UNDO'}
 
+    @reports_errors("Setting up the compositing")
     def execute(self, context):
-        try:
-            done = setup_composite(context)
-        except PointGTError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
-        except Exception as exc:
-            self.report({'ERROR'}, f"Setting up the compositing failed: {type(exc).__name__}: {exc}")
-            return {'CANCELLED'}
+        done = setup_composite(context)
         self.report({'INFO'}, "; ".join(done))
         return {'FINISHED'}
 

@@ -10,6 +10,7 @@ from core.util.errors import InputError, ModelFileError, PointGTError
 
 from . import atlas_image
 from .properties import ID_ATTRIBUTE, poll_active_model
+from .reporting import reports_errors
 
 POINTS = "points/xyz"
 ATLAS = "atlas/image"
@@ -204,22 +205,16 @@ class POINTGT_OT_pack_model(bpy.types.Operator):
             return False
         return True
 
+    @reports_errors("Packing the model of '{obj}'")
     def execute(self, context):
         from .model_pack import pack_file
 
         obj = context.active_object
-        try:
-            path = bpy.path.abspath(obj.pointgt.model_path)
-            if not os.path.isfile(path):
-                raise ModelFileError(f"{path}: model file not found; point the Model setting to the .pgt first")
-            read_model(path)  # refuse a damaged file
-            obj.pointgt.packed_model = pack_file(path)
-        except PointGTError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
-        except Exception as exc:
-            self.report({'ERROR'}, f"Packing the model of '{obj.name}' failed: {type(exc).__name__}: {exc}")
-            return {'CANCELLED'}
+        path = bpy.path.abspath(obj.pointgt.model_path)
+        if not os.path.isfile(path):
+            raise ModelFileError(f"{path}: model file not found; point the Model setting to the .pgt first")
+        read_model(path)  # refuse a damaged file
+        obj.pointgt.packed_model = pack_file(path)
         self.report({'INFO'}, f"Packed {os.path.basename(path)} into the .blend")
         return {'FINISHED'}
 
@@ -243,21 +238,15 @@ class POINTGT_OT_unpack_model(bpy.types.Operator):
             return False
         return True
 
+    @reports_errors("Unpacking the model of '{obj}'")
     def execute(self, context):
         from .model_pack import unpack
 
         obj = context.active_object
         target = self.filepath or obj.pointgt.model_path or f"//{obj.name}.pgt"
-        try:
-            if target.startswith("//") and not bpy.data.filepath:
-                raise InputError("save the .blend first, or choose an absolute file to unpack into")
-            path = unpack(obj, target)
-        except PointGTError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
-        except Exception as exc:
-            self.report({'ERROR'}, f"Unpacking the model of '{obj.name}' failed: {type(exc).__name__}: {exc}")
-            return {'CANCELLED'}
+        if target.startswith("//") and not bpy.data.filepath:
+            raise InputError("save the .blend first, or choose an absolute file to unpack into")
+        path = unpack(obj, target)
         self.report({'INFO'}, f"Wrote the model of '{obj.name}' to {path}")
         return {'FINISHED'}
 

@@ -22,6 +22,7 @@ from core.util.errors import InputError, PointGTError
 from . import atlas_image, checks, deps
 from .camera import preview_size, scene_camera
 from .properties import is_pointgt_object, poll_active_model
+from .reporting import reports_errors
 from .session import SESSION
 
 POLL_SECONDS = 0.5      # idle timer period: look for paint on the previews
@@ -448,19 +449,12 @@ class POINTGT_OT_transfer_paint(bpy.types.Operator):
     def poll(cls, context):
         return poll_active_model(cls, context)
 
+    @reports_errors("Transferring the preview paint of '{obj}'")
     def execute(self, context):
         obj = context.active_object
         if not deps.torch_status().available:
-            self.report({'ERROR'}, deps.torch_status().message)
-            return {'CANCELLED'}
-        try:
-            n_px, n_tex = transfer_paint(context.scene, obj)
-        except PointGTError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
-        except Exception as exc:
-            self.report({'ERROR'}, f"Transfer failed: {type(exc).__name__}: {exc}")
-            return {'CANCELLED'}
+            raise InputError(deps.torch_status().message)
+        n_px, n_tex = transfer_paint(context.scene, obj)
         if n_px == 0:
             self.report({'WARNING'}, f"Nothing painted on the preview of '{obj.name}' (or only off the model)")
             return {'CANCELLED'}
@@ -484,13 +478,10 @@ class POINTGT_OT_single_user_atlas(bpy.types.Operator):
             return False
         return True
 
+    @reports_errors("Copying the atlas of '{obj}'")
     def execute(self, context):
         obj = context.active_object
-        try:
-            obj.pointgt.atlas = atlas_image.copy_atlas_image(obj.pointgt.atlas, f"{obj.name} atlas")
-        except Exception as exc:
-            self.report({'ERROR'}, f"Copying the atlas of '{obj.name}' failed: {type(exc).__name__}: {exc}")
-            return {'CANCELLED'}
+        obj.pointgt.atlas = atlas_image.copy_atlas_image(obj.pointgt.atlas, f"{obj.name} atlas")
         self.report({'INFO'}, f"'{obj.name}' now paints into its own atlas '{obj.pointgt.atlas.name}'")
         return {'FINISHED'}
 

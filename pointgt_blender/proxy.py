@@ -6,10 +6,11 @@ from __future__ import annotations
 import bpy
 import numpy as np
 
-from core.util.errors import InputError, PointGTError
+from core.util.errors import InputError
 
 from .properties import poll_active_model
 from .proxy_mesh import proxy_arrays, read_texel_map
+from .reporting import reports_errors
 
 PROXY_SUFFIX = " proxy"
 SURFACE_DEFORM = "PointGT Surface Deform"
@@ -126,18 +127,12 @@ class POINTGT_OT_add_proxy(bpy.types.Operator):
             return False
         return True
 
+    @reports_errors("Making a proxy for '{obj}'")
     def execute(self, context):
         from .scene_inputs import model_file
 
         obj = context.active_object
-        try:
-            proxy = add_proxy(context, obj, model_file(obj), self.target_faces, self.follow)
-        except PointGTError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
-        except Exception as exc:
-            self.report({'ERROR'}, f"Making a proxy for '{obj.name}' failed: {type(exc).__name__}: {exc}")
-            return {'CANCELLED'}
+        proxy = add_proxy(context, obj, model_file(obj), self.target_faces, self.follow)
         self.report({'INFO'}, f"Added '{proxy.name}' ({len(proxy.data.polygons)} faces)"
                               + ("; the points follow it" if self.follow else ""))
         return {'FINISHED'}

@@ -45,7 +45,22 @@ def session(tmp_path_factory):
     work.mkdir()
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), OMP_NUM_THREADS="1")
     r = _run(HERE / "scene_session.py", [str(zip_path), str(model), str(blank), str(work)], env, tmp)
+    if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows this session's frames
+        out = Path(os.environ["POINTGT_DOC_IMAGES"])
+        _strip([work / "proxy_rest.png", work / "proxy_posed.png"], out / "addon_proxy_paint_and_rig.png")
+        _strip([work / "scene_only.png", work / "composite.png"], out / "addon_composite_with_scene.png")
     return {"r": r, "work": work, "model": model, "tmp": tmp, "env": env}
+
+
+def _strip(paths, target: Path) -> None:
+    """Frames side by side, 3x enlarged (nearest), for the docs."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    ims = [Image.open(p).convert("RGB") for p in paths]
+    w, h = ims[0].size
+    canvas = Image.new("RGB", (len(ims) * (3 * w + 4) - 4, 3 * h), "white")
+    for i, im in enumerate(ims):
+        canvas.paste(im.resize((3 * w, 3 * h), Image.NEAREST), (i * (3 * w + 4), 0))
+    canvas.save(target, optimize=True)
 
 
 def _get(session, step):
