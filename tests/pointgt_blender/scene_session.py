@@ -154,6 +154,7 @@ def _():
     atlas = obj().pointgt.atlas
     before = raw(atlas)
     rendered0 = prev.COUNTS["rendered"]
+    bpy.ops.ed.undo_push(message="before duplicating")
     make_active(obj())
     bpy.ops.object.duplicate(linked=False)       # Shift+D
     dup = bpy.context.active_object
@@ -167,6 +168,7 @@ def _():
         settle()
         scene.frame_set(scene.frame_current + 1)
         settle()
+        bpy.ops.ed.undo_push(message=f"move {i}")
     after = raw(atlas)
     objs = [obj(), dup, linked]
     previews = [o.pointgt.preview_image.name if o.pointgt.preview_image else None for o in objs]
@@ -176,13 +178,30 @@ def _():
     make_active(dup)
     res = bpy.ops.pointgt.single_user_atlas()
     own = dup.pointgt.atlas
-    return {"identical": bool(np.array_equal(before, after)), "max_diff": float(np.abs(before - after).max()),
+    result = {"identical": bool(np.array_equal(before, after)), "max_diff": float(np.abs(before - after).max()),
             "previews": previews, "owners": owners, "names": [o.name for o in objs],
             "renders": prev.COUNTS["rendered"] - rendered0, "transfers": prev.COUNTS["transfers"], "shared": shared,
             "single_user": sorted(res), "own_atlas": own.name, "own_differs": own != atlas,
             "own_identical": bool(np.array_equal(raw(own), after)), "own_packed": own.packed_file is not None,
             "shared_after": [o.name for o in prev.atlas_users(obj())],
             "status": {o.name: prev.status(o) for o in objs}}
+    # undo the moves and the duplicates, one step at a time, with the preview updating in between
+    atlas_name = atlas.name
+    undone = 0
+    for _ in range(6):
+        try:
+            if 'FINISHED' in bpy.ops.ed.undo():
+                undone += 1
+        except RuntimeError:  # nothing left to undo
+            break
+        settle()
+        bpy.context.scene.frame_set(bpy.context.scene.frame_current)  # undo replaced the scene's Python object
+        settle()
+    result["undo_steps"] = undone
+    result["undo_identical"] = bool(np.array_equal(raw(bpy.data.images[atlas_name]), before))
+    result["undo_transfers"] = prev.COUNTS["transfers"]
+    result["undo_objects"] = sorted(o.name for o in bpy.data.objects if o.pointgt.is_model)
+    return result
 
 
 def render_still(path, engine='POINTGT'):

@@ -78,6 +78,7 @@ def test_duplicates_and_moves_leave_the_atlas_bit_identical(session):
     assert len(set(r["previews"])) == 3 and None not in r["previews"], r["previews"]
     assert r["owners"] == r["names"]
     assert sorted(r["shared"]) == sorted(r["names"][1:])  # the panel shows who shares the atlas
+    assert r["undo_steps"] >= 4 and r["undo_identical"] and r["undo_transfers"] == 0, r  # undo changes no texel
 
 
 def test_make_atlas_single_user_copies_it_bit_identical(session):
