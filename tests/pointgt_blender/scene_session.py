@@ -421,8 +421,7 @@ def _():
     scene = bpy.context.scene
     o = obj()
     arm = next(x for x in bpy.data.objects if x.type == 'ARMATURE')
-    arm.pose.bones["right"].rotation_euler = (0.0, 0.0, 0.0)
-    bpy.context.view_layer.update()
+    # the card's right half stays turned by 45 degrees (proxy step), with the red disc painted through the proxy
     neural = read_png(render_still(os.path.join(work, "neural_only.png")))  # the PointGT engine alone
     bpy.ops.mesh.primitive_plane_add(size=6.0, location=(0.0, 0.0, -0.6))
     floor = bpy.context.active_object
@@ -459,19 +458,28 @@ def _():
     on_card = (np.abs(card_hit[..., 0]) < 0.95) & (np.abs(card_hit[..., 1]) < 0.55)
     to_sun = np.array([0.0, math.sin(math.radians(45.0)), math.cos(math.radians(45.0))])
     up = floor_hit + to_sun * (0.6 / to_sun[2])
-    shadow = (np.abs(up[..., 0]) < 0.8) & (np.abs(up[..., 1]) < 0.4) & ~on_card
-    lit = ~on_card & ~((np.abs(up[..., 0]) < 1.0) & (np.abs(up[..., 1]) < 0.6)) & (np.abs(floor_hit[..., 0]) > 0.2)
+    # the card's unposed left half shadows these floor pixels; far from any part of the card, the floor is lit
+    shadow = (up[..., 0] > -0.8) & (up[..., 0] < -0.05) & (np.abs(up[..., 1]) < 0.4) & ~on_card
+    lit = ~on_card & ~((np.abs(up[..., 0]) < 1.0) & (up[..., 1] > -0.6) & (up[..., 1] < 1.3)) \
+        & (np.abs(floor_hit[..., 0]) > 0.2)
     lum = rgb.mean(-1)
     out["shadow_px"], out["lit_px"] = int(shadow.sum()), int(lit.sum())
     out["shadow_lum"], out["lit_lum"] = float(lum[shadow].mean()), float(lum[lit].mean())
     # the box hides the card; elsewhere on the card the neural colours show, over the floor
     bc, br = project(np.array([[0.5, 0.1, 0.475]]))[0]
     out["box_px"] = rgb[int(br), int(bc)].tolist()
+    out["layer_alpha_at_box"] = float(lay[int(br), int(bc), 3])  # the model is there, behind the box
     out["neural_at_box"] = neural[int(br), int(bc)].tolist()
+    # the paint follows the pose in the composited frame (lighter there: the layer's alpha shows some floor)
+    reddish = (rgb[..., 0] - rgb[..., 1:].max(-1)) > 0.25
+    rr, rc = np.nonzero(reddish)
+    out["red"] = [[float(rc.mean() + 0.5), float(rr.mean() + 0.5)] if len(rr) else [float("nan")] * 2, int(len(rr))]
+    out["red_expect"] = project(np.array([[0.45 * math.cos(math.pi / 4) - 0.15 * math.sin(math.pi / 4),
+                                           0.45 * math.sin(math.pi / 4) + 0.15 * math.cos(math.pi / 4), 0.0]]))[0].tolist()
     bx0, by0 = project(np.array([[0.34, 0.26, 0.475]]))[0]
     bx1, by1 = project(np.array([[0.66, -0.06, 0.475]]))[0]
     away = on_card & ~((cols > bx0 - 2) & (cols < bx1 + 2) & (rows > by0 - 2) & (rows < by1 + 2))
-    away &= (np.abs(card_hit[..., 0]) < 0.75) & (np.abs(card_hit[..., 1]) < 0.35)  # inside, no soft edge
+    away &= (card_hit[..., 0] > -0.75) & (card_hit[..., 0] < -0.1) & (np.abs(card_hit[..., 1]) < 0.35)  # left half
     out["card_px"] = int(away.sum())
     ai = mod("atlas_image")
     a = lay[..., 3:4]
