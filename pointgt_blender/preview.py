@@ -318,6 +318,9 @@ def update_previews(scene, depsgraph=None, force: bool = False, objects=None) ->
     returns {object name: what happened or 'error: ...'}; the same text becomes the object's status."""
     if S.busy:
         return {}
+    if S.job is not None:  # a running slice job would finish with what it read before this update
+        S.cancel()
+        S.dirty = True
     S.busy = True
     done = {}
     try:
