@@ -17,10 +17,10 @@ def extent(points: np.ndarray) -> float:
 def in_view(points: np.ndarray, c2w: np.ndarray, focal: float, width: int, height: int) -> np.ndarray:
     """[M] bool: world points [M, 3] in front of the camera (c2w [4, 4], looks down -Z) and inside its image."""
     c2w = np.asarray(c2w, dtype=np.float64)
-    cam = (np.asarray(points, dtype=np.float64) - c2w[:3, 3]) @ c2w[:3, :3]
-    z = -cam[:, 2]
-    front = z > 1e-9
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        cam = (np.asarray(points, dtype=np.float64) - c2w[:3, 3]) @ c2w[:3, :3]
+        z = -cam[:, 2]
+        front = z > 1e-9
         col = focal * cam[:, 0] / z + width / 2.0
         row = -focal * cam[:, 1] / z + height / 2.0
     return front & (col >= 0) & (col < width) & (row >= 0) & (row < height)
@@ -30,6 +30,8 @@ def pose_warning(name: str, positions: np.ndarray, rest_extent: float, c2w: np.n
                  width: int, height: int) -> str:
     """'' when the deformed points [M, 3] (world) look renderable from the camera, else one sentence saying what
     is wrong and what to check."""
+    if not np.isfinite(positions).all(axis=1).any():
+        return f"'{name}' has no finite point left: check its modifiers"
     ext = extent(positions)
     if rest_extent > 0 and ext < COLLAPSED * rest_extent:
         return (f"'{name}' collapsed: its points span {ext / rest_extent:.2g} of their rest size, so it renders "
