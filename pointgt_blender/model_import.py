@@ -135,7 +135,7 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
     proxy_faces: bpy.props.IntProperty(name="Proxy faces", default=4000, min=50, max=200000)
     check_blank: bpy.props.BoolProperty(name="Check the model renders", default=True,
                                         description="Render the model small from six sides and warn when it shows "
-                                                    "nothing (needs PyTorch; about a second)")
+                                                    "nothing (needs PyTorch; the first check also loads it)")
 
     def execute(self, context):
         try:
