@@ -57,7 +57,7 @@ def build_proxy(context, obj, path: str, target_faces: int = 4000):
     mesh.polygons.foreach_set("loop_start", np.arange(0, tris.size, 3, dtype=np.int32))
     mesh.update(calc_edges=True)
     layer = mesh.uv_layers.new(name=UV_NAME)
-    layer.data.foreach_set("uv", uv[tris.reshape(-1)].reshape(-1))
+    layer.data.foreach_set("uv", np.ascontiguousarray(uv, dtype=np.float32).reshape(-1))
     mesh.validate()
     if obj.pointgt.atlas is not None:
         mesh.materials.append(atlas_material(obj.name + " atlas", obj.pointgt.atlas))

@@ -392,10 +392,16 @@ def _():
     rest = np.empty(len(o.data.vertices) * 3, np.float32)
     o.data.vertices.foreach_get("co", rest)
     rest = rest.reshape(-1, 3)[ids]
-    right, left = rest[:, 0] > 0.3, rest[:, 0] < -0.3
+    right, left = rest[:, 0] > 0.6, rest[:, 0] < -0.6  # away from the joint at x = 0
     out["right_error"] = float(np.linalg.norm(pos[right] - turn(rest[right], 90.0), axis=1).mean())
     out["left_moved"] = float(np.linalg.norm(pos[left] - rest[left], axis=1).mean())
     out["right_moved"] = float(np.linalg.norm(pos[right] - rest[right], axis=1).mean())
+    # near the joint the heat weights blend the two bones: points between rest and the full turn
+    full = np.linalg.norm(turn(rest, 90.0) - rest, axis=1)
+    moved = np.linalg.norm(pos - rest, axis=1)
+    share = np.where(full > 1e-3, moved / np.maximum(full, 1e-3), 0.0)
+    out["blended"] = int(((share > 0.1) & (share < 0.9)).sum())
+    out["points"] = int(len(rest))
     # 45 degrees: the paint follows in the neural render
     pb.rotation_euler = (0.0, 0.0, math.radians(45.0))
     bpy.context.view_layer.update()

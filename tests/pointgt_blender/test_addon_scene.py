@@ -138,8 +138,10 @@ def test_surface_proxy_shows_the_atlas_and_paint_through_its_uvs_lands_where_the
 def test_automatic_weights_on_the_proxy_pose_the_neural_render(session):
     r = _get(session, "proxy")
     assert r["parent"] == ["FINISHED"] and r["error"] == ""
-    # a 90 degree turn of the right bone: the points on the right half turn with it, the left half stays
-    assert r["right_moved"] > 0.5 and r["right_error"] < 0.02 and r["left_moved"] < 0.02, r
+    # a 90 degree turn of the right bone: away from the joint the right end turns with it and the left end stays;
+    # near the joint the heat weights blend (not the stiff segments of Automatic Weights on bare points)
+    assert r["right_moved"] > 0.5 and r["right_error"] < 0.05 and r["left_moved"] < 0.02, r
+    assert r["blended"] >= 0.05 * r["points"], r
     # at 45 degrees the paint sits where its surface went in the neural render
     c, n = r["posed"]
     assert n >= 6, r
