@@ -6,7 +6,8 @@ as a subpackage of this add-on and its imports are made relative; see docs/addon
 
 Module layout (one job each): deps (torch detection, pip), preferences (status + install), properties
 (per-object settings), model_import, atlas_image, rig (lattice, armature), reset, evaluated (deformed points +
-checks), export, device_check, view3d_panel; preview (live preview images, handlers, paint transfer operators),
+checks), export, device_check, view3d_panel; session (the in-memory state, one clear()), handlers (every
+Blender handler and the UI timer), preview (coarse-to-fine preview jobs, paint transfer operators),
 render_engine (the "PointGT" engine), image_panel (Image Editor tab). Torch-only helpers, imported lazily:
 frame_renderer (model/state caches, compositing), scene_inputs, paint_transfer, camera.
 """
@@ -26,8 +27,8 @@ bl_info = {
     "category": "Render",
 }
 
-_MODULES = ("properties", "preferences", "model_import", "rig", "reset", "export", "device_check", "view3d_panel",
-            "preview", "render_engine", "image_panel")
+_MODULES = ("properties", "preferences", "model_import", "proxy", "rig", "reset", "export", "device_check", "view3d_panel",
+            "preview", "render_engine", "composite", "image_panel")
 _registered: list = []
 
 
@@ -42,21 +43,21 @@ def register():
         for cls in getattr(mod, "CLASSES", ()):
             bpy.utils.register_class(cls)
             _registered.append(cls)
-    from . import model_import, preferences, preview, properties, render_engine
+    from . import handlers, model_import, preferences, properties, render_engine
 
     properties.register_properties()
     model_import.register_menus()
     preferences.update_sys_path()
     render_engine.register_engine_panels()
-    preview.register_handlers()
+    handlers.register_handlers()
 
 
 def unregister():
     import bpy
 
-    from . import model_import, preferences, preview, properties, render_engine
+    from . import handlers, model_import, preferences, properties, render_engine
 
-    preview.unregister_handlers()
+    handlers.unregister_handlers()
     render_engine.unregister_engine_panels()
     preferences.remove_sys_path()
     model_import.unregister_menus()

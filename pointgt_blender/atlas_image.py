@@ -62,6 +62,27 @@ def new_atlas_image(name: str, atlas: np.ndarray):
     return image
 
 
+def copy_atlas_image(image, name: str):
+    """A packed copy of a Blender atlas image with bit-identical pixels (no colour conversion round trip)."""
+    import bpy
+
+    w, h = image.size
+    buf = np.empty(w * h * image.channels, dtype=np.float32)
+    image.pixels.foreach_get(buf)
+    copy = bpy.data.images.new(name, width=w, height=h, alpha=True, float_buffer=bool(image.is_float))
+    try:
+        copy.colorspace_settings.name = image.colorspace_settings.name
+        if image.channels != copy.channels:
+            raise InputError(f"image '{image.name}' has {image.channels} channels; PointGT atlases have 4")
+        copy.pixels.foreach_set(buf)
+        copy.update()
+        copy.pack()
+    except Exception:
+        bpy.data.images.remove(copy)
+        raise
+    return copy
+
+
 def read_atlas_image(image) -> np.ndarray:
     """The display-space atlas [H, W, 3] float32 (row 0 = top) held by a Blender image (painted or not)."""
     w, h = image.size

@@ -7,10 +7,10 @@ import numpy as np
 from bpy_extras.io_utils import ExportHelper
 
 from core.util.atomic import atomic_write_bytes
-from core.util.errors import PointGTError
 
 from .evaluated import evaluated_points
 from .properties import poll_active_model
+from .reporting import reports_errors
 
 
 def npy_bytes(array: np.ndarray) -> bytes:
@@ -57,16 +57,10 @@ class POINTGT_OT_export_deformed(bpy.types.Operator, ExportHelper):
             self.filepath = f"{context.active_object.name}_frame{context.scene.frame_current:04d}.npy"
         return ExportHelper.invoke(self, context, event)
 
+    @reports_errors("Exporting '{obj}'")
     def execute(self, context):
         obj = context.active_object
-        try:
-            p_path, i_path, m = export_deformed(obj, context.evaluated_depsgraph_get(), self.filepath, self.space)
-        except PointGTError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
-        except Exception as exc:
-            self.report({'ERROR'}, f"Exporting '{obj.name}' failed: {type(exc).__name__}: {exc}")
-            return {'CANCELLED'}
+        p_path, i_path, m = export_deformed(obj, context.evaluated_depsgraph_get(), self.filepath, self.space)
         self.report({'INFO'}, f"Wrote {m} points to {os.path.basename(p_path)} and {os.path.basename(i_path)}")
         return {'FINISHED'}
 

@@ -15,6 +15,7 @@ import torch
 
 from core.bundle import load_bundle
 from core.frames.edited import EditConfig, EditState, render_edited
+from core.frames.render import trace_frame
 from core.util.errors import InputError, ModelFileError
 
 CORRESPONDENCE = {'DEFORM_AWARE': "deform-aware", 'NAIVE': "naive", 'DEFORM_GRADIENT': "deform-gradient"}
@@ -35,6 +36,7 @@ class ObjectInputs:
     ids: np.ndarray
     atlas: np.ndarray | None = None
     antialias: int = 2        # painted texels per pixel side (EditConfig.antialias)
+    rest_extent: float = 0.0  # bounding-box diagonal of the undeformed points in world space (pose warnings)
 
 
 class ModelCache:
@@ -102,7 +104,9 @@ STATES = StateCache()
 
 
 def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCache = STATES):
-    """The EditState for one object's inputs (model loaded and checked against the object)."""
+    """The EditState for one object's inputs (model loaded and checked against the object). The object's K is
+    not stored in the cached model (two objects of one model may use different K): pass `inputs.k` to
+    `trace_layer` / `render_layer`."""
     bundle = models.get(inputs.model_path, inputs.device)
     n = bundle.model.num_points
     if inputs.point_count and inputs.point_count != n:
@@ -110,18 +114,31 @@ def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCach
                              f"{inputs.point_count}; the file was replaced by another model - re-import it")
     if inputs.atlas is not None and bundle.atlas is None:
         inputs = dataclasses.replace(inputs, atlas=None)  # a points-only model: nothing to paint yet
-    if bundle.model.cfg.k != inputs.k:  # the object's K setting; the cached model follows it
-        bundle.model.cfg = dataclasses.replace(bundle.model.cfg, k=int(inputs.k))
     cfg = EditConfig(correspondence=CORRESPONDENCE[inputs.correspondence], antialias=int(inputs.antialias))
     state, _ = states.get(inputs, bundle, cfg)
     return state
 
 
-def render_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float) -> dict:
-    """One model over a black background: premultiplied display-space colour [H, W, 3], alpha [H, W], depth
-    [H, W] along the ray (inf off the object) and the raw result of `render_edited`."""
+def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float,
+                k: int | None = None) -> dict:
+    """Neighbours and attention of one model's frame (core `trace_frame` with the state's points and the
+    object's K; None: the model's own K): the expensive half of `render_layer`, so a preview can yield between
+    the two. Returns the trace dict (flat per-ray tensors, R = height * width)."""
     c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float32))
-    res = render_edited(state, c2w_t, height, width, focal, background=(0.0, 0.0, 0.0))
+    return trace_frame(state.bundle.model, c2w_t, height, width, focal, points=state.points,
+                       influence=state.influence, k=None if k is None else int(k),
+                       temperature=state.cfg.temperature)
+
+
+def render_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float, k: int | None = None,
+                 trace: dict | None = None) -> dict:
+    """One model over a black background: premultiplied display-space colour [H, W, 3], alpha [H, W], depth
+    [H, W] along the ray (inf off the object) and the raw result of `render_edited`. k: neighbours per ray
+    (None: the model's own); trace: from `trace_layer` with the same arguments (skips tracing)."""
+    c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float32))
+    if trace is None:
+        trace = trace_layer(state, c2w, height, width, focal, k)
+    res = render_edited(state, c2w_t, height, width, focal, background=(0.0, 0.0, 0.0), trace=trace)
     tr = res["trace"]
     alpha = res["alpha"].clamp(0, 1)
     depth = ((tr["x"] - tr["origins"]) * tr["dirs"]).sum(-1).reshape(height, width)
@@ -152,3 +169,39 @@ def composite(layers: list[dict], background=(1.0, 1.0, 1.0), transparent: bool 
     else:
         rgb = acc + (1.0 - acc_a)[..., None] * np.asarray(background, dtype=np.float32)
     return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0).astype(np.float32), np.clip(acc_a, 0.0, 1.0)
+
+
+@torch.no_grad()
+def blank_warning(path: str, device: str = "cpu", size: int = 48, models: ModelCache = MODELS,
+                  label: str = "") -> str:
+    """'' when the model at `path` shows something, else a warning: it is rendered at size x size from six
+    cameras around its points (bounding box in view, the model's own K) and counts as blank when no view has
+    at least 1 % of its pixels covered (alpha > 0.5) or no pixel differs from the white it was trained over.
+    label: the model's name in the message (default: the file name)."""
+    from core.frames.render import render_frame
+    from core.images.cameras import look_at
+
+    label = label or os.path.basename(path)
+    bundle = models.get(path, device)
+    xyz = bundle.model.xyz.detach()
+    xyz = xyz[torch.isfinite(xyz).all(1)]
+    if xyz.shape[0] == 0:
+        return f"{label}: the model has no finite points, so it renders blank"
+    lo, hi = xyz.min(0).values, xyz.max(0).values
+    centre, radius = (lo + hi) / 2, float((hi - lo).norm()) / 2 + 1e-6
+    focal = size / 2 / np.tan(np.radians(20.0))
+    best_cover, best_content = 0.0, 0.0
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            d = torch.zeros(3)
+            d[axis] = sign
+            up = (0.0, 1.0, 0.0) if axis == 2 else (0.0, 0.0, 1.0)
+            eye = centre.cpu() + d * radius * 3.2
+            c2w = look_at(eye.tolist(), centre.cpu().tolist(), up)
+            res = render_frame(bundle.model, c2w, size, size, float(focal), background=(1.0, 1.0, 1.0))
+            best_cover = max(best_cover, float((res["alpha"] > 0.5).float().mean()))
+            best_content = max(best_content, float((1.0 - res["rgb"]).abs().max()))
+    if best_cover < 0.01 or best_content < 0.02:
+        return (f"{label} renders blank: seen from six sides it covers {best_cover:.1%} of the "
+                f"view at most; the model may not be trained (refit it), or it was saved from a failed run")
+    return ""

@@ -101,6 +101,12 @@ class POINTGT_PT_image(bpy.types.Panel):
         col = layout.column()
         col.prop(s, "preview_image")
         col.prop(s, "atlas")
+        shared = preview.atlas_users(obj)
+        if shared:
+            box = col.box()
+            box.label(text=f"Atlas shared with {', '.join(o.name for o in shared[:3])}"
+                           f"{' ...' if len(shared) > 3 else ''}: painting changes both", icon='LINKED')
+            box.operator("pointgt.single_user_atlas", icon='DUPLICATE')
         col.prop(s, "preview_resolution")
         col.prop(s, "correspondence")
         col.prop(s, "antialias")

@@ -6,10 +6,11 @@ import numpy as np
 from bpy_extras.io_utils import ImportHelper
 
 from core.modelfile.pgt import PgtFile
-from core.util.errors import ModelFileError, PointGTError
+from core.util.errors import InputError, ModelFileError, PointGTError
 
 from . import atlas_image
-from .properties import ID_ATTRIBUTE
+from .properties import ID_ATTRIBUTE, poll_active_model
+from .reporting import reports_errors
 
 POINTS = "points/xyz"
 ATLAS = "atlas/image"
@@ -61,10 +62,10 @@ def new_points_mesh(name: str, xyz: np.ndarray):
     return mesh
 
 
-def import_model(context, path: str, name: str = "", **settings):
+def import_model(context, path: str, name: str = "", pack: bool = True, **settings):
     """Create the points object (+ packed atlas image) for the model at `path` and make it active.
-    `settings`: preview_resolution, neighbors, correspondence, device. Raises PointGTError; on any error nothing
-    is left behind."""
+    pack: also pack the model file into the .blend (model_pack). `settings`: preview_resolution, neighbors,
+    correspondence, device. Raises PointGTError; on any error nothing is left behind."""
     path = bpy.path.abspath(path)
     if not os.path.isfile(path):
         raise ModelFileError(f"{path}: file not found; choose an existing .pgt model")
@@ -89,6 +90,13 @@ def import_model(context, path: str, name: str = "", **settings):
         s.model_path = stored_path(path)
         s.point_count = xyz.shape[0]
         s.atlas = image
+        if pack:
+            from .model_pack import pack_file
+
+            text = pack_file(path)
+            if text.users == 0:
+                created.append((bpy.data.texts, text))
+            s.packed_model = text
         for key, value in settings.items():
             setattr(s, key, value)
         (context.collection or context.scene.collection).objects.link(obj)
@@ -118,6 +126,16 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
         name="Correspondence", default='DEFORM_AWARE',
         items=[('DEFORM_AWARE', "Deform-aware", ""), ('NAIVE', "Naive", ""), ('DEFORM_GRADIENT', "Deform-gradient", "")])
     device: bpy.props.EnumProperty(name="Device", default='CPU', items=[('CPU', "CPU", ""), ('CUDA', "CUDA", "")])
+    pack_model: bpy.props.BoolProperty(name="Pack model into .blend", default=True,
+                                       description="Keep a copy of the .pgt inside the .blend, so the .blend renders "
+                                                   "without the model file (Unpack Model writes it out again)")
+    add_proxy: bpy.props.BoolProperty(name="Surface proxy", default=True,
+                                      description="Also make the surface proxy mesh (UV-mapped into the atlas, "
+                                                  "paintable in 3-D) and let the points follow it")
+    proxy_faces: bpy.props.IntProperty(name="Proxy faces", default=4000, min=50, max=200000)
+    check_blank: bpy.props.BoolProperty(name="Check the model renders", default=True,
+                                        description="Render the model small from six sides and warn when it shows "
+                                                    "nothing (needs PyTorch; the first check also loads it)")
 
     def execute(self, context):
         try:
@@ -125,7 +143,7 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
                             device=self.device)
             if self.properties.is_property_set("neighbors"):
                 settings["neighbors"] = self.neighbors
-            obj = import_model(context, self.filepath, **settings)
+            obj = import_model(context, self.filepath, pack=self.pack_model, **settings)
         except PointGTError as exc:
             self.report({'ERROR'}, str(exc))
             return {'CANCELLED'}
@@ -134,7 +152,102 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
             return {'CANCELLED'}
         atlas = obj.pointgt.atlas
         extra = f", atlas {atlas.size[0]}x{atlas.size[1]}" if atlas else " (the model has no atlas yet)"
+        extra += ", packed into the .blend" if obj.pointgt.packed_model else ""
+        if self.add_proxy and obj.pointgt.atlas is not None:
+            from .proxy import add_proxy
+
+            try:
+                proxy = add_proxy(context, obj, bpy.path.abspath(self.filepath), self.proxy_faces)
+                extra += f", proxy '{proxy.name}' ({len(proxy.data.polygons)} faces)"
+            except PointGTError as exc:
+                self.report({'WARNING'}, f"No surface proxy: {exc}")
+            except Exception as exc:
+                self.report({'WARNING'}, f"No surface proxy: {type(exc).__name__}: {exc}")
+            context.view_layer.objects.active = obj
         self.report({'INFO'}, f"Imported '{obj.name}': {obj.pointgt.point_count} points{extra}")
+        warning = blank_warning(obj) if self.check_blank else ""
+        if warning:
+            self.report({'WARNING'}, warning)
+        return {'FINISHED'}
+
+
+def blank_warning(obj) -> str:
+    """The renderer's warning when the object's model renders blank ('' when it shows something, or when PyTorch
+    is missing: then nothing can be checked). The warning also becomes the object's status line."""
+    from . import deps
+
+    if not deps.torch_status().available:
+        return ""
+    from . import frame_renderer, preview, scene_inputs
+
+    try:
+        warning = frame_renderer.blank_warning(scene_inputs.model_file(obj), obj.pointgt.device.lower(),
+                                               label=os.path.basename(bpy.path.abspath(obj.pointgt.model_path)))
+    except PointGTError as exc:
+        warning = str(exc)
+    if warning:
+        preview.set_status(obj, f"Warning: {warning}")
+    return warning
+
+
+class POINTGT_OT_pack_model(bpy.types.Operator):
+    """Pack the model file into the .blend, so the .blend renders without it"""
+    bl_idname = "pointgt.pack_model"
+    bl_label = "Pack Model"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        if not poll_active_model(cls, context):
+            return False
+        if context.active_object.pointgt.packed_model is not None:
+            cls.poll_message_set("The model is packed already")
+            return False
+        return True
+
+    @reports_errors("Packing the model of '{obj}'")
+    def execute(self, context):
+        from .model_pack import pack_file
+
+        obj = context.active_object
+        path = bpy.path.abspath(obj.pointgt.model_path)
+        if not os.path.isfile(path):
+            raise ModelFileError(f"{path}: model file not found; point the Model setting to the .pgt first")
+        read_model(path)  # refuse a damaged file
+        obj.pointgt.packed_model = pack_file(path)
+        self.report({'INFO'}, f"Packed {os.path.basename(path)} into the .blend")
+        return {'FINISHED'}
+
+
+class POINTGT_OT_unpack_model(bpy.types.Operator):
+    """Write the packed model to a .pgt file and use that file instead of the packed copy"""
+    bl_idname = "pointgt.unpack_model"
+    bl_label = "Unpack Model"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    filepath: bpy.props.StringProperty(name="File", subtype='FILE_PATH',
+                                       description="Where to write the model (default: the model path, or "
+                                                   "'//<name>.pgt' next to the .blend)")
+
+    @classmethod
+    def poll(cls, context):
+        if not poll_active_model(cls, context):
+            return False
+        if context.active_object.pointgt.packed_model is None:
+            cls.poll_message_set("The model is not packed")
+            return False
+        return True
+
+    @reports_errors("Unpacking the model of '{obj}'")
+    def execute(self, context):
+        from .model_pack import unpack
+
+        obj = context.active_object
+        target = self.filepath or obj.pointgt.model_path or f"//{obj.name}.pgt"
+        if target.startswith("//") and not bpy.data.filepath:
+            raise InputError("save the .blend first, or choose an absolute file to unpack into")
+        path = unpack(obj, target)
+        self.report({'INFO'}, f"Wrote the model of '{obj.name}' to {path}")
         return {'FINISHED'}
 
 
@@ -147,34 +260,28 @@ def relative_to(path: str, blend_path: str) -> str:
         return absolute
 
 
-@bpy.app.handlers.persistent
-def _relative_model_paths(filepath, *_args):
-    """save_pre handler: models imported before the .blend had a location get paths relative to where it is
-    saved now (when Blender's 'Default relative paths' preference is on), so a project folder can move."""
-    try:
-        if not filepath or not bpy.context.preferences.filepaths.use_relative_paths:
-            return
-        for obj in bpy.data.objects:
-            s = getattr(obj, "pointgt", None)
-            if s is not None and s.is_model and s.model_path:
-                s.model_path = relative_to(s.model_path, filepath)
-    except Exception as exc:  # a save must never fail because of the add-on
-        print(f"PointGT: could not make model paths relative: {exc}")
+def relative_model_paths(filepath: str) -> None:
+    """Called before saving to `filepath`: models imported before the .blend had a location get paths relative
+    to where it is saved now (when Blender's 'Default relative paths' preference is on), so a project folder can
+    move."""
+    if not filepath or not bpy.context.preferences.filepaths.use_relative_paths:
+        return
+    for obj in bpy.data.objects:
+        s = getattr(obj, "pointgt", None)
+        if s is not None and s.is_model and s.model_path:
+            s.model_path = relative_to(s.model_path, filepath)
 
 
 def menu_import(self, context):
     self.layout.operator(POINTGT_OT_import_model.bl_idname, text="PointGT Model (.pgt)")
 
 
-CLASSES = (POINTGT_OT_import_model,)
+CLASSES = (POINTGT_OT_import_model, POINTGT_OT_pack_model, POINTGT_OT_unpack_model)
 
 
 def register_menus():
     bpy.types.TOPBAR_MT_file_import.append(menu_import)
-    bpy.app.handlers.save_pre.append(_relative_model_paths)
 
 
 def unregister_menus():
     bpy.types.TOPBAR_MT_file_import.remove(menu_import)
-    if _relative_model_paths in bpy.app.handlers.save_pre:
-        bpy.app.handlers.save_pre.remove(_relative_model_paths)

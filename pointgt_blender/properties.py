@@ -13,6 +13,9 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
                                      description="This object holds the points of a PointGT model")
     model_path: bpy.props.StringProperty(name="Model", subtype='FILE_PATH', options=PATH_OPTIONS,
                                          description="The .pgt model file (relative to the .blend when possible)")
+    packed_model: bpy.props.PointerProperty(name="Packed model", type=bpy.types.Text,
+                                            description="The model packed into the .blend (used instead of the "
+                                                        "model file while set)")
     point_count: bpy.props.IntProperty(name="Points", min=0, description="Number of points in the model")
     atlas: bpy.props.PointerProperty(name="Atlas", type=bpy.types.Image,
                                      description="The paintable texture atlas of the model (packed in the .blend)")
@@ -34,6 +37,9 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
         name="Device", default='CPU',
         items=[('CPU', "CPU", "Run the network on the processor"),
                ('CUDA', "CUDA", "Run the network on an NVIDIA GPU (needs a CUDA build of PyTorch)")])
+    proxy: bpy.props.PointerProperty(name="Proxy", type=bpy.types.Object,
+                                     description="The surface proxy mesh of this model (UV-mapped into the atlas; "
+                                                 "the points follow it when bound with Surface Deform)")
     preview_image: bpy.props.PointerProperty(name="Preview", type=bpy.types.Image,
                                              description="The live preview of this model from the scene camera "
                                                          "(paint on it to paint the atlas)")
@@ -49,6 +55,10 @@ class PointGTSceneSettings(bpy.types.PropertyGroup):
     transfer_threshold: bpy.props.FloatProperty(
         name="Paint threshold", default=0.02, min=0.0, max=1.0,
         description="A preview pixel counts as painted when its colour changed by more than this")
+    composite: bpy.props.BoolProperty(
+        name="Composite with scene", default=False,
+        description="Before each frame Cycles or EEVEE renders, render the PointGT models into the 'PointGT layer' "
+                    "and 'PointGT depth' images that the compositor merges with the scene by depth")
     background: bpy.props.FloatVectorProperty(
         name="Background", subtype='COLOR_GAMMA', size=3, default=(1.0, 1.0, 1.0), min=0.0, max=1.0,
         description="Colour behind the models in previews and renders (Film > Transparent renders alpha instead)")

@@ -15,7 +15,7 @@ import numpy as np
 
 from core.util.errors import InputError, PointGTError
 
-from . import atlas_image, deps
+from . import atlas_image, checks, deps
 from .properties import is_pointgt_object
 
 LAST: dict = {}  # the last render's warnings / error / stats (read by tests and the panel)
@@ -43,13 +43,17 @@ def render_pixels(depsgraph, width: int, height: int, progress=None, cancelled=N
         raise InputError(f"scene '{scene.name}' shows no PointGT model to render; import one (File > Import > "
                          f"PointGT Model) or enable its render visibility")
     c2w, focal = scene_camera(scene, width, height, depsgraph)
-    layers = []
+    layers, warnings = [], []
     for i, obj in enumerate(objs):
         if cancelled is not None and cancelled():
             return None
         scene_inputs.check_device(obj)
-        state = frame_renderer.prepare(scene_inputs.object_inputs(obj, depsgraph))
-        layers.append(frame_renderer.render_layer(state, c2w, height, width, focal))
+        inputs = scene_inputs.object_inputs(obj, depsgraph)
+        warning = checks.pose_warning(obj.name, inputs.positions, inputs.rest_extent, c2w, focal, width, height)
+        if warning:
+            warnings.append(warning)
+        state = frame_renderer.prepare(inputs)
+        layers.append(frame_renderer.render_layer(state, c2w, height, width, focal, k=inputs.k))
         if progress is not None:
             progress((i + 1) / len(objs))
     transparent = bool(scene.render.film_transparent)
@@ -62,6 +66,8 @@ def render_pixels(depsgraph, width: int, height: int, progress=None, cancelled=N
     else:
         rgba[..., 3] = 1.0
     LAST["stats"] = [l["result"]["stats"] for l in layers]
+    if warnings:
+        LAST["pose_warnings"] = warnings
     return np.ascontiguousarray(rgba[::-1]).reshape(-1)
 
 
@@ -80,6 +86,9 @@ class PointGTRenderEngine(bpy.types.RenderEngine):
                 raise InputError(st.message)
             from . import scene_inputs
 
+            if scene.pointgt.composite and scene.render.use_compositing:
+                raise InputError("Composite with Scene is set up: render with Cycles or EEVEE (they render the "
+                                 "scene and PointGT adds its layer), or switch the scene's Compositing off")
             warning = scene_inputs.view_transform_warning(scene)
             if warning:
                 LAST["warning"] = warning
@@ -87,6 +96,9 @@ class PointGTRenderEngine(bpy.types.RenderEngine):
             self.update_stats("PointGT", f"Frame {scene.frame_current}: rendering")
             pixels = render_pixels(depsgraph, width, height, progress=self.update_progress,
                                    cancelled=self.test_break)
+            for text in LAST.get("pose_warnings", ()):
+                LAST["warning"] = text
+                self.report({'WARNING'}, f"PointGT: {text}")
         except PointGTError as exc:
             self._fail(str(exc))
             return

@@ -3,11 +3,12 @@ from the model file (after the mesh itself was edited)."""
 import bpy
 import numpy as np
 
-from core.util.errors import InputError, PointGTError
+from core.util.errors import InputError
 
 from .evaluated import read_points
 from .model_import import read_model
 from .properties import poll_active_model
+from .reporting import reports_errors
 
 DEFORM_MODIFIERS = {'ARMATURE', 'LATTICE', 'CAST', 'CURVE', 'DISPLACE', 'HOOK', 'LAPLACIANDEFORM', 'MESH_DEFORM',
                     'SIMPLE_DEFORM', 'SMOOTH', 'CORRECTIVE_SMOOTH', 'LAPLACIANSMOOTH', 'SURFACE_DEFORM', 'WARP',
@@ -30,7 +31,9 @@ def reset_modifiers(obj, action: str = 'DISABLE') -> int:
 def restore_positions(obj) -> int:
     """Write the model's canonical positions back into the mesh, matched by point id (works after points were
     deleted or duplicated in Edit Mode); returns the number of points written."""
-    xyz, _atlas, _meta = read_model(bpy.path.abspath(obj.pointgt.model_path))
+    from .scene_inputs import model_file
+
+    xyz, _atlas, _meta = read_model(model_file(obj))
     _pos, ids = read_points(obj.data)
     if ids is None:
         raise InputError(f"object '{obj.name}' lost its 'pointgt_id' attribute; re-import the model")
@@ -65,19 +68,13 @@ class POINTGT_OT_reset_canonical(bpy.types.Operator):
             return False
         return True
 
+    @reports_errors("Resetting '{obj}'")
     def execute(self, context):
         obj = context.active_object
-        try:
-            n = reset_modifiers(obj, self.action)
-            msg = f"{'Removed' if self.action == 'REMOVE' else 'Disabled'} {n} deform modifier(s) on '{obj.name}'"
-            if self.restore_positions:
-                msg += f"; restored {restore_positions(obj)} point positions"
-        except PointGTError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
-        except Exception as exc:
-            self.report({'ERROR'}, f"Resetting '{obj.name}' failed: {type(exc).__name__}: {exc}")
-            return {'CANCELLED'}
+        n = reset_modifiers(obj, self.action)
+        msg = f"{'Removed' if self.action == 'REMOVE' else 'Disabled'} {n} deform modifier(s) on '{obj.name}'"
+        if self.restore_positions:
+            msg += f"; restored {restore_positions(obj)} point positions"
         self.report({'INFO'}, msg)
         return {'FINISHED'}
 

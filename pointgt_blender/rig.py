@@ -131,6 +131,16 @@ def bind_from_proxy(context, obj, arm, proxy) -> int:
     return len(names)
 
 
+def unweighted_points(obj, arm) -> int:
+    """How many of the object's points have no weight in any vertex group named after a deforming bone of `arm`
+    (no bone moves them)."""
+    bones = {g.index for g in obj.vertex_groups
+             if g.name in arm.data.bones and arm.data.bones[g.name].use_deform}
+    if not bones:
+        return len(obj.data.vertices)
+    return sum(1 for v in obj.data.vertices if not any(g.group in bones and g.weight > 0 for g in v.groups))
+
+
 def _pick(context, name: str, kind: str, exclude):
     if name:
         obj = bpy.data.objects.get(name)
@@ -203,7 +213,12 @@ class POINTGT_OT_bind_armature(bpy.types.Operator):
                 if proxy is None:
                     raise InputError("select a mesh with vertex groups as the proxy (the points active)")
                 n = bind_from_proxy(context, obj, arm, proxy)
-                self.report({'INFO'}, f"Bound '{obj.name}' to '{arm.name}' with {n} groups from '{proxy.name}'")
+                still = unweighted_points(obj, arm)
+                if still:
+                    self.report({'WARNING'}, f"{still} of {len(obj.data.vertices)} points got no bone weight from "
+                                             f"'{proxy.name}' and will not move; weight the proxy where they are")
+                else:
+                    self.report({'INFO'}, f"Bound '{obj.name}' to '{arm.name}' with {n} groups from '{proxy.name}'")
         except PointGTError as exc:
             self.report({'ERROR'}, str(exc))
             return {'CANCELLED'}

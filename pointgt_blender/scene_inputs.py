@@ -11,12 +11,17 @@ import numpy as np
 from core.util.errors import InputError
 
 from . import atlas_image
-from .evaluated import evaluated_points
+from .evaluated import evaluated_points, to_world
 
 
 def model_file(obj) -> str:
-    """The object's model path, absolute ('//' resolved against the .blend, or its library)."""
+    """The file to load the object's model from: the packed copy when the model is packed into the .blend, else
+    the model path, absolute ('//' resolved against the .blend, or its library)."""
     s = obj.pointgt
+    if s.packed_model is not None:
+        from .model_pack import extracted_path
+
+        return extracted_path(s.packed_model)
     if not s.model_path:
         raise InputError(f"object '{obj.name}': no model file set; choose the .pgt in the PointGT sidebar")
     return os.path.normpath(bpy.path.abspath(s.model_path, library=obj.library))
@@ -61,7 +66,17 @@ def object_inputs(obj, depsgraph):
     atlas = ATLASES.read(s.atlas) if s.atlas is not None else None
     return ObjectInputs(name=obj.name, model_path=model_file(obj), device=s.device.lower(), k=int(s.neighbors),
                         correspondence=s.correspondence, point_count=int(s.point_count), positions=positions,
-                        ids=ids, atlas=atlas, antialias=int(s.antialias))
+                        ids=ids, atlas=atlas, antialias=int(s.antialias), rest_extent=rest_extent(obj))
+
+
+def rest_extent(obj) -> float:
+    """Bounding-box diagonal of the object's undeformed points in world space."""
+    from .checks import extent
+
+    mesh = obj.data
+    co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    return extent(to_world(co.reshape(-1, 3), obj.matrix_world))
 
 
 def check_device(obj) -> None:

@@ -1,6 +1,7 @@
 """The PointGT tab in the 3D Viewport sidebar: dependency status, import, model settings, rig and export."""
 import bpy
 
+from . import preview
 from .preferences import draw_dependency_status
 from .properties import is_pointgt_object
 
@@ -23,8 +24,22 @@ class POINTGT_PT_main(bpy.types.Panel):
         s = obj.pointgt
         col = layout.column()
         col.prop(s, "model_path")
+        row = col.row(align=True)
+        if s.packed_model is not None:
+            row.label(text=f"Packed in the .blend ({s.packed_model.name})", icon='PACKAGE')
+            row.operator("pointgt.unpack_model", text="", icon='UGLYPACKAGE')
+        else:
+            row.label(text="Not packed: the .blend needs the file", icon='ERROR')
+            row.operator("pointgt.pack_model", text="", icon='PACKAGE')
+        text = preview.status(obj)
+        if text.startswith("Warning"):
+            col.label(text=text, icon='ERROR')
         col.label(text=f"{s.point_count} points")
         col.prop(s, "atlas")
+        shared = preview.atlas_users(obj)
+        if shared:
+            col.label(text=f"Atlas shared with {len(shared)} other model(s)", icon='LINKED')
+            col.operator("pointgt.single_user_atlas", icon='DUPLICATE')
         col.prop(s, "preview_resolution")
         col.prop(s, "neighbors")
         col.prop(s, "correspondence")
@@ -35,6 +50,7 @@ class POINTGT_PT_main(bpy.types.Panel):
 
         layout.label(text="Rig")
         col = layout.column(align=True)
+        col.operator("pointgt.add_proxy", icon='MESH_ICOSPHERE')
         col.operator("pointgt.add_lattice", icon='OUTLINER_OB_LATTICE')
         col.operator("pointgt.bind_armature", text="Bind to Armature (envelopes)",
                      icon='OUTLINER_OB_ARMATURE').mode = 'ENVELOPE'
@@ -42,6 +58,7 @@ class POINTGT_PT_main(bpy.types.Panel):
                      icon='MOD_DATA_TRANSFER').mode = 'PROXY'
         col.operator("pointgt.reset_canonical", icon='LOOP_BACK')
         layout.operator("pointgt.export_deformed", icon='EXPORT')
+        layout.operator("pointgt.setup_composite", icon='NODE_COMPOSITING')
 
 
 CLASSES = (POINTGT_PT_main,)

@@ -193,16 +193,19 @@ def _():
     prev = mod("preview")
     fr = mod("frame_renderer")
     counts = {}
-    scene.frame_set(2)  # frame_change_post renders the preview
+    scene.frame_set(2)  # frame_change_post asks for a preview; the idle timer's slices render it
+    prev.run_pending()
     img = obj().pointgt.preview_image
     counts["after_frame"] = prev.COUNTS["rendered"]
     bpy.context.view_layer.update()  # the image write triggered an update: nothing to redo
     scene.frame_set(2)
+    prev.run_pending()
     counts["same_frame"] = prev.COUNTS["rendered"]
     buf = np.empty(img.size[0] * img.size[1] * 4, np.float32)
     img.pixels.foreach_get(buf)
     frame2 = prev._RECORDS["card"].rendered.copy()
     scene.frame_set(3)
+    prev.run_pending()
     counts["next_frame"] = prev.COUNTS["rendered"]
     moved = float(np.abs(prev._RECORDS["card"].rendered - frame2).max())
     # painting the atlas (pixels written, as a stroke would) re-renders on the next depsgraph update
@@ -214,8 +217,9 @@ def _():
     raw2[:4 * atlas.size[0]] = 0.0  # the bottom row goes black
     atlas.pixels.foreach_set(raw2)
     atlas.update()
-    atlas.update_tag()  # as a paint stroke tags the image; the depsgraph handler re-renders
+    atlas.update_tag()  # as a paint stroke tags the image; the depsgraph handler asks for a new preview
     bpy.context.view_layer.update()
+    prev.run_pending()
     counts["after_paint"] = prev.COUNTS["rendered"]
     rebuilt = fr.STATES._items["card"][-1] is not before_states
     atlas.pixels.foreach_set(raw)  # undo
@@ -223,6 +227,7 @@ def _():
     atlas.update_tag()
     bpy.context.view_layer.update()
     scene.frame_set(1)
+    prev.run_pending()
     return {"size": list(img.size), "counts": counts, "moved": moved, "rebuilt": rebuilt,
             "status": prev.status(obj()), "image_name": img.name}
 
@@ -271,7 +276,8 @@ def _():
     img.pixels.foreach_set(mod("atlas_image").atlas_to_pixels(rgb))
     img.update()
     before_auto = mod("atlas_image").read_atlas_image(obj().pointgt.atlas)
-    prev._poll()  # one tick of the UI timer that looks for paint (headless, timers never fire by themselves)
+    prev.tick()  # one tick of the UI timer: it finds the paint (headless, timers never fire by themselves)
+    prev.run_pending()  # and the slices that follow transfer it
     after_auto = mod("atlas_image").read_atlas_image(obj().pointgt.atlas)
     auto_changed = int((np.linalg.norm(after_auto - before_auto, axis=-1) > 0.05).sum())
     # undo the yellow square so the rest of the session sees only the red and green patches
@@ -311,7 +317,8 @@ def _():
     bad[:3] = np.nan
     o.data.vertices.foreach_set("co", bad)
     o.data.update()
-    scene.frame_set(2)  # the handlers must swallow it into the status
+    scene.frame_set(2)  # the preview must swallow it into the status
+    prev.run_pending()
     out["nan_status"] = prev.status(o)
     out["nan_render"] = render_error(animation=True)
     out["kept"] = open(keep, "rb").read() == b"an earlier good frame"
@@ -332,10 +339,13 @@ def _():
     gn = o.modifiers.new("drop", 'NODES')
     gn.node_group = ng
     bpy.context.view_layer.update()
+    prev.run_pending()
     out["count_status"] = prev.status(o)
     out["count_render"] = render_error(write_still=False)
     o.modifiers.remove(gn)
-    # a missing model file, then one from a newer PointGT
+    # a missing model file, then one from a newer PointGT (the model path counts once the model is not packed)
+    packed = o.pointgt.packed_model
+    o.pointgt.packed_model = None
     good = o.pointgt.model_path
     o.pointgt.model_path = os.path.join(work, "gone.pgt")
     out["missing_render"] = render_error(write_still=False)
@@ -352,6 +362,7 @@ def _():
     out["newer_status"] = prev.update_previews(scene, force=True).get("card", "")
     out["newer_render"] = render_error(write_still=False)
     o.pointgt.model_path = good
+    o.pointgt.packed_model = packed
     out["recovered"] = prev.update_previews(scene, force=True).get("card", "")
     out["kept_end"] = open(keep, "rb").read() == b"an earlier good frame"
     return out

@@ -1,0 +1,145 @@
+"""Every Blender handler and timer of the add-on, in one place.
+
+Handlers do at most a cheap step: a change to the scene (depsgraph update, frame change) only marks the previews
+dirty (`preview.request`, constant time); the preview itself is rendered coarse-to-fine by the UI timer
+(`preview.tick` -> `preview.run_slice`) in slices of about 50 ms when Blender is idle, and a newer change cancels
+the running one. So a script's batch of operator calls (each a depsgraph update) costs nothing until Blender
+is idle again. Headless (`blender -b`, the bpy module) timers never fire; `preview.run_pending()` runs the
+slices. Each handler call's duration is kept in `SESSION.handler_ms` (tests hold it to <= 100 ms).
+"""
+from __future__ import annotations
+
+import time
+
+import bpy
+
+from . import atlas_image, model_import, preview
+from .session import SESSION
+
+FIRST_TICK = 0.05  # after a change, the timer looks again this soon (seconds)
+
+
+def _timed(fn):
+    """Run the handler body, never raise, and record how long it took."""
+    def wrapper(*args):
+        t0 = time.perf_counter()
+        try:
+            fn(*args)
+        except Exception as exc:  # a handler must never take Blender down
+            print(f"PointGT {fn.__name__}: {type(exc).__name__}: {exc}")
+        finally:
+            SESSION.handler_ms.append((time.perf_counter() - t0) * 1000.0)
+            del SESSION.handler_ms[:-1000]
+    wrapper.__name__ = fn.__name__
+    wrapper.__doc__ = fn.__doc__
+    return bpy.app.handlers.persistent(wrapper)
+
+
+def _preview_only(depsgraph) -> bool:
+    """The update holds nothing but preview images (written by the preview itself): nothing to redo."""
+    if depsgraph is None:
+        return False
+    ids = [u.id for u in depsgraph.updates]
+    return bool(ids) and all(isinstance(i, bpy.types.Image) and i.original.get(preview.OWNER) is not None
+                             for i in ids)
+
+
+def _wake():
+    """Bring the next timer call forward (UI only; headless there are no timers)."""
+    if bpy.app.background:
+        return
+    if bpy.app.timers.is_registered(preview.tick):
+        bpy.app.timers.unregister(preview.tick)
+    bpy.app.timers.register(preview.tick, first_interval=FIRST_TICK, persistent=True)
+
+
+@_timed
+def on_frame_change(scene, depsgraph=None):
+    if preview.live(scene):
+        preview.request(scene)
+        _wake()
+
+
+@_timed
+def on_depsgraph_update(scene, depsgraph=None):
+    if preview.live(scene) and not _preview_only(depsgraph):
+        preview.request(scene)
+        _wake()
+
+
+@_timed
+def on_load(*_args):
+    SESSION.clear()
+
+
+@_timed
+def on_undo(*_args):
+    """undo_post / redo_post: the preview images may hold other pixels now; forget what was written into them, so
+    the difference is never mistaken for paint (no atlas texel changes because of an undo)."""
+    SESSION.forget_previews()
+    scene = bpy.context.scene
+    if preview.live(scene):
+        preview.request(scene)
+
+
+@_timed
+def on_save(filepath="", *_args):
+    """save_pre: painted atlases are packed again (or the .blend would keep the atlas as imported); model paths
+    become relative to where the .blend is saved."""
+    atlas_image.repack_painted_atlases()
+    model_import.relative_model_paths(filepath)
+
+
+@_timed
+def on_render_start(*_args):
+    SESSION.rendering = True
+    SESSION.cancel()
+
+
+@_timed
+def on_render_pre(scene, *_args):
+    """render_pre: with Composite with Scene on and another engine rendering, the PointGT layer of this frame."""
+    if scene is None or not scene.pointgt.composite or scene.render.engine == 'POINTGT':
+        return
+    from . import composite, deps
+
+    st = deps.torch_status()
+    if not st.available:
+        print(f"PointGT: the PointGT layer is not rendered: {st.message}")
+        return
+    try:
+        composite.update_layer(scene)
+    except Exception as exc:
+        composite.clear_layer(scene)  # never a stale model from an earlier frame
+        SESSION.status["__composite__"] = f"PointGT layer failed: {type(exc).__name__}: {exc}"
+        raise
+
+
+@_timed
+def on_render_end(*_args):
+    SESSION.rendering = False
+
+
+HANDLERS = (("frame_change_post", on_frame_change), ("depsgraph_update_post", on_depsgraph_update),
+            ("load_post", on_load), ("save_pre", on_save), ("undo_post", on_undo), ("redo_post", on_undo),
+            ("render_init", on_render_start), ("render_pre", on_render_pre), ("render_complete", on_render_end),
+            ("render_cancel", on_render_end))
+
+
+def register_handlers():
+    for name, fn in HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        if fn not in lst:
+            lst.append(fn)
+    if not bpy.app.background and not bpy.app.timers.is_registered(preview.tick):
+        bpy.app.timers.register(preview.tick, first_interval=preview.POLL_SECONDS, persistent=True)
+
+
+def unregister_handlers():
+    for name, fn in HANDLERS:
+        lst = getattr(bpy.app.handlers, name)
+        if fn in lst:
+            lst.remove(fn)
+    if bpy.app.timers.is_registered(preview.tick):
+        bpy.app.timers.unregister(preview.tick)
+    SESSION.clear()

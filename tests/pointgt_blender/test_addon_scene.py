@@ -1,0 +1,164 @@
+"""The add-on in a Blender scene with other objects: duplicates, the non-blocking preview, a self-contained
+.blend, warnings and the surface proxy. One Blender subprocess (scene_session.py) runs every step with the tiny
+card model."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from core.modelfile import load_pgt, save_pgt
+
+from tests.pointgt_blender.tiny_pgt import train_tiny_card
+from tools.package_addon import build_addon
+
+pytestmark = pytest.mark.blender
+HERE = Path(__file__).parent
+
+
+def _run(script: Path, args: list[str], env: dict, cwd: Path) -> dict:
+    proc = subprocess.run([sys.executable, str(script), "--", *args], capture_output=True, text=True, env=env,
+                          timeout=600, cwd=cwd)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
+    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
+    return json.loads(lines[-1][len("RESULTS: "):])
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("scene")
+    zip_path = build_addon(tmp / "dist")
+    model = train_tiny_card(tmp / "card.pgt")
+    arrays, meta = load_pgt(model)
+    # attention goes to the background only
+    arrays["net/bg_logit"] = np.array(np.asarray(arrays["net/bg_logit"], dtype=np.float32) + np.float32(60.0),
+                                      dtype=np.float32, ndmin=1).reshape(np.shape(arrays["net/bg_logit"]))
+    blank = save_pgt(tmp / "blank.pgt", arrays, meta, backup=False,
+                     allow_nonfinite=[n for n in arrays if n.startswith("atlas/texel")])
+    work = tmp / "work"
+    work.mkdir()
+    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), OMP_NUM_THREADS="1")
+    r = _run(HERE / "scene_session.py", [str(zip_path), str(model), str(blank), str(work)], env, tmp)
+    if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows this session's frames
+        out = Path(os.environ["POINTGT_DOC_IMAGES"])
+        _strip([work / "proxy_rest.png", work / "proxy_posed.png"], out / "addon_proxy_paint_and_rig.png")
+        _strip([work / "scene_only.png", work / "composite.png"], out / "addon_composite_with_scene.png")
+    return {"r": r, "work": work, "model": model, "tmp": tmp, "env": env}
+
+
+def _strip(paths, target: Path) -> None:
+    """Frames side by side, 3x enlarged (nearest), for the docs."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    ims = [Image.open(p).convert("RGB") for p in paths]
+    w, h = ims[0].size
+    canvas = Image.new("RGB", (len(ims) * (3 * w + 4) - 4, 3 * h), "white")
+    for i, im in enumerate(ims):
+        canvas.paste(im.resize((3 * w, 3 * h), Image.NEAREST), (i * (3 * w + 4), 0))
+    canvas.save(target, optimize=True)
+
+
+def _get(session, step):
+    res = session["r"][step]
+    assert "trace" not in res, f"{step} failed: {res.get('trace')}"
+    return res
+
+
+def test_duplicates_and_moves_leave_the_atlas_bit_identical(session):
+    _get(session, "scene")
+    r = _get(session, "duplicates")
+    assert r["identical"], f"the atlas changed by up to {r['max_diff']}"
+    assert r["transfers"] == 0
+    assert r["renders"] >= 3  # each object's preview was rendered, into its own image
+    assert len(set(r["previews"])) == 3 and None not in r["previews"], r["previews"]
+    assert r["owners"] == r["names"]
+    assert sorted(r["shared"]) == sorted(r["names"][1:])  # the panel shows who shares the atlas
+    assert r["undo_steps"] >= 4 and r["undo_identical"] and r["undo_transfers"] == 0, r  # undo changes no texel
+
+
+def test_make_atlas_single_user_copies_it_bit_identical(session):
+    r = _get(session, "duplicates")
+    assert r["single_user"] == ["FINISHED"] and r["own_differs"] and r["own_identical"] and r["own_packed"]
+    assert r["shared_after"] == [r["names"][2]]  # only the linked duplicate still shares the original's atlas
+
+
+def test_handlers_only_mark_dirty_and_the_preview_renders_coarse_to_fine_when_idle(session):
+    r = _get(session, "nonblocking")
+    b = r["batch"]
+    assert b["requests"] >= 10 and b["rendered"] == 0 and b["levels"] == 0  # a batch of calls renders nothing
+    assert r["handler_calls"] >= 10 and r["handler_max_ms"] <= 100.0, r["handler_max_ms"]
+    assert r["levels"] == [[64, 48], [128, 96]]
+    assert r["idle"] == {"rendered": 1, "levels": 2, "jobs": 1}  # one job for the whole batch, two levels
+    assert r["refining_seen"] and r["final_status"].startswith("Preview 128x96")
+    assert r["slices"] >= 4  # the work came in several slices
+
+
+def test_a_new_change_cancels_the_running_preview(session):
+    r = _get(session, "nonblocking")
+    assert r["cancelled"] == 1
+    assert r["mean_x_after_move"] > 0.03  # the preview that finished shows the points after the last move
+
+
+def test_loud_warnings_for_blank_models_and_bad_poses(session):
+    r = _get(session, "warnings")
+    assert "renders blank" in r["blank_status"] and "blank.pgt" in r["blank_status"]
+    assert "Warning" not in r["good_status"]
+    assert "collapsed" in r["collapsed"] and "blew up" in r["exploded"]
+    assert "off-camera" in r["off_camera"] and "off-camera" in r["off_camera_render"]
+    assert r["back"].startswith("Preview ")
+
+
+def test_the_blend_renders_without_its_model_file(session):
+    r = _get(session, "packed")
+    assert r["packed"] and r["packed_size"] == (session["model"]).stat().st_size
+    assert r["error_after"] == ""
+    a = np.asarray(Image.open(session["work"] / "before.png"))
+    b = np.asarray(Image.open(session["work"] / "after.png"))
+    assert a.shape == b.shape and np.array_equal(a, b) and a[..., :3].std() > 0.01
+    assert r["unpack"] == ["FINISHED"] and r["unpacked_same"]
+    assert not r["after_unpack"]["packed"] and r["after_unpack"]["path"].endswith("unpacked.pgt")
+    assert r["after_unpack"]["texts"] == []  # nobody uses the packed copy any more
+    assert r["repack"] == ["FINISHED"]
+
+
+def test_surface_proxy_shows_the_atlas_and_paint_through_its_uvs_lands_where_the_render_looks(session):
+    r = _get(session, "proxy")
+    assert 100 <= r["faces"] <= 4000 and r["triangles"] and r["uv"] == "PointGT atlas"
+    assert r["material_image"] == r["atlas"] and r["bound"]
+    assert r["painted_faces"] >= 4 and r["painted_texels"] >= 10
+    c, n = r["rest"]
+    assert n >= 6 and np.hypot(c[0] - r["rest_expect"][0], c[1] - r["rest_expect"][1]) < 3.0, str(r)
+
+
+def test_automatic_weights_on_the_proxy_pose_the_neural_render(session):
+    r = _get(session, "proxy")
+    assert r["parent"] == ["FINISHED"] and r["error"] == ""
+    # a 90 degree turn of the right bone: away from the joint the right end turns with it and the left end stays;
+    # near the joint the heat weights blend (not the stiff segments of Automatic Weights on bare points)
+    assert r["right_moved"] > 0.5 and r["right_error"] < 0.05 and r["left_moved"] < 0.02, r
+    assert r["blended"] >= 0.05 * r["points"], r
+    # at 45 degrees the paint sits where its surface went in the neural render
+    c, n = r["posed"]
+    assert n >= 6, r
+    assert np.hypot(c[0] - r["posed_expect"][0], c[1] - r["posed_expect"][1]) < 3.0, r
+    assert np.hypot(c[0] - r["rest"][0][0], c[1] - r["rest"][0][1]) > 5.0  # it did move
+
+
+def test_composite_with_scene_occludes_both_ways_and_casts_the_models_shadow(session):
+    r = _get(session, "composite")
+    assert r["setup"] == ["FINISHED"] and r["engine"] == "CYCLES"
+    g = r["box_px"]
+    assert g[1] > g[0] + 0.15 and g[1] > g[2] + 0.15, r  # the green box hides the card behind it
+    assert r["layer_alpha_at_box"] > 0.5 and np.abs(np.subtract(r["neural_at_box"], g)).max() > 0.1  # card behind
+    c, n = r["red"]  # the disc painted through the proxy follows the 45 degree pose
+    assert n >= 6 and np.hypot(c[0] - r["red_expect"][0], c[1] - r["red_expect"][1]) < 3.0, r
+    # elsewhere the PointGT layer lies over the floor: the frame is the layer composited over the scene alone
+    assert r["card_px"] >= 50 and r["card_alpha"] > 0.5 and r["card_diff"] < 0.03, r
+    assert r["card_vs_scene_alone"] > 0.1, r
+    assert r["shadow_px"] >= 20 and r["lit_px"] >= 100
+    assert r["shadow_lum"] < 0.7 * r["lit_lum"], r  # the card's shadow (its proxy) falls on the floor
