@@ -10,7 +10,7 @@ from core.atlas.fit import fit_atlas
 from core.atlas.footprint import FootprintView, refit_texture_footprint
 from core.atlas.samples import extract_surface_samples
 from core.images.cameras import project_points
-from core.points.select import select_neighbors
+from core.points.neighbors.select import select_neighbors
 
 
 def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0, colour: str = "image"):

@@ -9,7 +9,7 @@ import torch
 
 from core.images.cameras import pixel_rays
 from core.points.model import TRAIN_BACKGROUND, PointModel
-from core.points.select import select_neighbors
+from core.points.neighbors.select import select_neighbors
 
 
 def pixel_grid(height: int, width: int, device) -> torch.Tensor:

@@ -22,7 +22,7 @@ from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
 from core.points.model import ModelConfig, PointModel, mean_spacing
 from core.points.regularizers import close_to_ray, close_to_surface
-from core.points.select import select_neighbors
+from core.points.neighbors.select import select_neighbors
 from core.util.device import resolve_device
 from core.util.progress import Progress
 

@@ -77,7 +77,7 @@ def main(argv=None) -> None:
         torch.set_num_threads(args.threads)
 
     from core.images.cameras import pixel_rays
-    from core.points import grid_kernel
+    from core.points.neighbors import compiled as grid_kernel
     from core.points import neighbors as nb
 
     pts, c2w, focal, q = sphere_scene(args.points, args.size, args.seed)

@@ -12,7 +12,7 @@ import torch
 
 from core.config import from_dict, to_dict
 from core.images.cameras import look_at, pixel_rays
-from core.points import grid_kernel
+from core.points.neighbors import compiled as grid_kernel
 from core.points import neighbors as nb
 from core.util.errors import InputError
 

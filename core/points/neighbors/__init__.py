@@ -42,7 +42,7 @@ import torch
 
 from core.config import opt
 from core.images.cameras import project_points
-from core.points import grid_kernel
+from core.points.neighbors import compiled as grid_kernel
 from core.util.errors import InputError
 
 METHODS = ("screen", "screen_depth", "perpendicular")
