@@ -30,7 +30,7 @@ def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0, col
         o, d = o.to(model.xyz.device), d.to(model.xyz.device)
         px, _ = project_points(o + d, c2w, split.height, split.width, split.focal)  # back to pixel coordinates
         idx = select_neighbors(model.xyz, model.cfg.neighbors, model.cfg.k, c2w, split.height, split.width,
-                               split.focal, px, o, d)
+                               split.focal, px, o, d, model.cfg.neighbor_radius_px)
         att = model.attend(model.xyz, model.influence, o, d, idx)
         out = {"x": att["x"], "fg": 1.0 - att["bg"]}
         if colour == "render":

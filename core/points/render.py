@@ -44,7 +44,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     finite = torch.isfinite(pts).all(dim=1)
     pts_search = torch.where(finite[:, None], pts, torch.full_like(pts, float("nan")))
     pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
-    idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d)
+    idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
+                           model.cfg.neighbor_radius_px)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.
     active = (idx >= 0).any(dim=1)

@@ -1,19 +1,27 @@
-"""Neighbour selection for a batch of pixel rays of one pinhole camera, by the model's configured method."""
+"""Neighbour selection for a batch of pixel rays of one pinhole camera, by the model's configured method
+(`ModelConfig.neighbors`, `.k`, `.neighbor_radius_px`)."""
 from __future__ import annotations
 
 import torch
 
-from core.points import neighbors
+from core.points.neighbors.base import METHODS
+from core.points.neighbors.index import rays_knn_perpendicular, screen_knn
+from core.util.errors import InputError
 
 
 def select_neighbors(points: torch.Tensor, method: str, k: int, c2w: torch.Tensor, height: int, width: int,
-                     focal: float, query_px: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+                     focal: float, query_px: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
+                     max_radius_px: float | str = "auto", backend: str = "auto") -> torch.Tensor:
     """K neighbours per ray. points [N, 3] (detached; non-finite = absent), query_px [R, 2] pixel coords
-    (col, row), origins/dirs [R, 3]. Returns idx [R, K] int64, -1 where a ray has fewer than K candidates."""
+    (col, row), origins/dirs [R, 3] the rays through those pixels. max_radius_px: the screen metrics' pixel radius
+    cap ("auto" or 0 = from the projected density, a number of pixels, or inf / < 0 = no cap; unused by
+    "perpendicular"). Returns idx [R, K] int64, -1 where a ray has fewer than K candidates."""
+    if method not in METHODS:
+        raise InputError(f"neighbour search: method must be one of {METHODS}, got {method!r}")
     pts = points.detach()
     if method == "perpendicular":
-        idx, _ = neighbors.rays_knn_perpendicular(pts, origins, dirs, k)
+        idx, _ = rays_knn_perpendicular(pts, origins, dirs, k, backend=backend)
     else:
-        idx, _ = neighbors.screen_knn(pts, c2w, height, width, focal, query_px, k,
-                                      depth_factor=(method == "screen_depth"))
+        idx, _ = screen_knn(pts, c2w, height, width, focal, query_px, k, depth_factor=(method == "screen_depth"),
+                            backend=backend, max_radius_px=max_radius_px)
     return idx
