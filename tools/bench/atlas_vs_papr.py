@@ -13,7 +13,6 @@ of x alone does on these samples, no atlas involved).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -22,7 +21,7 @@ import time
 import numpy as np
 import torch
 
-from core.config import add_to_parser, from_args
+from tools.bench import parse_with_config, parser
 
 
 def load_npz(path: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -95,7 +94,7 @@ def model_samples(bundle, split, colour: str, seed: int = 0):
 def main(argv=None) -> int:
     from core.atlas.config import AtlasConfig
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--model", required=True, help="model file (.pgt) with an atlas (never modified)")
     ap.add_argument("--data", required=True, help="its dataset (NeRF-synthetic layout)")
     ap.add_argument("--split", default="test")
@@ -111,11 +110,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the figures to this JSON file")
     ap.add_argument("--png", help="write [PAPR | atlas | (fitted) | ground truth] of the last view here")
     ap.add_argument("--atlas-png", help="write the packed atlas image of the last atlas row here")
-    add_to_parser(ap, AtlasConfig)
-    args = ap.parse_args(argv)
-    threads = from_args(AtlasConfig, args).threads
-    if threads > 0:  # AtlasConfig.threads: the fit and (here) everything else
-        torch.set_num_threads(threads)
+    args, cfg = parse_with_config(ap, AtlasConfig, argv)  # AtlasConfig.threads: the fit and everything else
 
     from core.bundle import load_bundle
     from core.frames.edited import EditConfig, EditState, render_edited
@@ -132,7 +127,6 @@ def main(argv=None) -> int:
     if args.fit or args.fit_npz:
         from core.atlas.fit import fit_atlas
 
-        cfg = from_args(AtlasConfig, args)
         if args.fit:
             t = time.perf_counter()
             xyz, rgb = model_samples(bundle, load_split(args.data, "train"), args.fit, seed=cfg.seed)

@@ -22,7 +22,6 @@ truth ∪ rendered foreground like everywhere else.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tools.bench import add_scene, parse, parser
 from tools.machine import machine_line
 
 
@@ -58,15 +58,11 @@ def mesh_ray_caster(scene_dir: Path):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
+    add_scene(ap, "use every n-th view of the train and test splits")
     ap.add_argument("--model", required=True, help="model file (.pgt)")
-    ap.add_argument("--scene", required=True, help="scene folder made by `pointgt make-scene` (scene.blend)")
-    ap.add_argument("--every", type=int, default=2, help="use every n-th view of the train and test splits")
     ap.add_argument("--knn", type=int, default=16, help="training samples averaged per ray")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads")
-    ap.add_argument("--json", help="write the figures here")
-    args = ap.parse_args(argv)
-    torch.set_num_threads(max(args.threads, 1))
+    args = parse(ap, argv)
     from core.bundle import load_bundle
     from core.images.metrics import object_mask, psnr
     from core.points.render import shade_frame, trace_frame

@@ -24,7 +24,6 @@ Object PSNR over ground-truth alpha > 0.5 ∪ the rows' own coverage, as elsewhe
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -33,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tools.bench import add_scene, parse, parser
 from tools.machine import machine_line
 
 
@@ -45,10 +45,9 @@ def _subpixel_grid(height: int, width: int, sub: int) -> torch.Tensor:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", required=True, help="scene folder made by `pointgt make-scene` (scene.blend)")
+    ap = parser(__doc__)
+    add_scene(ap, "use every n-th test view")
     ap.add_argument("--model", default=None, help="model file (.pgt): adds the rows with its surface points")
-    ap.add_argument("--every", type=int, default=2, help="use every n-th test view")
     ap.add_argument("--sub", type=int, default=4, help="rays per pixel side for the filtered true-hit rows")
     ap.add_argument("--supports", default="1.5,3", help="filter supports (pixels) to compare; support * sub - sub "
                     "must be even")
@@ -57,10 +56,7 @@ def main(argv=None) -> int:
                          "default of core/edits/bake.py) and/or points (fn at each texel's map point)")
     ap.add_argument("--texel-maps", default="", help="comma-separated texel-map rules (splat, inverse) to recompute "
                     "and compare; empty = the model's stored map")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads")
-    ap.add_argument("--json", help="write the figures here")
-    args = ap.parse_args(argv)
-    torch.set_num_threads(max(args.threads, 1))
+    args = parse(ap, argv)
     from core.edits.procedural import evaluate
     from core.images.colour import linear_to_srgb, srgb_to_linear
     from core.images.filter import filter_down, subpixel_points
