@@ -38,18 +38,14 @@ def load_npz(path: str) -> tuple[torch.Tensor, torch.Tensor]:
         raise InputError(f"{path}: not a readable .npz file ({e})") from e
 
 
-def composite(trace: dict, papr_rgb: torch.Tensor, colour_fn, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
-    """The atlas-coloured frame from a trace, as render_edited(colour='atlas') composes it (unmoved points):
-    object colour = colour_fn(x [R', 3]) -> [R', 3] on rays that hit, coverage fg kept. papr_rgb [H, W, 3]."""
-    h, w = trace["shape"]
-    rgb = papr_rgb.reshape(-1, 3).clone()
-    fg = 1.0 - trace["bg"]
-    hit = torch.nonzero(trace["active"] & (fg > 1e-4)).squeeze(1)
-    if hit.numel():
-        bgc = torch.as_tensor(background, dtype=rgb.dtype)
-        f = fg[hit][:, None]
-        rgb[hit] = f * colour_fn(trace["x"][hit]) + (1 - f) * bgc
-    return torch.nan_to_num(rgb, nan=1.0).clamp(0, 1).reshape(h, w, 3)
+def atlas_coloured(bundle, atlas, antialias: int | None = None):
+    """The edit state of an atlas-coloured frame (core/frames/edited.py, colour='atlas'): every object ray coloured
+    from `atlas`, or from render_edited's texture_fn(x [M, 3]) -> [M, 3] at its surface point, with the frame's
+    own coverage. antialias: lookups per pixel side (None = EditConfig's default)."""
+    from core.frames.edited import EditConfig, EditState
+
+    cfg = EditConfig(colour="atlas") if antialias is None else EditConfig(colour="atlas", antialias=antialias)
+    return EditState(dataclasses.replace(bundle, atlas=atlas), cfg=cfg)
 
 
 def knn_colour(xyz: torch.Tensor, rgb: torch.Tensor, k: int):
@@ -113,7 +109,7 @@ def main(argv=None) -> int:
     args, cfg = parse_with_config(ap, AtlasConfig, argv)  # AtlasConfig.threads: the fit and everything else
 
     from core.bundle import load_bundle
-    from core.frames.edited import EditConfig, EditState, render_edited
+    from core.frames.edited import render_edited
     from core.images.metrics import object_mask, psnr
     from core.points.render import shade_frame
     from core.images.dataset import load_split
@@ -155,23 +151,23 @@ def main(argv=None) -> int:
         return 2
     knn_fn = knn_colour(*load_npz(args.knn_npz), args.knn) if args.knn_npz else None
 
-    # The first atlas renders through the production path (render_edited); its trace is reused for the other rows.
+    # Every row renders through the production path (render_edited); the first row's trace serves the others.
+    states = {name: atlas_coloured(bundle, atl) for name, atl in rows.items()}
     first = next(iter(rows))
-    bundle.atlas = rows[first]
-    state = EditState(bundle, cfg=EditConfig(colour="atlas"))
     scores: dict[str, list] = {}
     t0 = time.perf_counter()
     views = list(range(0, len(split), args.every))
     for i in views:
-        out = render_edited(state, split.c2w[i], split.height, split.width, split.focal)
+        cam = (split.c2w[i], split.height, split.width, split.focal)
+        out = render_edited(states[first], *cam)
         tr = out["trace"]
         papr = torch.nan_to_num(shade_frame(bundle.model, tr), nan=1.0).clamp(0, 1)
-        frames = {"PAPR": papr, first: out["rgb"]}
-        for name, atl in rows.items():
-            if name != first:
-                frames[name] = composite(tr, papr, lambda x, a=atl: a.lookup(x, a.packed_image()))
+        frames = {"PAPR": papr}
+        for name, st in states.items():
+            frames[name] = out["rgb"] if name == first else render_edited(st, *cam, trace=tr)["rgb"]
         if knn_fn is not None:
-            frames[f"k-NN colour field (k={args.knn})"] = composite(tr, papr, knn_fn)
+            frames[f"k-NN colour field (k={args.knn})"] = render_edited(states[first], *cam, trace=tr,
+                                                                         texture_fn=knn_fn)["rgb"]
         gt, m = split.images[i], object_mask(split.alphas[i], out["alpha"])
         for name, img in frames.items():
             scores.setdefault(name, []).append((psnr(img, gt), psnr(img, gt, m)))

@@ -2,11 +2,13 @@
 
     python -m tools.bench.colour_field_bound --model M.pgt --scene DIR [--every 2] [--knn 16] [--json OUT]
 
+M.pgt needs an atlas (the rows render like an atlas-coloured edited frame).
+
 DIR is a scene made by `pointgt make-scene` (its `scene.blend` holds the true mesh). An atlas colours each ray by
 a function of one surface point, so two things bound it: how view-consistent the surface points are, and how much
 of the image a per-point colour can hold at all at this resolution (anti-aliased pixels, thin stripes). Rows, all
-on the test views with the model's coverage (1 − background weight) and its point render elsewhere, so that only
-the object colour differs:
+on the test views with the model's coverage (as an atlas-coloured edited frame: the decoder's mask head, else
+1 − background weight) and its point render elsewhere, so that only the object colour differs:
 
 - point render: the model as trained (decoder included);
 - colour field at the true surface: each ray's true hit point (the ray cast against the scene mesh) coloured by the
@@ -68,12 +70,18 @@ def main(argv=None) -> int:
     from core.points.render import shade_frame, trace_frame
     from core.images.dataset import load_split
     from core.images.rays import project_on_ray
-    from tools.bench.atlas_vs_papr import composite, knn_colour
+    from core.frames.edited import render_edited
+    from tools.bench.atlas_vs_papr import atlas_coloured, knn_colour
 
     t_start = time.perf_counter()
     scene = Path(args.scene)
     cast = mesh_ray_caster(scene)
-    model = load_bundle(args.model, "cpu").model
+    bundle = load_bundle(args.model, "cpu")
+    if bundle.atlas is None:
+        raise SystemExit(f"{args.model}: the colour-field rows render like an atlas-coloured edited frame, which "
+                         "needs a model with an atlas; run `pointgt atlas` on it first")
+    model = bundle.model
+    state = atlas_coloured(bundle, bundle.atlas, antialias=1)  # one lookup per pixel, at the ray's point
     train, test = load_split(scene, "train"), load_split(scene, "test")
 
     def view(split, i):
@@ -112,9 +120,12 @@ def main(argv=None) -> int:
         found = torch.isfinite(hits).all(1)
         # rays whose true ray misses the mesh keep x_i as their colour source
         at_true = torch.where(found[:, None], hits, x)
+        cam = (test.c2w[i], test.height, test.width, test.focal)
         frames = {"point render": papr,
-                  "colour field at the true surface": composite(dict(tr, x=at_true), papr, fields["true surface"]),
-                  "colour field at x_i": composite(dict(tr, x=x), papr, fields["x_i"])}
+                  "colour field at the true surface": render_edited(state, *cam, trace=dict(tr, x=at_true),
+                                                                    texture_fn=fields["true surface"])["rgb"],
+                  "colour field at x_i": render_edited(state, *cam, trace=dict(tr, x=x),
+                                                       texture_fn=fields["x_i"])["rgb"]}
         # per-point colour capacity alone: true hits and the image's own alpha as coverage (no model at all)
         a = alpha.reshape(-1)
         use = found & (a > 0)
