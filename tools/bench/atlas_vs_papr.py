@@ -38,14 +38,15 @@ def load_npz(path: str) -> tuple[torch.Tensor, torch.Tensor]:
         raise InputError(f"{path}: not a readable .npz file ({e})") from e
 
 
-def atlas_coloured(bundle, atlas, antialias: int | None = None):
+def atlas_coloured(bundle, atlas, antialias: int | None = None, image=None):
     """The edit state of an atlas-coloured frame (core/frames/edited.py, colour='atlas'): every object ray coloured
-    from `atlas`, or from render_edited's texture_fn(x [M, 3]) -> [M, 3] at its surface point, with the frame's
-    own coverage. antialias: lookups per pixel side (None = EditConfig's default)."""
+    from `atlas` (its packed image, or `image` [H, W, 3] in its layout), or from render_edited's
+    texture_fn(x [M, 3]) -> [M, 3] at its surface point, with the frame's own coverage. antialias: lookups per
+    pixel side (None = EditConfig's default)."""
     from core.frames.edited import EditConfig, EditState
 
     cfg = EditConfig(colour="atlas") if antialias is None else EditConfig(colour="atlas", antialias=antialias)
-    return EditState(dataclasses.replace(bundle, atlas=atlas), cfg=cfg)
+    return EditState(dataclasses.replace(bundle, atlas=atlas), atlas=image, cfg=cfg)
 
 
 def knn_colour(xyz: torch.Tensor, rgb: torch.Tensor, k: int):
