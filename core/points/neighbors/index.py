@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from core.images.cameras import project_points
-from core.points.neighbors import compiled as grid_kernel
+from core.points.neighbors import compiled
 from core.points.neighbors.base import (BACKENDS, Neighbors, check_camera, check_k, check_matrix, empty, finalize,
                                         present)
 from core.points.neighbors.brute import perpendicular_brute, perpendicular_brute_any, screen_brute
@@ -30,7 +30,7 @@ def check_backend(backend: str, device: torch.device, capped: bool = False) -> s
     cpu = device.type == "cpu"
     if backend == "auto":
         if capped:
-            return "compiled" if cpu and grid_kernel.available() else "grid"
+            return "compiled" if cpu and compiled.available() else "grid"
         return "kdtree" if cpu else "torch"
     if backend == "compiled":
         if not capped:
@@ -39,7 +39,7 @@ def check_backend(backend: str, device: torch.device, capped: bool = False) -> s
         if not cpu:
             raise InputError(f"neighbour search: backend 'compiled' runs on CPU tensors, got {device}; "
                              "use backend 'grid' (any device) or 'auto'")
-        if not grid_kernel.available():
+        if not compiled.available():
             raise InputError("neighbour search: backend 'compiled' needs numba (pip install numba); "
                              "use backend 'grid' or 'auto'")
     if backend == "grid" and not capped:
@@ -79,7 +79,7 @@ class ScreenIndex:
         self._density: float | None = None
         self._grids: dict[float, CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
         self._tree = None
-        self._compiled: dict[float, grid_kernel.CompiledGrid] = {}
+        self._compiled: dict[float, compiled.CompiledGrid] = {}
         if self.backend == "kdtree":
             w = None if self.weight is None else self.weight.cpu().numpy()
             self._tree = WeightedTree(self.px.cpu().numpy(), w)
@@ -116,7 +116,7 @@ class ScreenIndex:
             cap = self.radius_px(k)
             if cap not in self._compiled:
                 w = None if self.weight is None else self.weight.numpy()
-                self._compiled[cap] = grid_kernel.CompiledGrid(self.px.numpy(), w, self.ids.numpy(), cap,
+                self._compiled[cap] = compiled.CompiledGrid(self.px.numpy(), w, self.ids.numpy(), cap,
                                                                self.height, self.width)
             idx, dist = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
             return Neighbors(torch.from_numpy(idx), torch.from_numpy(dist))

@@ -12,7 +12,7 @@ import torch
 
 from core.config import from_dict, to_dict
 from core.images.cameras import look_at, pixel_rays, rays_for_pixels
-from core.points.neighbors import compiled as grid_kernel
+from core.points.neighbors import compiled
 from core.points.neighbors import grid
 from core.points import neighbors as nb
 from core.points.model import ModelConfig
@@ -22,7 +22,7 @@ H = W = 24
 FOCAL = 1.1 * W
 BACKENDS = ("kdtree", "torch")
 # capped screen searches: the torch grid everywhere, the compiled (numba) grid where numba is installed
-GRIDS = ("grid", "compiled") if grid_kernel.available() else ("grid",)
+GRIDS = ("grid", "compiled") if compiled.available() else ("grid",)
 INF = math.inf
 
 
