@@ -467,6 +467,8 @@ def test_model_config_cap_round_trips_and_is_used():
         assert_same(want, ref_screen(pts, c2w, q, 5, False, cap))
     with pytest.raises(InputError, match="neighbor_radius_px"):
         from_dict(ModelConfig, dict(to_dict(cfg), neighbor_radius_px=-2.0))
+    older = {k: v for k, v in to_dict(cfg).items() if k != "neighbor_radius_px"}  # a file from before the setting
+    assert from_dict(ModelConfig, older).neighbor_radius_px == 0.0  # auto, as such models were trained
 
 
 @pytest.mark.parametrize("call, match", [
