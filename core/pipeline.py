@@ -10,7 +10,7 @@ from core.atlas.fit import fit_atlas
 from core.atlas.footprint import FootprintView, refit_texture_footprint
 from core.atlas.samples import extract_surface_samples
 from core.images.cameras import project_points
-from core.points.select import select_neighbors
+from core.points.neighbors.select import select_neighbors
 
 
 def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0, colour: str = "image"):
@@ -30,7 +30,7 @@ def surface_samples(model, split, max_samples: int = 200_000, seed: int = 0, col
         o, d = o.to(model.xyz.device), d.to(model.xyz.device)
         px, _ = project_points(o + d, c2w, split.height, split.width, split.focal)  # back to pixel coordinates
         idx = select_neighbors(model.xyz, model.cfg.neighbors, model.cfg.k, c2w, split.height, split.width,
-                               split.focal, px, o, d)
+                               split.focal, px, o, d, model.cfg.neighbor_radius_px)
         att = model.attend(model.xyz, model.influence, o, d, idx)
         out = {"x": att["x"], "fg": 1.0 - att["bg"]}
         if colour == "render":

@@ -15,7 +15,7 @@ import torch
 
 from core.bundle import load_bundle
 from core.frames.edited import EditConfig, EditState, render_edited
-from core.frames.render import trace_frame
+from core.points.render import trace_frame
 from core.util.errors import InputError, ModelFileError
 
 CORRESPONDENCE = {'DEFORM_AWARE': "deform-aware", 'NAIVE': "naive", 'DEFORM_GRADIENT': "deform-gradient"}
@@ -178,7 +178,7 @@ def blank_warning(path: str, device: str = "cpu", size: int = 48, models: ModelC
     cameras around its points (bounding box in view, the model's own K) and counts as blank when no view has
     at least 1 % of its pixels covered (alpha > 0.5) or no pixel differs from the white it was trained over.
     label: the model's name in the message (default: the file name)."""
-    from core.frames.render import render_frame
+    from core.points.render import render_frame
     from core.images.cameras import look_at
 
     label = label or os.path.basename(path)

@@ -18,6 +18,7 @@ import torch.nn as nn
 
 from core.config import opt
 from core.points.decoders import UNetDecoder
+from core.points.neighbors.base import METHODS
 
 # Every model trains over white (datasets are composited onto it, `load_split`'s default): a decoder learns to
 # paint this background itself, so renders over another colour must move its share (core/points/render.py).
@@ -32,7 +33,10 @@ class ModelConfig:
     feature_dim: int = opt(32, "per-point feature size h", min=1, max=1024)
     k: int = opt(20, "neighbours per ray K", min=1, max=256)
     neighbors: str = opt("screen_depth", "neighbour search: screen | screen_depth | perpendicular",
-                         choices=("screen", "screen_depth", "perpendicular"))
+                         choices=METHODS)
+    neighbor_radius_px: float = opt(0.0, "screen metrics: a point is a candidate only within this many pixels of "
+                                         "the ray's pixel (rays with none hit the background); 0 = auto from the "
+                                         "projected point density, -1 = no cap", min=-1.0)
     decoder: str = opt("none", "decoder: none (value = RGB) | unet (small UNet on the feature image)",
                        choices=("none", "unet"))
     decoder_residual: bool = opt(True, "the unet decoder adds a learned correction (zero at initialisation) to the "

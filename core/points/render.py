@@ -9,7 +9,7 @@ import torch
 
 from core.images.cameras import pixel_rays
 from core.points.model import TRAIN_BACKGROUND, PointModel
-from core.points.select import select_neighbors
+from core.points.neighbors.select import select_neighbors
 
 
 def pixel_grid(height: int, width: int, device) -> torch.Tensor:
@@ -48,7 +48,7 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     pts_search = torch.where(finite[:, None], pts, torch.full_like(pts, float("nan")))
     pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
     idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
-                           radius_scale=radius_scale)
+                           model.cfg.neighbor_radius_px, radius_scale=radius_scale)
     fi = None if inv_f is None else inv_f.to(dev, torch.float32)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.

@@ -22,7 +22,7 @@ from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
 from core.points.model import ModelConfig, PointModel, mean_spacing
 from core.points.regularizers import close_to_ray, close_to_surface
-from core.points.select import select_neighbors
+from core.points.neighbors.select import select_neighbors
 from core.util.device import resolve_device
 from core.util.progress import Progress
 
@@ -342,7 +342,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
                 search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
             idx = select_neighbors(search, model_cfg.neighbors, model_cfg.k, c2w, train.height, train.width,
-                                   train.focal, px, o, d)
+                                   train.focal, px, o, d, model_cfg.neighbor_radius_px)
             att = model.attend(model.xyz, model.influence, o, d, idx)
             sh = model.shade(att, d, idx, bg)
             if model.decoder is None:

@@ -8,11 +8,11 @@ from core.atlas.config import AtlasConfig
 from core.bundle import Bundle
 from core.pipeline import refresh_texel_map
 from core.util.errors import InputError
-from tests.helpers.tiny_model import tiny_card
+from tests.helpers.tiny import tiny_bundle
 
 
 def test_refresh_texel_map_recomputes_only_the_map():
-    bundle, train, _ = tiny_card()
+    bundle, train, _ = tiny_bundle("card")
     b = copy.deepcopy(bundle)  # the cached tiny model is shared: work on a copy
     tex, image = b.atlas.textures.detach().clone(), b.atlas.packed_image().clone()
     b.atlas.texel_xyz.fill_(float("nan"))
@@ -28,6 +28,6 @@ def test_refresh_texel_map_recomputes_only_the_map():
 
 
 def test_stage2_refits_the_texture_for_pixel_filtered_lookups():
-    bundle, _, _ = tiny_card()
+    bundle, _, _ = tiny_bundle("card")
     fp = bundle.meta["atlas_fit"]["footprint"]
     assert fp["pixels"] > 100 and fp["rmse_after"] < fp["rmse_before"]

@@ -114,9 +114,9 @@ def test_decoder_layer_composites_like_the_render_over_white():
     the frame rendered over white, over black its empty pixels are black, transparent gives the mask as alpha."""
     from core.frames.edited import EditConfig, EditState, render_edited
     from pointgt_blender.frame_renderer import render_layer
-    from tests.helpers.tiny_model import tiny_card
+    from tests.helpers.tiny import tiny_bundle
 
-    bundle, _, test = tiny_card(steps=400, decoder="unet")
+    bundle, _, test = tiny_bundle("card", steps=400, decoder="unet")
     state = EditState(bundle, cfg=EditConfig(colour="atlas", antialias=1))
     c2w = test.c2w[2]
     layer = render_layer(state, c2w.numpy(), test.height, test.width, test.focal)

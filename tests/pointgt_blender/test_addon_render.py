@@ -15,7 +15,7 @@ import torch
 from PIL import Image
 
 from core.bundle import load_bundle
-from tests.pointgt_blender.tiny_pgt import train_tiny_card
+from tests.helpers.tiny import save_tiny
 from tools.package_addon import build_addon
 
 pytestmark = pytest.mark.blender
@@ -62,7 +62,7 @@ def _run(script: Path, args: list[str], env: dict, cwd: Path) -> dict:
 def session(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("render")
     zip_path = build_addon(tmp / "dist")
-    model = train_tiny_card(tmp / "card.pgt")
+    model = save_tiny(tmp / "card.pgt", "addon")
     np.save(tmp / "patch.npy", patch_mask(model))
     work = tmp / "work"
     work.mkdir()

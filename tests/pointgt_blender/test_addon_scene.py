@@ -15,7 +15,7 @@ from PIL import Image
 
 from core.modelfile import load_pgt, save_pgt
 
-from tests.pointgt_blender.tiny_pgt import train_tiny_card
+from tests.helpers.tiny import save_tiny
 from tools.package_addon import build_addon
 
 pytestmark = pytest.mark.blender
@@ -34,7 +34,7 @@ def _run(script: Path, args: list[str], env: dict, cwd: Path) -> dict:
 def session(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("scene")
     zip_path = build_addon(tmp / "dist")
-    model = train_tiny_card(tmp / "card.pgt")
+    model = save_tiny(tmp / "card.pgt", "addon")
     arrays, meta = load_pgt(model)
     # attention goes to the background only
     arrays["net/bg_logit"] = np.array(np.asarray(arrays["net/bg_logit"], dtype=np.float32) + np.float32(60.0),

@@ -17,7 +17,7 @@ from core.modelfile.pgt import save_pgt
 from core.points.checkpoint import model_to_arrays
 from core.util import atomic
 from core.util.errors import DataError, InputError, ModelFileError, PointGTError
-from tests.helpers.tiny_fast import tiny_fast
+from tests.helpers.tiny import tiny_bundle
 from tools.commands import render as render_cmd
 
 pytestmark = pytest.mark.stability
@@ -26,7 +26,7 @@ pytestmark = pytest.mark.stability
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):
     """(folder, model path, cameras JSON path, bundle): the tiny model saved, one 16 px camera."""
-    bundle, _, test = tiny_fast()
+    bundle, _, test = tiny_bundle("fast")
     root = tmp_path_factory.mktemp("files")
     model = root / "m.pgt"
     save_bundle(model, bundle)

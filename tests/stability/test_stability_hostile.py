@@ -27,7 +27,7 @@ from core.bundle import load_bundle, save_bundle
 from core.modelfile import pgt
 from core.util.errors import PointGTError
 from tests.helpers.synthetic import fibonacci_cameras, render_split, write_split
-from tests.helpers.tiny_fast import tiny_fast
+from tests.helpers.tiny import tiny_bundle
 from tools import cli
 
 pytestmark = pytest.mark.stability
@@ -46,7 +46,7 @@ FAST_FIT = ["--steps", "3", "--no-progress", "--device", "cpu", "--threads", "1"
 def env(tmp_path_factory):
     """Folder with the tiny model (m.pgt), a one-camera transforms file and a 16 px dataset (data/)."""
     torch.set_num_threads(1)
-    bundle, _, test = tiny_fast()
+    bundle, _, test = tiny_bundle("fast")
     root = tmp_path_factory.mktemp("hostile")
     save_bundle(root / "m.pgt", bundle)
     (root / "cams.json").write_text(json.dumps({"camera_angle_x": float(test.camera_angle_x), "frames": [
@@ -421,7 +421,8 @@ def test_deeply_nested_json_is_a_clear_error(env, tmp_path, capsys):
                                         ("--patch-size", "0"), ("--patches", "0"), ("--atlas-batch", "0"),
                                         ("--device", "bogus"), ("--atlas-device", "gpu7"), ("--k", "0"),
                                         ("--atlas-texture-res", "100000"), ("--atlas-texture-res", "-1"),
-                                        ("--dropout", "1"), ("--downscale", "0"), ("--atlas-lr", "nan")])
+                                        ("--dropout", "1"), ("--downscale", "0"), ("--atlas-lr", "nan"),
+                                        ("--neighbor-radius-px", "-2"), ("--neighbor-radius-px", "nan")])
 def test_fit_flags_are_validated_with_the_flag_named(env, tmp_path, capsys, monkeypatch, flag, value):
     import core.images.dataset
 

@@ -9,7 +9,7 @@ import torch
 from core.edits.bake import bake
 from core.frames.edited import EditState, render_edited
 from core.images.cameras import look_at
-from tests.helpers.tiny_fast import tiny_fast
+from tests.helpers.tiny import tiny_bundle
 from tests.stability.frame_checks import check_frame
 
 pytestmark = pytest.mark.stability
@@ -17,7 +17,7 @@ pytestmark = pytest.mark.stability
 
 @pytest.fixture(scope="module")
 def tiny():
-    bundle, train, test = tiny_fast()
+    bundle, train, test = tiny_bundle("fast")
     painted = bake(bundle.atlas, lambda x: (torch.stack([(x[:, 0] > 0).float(), 0.2 + 0 * x[:, 0],
                                                          (x[:, 1] > 0).float()], 1), None))
     return bundle, test, painted

@@ -7,7 +7,7 @@ import torch
 
 from core.edits.bake import bake
 from core.frames.edited import EditState, render_edited
-from tests.helpers.tiny_fast import tiny_fast
+from tests.helpers.tiny import tiny_bundle
 from tests.stability.frame_checks import check_frame
 
 pytestmark = pytest.mark.stability
@@ -27,7 +27,7 @@ def scaled_bundle(bundle, s: float):
 
 @pytest.fixture(scope="module")
 def tiny():
-    bundle, _, test = tiny_fast()
+    bundle, _, test = tiny_bundle("fast")
     painted = bake(bundle.atlas, lambda x: (torch.stack([(x[:, 0] > 0).float(), (x[:, 1] > 0).float(),
                                                          0.5 + 0 * x[:, 0]], 1), None))
     return bundle, test, painted

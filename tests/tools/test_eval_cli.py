@@ -10,12 +10,12 @@ from core.images.metrics import psnr
 from core.points.model import TRAIN_BACKGROUND
 from core.points.train import evaluate
 from tests.helpers.synthetic import write_split
-from tests.helpers.tiny_fast import tiny_fast
+from tests.helpers.tiny import tiny_bundle
 from tools.cli import main
 
 
 def test_eval_reports_the_training_figures_and_the_blank_floor(tmp_path, capsys):
-    bundle, _, test = tiny_fast()
+    bundle, _, test = tiny_bundle("fast")
     save_bundle(tmp_path / "m.pgt", bundle)
     root = write_split(tmp_path / "data", test)
     out = tmp_path / "eval.json"

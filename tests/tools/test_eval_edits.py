@@ -18,7 +18,7 @@ from core.edits.bake import bake
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.points.render import render_frame
 from core.images.png import read_png, write_png
-from tests.helpers.tiny_model import tiny_card
+from tests.helpers.tiny import tiny_bundle
 from tools.cli import main
 from tools.eval_edits import diagnostics, markdown, methods
 
@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def tiny():
-    return tiny_card()
+    return tiny_bundle("card")
 
 
 @pytest.fixture(scope="module")
@@ -197,14 +197,14 @@ SMOKE = textwrap.dedent("""
     from core.bundle import Bundle, save_bundle
     from core.images.dataset import load_split
     from core.pipeline import fit_atlas_stage
-    from core.points.model import ModelConfig
     from core.points.train import TrainConfig, fit_points
+    from tests.helpers.tiny import model_config
     from tools.cli import main
 
     d = Path(sys.argv[1])
     make_scene("cloth", d / "scene", size=32, views_train=8, views_val=0, views_test=3, samples=4, log=lambda m: None)
     train, test = load_split(d / "scene", "train"), load_split(d / "scene", "test")
-    model, _ = fit_points(train, test, ModelConfig(num_points=600, k=8, feature_dim=8, key_width=16, value_width=16),
+    model, _ = fit_points(train, test, model_config("fast", key_freqs=4),
                           TrainConfig(steps=40, patches=2, patch_size=16, eval_every=1e9, eval_views=1, device="cpu",
                                       prune_every=0, clone_every=0), show_progress=False)
     bundle = Bundle(model=model, meta={})

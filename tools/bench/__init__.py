@@ -1,0 +1,46 @@
+"""Benchmark scripts (`python -m tools.bench.<name> --help`); results.md quotes their output.
+
+What the scripts share: the parser from the script's docstring, the --threads / --json flags, and a config's
+flags (core.config) with its `threads` field applied."""
+from __future__ import annotations
+
+import argparse
+
+
+def parser(doc: str) -> argparse.ArgumentParser:
+    """A script's parser, described by the first line of its docstring `doc`."""
+    return argparse.ArgumentParser(description=doc.splitlines()[0])
+
+
+def add_scene(ap: argparse.ArgumentParser, every_help: str) -> None:
+    """--scene (a folder made by `pointgt make-scene`, whose scene.blend holds the true mesh) and --every."""
+    ap.add_argument("--scene", required=True, help="scene folder made by `pointgt make-scene` (scene.blend)")
+    ap.add_argument("--every", type=int, default=2, help=every_help)
+
+
+def parse(ap: argparse.ArgumentParser, argv=None, threads: int = 1) -> argparse.Namespace:
+    """Add --threads (default `threads`; 0 = torch's default) and --json, parse argv, apply --threads."""
+    ap.add_argument("--threads", type=int, default=threads, help="torch threads (0 = torch's default)")
+    ap.add_argument("--json", default=None, help="write the figures to this JSON file")
+    args = ap.parse_args(argv)
+    _set_threads(args.threads)
+    return args
+
+
+def parse_with_config(ap: argparse.ArgumentParser, cls, argv=None):
+    """Add the flags of the config dataclass `cls`, parse argv, build (and validate) the config and apply its
+    `threads` field (> 0) to torch. Returns (args, config)."""
+    from core.config import add_to_parser, from_args
+
+    add_to_parser(ap, cls)
+    args = ap.parse_args(argv)
+    cfg = from_args(cls, args)
+    _set_threads(cfg.threads)
+    return args, cfg
+
+
+def _set_threads(threads: int) -> None:
+    if threads > 0:
+        import torch
+
+        torch.set_num_threads(threads)

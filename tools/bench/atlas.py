@@ -7,7 +7,6 @@ Any AtlasConfig field is a flag (--steps, --batch, --width-map, --charts 8, ...)
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -15,7 +14,7 @@ import sys
 import numpy as np
 import torch
 
-from core.config import add_to_parser, from_args
+from tools.bench import parse_with_config, parser
 
 
 def load_samples(args) -> tuple[torch.Tensor, torch.Tensor, str]:
@@ -95,7 +94,7 @@ def run_one(xyz, rgb, cfg, label: str, out: dict, png: str | None = None) -> Non
 def main(argv=None) -> int:
     from core.atlas.config import AtlasConfig
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--surface", default="sphere", choices=("strip", "sphere", "torus"))
     ap.add_argument("--samples", type=int, default=30000, help="synthetic samples")
     ap.add_argument("--sample-seed", type=int, default=0)
@@ -103,12 +102,7 @@ def main(argv=None) -> int:
     ap.add_argument("--compare-distortion", action="store_true", help="also run with the distortion loss off")
     ap.add_argument("--json", help="write all figures to this JSON file")
     ap.add_argument("--png", help="save the packed atlas image (first run) as PNG")
-    add_to_parser(ap, AtlasConfig)
-    args = ap.parse_args(argv)
-    threads = from_args(AtlasConfig, args).threads
-    if threads > 0:  # AtlasConfig.threads: the fit and (here) everything else
-        torch.set_num_threads(threads)
-    cfg = from_args(AtlasConfig, args)
+    args, cfg = parse_with_config(ap, AtlasConfig, argv)  # AtlasConfig.threads: the fit and everything else
     xyz, rgb, source = load_samples(args)
     print(f"samples: {source}; config: steps={cfg.steps} batch={cfg.batch} width_map={cfg.width_map} "
           f"depth_map={cfg.depth_map} charts={cfg.charts} threads={cfg.threads}")

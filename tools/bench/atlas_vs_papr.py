@@ -13,7 +13,6 @@ of x alone does on these samples, no atlas involved).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -22,7 +21,7 @@ import time
 import numpy as np
 import torch
 
-from core.config import add_to_parser, from_args
+from tools.bench import parse_with_config, parser
 
 
 def load_npz(path: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -39,18 +38,15 @@ def load_npz(path: str) -> tuple[torch.Tensor, torch.Tensor]:
         raise InputError(f"{path}: not a readable .npz file ({e})") from e
 
 
-def composite(trace: dict, papr_rgb: torch.Tensor, colour_fn, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
-    """The atlas-coloured frame from a trace, as render_edited(colour='atlas') composes it (unmoved points):
-    object colour = colour_fn(x [R', 3]) -> [R', 3] on rays that hit, coverage fg kept. papr_rgb [H, W, 3]."""
-    h, w = trace["shape"]
-    rgb = papr_rgb.reshape(-1, 3).clone()
-    fg = 1.0 - trace["bg"]
-    hit = torch.nonzero(trace["active"] & (fg > 1e-4)).squeeze(1)
-    if hit.numel():
-        bgc = torch.as_tensor(background, dtype=rgb.dtype)
-        f = fg[hit][:, None]
-        rgb[hit] = f * colour_fn(trace["x"][hit]) + (1 - f) * bgc
-    return torch.nan_to_num(rgb, nan=1.0).clamp(0, 1).reshape(h, w, 3)
+def atlas_coloured(bundle, atlas, antialias: int | None = None, image=None):
+    """The edit state of an atlas-coloured frame (core/frames/edited.py, colour='atlas'): every object ray coloured
+    from `atlas` (its packed image, or `image` [H, W, 3] in its layout), or from render_edited's
+    texture_fn(x [M, 3]) -> [M, 3] at its surface point, with the frame's own coverage. antialias: lookups per
+    pixel side (None = EditConfig's default)."""
+    from core.frames.edited import EditConfig, EditState
+
+    cfg = EditConfig(colour="atlas") if antialias is None else EditConfig(colour="atlas", antialias=antialias)
+    return EditState(dataclasses.replace(bundle, atlas=atlas), atlas=image, cfg=cfg)
 
 
 def knn_colour(xyz: torch.Tensor, rgb: torch.Tensor, k: int):
@@ -95,7 +91,7 @@ def model_samples(bundle, split, colour: str, seed: int = 0):
 def main(argv=None) -> int:
     from core.atlas.config import AtlasConfig
 
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--model", required=True, help="model file (.pgt) with an atlas (never modified)")
     ap.add_argument("--data", required=True, help="its dataset (NeRF-synthetic layout)")
     ap.add_argument("--split", default="test")
@@ -111,14 +107,10 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write the figures to this JSON file")
     ap.add_argument("--png", help="write [PAPR | atlas | (fitted) | ground truth] of the last view here")
     ap.add_argument("--atlas-png", help="write the packed atlas image of the last atlas row here")
-    add_to_parser(ap, AtlasConfig)
-    args = ap.parse_args(argv)
-    threads = from_args(AtlasConfig, args).threads
-    if threads > 0:  # AtlasConfig.threads: the fit and (here) everything else
-        torch.set_num_threads(threads)
+    args, cfg = parse_with_config(ap, AtlasConfig, argv)  # AtlasConfig.threads: the fit and everything else
 
     from core.bundle import load_bundle
-    from core.frames.edited import EditConfig, EditState, render_edited
+    from core.frames.edited import render_edited
     from core.images.metrics import object_mask, psnr
     from core.points.render import shade_frame
     from core.images.dataset import load_split
@@ -132,7 +124,6 @@ def main(argv=None) -> int:
     if args.fit or args.fit_npz:
         from core.atlas.fit import fit_atlas
 
-        cfg = from_args(AtlasConfig, args)
         if args.fit:
             t = time.perf_counter()
             xyz, rgb = model_samples(bundle, load_split(args.data, "train"), args.fit, seed=cfg.seed)
@@ -161,23 +152,23 @@ def main(argv=None) -> int:
         return 2
     knn_fn = knn_colour(*load_npz(args.knn_npz), args.knn) if args.knn_npz else None
 
-    # The first atlas renders through the production path (render_edited); its trace is reused for the other rows.
+    # Every row renders through the production path (render_edited); the first row's trace serves the others.
+    states = {name: atlas_coloured(bundle, atl) for name, atl in rows.items()}
     first = next(iter(rows))
-    bundle.atlas = rows[first]
-    state = EditState(bundle, cfg=EditConfig(colour="atlas"))
     scores: dict[str, list] = {}
     t0 = time.perf_counter()
     views = list(range(0, len(split), args.every))
     for i in views:
-        out = render_edited(state, split.c2w[i], split.height, split.width, split.focal)
+        cam = (split.c2w[i], split.height, split.width, split.focal)
+        out = render_edited(states[first], *cam)
         tr = out["trace"]
         papr = torch.nan_to_num(shade_frame(bundle.model, tr), nan=1.0).clamp(0, 1)
-        frames = {"PAPR": papr, first: out["rgb"]}
-        for name, atl in rows.items():
-            if name != first:
-                frames[name] = composite(tr, papr, lambda x, a=atl: a.lookup(x, a.packed_image()))
+        frames = {"PAPR": papr}
+        for name, st in states.items():
+            frames[name] = out["rgb"] if name == first else render_edited(st, *cam, trace=tr)["rgb"]
         if knn_fn is not None:
-            frames[f"k-NN colour field (k={args.knn})"] = composite(tr, papr, knn_fn)
+            frames[f"k-NN colour field (k={args.knn})"] = render_edited(states[first], *cam, trace=tr,
+                                                                         texture_fn=knn_fn)["rgb"]
         gt, m = split.images[i], object_mask(split.alphas[i], out["alpha"])
         for name, img in frames.items():
             scores.setdefault(name, []).append((psnr(img, gt), psnr(img, gt, m)))

@@ -2,11 +2,13 @@
 
     python -m tools.bench.colour_field_bound --model M.pgt --scene DIR [--every 2] [--knn 16] [--json OUT]
 
+M.pgt needs an atlas (the rows render like an atlas-coloured edited frame).
+
 DIR is a scene made by `pointgt make-scene` (its `scene.blend` holds the true mesh). An atlas colours each ray by
 a function of one surface point, so two things bound it: how view-consistent the surface points are, and how much
 of the image a per-point colour can hold at all at this resolution (anti-aliased pixels, thin stripes). Rows, all
-on the test views with the model's coverage (1 − background weight) and its point render elsewhere, so that only
-the object colour differs:
+on the test views with the model's coverage (as an atlas-coloured edited frame: the decoder's mask head, else
+1 − background weight) and its point render elsewhere, so that only the object colour differs:
 
 - point render: the model as trained (decoder included);
 - colour field at the true surface: each ray's true hit point (the ray cast against the scene mesh) coloured by the
@@ -22,7 +24,6 @@ truth ∪ rendered foreground like everywhere else.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -31,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tools.bench import add_scene, parse, parser
 from tools.machine import machine_line
 
 
@@ -58,26 +60,28 @@ def mesh_ray_caster(scene_dir: Path):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
+    add_scene(ap, "use every n-th view of the train and test splits")
     ap.add_argument("--model", required=True, help="model file (.pgt)")
-    ap.add_argument("--scene", required=True, help="scene folder made by `pointgt make-scene` (scene.blend)")
-    ap.add_argument("--every", type=int, default=2, help="use every n-th view of the train and test splits")
     ap.add_argument("--knn", type=int, default=16, help="training samples averaged per ray")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads")
-    ap.add_argument("--json", help="write the figures here")
-    args = ap.parse_args(argv)
-    torch.set_num_threads(max(args.threads, 1))
+    args = parse(ap, argv)
     from core.bundle import load_bundle
     from core.images.metrics import object_mask, psnr
     from core.points.render import shade_frame, trace_frame
     from core.images.dataset import load_split
     from core.images.rays import project_on_ray
-    from tools.bench.atlas_vs_papr import composite, knn_colour
+    from core.frames.edited import render_edited
+    from tools.bench.atlas_vs_papr import atlas_coloured, knn_colour
 
     t_start = time.perf_counter()
     scene = Path(args.scene)
     cast = mesh_ray_caster(scene)
-    model = load_bundle(args.model, "cpu").model
+    bundle = load_bundle(args.model, "cpu")
+    if bundle.atlas is None:
+        raise SystemExit(f"{args.model}: the colour-field rows render like an atlas-coloured edited frame, which "
+                         "needs a model with an atlas; run `pointgt atlas` on it first")
+    model = bundle.model
+    state = atlas_coloured(bundle, bundle.atlas, antialias=1)  # one lookup per pixel, at the ray's point
     train, test = load_split(scene, "train"), load_split(scene, "test")
 
     def view(split, i):
@@ -116,9 +120,12 @@ def main(argv=None) -> int:
         found = torch.isfinite(hits).all(1)
         # rays whose true ray misses the mesh keep x_i as their colour source
         at_true = torch.where(found[:, None], hits, x)
+        cam = (test.c2w[i], test.height, test.width, test.focal)
         frames = {"point render": papr,
-                  "colour field at the true surface": composite(dict(tr, x=at_true), papr, fields["true surface"]),
-                  "colour field at x_i": composite(dict(tr, x=x), papr, fields["x_i"])}
+                  "colour field at the true surface": render_edited(state, *cam, trace=dict(tr, x=at_true),
+                                                                    texture_fn=fields["true surface"])["rgb"],
+                  "colour field at x_i": render_edited(state, *cam, trace=dict(tr, x=x),
+                                                       texture_fn=fields["x_i"])["rgb"]}
         # per-point colour capacity alone: true hits and the image's own alpha as coverage (no model at all)
         a = alpha.reshape(-1)
         use = found & (a > 0)

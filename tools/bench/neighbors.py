@@ -77,7 +77,7 @@ def main(argv=None) -> None:
         torch.set_num_threads(args.threads)
 
     from core.images.cameras import pixel_rays
-    from core.points import grid_kernel
+    from core.points.neighbors import compiled
     from core.points import neighbors as nb
 
     pts, c2w, focal, q = sphere_scene(args.points, args.size, args.seed)
@@ -96,7 +96,7 @@ def main(argv=None) -> None:
                  ("screen_depth", "none", screen(True, inf), "kdtree")]
     cap = nb.ScreenIndex(pts, c2w, h, w, focal).radius_px(args.k)
     if args.only in ("all", "capped"):
-        fast = ["compiled"] if grid_kernel.available() else []
+        fast = ["compiled"] if compiled.available() else []
         for b in fast + ["grid"]:  # compiled (numba) grid first: the CPU default when numba is installed
             rows += [("screen", f"auto = {cap:.2f} px", screen(False, "auto"), b),
                      ("screen_depth", f"auto = {cap:.2f} px", screen(True, "auto"), b)]

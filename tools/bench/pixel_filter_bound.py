@@ -12,9 +12,10 @@ colour and no model coverage anywhere), in these ways:
 - true hits, Blackman-Harris filter over a support of w pixels, display space or linear light: `--sub` x `--sub`
   rays per pixel, hits filtered like `core/images/filter.py` does (which supports match Cycles' default width
   setting of 1.5 is what these rows measure);
-- with --model: the model's surface points x_i (on their rays) instead of the true hits, at the pixel centre and
-  filtered (3-pixel support) in linear light from 2 x 2 interpolated sub-pixel points, exactly as an edited frame is rendered —
-  what the model's geometry allows with a perfect texture;
+- with --model (a model with an atlas): the model's surface points x_i (on their rays) instead of the true hits, at
+  the pixel centre and filtered (3-pixel support) in linear light from 2 x 2 interpolated sub-pixel points —
+  rendered by core/frames/edited.py (render_edited with the texture as its texture_fn, the coverage divided out),
+  so exactly as an edited frame is — what the model's geometry allows with a perfect texture;
 - with --model and an atlas: the true texture *baked into the atlas* (core/edits/bake.py; `--bake-from`: splatted
   from the stored surface samples and/or evaluated at each texel's map point) and looked up at x_i, one lookup or
   filtered — what baking loses. `--texel-maps splat,inverse` recomputes the
@@ -24,7 +25,6 @@ Object PSNR over ground-truth alpha > 0.5 ∪ the rows' own coverage, as elsewhe
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tools.bench import add_scene, parse, parser
 from tools.machine import machine_line
 
 
@@ -45,10 +46,9 @@ def _subpixel_grid(height: int, width: int, sub: int) -> torch.Tensor:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", required=True, help="scene folder made by `pointgt make-scene` (scene.blend)")
+    ap = parser(__doc__)
+    add_scene(ap, "use every n-th test view")
     ap.add_argument("--model", default=None, help="model file (.pgt): adds the rows with its surface points")
-    ap.add_argument("--every", type=int, default=2, help="use every n-th test view")
     ap.add_argument("--sub", type=int, default=4, help="rays per pixel side for the filtered true-hit rows")
     ap.add_argument("--supports", default="1.5,3", help="filter supports (pixels) to compare; support * sub - sub "
                     "must be even")
@@ -57,13 +57,10 @@ def main(argv=None) -> int:
                          "default of core/edits/bake.py) and/or points (fn at each texel's map point)")
     ap.add_argument("--texel-maps", default="", help="comma-separated texel-map rules (splat, inverse) to recompute "
                     "and compare; empty = the model's stored map")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads")
-    ap.add_argument("--json", help="write the figures here")
-    args = ap.parse_args(argv)
-    torch.set_num_threads(max(args.threads, 1))
+    args = parse(ap, argv)
     from core.edits.procedural import evaluate
     from core.images.colour import linear_to_srgb, srgb_to_linear
-    from core.images.filter import filter_down, subpixel_points
+    from core.images.filter import filter_down
     from core.images.metrics import object_mask, psnr
     from core.images.cameras import rays_for_pixels
     from core.images.dataset import load_split
@@ -89,27 +86,30 @@ def main(argv=None) -> int:
     if args.model:
         from core.bundle import load_bundle
         from core.edits.bake import bake
-        from core.points.render import trace_frame
-        from core.images.rays import project_on_ray
+        from core.frames.edited import render_edited
+        from core.points.render import straight_colour, trace_frame
+        from tools.bench.atlas_vs_papr import atlas_coloured
         bundle = load_bundle(args.model, "cpu")
         model = bundle.model
-        if bundle.atlas is not None:
-            atlas = bundle.atlas
-            rules = [r.strip() for r in args.texel_maps.split(",") if r.strip()]
-            if rules:
-                from core.atlas.config import AtlasConfig
-                from core.pipeline import refresh_texel_map
-                train = load_split(scene, "train")
-            sources = [b.strip() for b in args.bake_from.split(",") if b.strip()]
-            for rule in rules or ["stored"]:
-                if rule != "stored":
-                    refresh_texel_map(bundle, train, AtlasConfig(texel_map=rule, device="cpu"))
-                for src in sources:
-                    if src == "samples" and atlas.bake_samples is None:
-                        print(f"{args.model}: no stored surface samples (older file); `pointgt atlas M.pgt DIR "
-                              f"--texel-map-only` on a copy stores them")
-                        continue
-                    baked[f"{rule}, from {src}"] = bake(atlas, lambda p: (colour(p).float(), None), source=src)
+        if bundle.atlas is None:
+            raise SystemExit(f"{args.model}: the model rows render like an atlas-coloured edited frame, which needs "
+                             "a model with an atlas; run `pointgt atlas` on it first")
+        atlas = bundle.atlas
+        rules = [r.strip() for r in args.texel_maps.split(",") if r.strip()]
+        if rules:
+            from core.atlas.config import AtlasConfig
+            from core.pipeline import refresh_texel_map
+            train = load_split(scene, "train")
+        sources = [b.strip() for b in args.bake_from.split(",") if b.strip()]
+        for rule in rules or ["stored"]:
+            if rule != "stored":
+                refresh_texel_map(bundle, train, AtlasConfig(texel_map=rule, device="cpu"))
+            for src in sources:
+                if src == "samples" and atlas.bake_samples is None:
+                    print(f"{args.model}: no stored surface samples (older file); `pointgt atlas M.pgt DIR "
+                          f"--texel-map-only` on a copy stores them")
+                    continue
+                baked[f"{rule}, from {src}"] = bake(atlas, lambda p: (colour(p).float(), None), source=src)
 
     scores: dict[str, list[float]] = {}
     centres = _subpixel_grid(H, W, 1)
@@ -142,30 +142,23 @@ def main(argv=None) -> int:
                 frames[f"true hits, filter over {w:g} px, {space}"] = composite(torch.nan_to_num(px, nan=1.0), ok)
         if model is not None:
             tr = trace_frame(model, test.c2w[i], H, W, focal)
-            fg = (1 - tr["bg"]).reshape(H, W)
-            x = project_on_ray(tr["x"], tr["origins"], tr["dirs"]).reshape(H, W, 3)
-            valid = fg > 0.5
-            rgb = torch.ones(H, W, 3, dtype=torch.float64)
-            rgb[valid] = colour(x[valid])
-            frames["model x_i at the pixel centre"] = composite(rgb, valid)
-            depth = ((x - tr["origins"].reshape(H, W, 3)) * tr["dirs"].reshape(H, W, 3)).sum(-1)
-            sp = subpixel_points(x, valid, depth, 2, 3.0 * depth.abs() / focal)
-            on_s = torch.isfinite(sp).all(-1)
-            vals = torch.zeros(3, *on_s.shape, dtype=torch.float64)
-            vals[:, on_s] = srgb_to_linear(colour(sp[on_s])).T
-            px = filter_down(vals, on_s, 2).permute(1, 2, 0)
-            ok = torch.isfinite(px).all(-1)
+            valid = (1 - tr["bg"]).reshape(H, W) > 0.5
+
+            def object_colour(image=None, texture_fn=None, sub=1):
+                """The object colour [H, W, 3] an edited frame gives each ray: rendered over black, coverage divided
+                out. texture_fn: the true texture; else the atlas with `image`."""
+                state = atlas_coloured(bundle, atlas, antialias=sub, image=image)
+                out = render_edited(state, test.c2w[i], H, W, focal, background=(0.0, 0.0, 0.0), trace=tr,
+                                    texture_fn=texture_fn)
+                return straight_colour(out["rgb"], out["alpha"])
+
+            frames["model x_i at the pixel centre"] = composite(object_colour(texture_fn=colour), valid)
             frames["model x_i, 2 x 2 sub-pixel points, filter over 3 px, linear"] = composite(
-                torch.nan_to_num(linear_to_srgb(px), nan=1.0), ok)
+                object_colour(texture_fn=colour, sub=2), valid)
             for rule, tex in baked.items():
-                rgb = torch.ones(H, W, 3, dtype=torch.float64)
-                rgb[valid] = atlas.lookup(x[valid], image=tex).double()
-                frames[f"model x_i, baked ({rule}), pixel centre"] = composite(rgb, valid)
-                vals = torch.zeros(3, *on_s.shape, dtype=torch.float64)
-                vals[:, on_s] = srgb_to_linear(atlas.lookup(sp[on_s], image=tex).double()).T
-                px = filter_down(vals, on_s, 2).permute(1, 2, 0)
+                frames[f"model x_i, baked ({rule}), pixel centre"] = composite(object_colour(tex), valid)
                 frames[f"model x_i, baked ({rule}), filter over 3 px, linear"] = composite(
-                    torch.nan_to_num(linear_to_srgb(px), nan=1.0), torch.isfinite(px).all(-1))
+                    object_colour(tex, sub=2), valid)
         mask = object_mask(alpha, None)
         for name, frame in frames.items():
             scores.setdefault(name, []).append(psnr(frame, gt, mask))

@@ -18,21 +18,23 @@ Skip savings, each against the same frame with the work forced:
   vs points displaced by 1e-6 × spacing (forced: "moved", full deform-aware correspondence);
 - texture work: bent points + unedited atlas (skipped) vs an atlas with one changed texel (forced: every hit ray
   does the correspondence and two atlas lookups);
-- rays that cannot reach the object: the neighbour pixel-radius cap (`max_radius_px` auto, in
-  core/points/neighbors.py) vs no cap (-1): without it every ray with any projected point in the frame gets K
-  neighbours and is attended and shaded.
+- rays that cannot reach the object: the neighbour pixel-radius cap (`ModelConfig.neighbor_radius_px` 0 = auto,
+  core/points/neighbors/radius.py) vs no cap (-1, a copy of the model sharing its weights): without it every ray
+  with any projected point in the frame gets K neighbours and is attended and shaded.
 The last table splits the deformed + retextured frame into its parts (timed by wrapping the functions).
 """
 from __future__ import annotations
 
-import argparse
 import contextlib
+import copy
+import dataclasses
 import functools
 import json
 import math
 import statistics
 import time
 
+from tools.bench import parse, parser
 from tools.machine import machine_line
 
 
@@ -101,25 +103,12 @@ def one_texel(atlas):
     return img
 
 
-@contextlib.contextmanager
-def uncapped_neighbours():
-    """Render with the neighbour pixel-radius cap off (max_radius_px = -1) for the duration."""
-    import core.points.render as render_mod
-    from core.points import neighbors
-
-    original = render_mod.select_neighbors
-
-    def select(points, method, k, c2w, height, width, focal, query_px, origins, dirs):
-        if method == "perpendicular":
-            return original(points, method, k, c2w, height, width, focal, query_px, origins, dirs)
-        return neighbors.screen_knn(points.detach(), c2w, height, width, focal, query_px, k,
-                                    depth_factor=method == "screen_depth", max_radius_px=-1).idx
-
-    render_mod.select_neighbors = select
-    try:
-        yield
-    finally:
-        render_mod.select_neighbors = original
+def uncapped(bundle):
+    """The bundle with the neighbour pixel-radius cap off (ModelConfig.neighbor_radius_px = -1); the model is a
+    shallow copy sharing the original's weights."""
+    model = copy.copy(bundle.model)
+    model.cfg = dataclasses.replace(bundle.model.cfg, neighbor_radius_px=-1.0)
+    return dataclasses.replace(bundle, model=model)
 
 
 def time_frames(states, cams, size, focal, warmup: int = 1) -> list[dict]:
@@ -185,8 +174,8 @@ def timed_parts(bundle, acc: dict):
 
 
 def compare_chunks(bundle, points, atlas_image, cams, size, focal, chunks: str) -> dict:
-    """Edited-frame times for several trace_frame chunk sizes, interleaved per camera: {chunk: (wall s, CPU s)}."""
-    import core.frames.edited as edited_mod
+    """Edited-frame times for several trace_frame chunk sizes, interleaved per camera: {chunk: (wall s, CPU s)}.
+    Each frame is traced with the chunk size, then rendered from that trace (render_edited(trace=...))."""
     from core.frames.edited import EditState, render_edited
     from core.points.render import trace_frame
 
@@ -195,17 +184,15 @@ def compare_chunks(bundle, points, atlas_image, cams, size, focal, chunks: str) 
         return {}
     state = EditState(bundle, points=points, atlas=atlas_image)
     times = {c: ([], []) for c in sizes}
-    try:
-        for i, cam in enumerate([cams[0]] + list(cams)):  # the first is a warm-up
-            for c in sizes:
-                edited_mod.trace_frame = functools.partial(trace_frame, chunk=c)
-                t, tc = time.perf_counter(), time.process_time()
-                render_edited(state, cam, size, size, focal)
-                if i:
-                    times[c][0].append(time.perf_counter() - t)
-                    times[c][1].append(time.process_time() - tc)
-    finally:
-        edited_mod.trace_frame = trace_frame
+    for i, cam in enumerate([cams[0]] + list(cams)):  # the first is a warm-up
+        for c in sizes:
+            t, tc = time.perf_counter(), time.process_time()
+            tr = trace_frame(state.bundle.model, cam, size, size, focal, points=state.points,
+                             influence=state.influence, temperature=state.cfg.temperature, chunk=c)
+            render_edited(state, cam, size, size, focal, trace=tr)
+            if i:
+                times[c][0].append(time.perf_counter() - t)
+                times[c][1].append(time.process_time() - tc)
     print("\ntrace_frame chunk (rays per attention call), deformed + retextured frame, interleaved:")
     print("| chunk | median s | CPU s |")
     print("|---|---|---|")
@@ -217,24 +204,18 @@ def compare_chunks(bundle, points, atlas_image, cams, size, focal, chunks: str) 
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--model", default=None, help="a trained .pgt with an atlas (default: build one, see above)")
     ap.add_argument("--points", type=int, default=10_000, help="points of the built model")
     ap.add_argument("--size", type=int, default=128, help="frames are size × size pixels")
     ap.add_argument("--frames", type=int, default=7, help="timed frames per row (median reported)")
     ap.add_argument("--atlas-steps", type=int, default=60, help="stage-2 steps of the built model's atlas")
     ap.add_argument("--save-model", default=None, help="save the built model here (reuse it with --model)")
-    ap.add_argument("--threads", type=int, default=0, help="torch threads (0 = torch's default)")
     ap.add_argument("--budget", type=float, default=0.25, help="target seconds for a deformed + retextured frame")
     ap.add_argument("--chunks", default="", help="comma-separated trace_frame chunk sizes (rays per attention call) "
                     "to compare on the deformed + retextured frame, e.g. 16384,1024; empty = skip")
-    ap.add_argument("--json", default=None, help="also write the figures to this JSON file")
-    args = ap.parse_args(argv)
+    args = parse(ap, argv, threads=0)
 
-    import torch
-
-    if args.threads > 0:
-        torch.set_num_threads(args.threads)
     from core.bundle import load_bundle
     from core.frames.edited import EditState
 
@@ -268,11 +249,10 @@ def main(argv=None) -> int:
           f"{tuple(atlas.packed_image().shape[:2])} ({atlas.n} charts); ready in {build_s:.1f} s")
     print(f"frames: {args.size}x{args.size}, median of {args.frames} orbit views after 1 warm-up")
 
-    def rows_of(*specs, uncapped: bool = False):
-        """specs: (label, EditState kwargs) -> one result dict per spec, timed interleaved."""
-        states = [EditState(bundle, **kw) for _, kw in specs]
-        with uncapped_neighbours() if uncapped else contextlib.nullcontext():
-            res = time_frames(states, cams, args.size, focal)
+    def rows_of(*specs):
+        """specs: (label, EditState kwargs, bundle by default) -> one result dict per spec, timed interleaved."""
+        states = [EditState(**{"bundle": bundle, **kw}) for _, kw in specs]
+        res = time_frames(states, cams, args.size, focal)
         for r, (label, _) in zip(res, specs):
             r["label"] = label
         return res
@@ -298,10 +278,9 @@ def main(argv=None) -> int:
             ("skipped", {"points": bent, "atlas": atlas.packed_image()}),
             ("forced: one texel changed", {"points": bent, "atlas": texel}))),
     ]
-    # the cap cannot be switched per state, so these two are timed one after the other
-    capped = rows_of(("skipped", {"points": bent, "atlas": painted}))[0]
-    uncapped = rows_of(("forced: no radius cap", {"points": bent, "atlas": painted}), uncapped=True)[0]
-    skips.append(("rays that cannot reach the object (deformed + retextured)", capped, uncapped))
+    skips.append(("rays that cannot reach the object (deformed + retextured)", *rows_of(
+        ("skipped", {"points": bent, "atlas": painted}),
+        ("forced: no radius cap", {"bundle": uncapped(bundle), "points": bent, "atlas": painted}))))
     print("\n| skip | skipped: median s (CPU s) | forced: median s (CPU s) | saving (CPU) "
           "| rays shaded skipped / forced | texture rays skipped / forced |")
     print("|---|---|---|---|---|---|")

@@ -9,10 +9,10 @@ ORDER = 25
 def add_arguments(p):
     from core.atlas.config import AtlasConfig
     from core.config import add_to_parser
+    from tools.commands import add_model_and_data
 
-    p.add_argument("model", help="model file (.pgt); rewritten in place, the previous version kept as .bak")
-    p.add_argument("data", help="the dataset the model was trained on (NeRF-synthetic layout)")
-    p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
+    add_model_and_data(p, "model file (.pgt); rewritten in place, the previous version kept as .bak",
+                       "the dataset the model was trained on (NeRF-synthetic layout)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--texel-map-only", action="store_true",
                    help="keep charts and texture; only recompute the texel->surface map with the current rules "

@@ -10,12 +10,12 @@ ORDER = 30
 
 
 def add_arguments(p):
-    p.add_argument("model", help="model file (.pgt)")
-    p.add_argument("data", help="dataset folder (NeRF-synthetic layout)")
+    from tools.commands import add_model_and_data
+
+    add_model_and_data(p, "model file (.pgt)", "dataset folder (NeRF-synthetic layout)")
     p.add_argument("--split", default="test", help="split to evaluate")
     p.add_argument("--json", default=None, help="write the figures to this JSON file")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
-    p.add_argument("--downscale", type=int, default=1, help="integer image downscale factor")
     p.add_argument("--limit", type=int, default=0, help="evaluate only the first N views (0 = all)")
 
 

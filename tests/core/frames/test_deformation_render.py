@@ -8,14 +8,14 @@ from core.edits.deformation import DeformationConfig
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.points.render import render_frame, trace_frame
 from core.images.rays import project_on_ray
-from tests.helpers.tiny_model import tiny_card
+from tests.helpers.tiny import tiny_bundle
 
 ALL_ON = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True)
 
 
 @pytest.fixture(scope="module")
 def tiny():
-    return tiny_card()
+    return tiny_bundle("card")
 
 
 def _half_split(x):

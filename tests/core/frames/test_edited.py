@@ -6,12 +6,12 @@ from core.edits.bake import bake
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.points.render import render_frame
 from core.util.errors import InputError
-from tests.helpers.tiny_model import tiny_card
+from tests.helpers.tiny import tiny_bundle
 
 
 @pytest.fixture(scope="module")
 def tiny():
-    return tiny_card()
+    return tiny_bundle("card")
 
 
 def _render(state, split, i=0, c2w=None):
@@ -41,7 +41,7 @@ def test_global_retexture_lands_on_the_surface(tiny):
 
 def test_retexture_with_the_unet_decoder():
     """The decoder renders the feature image; texture edits are composited on its output, deformed or not."""
-    bundle, _, test = tiny_card(steps=400, decoder="unet")  # the decoder's points need longer to settle
+    bundle, _, test = tiny_bundle("card", steps=400, decoder="unet")  # the decoder's points need longer to settle
     assert bundle.model.decoder is not None
     _check_retexture(bundle, test)
     state = EditState(bundle, atlas=bake(bundle.atlas, _half_split),
@@ -180,7 +180,7 @@ def test_painted_rays_take_the_decoder_mask_as_coverage():
     they show the background; to 1 and no background is mixed into their atlas colour."""
     import copy
 
-    bundle, _, test = tiny_card(steps=400, decoder="unet")
+    bundle, _, test = tiny_bundle("card", steps=400, decoder="unet")
     assert bundle.model.cfg.decoder_alpha
     frames = {}
     for name, bias in (("none", -60.0), ("full", 60.0)):
@@ -202,7 +202,7 @@ def test_painted_rays_take_the_decoder_mask_as_coverage():
 def test_renders_over_any_background(decoder):
     """A decoder paints the white it was trained on; over another background its share must move there: over
     black the background pixels are black, and white minus black is the uncovered share 1 − alpha everywhere."""
-    bundle, _, test = tiny_card(steps=400 if decoder == "unet" else 200, decoder=decoder)
+    bundle, _, test = tiny_bundle("card", steps=400 if decoder == "unet" else 200, decoder=decoder)
     state = EditState(bundle, cfg=EditConfig(colour="atlas", antialias=1))
     for render in (lambda bg: render_frame(bundle.model, test.c2w[1], test.height, test.width, test.focal,
                                            background=bg),

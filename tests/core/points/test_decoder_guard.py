@@ -7,11 +7,10 @@ import torch
 
 import core.points.train as train_mod
 from core.points.render import render_frame
-from core.points.model import ModelConfig, PointModel, mean_spacing
+from core.points.model import PointModel, mean_spacing
 from core.points.train import CollapseGuard, TrainConfig, collapse_reason, evaluate, fit_points
 from tests.helpers.synthetic import fibonacci_cameras, render_split
-
-SMALL = dict(k=8, feature_dim=8, key_width=16, value_width=16, key_freqs=2)
+from tests.helpers.tiny import model_config
 
 
 def _split():
@@ -22,8 +21,8 @@ def _pair():
     """A residual-UNet model and a decoder-free model sharing points, attention and point colours."""
     torch.manual_seed(0)
     xyz = torch.rand(500, 3) - 0.5
-    dec = PointModel(ModelConfig(decoder="unet", **SMALL), xyz, mean_spacing(xyz))
-    plain = PointModel(ModelConfig(decoder="none", **SMALL), xyz, mean_spacing(xyz))
+    dec = PointModel(model_config("fast", decoder="unet"), xyz, mean_spacing(xyz))
+    plain = PointModel(model_config("fast", decoder="none"), xyz, mean_spacing(xyz))
     with torch.no_grad():
         for name in ("xyz", "features", "influence", "bg_logit"):
             getattr(plain, name).copy_(getattr(dec, name))
@@ -67,7 +66,7 @@ def test_decoder_forced_into_saturation(residual):
     back; the older sigmoid decoder does not move (why it used to collapse for good)."""
     torch.manual_seed(0)
     xyz = torch.rand(200, 3) - 0.5
-    m = PointModel(ModelConfig(decoder="unet", decoder_residual=residual, **SMALL), xyz, mean_spacing(xyz))
+    m = PointModel(model_config("fast", decoder="unet", decoder_residual=residual), xyz, mean_spacing(xyz))
     with torch.no_grad():
         m.decoder.out.bias.fill_(20.0)
     losses = _train_decoder(m)
@@ -110,7 +109,7 @@ def test_collapse_reason_cases():
 def test_guard_actions_order():
     torch.manual_seed(0)
     xyz = torch.rand(200, 3) - 0.5
-    dec = PointModel(ModelConfig(decoder="unet", **SMALL), xyz, mean_spacing(xyz))
+    dec = PointModel(model_config("fast", decoder="unet"), xyz, mean_spacing(xyz))
     g = CollapseGuard(FLOOR, 1.0)
     blank = {**GOOD, "psnr_object": 8.0, "blank_distance": 0.0}
     assert g.check(dec, blank, step=10, frac=0.5) == (None, None)  # too early for a verdict
@@ -135,7 +134,7 @@ def test_a_saturated_decoder_fit_is_caught_and_recovers(monkeypatch):
 
     monkeypatch.setattr(train_mod, "PointModel", Saturated)
     split = _split()
-    mcfg = ModelConfig(num_points=600, decoder="unet", decoder_residual=False, **SMALL)
+    mcfg = model_config("fast", decoder="unet", decoder_residual=False)
     cfg = TrainConfig(steps=400, patches=1, patch_size=32, eval_every=0.0, eval_views=2, device="cpu", seed=1,
                       threads=1, prune_every=0, clone_every=0, lr_final=0.2)
     model, hist = fit_points(split, split, mcfg, cfg, show_progress=False)

@@ -11,16 +11,18 @@ import pytest
 import torch
 
 from core.config import from_dict, to_dict
-from core.images.cameras import look_at, pixel_rays
-from core.points import grid_kernel
+from core.images.cameras import look_at, pixel_rays, rays_for_pixels
+from core.points.neighbors import compiled
+from core.points.neighbors import grid
 from core.points import neighbors as nb
+from core.points.model import ModelConfig
 from core.util.errors import InputError
 
 H = W = 24
 FOCAL = 1.1 * W
 BACKENDS = ("kdtree", "torch")
 # capped screen searches: the torch grid everywhere, the compiled (numba) grid where numba is installed
-GRIDS = ("grid", "compiled") if grid_kernel.available() else ("grid",)
+GRIDS = ("grid", "compiled") if compiled.available() else ("grid",)
 INF = math.inf
 
 
@@ -188,22 +190,25 @@ def test_index_reused_across_chunks_equals_one_call():
 
 
 @pytest.mark.parametrize("method", nb.METHODS)
-def test_config_dispatch(method):
+def test_selector_dispatch(method):
     pts = scene("sphere", 900, 6)
     c2w = camera(6)
     rows, cols = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
     q = torch.stack([cols.flatten() + 0.5, rows.flatten() + 0.5], -1).float()
-    cfg = nb.NeighborConfig(method=method, k=6)
-    assert from_dict(nb.NeighborConfig, to_dict(cfg)) == cfg
-    got = nb.knn_for_pixels(cfg, pts, c2w, H, W, FOCAL, q)
+    o, d = rays(c2w)  # the rays through those pixels (cameras.pixel_rays)
+    cfg = ModelConfig(neighbors=method, k=6)
+    assert from_dict(ModelConfig, to_dict(cfg)) == cfg
+    got = nb.select_neighbors(pts, cfg.neighbors, cfg.k, c2w, H, W, FOCAL, q, o, d, cfg.neighbor_radius_px)
     if method == "perpendicular":
-        o, d = rays(c2w)  # the same rays as cameras.pixel_rays
+        want = nb.rays_knn_perpendicular(pts, o, d, 6)
         ref = ref_perpendicular(pts, o, d, 6)
     else:  # default cap: auto
-        assert cfg.max_radius_px == 0.0
+        assert cfg.neighbor_radius_px == 0.0
+        want = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 6, depth_factor=method == "screen_depth")
         cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL).radius_px(6)
         ref = ref_screen(pts, c2w, q, 6, method == "screen_depth", cap)
-    assert_same(got, ref)
+    assert torch.equal(got, want.idx)
+    assert_same(want, ref)
 
 
 # ------------------------------------------------------------------------------------------- degenerate input
@@ -385,7 +390,7 @@ def test_grid_very_dense_cell_is_exact_and_chunked(depth_factor, backend, monkey
     index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend)
     cpx = index.px[index.ids == 0][0].float()
     q = torch.cat([cpx + torch.randn(60, 2, generator=g) * 1.5, random_px(200, 9)])
-    monkeypatch.setattr(nb, "_GRID_BUDGET", 256)
+    monkeypatch.setattr(grid, "_GRID_BUDGET", 256)
     got = index.query(q, 25)
     ref = ref_screen(pts, c2w, q, 25, depth_factor, index.radius_px(25))
     assert_same(got, ref)
@@ -449,13 +454,21 @@ def test_auto_radius_of_degenerate_clouds_is_finite(pts):
     assert math.isfinite(r) and r >= 1.5
 
 
-def test_config_cap_round_trips_and_is_used():
-    cfg = nb.NeighborConfig(method="screen", k=5, max_radius_px=2.0)
-    assert from_dict(nb.NeighborConfig, to_dict(cfg)) == cfg
+def test_model_config_cap_round_trips_and_is_used():
+    cfg = ModelConfig(neighbors="screen", k=5, neighbor_radius_px=2.0)
+    assert from_dict(ModelConfig, to_dict(cfg)) == cfg
     pts, c2w, q = scene("sphere", 700, 12), camera(12), random_px(300, 12)
-    assert_same(nb.knn_for_pixels(cfg, pts, c2w, H, W, FOCAL, q), ref_screen(pts, c2w, q, 5, False, 2.0))
-    cfg = nb.NeighborConfig(method="screen", k=5, max_radius_px=-1.0)  # no cap: the k-d tree
-    assert_same(nb.knn_for_pixels(cfg, pts, c2w, H, W, FOCAL, q), ref_screen(pts, c2w, q, 5, False))
+    o, d = rays_for_pixels(c2w, q, H, W, FOCAL)
+    for radius, backend, cap in ((2.0, "auto", 2.0), (-1.0, "kdtree", INF)):  # no cap: the k-d tree
+        cfg = ModelConfig(neighbors="screen", k=5, neighbor_radius_px=radius)
+        got = nb.select_neighbors(pts, cfg.neighbors, cfg.k, c2w, H, W, FOCAL, q, o, d, cfg.neighbor_radius_px)
+        want = nb.screen_knn(pts, c2w, H, W, FOCAL, q, 5, backend=backend, max_radius_px=radius)
+        assert torch.equal(got, want.idx)
+        assert_same(want, ref_screen(pts, c2w, q, 5, False, cap))
+    with pytest.raises(InputError, match="neighbor_radius_px"):
+        from_dict(ModelConfig, dict(to_dict(cfg), neighbor_radius_px=-2.0))
+    older = {k: v for k, v in to_dict(cfg).items() if k != "neighbor_radius_px"}  # a file from before the setting
+    assert from_dict(ModelConfig, older).neighbor_radius_px == 0.0  # auto, as such models were trained
 
 
 @pytest.mark.parametrize("call, match", [
@@ -465,6 +478,8 @@ def test_config_cap_round_trips_and_is_used():
     (lambda: nb.screen_knn(torch.zeros(5, 3), torch.eye(3), H, W, FOCAL, torch.zeros(3, 2), 4), "c2w"),
     (lambda: nb.screen_knn(torch.zeros(5, 3), camera(0), H, W, FOCAL, torch.zeros(3, 2), 0), "k must"),
     (lambda: nb.rays_knn_perpendicular(torch.zeros(5, 3), torch.zeros(4, 3), torch.ones(3, 3), 2), "differ"),
+    (lambda: nb.select_neighbors(torch.zeros(5, 3), "nearest", 4, camera(0), H, W, FOCAL, torch.zeros(3, 2),
+                                 torch.zeros(3, 3), torch.ones(3, 3)), "method"),
     (lambda: nb.rays_knn_perpendicular(torch.zeros(5, 3), torch.zeros(4, 3), torch.ones(4, 3), 2, "gpu"),
      "backend"),
     (lambda: nb.rays_knn_perpendicular(torch.zeros(5, 3), torch.zeros(4, 3), torch.ones(4, 3), 2, "grid"),

@@ -5,13 +5,13 @@ import torch
 from core.images.cameras import pixel_rays
 from core.points import neighbors
 from core.points.render import pixel_grid, render_frame, shade_frame, straight_colour, trace_frame
-from core.points.select import select_neighbors
-from tests.helpers.tiny_fast import tiny_fast
+from core.points.neighbors.select import select_neighbors
+from tests.helpers.tiny import tiny_bundle
 
 
 @pytest.fixture(scope="module")
 def scene():
-    bundle, _, test = tiny_fast()
+    bundle, _, test = tiny_bundle("fast")
     return bundle.model, test
 
 

@@ -3,11 +3,11 @@ import torch
 
 from core.bundle import Bundle, load_bundle, save_bundle
 from core.points.render import render_frame
-from core.points.model import ModelConfig
 from core.points.train import TrainConfig, fit_points
 from tests.helpers.synthetic import fibonacci_cameras, render_split
+from tests.helpers.tiny import model_config
 
-TINY_MODEL = ModelConfig(num_points=600, k=8, feature_dim=16, key_width=32, value_width=32)
+TINY_MODEL = model_config("card", num_points=600)
 
 
 def _tiny_cfg(**kw):

@@ -1,11 +1,11 @@
-"""Compiled CPU kernel of the capped screen-space K-nearest search (the "compiled" backend of neighbors.py).
+"""Compiled CPU kernel of the capped screen-space K-nearest search (the "compiled" backend).
 
-Same definition as the pure-torch grid (`_CellGrid`): candidates of a query pixel are the projected points within
+Same definition as the pure-torch grid (`grid.py`): candidates of a query pixel are the projected points within
 `cap` pixels; they are ranked by pixel distance × per-point weight (weight 1 for "screen", depth / focal for
 "screen_depth"). Why a compiled loop: on the CPU the torch grid is a few hundred small tensor ops per frame and a
 per-row `topk` (≈ 0.8 µs a row); one loop per query that keeps its K best in an insertion buffer does the same work
 in a single pass over ~3 K candidates. Needs numba (an optional dependency: without it `available()` is False and
-"auto" keeps the torch grid). CPU only and single-threaded, like the torch grid on the CPU (see neighbors.py).
+"auto" keeps the torch grid). CPU only and single-threaded, like the torch grid on the CPU (see grid.py).
 
 Cells are squares of about half the cap (the radius holding K points at the median density, so the K nearest
 usually lie in the query's cell and its 8 neighbours). Cells are visited ring by ring around the query's cell; a
