@@ -85,14 +85,17 @@ def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chun
     else:
         feat = torch.cat([p["feature"] for p in parts]).reshape(h, w, -1).permute(2, 0, 1)[None]
         rgb, alpha = model.decode_with_alpha(feat)
-        rgb = rgb[0].permute(1, 2, 0).clamp(0.0, 1.0)  # the frame over white (a residual decoder may overshoot)
+        rgb = rgb[0].permute(1, 2, 0)
         alpha = None if alpha is None else alpha[0]
-        # The decoder paints the background it was trained on (a·c + (1 − a)·white); move that share onto the
-        # requested background. a: the mask head, else the attention's foreground weight (older models).
-        cover = alpha if alpha is not None else (1.0 - trace["bg"]).reshape(h, w)
-        shift = bg - torch.as_tensor(TRAIN_BACKGROUND, dtype=torch.float32, device=bg.device)
-        if bool(shift.abs().max() > 0):
-            rgb = rgb + (1.0 - cover.clamp(0, 1))[..., None] * shift
+        # The decoder paints the background it was trained on: its frame is a·c + (1 − a)·white, a the mask head
+        # (else the attention's foreground weight, older models). Recover the object colour c (in [0, 1]) and
+        # composite it with a over the requested background: the same frame over white, the white share moved
+        # onto any other background, and no faint tint of the decoder where nothing is covered (a frame over
+        # black then composites over white into the frame over white).
+        cover = (alpha if alpha is not None else (1.0 - trace["bg"]).reshape(h, w)).clamp(0, 1)[..., None]
+        white = torch.as_tensor(TRAIN_BACKGROUND, dtype=torch.float32, device=bg.device)
+        c = ((rgb - (1.0 - cover) * white) / cover.clamp_min(1e-4)).clamp(0.0, 1.0)
+        rgb = cover * c + (1.0 - cover) * bg
     rgb = rgb.clamp(0.0, 1.0)
     return (rgb, alpha) if with_alpha else rgb
 
