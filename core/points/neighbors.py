@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from core.config import opt
-from core.images.cameras import project_points
+from core.images.cameras import Intrinsics, focal_scale, project_points
 from core.points import grid_kernel
 from core.util.errors import InputError
 
@@ -162,8 +162,11 @@ def _check_camera(c2w, height, width, focal) -> None:
     for name, v in (("height", height), ("width", width)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise InputError(f"neighbour search: {name} must be a positive integer, got {v!r}")
+    if isinstance(focal, Intrinsics):
+        return  # validated when it was made: finite, positive focal lengths
     if isinstance(focal, bool) or not (isinstance(focal, numbers.Real) and math.isfinite(focal) and focal > 0):
-        raise InputError(f"neighbour search: focal must be a finite positive number of pixels, got {focal!r}")
+        raise InputError(f"neighbour search: focal must be a finite positive number of pixels (or Intrinsics), "
+                         f"got {focal!r}")
 
 
 def _present(points: torch.Tensor) -> torch.Tensor:
@@ -587,13 +590,14 @@ def _run_positions(start: torch.Tensor, length: torch.Tensor, width: int, tail: 
 class ScreenIndex:
     """Projected points of one camera, built once and queried many times (e.g. every chunk of a frame).
 
-    points [N, 3]; c2w [4, 4] or [3, 4]; height, width in pixels; focal in pixels. depth_factor=False ranks by
-    pixel distance (pixels), True by pixel distance × depth / focal (world units, ≈ perpendicular distance).
+    points [N, 3]; c2w [4, 4] or [3, 4]; height, width in pixels; focal in pixels or Intrinsics. depth_factor=False
+    ranks by pixel distance (pixels), True by pixel distance × depth / focal (world units, ≈ perpendicular
+    distance; with Intrinsics the focal is sqrt(fx * fy)).
     max_radius_px: candidates lie within this many pixels of the query; "auto" (or 0) derives it from the
     projected density and K (`radius_px(k)`), inf (or a negative number) means no cap.
     """
 
-    def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal: float,
+    def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
                  depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto"):
         _check_matrix("points", points, 3)
         _check_camera(c2w, height, width, focal)
@@ -603,12 +607,13 @@ class ScreenIndex:
         self.depth_factor = depth_factor
         self.height, self.width = int(height), int(width)
         p = points.detach().to(torch.float64)
-        px, depth = project_points(p, c2w.detach().to(p.device, torch.float64), height, width, float(focal))
+        cam = focal if isinstance(focal, Intrinsics) else float(focal)
+        px, depth = project_points(p, c2w.detach().to(p.device, torch.float64), height, width, cam)
         keep = _present(p) & torch.isfinite(px).all(dim=1) & (depth > 0)
         keep &= (px[:, 0] >= -1) & (px[:, 0] <= width + 1) & (px[:, 1] >= -1) & (px[:, 1] <= height + 1)
         self.ids = torch.nonzero(keep).squeeze(1)  # [M] original point index of each candidate
         self.px = px[keep]  # [M, 2] (col, row)
-        self.weight = depth[keep] / float(focal) if depth_factor else None  # [M]
+        self.weight = depth[keep] / float(focal_scale(cam)) if depth_factor else None  # [M]
         self._density: float | None = None
         self._grids: dict[float, _CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
         self._tree = None
@@ -813,7 +818,8 @@ def knn_for_pixels(cfg: NeighborConfig, points: torch.Tensor, c2w: torch.Tensor,
     _check_matrix("query_px", query_px, 2)
     m = c2w.detach().to(points.device, torch.float32)
     q = query_px.detach().to(points.device, torch.float32)
-    d_cam = torch.stack([(q[:, 0] - 0.5 * width) / focal, -(q[:, 1] - 0.5 * height) / focal,
-                         -torch.ones_like(q[:, 0])], dim=-1)
+    fx, fy, cx, cy = (focal, focal, 0.5 * width, 0.5 * height) if not isinstance(focal, Intrinsics) else \
+        (focal.fx, focal.fy, focal.cx, focal.cy)
+    d_cam = torch.stack([(q[:, 0] - cx) / fx, -(q[:, 1] - cy) / fy, -torch.ones_like(q[:, 0])], dim=-1)
     dirs = d_cam @ m[:3, :3].T
     return rays_knn_perpendicular(points, m[:3, 3].expand_as(dirs), dirs, cfg.k, backend=cfg.backend)
