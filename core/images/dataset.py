@@ -102,12 +102,22 @@ def load_dataset(root: str | os.PathLike, splits=SPLITS, required=("train",), do
     out = {}
     for split in splits:
         path = transforms_path(root, split)
-        if split not in required and (not path.exists() or (path.name == SINGLE_FILE and split == "val")):
+        if split not in required and (not path.exists() or (path.name == SINGLE_FILE and split not in
+                                                            ("train", "test") and not _names_split(path, split))):
             continue
         out[split] = load_split(root, split, downscale=downscale, background=background,
                                 check_extra_files=check_extra_files, test_every=test_every,
                                 background_colour=background_colour, progress=progress)
     return out
+
+
+def _names_split(json_path: Path, split: str) -> bool:
+    """Whether a single transforms.json names the images of `split` (<split>_filenames); False when unreadable
+    (the error is reported when a required split is loaded)."""
+    try:
+        return f"{split}_filenames" in json.loads(json_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, TypeError, RecursionError):
+        return False
 
 
 def load_split(root: str | os.PathLike, split: str = "train", downscale: int = 1, background=(1.0, 1.0, 1.0),
@@ -249,9 +259,10 @@ def _read_json(json_path: Path, root: Path) -> dict:
 def _layout(doc: dict, json_path: Path) -> str:
     """Which tool's layout this is (reported, and used in messages; the keys decide how frames are read)."""
     if json_path.name == SINGLE_FILE:
-        return "nerfstudio" if ("camera_model" in doc or "applied_transform" in doc or
-                                any(isinstance(f, dict) and "mask_path" in f for f in doc.get("frames") or [])) \
-            else "instant-ngp"
+        if "camera_model" in doc or "applied_transform" in doc:
+            return "nerfstudio"
+        masked = any(isinstance(f, dict) and "mask_path" in f for f in doc.get("frames") or [])
+        return "nerfstudio" if masked and "aabb_scale" not in doc else "instant-ngp"
     if "aabb_scale" in doc and "fl_x" not in doc:
         return "instant-ngp"
     return "blendernerf" if "fl_x" in doc or "w" in doc else "nerf-synthetic"
