@@ -47,12 +47,17 @@ def _read_u8(path: Path) -> np.ndarray:
         return np.asarray(img.convert("RGBA"))
 
 
-def _area_mean_u8(arr: np.ndarray, d: int) -> np.ndarray:
-    """[H, W, C] uint8 averaged over d x d blocks and rounded (the copies ns-process-data writes, by area)."""
-    h, w, c = arr.shape
-    x = arr[: h - h % d, : w - w % d].astype(np.float64)
-    x = x.reshape(h // d, d, w // d, d, c).mean(axis=(1, 3))
-    return np.clip(np.round(x), 0, 255).astype(np.uint8)
+def _downscale_rgba(arr: np.ndarray, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """An RGBA image [H, W, 4] uint8 averaged over d x d blocks with premultiplied alpha (as the loader averages
+    when there are no copies), returned as straight RGB [H/d, W/d, 3] and mask [H/d, W/d] uint8."""
+    h, w, _ = arr.shape
+    x = arr[: h - h % d, : w - w % d].astype(np.float64) / 255.0
+    x = x.reshape(h // d, d, w // d, d, 4)
+    a = x[..., 3].mean(axis=(1, 3))
+    premul = (x[..., :3] * x[..., 3:]).mean(axis=(1, 3))
+    straight = np.where(a[..., None] > 0, premul / np.maximum(a[..., None], 1e-12), 0.0)
+    to_u8 = lambda v: np.clip(np.round(v * 255.0), 0, 255).astype(np.uint8)  # noqa: E731
+    return to_u8(straight), to_u8(a)
 
 
 def _source(scene: Path) -> tuple[float, dict, int, int]:
@@ -123,11 +128,9 @@ def write_layout(scene, out, fmt: str, downscales=(2,), log=print) -> Path:
                     atomic_write_bytes(out / name, _png_bytes(np.ascontiguousarray(rgba[..., :3])), backup=False)
                     atomic_write_bytes(out / mask, _png_bytes(np.ascontiguousarray(rgba[..., 3])), backup=False)
                     for d in downscales:
-                        small = _area_mean_u8(rgba, d)
-                        atomic_write_bytes(out / f"images_{d}/{split}/{stem}.png",
-                                           _png_bytes(np.ascontiguousarray(small[..., :3])), backup=False)
-                        atomic_write_bytes(out / f"masks_{d}/{split}/{stem}.png",
-                                           _png_bytes(np.ascontiguousarray(small[..., 3])), backup=False)
+                        rgb_d, mask_d = _downscale_rgba(rgba, d)
+                        atomic_write_bytes(out / f"images_{d}/{split}/{stem}.png", _png_bytes(rgb_d), backup=False)
+                        atomic_write_bytes(out / f"masks_{d}/{split}/{stem}.png", _png_bytes(mask_d), backup=False)
                     all_frames.append({"file_path": name, "mask_path": mask,
                                        "transform_matrix": f["transform_matrix"]})
                 else:  # instant-ngp: one images/ folder, intrinsics per frame
