@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from core.config import opt
 from core.images.cameras import Intrinsics, focal_from_fov, simplest
 from core.images.png import read_png
 from core.util.errors import DataError, InputError
@@ -45,6 +46,20 @@ PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV only with all
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "camera_model",
                   "is_fisheye") + DISTORTION_KEYS
 KEY_TOLERANCE = 0.04  # --background-colour: a pixel within this (max over channels) of the key is background
+
+
+@dataclass
+class LoadConfig:
+    """Reading a dataset: the train/test split of a single transforms.json and images without alpha."""
+    test_every: int = opt(8, "a single transforms.json (nerfstudio, instant-ngp) without train_filenames/"
+                             "test_filenames: every N-th frame in file_path order is a test view", min=2, max=10_000)
+    background_colour: str = opt("", "R,G,B of a studio backdrop (0-1 or 0-255): images without alpha or "
+                                     "mask_path are keyed on it; empty = such images are refused")
+
+    def loader_kwargs(self) -> dict:
+        """Keyword arguments of load_split / load_dataset."""
+        key = parse_colour(self.background_colour) if self.background_colour.strip() else None
+        return {"test_every": self.test_every, "background_colour": key}
 
 
 @dataclass

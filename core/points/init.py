@@ -12,16 +12,13 @@ from core.images.cameras import Intrinsics, project_points
 from core.util.errors import DataError
 
 
-def scene_radius(c2w: torch.Tensor, focal, width: int, height: int | None = None) -> float:
-    """Half-size of the region every camera sees around the origin: distance × tan(half fov). focal in pixels
-    (horizontal half fov) or Intrinsics (the widest half-angle on any side of the principal point; needs
-    `height`)."""
+def scene_radius(c2w: torch.Tensor, focal, width: int) -> float:
+    """Half-size of the region every camera sees around the origin: distance × tan(half the horizontal fov).
+    focal in pixels or Intrinsics (the wider side of the principal point: an off-centre camera may look at the
+    object off-axis)."""
     dist = c2w[:, :3, 3].norm(dim=-1).min()
     if isinstance(focal, Intrinsics):
-        if height is None:
-            raise ValueError("scene_radius: Intrinsics need the image height")
-        half = max(max(focal.cx, width - focal.cx) / focal.fx, max(focal.cy, height - focal.cy) / focal.fy)
-        return float(dist * half)
+        return float(dist * (max(focal.cx, width - focal.cx) / focal.fx))
     return float(dist * (0.5 * width / focal))
 
 
@@ -36,7 +33,7 @@ def visual_hull_points(alphas: torch.Tensor, c2w: torch.Tensor, focal: float, n:
     """
     v, h, w = alphas.shape
     g = torch.Generator().manual_seed(seed)
-    radius = scene_radius(c2w, focal, w, h)
+    radius = scene_radius(c2w, focal, w)
     fg = (alphas > 0.5).float()[:, None]
     if dilate_px > 0:
         fg = F.max_pool2d(fg, 2 * dilate_px + 1, stride=1, padding=dilate_px)
