@@ -181,6 +181,7 @@ def load_split(root: str | os.PathLike, split: str = "train", downscale: int = 1
     _check_key_presence(frames, doc, json_path)
     specs = [_frame_camera(doc, fr, json_path, i, files[i], width, height) for i, fr in enumerate(frames)]
     spec = _shared_camera(specs, json_path, files)
+    _check_plausible(spec, json_path, width, height)
     if use_copies:
         h, w = _image_size(read_files[0])
         if abs(w * factor - width) >= factor or abs(h * factor - height) >= factor:
@@ -418,6 +419,27 @@ def _check_key_presence(frames: list, doc: dict, json_path: Path, keys=INTRINSIC
             i = has.index(False)
             raise DataError(f"{json_path}: frame {i} has no '{key}', but other frames do and the file has none at "
                             f"the top; give '{key}' in every frame or once at the top of the file")
+
+
+FOCAL_RANGE = (1e-3, 1e5)  # focal lengths in units of the larger image side: fields of view ~180° to ~0.0006°
+CENTRE_RANGE = 10.0  # the principal point may lie this many image sizes outside the image
+
+
+def _check_plausible(spec: dict, json_path: Path, width: int, height: int) -> None:
+    """Intrinsics in pixels far outside any real camera (a unit mix-up: metres, millimetres, normalised) are
+    refused before they turn into rays of overflowing size."""
+    side = max(width, height)
+    for key in ("fl_x", "fl_y"):
+        v = spec[key]
+        if v is not None and not FOCAL_RANGE[0] * side <= v <= FOCAL_RANGE[1] * side:
+            raise DataError(f"{json_path}: '{key}' = {v:g} pixels is implausible for {width}x{height} images "
+                            f"(expected {FOCAL_RANGE[0] * side:g} to {FOCAL_RANGE[1] * side:g}); focal lengths "
+                            "are in pixels (fl_x = 0.5 * w / tan(0.5 * camera_angle_x)), not mm or normalised")
+    for key, size in (("cx", width), ("cy", height)):
+        v = spec[key]
+        if v is not None and not -CENTRE_RANGE * size <= v <= (1 + CENTRE_RANGE) * size:
+            raise DataError(f"{json_path}: '{key}' = {v:g} pixels lies far outside the {width}x{height} image; the "
+                            "principal point is in pixels from the top-left corner (about w/2, h/2)")
 
 
 def _shared_camera(specs: list[dict], json_path: Path, files: list[Path]) -> dict:

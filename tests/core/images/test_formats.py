@@ -264,3 +264,26 @@ def test_progress_prints_the_memory_estimate(tmp_path, capsys):
     load_split(tmp_path, progress=True)
     err = capsys.readouterr().err
     assert "transforms.json: 5 images of 12x8, about" in err and "MiB" in err
+
+
+@pytest.mark.parametrize("key,value,pattern", [("fl_x", 1e-6, "'fl_x' = 1e-06 pixels is implausible"),
+                                               ("fl_y", 1e12, "'fl_y' = 1e\\+12 pixels is implausible"),
+                                               ("cx", -1e6, "'cx' = -1e\\+06 pixels lies far outside"),
+                                               ("cy", 1e9, "'cy' = 1e\\+09 pixels lies far outside")])
+def test_implausible_intrinsics_are_refused(tmp_path, key, value, pattern):
+    make_nerfstudio(tmp_path)
+    _edit(tmp_path, lambda d: d.update({key: value}))
+    with pytest.raises(DataError, match=r"transforms\.json: " + pattern):
+        load_split(tmp_path)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e5])
+def test_rays_stay_finite_at_the_accepted_extremes(tmp_path, scale):
+    """The widest and narrowest accepted cameras, principal point at the far edge of the accepted range."""
+    side = max(H, W)
+    make_nerfstudio(tmp_path)
+    _edit(tmp_path, lambda d: d.update(fl_x=scale * side, fl_y=scale * side, cx=-10.0 * W, cy=11.0 * H))
+    d = load_split(tmp_path)
+    for dtype in (torch.float32, torch.float64):
+        o, dirs = pixel_rays(d.c2w[0].to(dtype), d.height, d.width, d.focal)
+        assert torch.isfinite(dirs).all() and torch.allclose(dirs.norm(dim=-1), torch.ones((), dtype=dtype))
