@@ -56,6 +56,21 @@ def principal_point(shift_x: float, shift_y: float, sensor_fit: str, width: int,
     return 0.5 * width - shift_x * side, 0.5 * height + shift_y * side
 
 
+def camera_settings(focal, width: int, height: int, sensor_width: float = 36.0) -> dict:
+    """The Blender camera settings (lens, sensor_width, sensor_fit, shift_x, shift_y) that reproduce a dataset
+    camera — a focal length in pixels or Intrinsics — for a `width` x `height` render; the inverse of
+    focal_pixels + principal_point. Blender cameras have one focal length: fx != fy is refused."""
+    if isinstance(focal, Intrinsics):
+        if abs(focal.fx - focal.fy) > 1e-9 * focal.fx:
+            raise InputError(f"the camera has fx = {focal.fx:g} and fy = {focal.fy:g} pixels (non-square pixels); "
+                             "a Blender camera has one focal length")
+        f, cx, cy = focal.fx, focal.cx, focal.cy
+    else:
+        f, cx, cy = float(focal), 0.5 * width, 0.5 * height
+    return {"lens": f * sensor_width / width, "sensor_width": sensor_width, "sensor_fit": 'HORIZONTAL',
+            "shift_x": (0.5 * width - cx) / width, "shift_y": (cy - 0.5 * height) / width}
+
+
 def camera_to_world(matrix) -> np.ndarray:
     """A camera's matrix_world [4, 4] with its scale removed -> c2w [4, 4] float32 (orthonormal rotation)."""
     m = np.asarray(matrix, dtype=np.float64).reshape(4, 4)

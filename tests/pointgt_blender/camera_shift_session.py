@@ -39,4 +39,21 @@ for w, h, fit, sx, sy in cases:
         v = world_to_camera_view(scene, cam, Vector(p))  # x right, y up, both 0..1 over the frame
         err = max(err, abs(v.x * w - q[0]), abs((1.0 - v.y) * h - q[1]))
     out.append({"case": [w, h, fit, sx, sy], "max_px_err": err, "kind": type(focal).__name__})
+# a dataset camera (off-centre principal point) -> Blender settings -> the add-on's camera: the same intrinsics
+from core.images.cameras import Intrinsics  # noqa: E402
+from pointgt_blender.camera import camera_settings  # noqa: E402
+
+for w, h, k in [(64, 48, Intrinsics(70.0, 70.0, 29.5, 26.0)), (40, 72, Intrinsics(55.0, 55.0, 21.0, 33.5))]:
+    scene.render.resolution_x, scene.render.resolution_y = w, h
+    for name, value in camera_settings(k, w, h).items():
+        setattr(data, name, value)
+    bpy.context.view_layer.update()
+    _, got = scene_camera(scene, w, h)
+    pts = np.random.default_rng(1).uniform(-1, 1, size=(30, 3))
+    px, _ = project_points(torch.tensor(pts), torch.tensor(scene_camera(scene, w, h)[0], dtype=torch.float64),
+                           h, w, k)
+    err = max(max(abs(v.x * w - q[0]), abs((1.0 - v.y) * h - q[1]))
+              for v, q in ((world_to_camera_view(scene, cam, Vector(p)), q) for p, q in zip(pts, px.numpy())))
+    out.append({"case": [w, h, "dataset", *k.as_list()], "max_px_err": err, "kind": type(got).__name__,
+                "intrinsics_err": max(abs(a - b) for a, b in zip(got.as_list(), k.as_list()))})
 print("RESULTS: " + json.dumps(out))

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from pointgt_blender.camera import principal_point
+from core.images.cameras import Intrinsics
+from core.util.errors import InputError
+from pointgt_blender.camera import camera_settings, principal_point
 
 SESSION = Path(__file__).with_name("camera_shift_session.py")
 REPO = Path(__file__).resolve().parents[2]
@@ -22,6 +24,15 @@ def test_principal_point_of_a_centred_lens_is_the_image_centre():
     assert principal_point(0.0, 0.25, 'VERTICAL', 64, 48) == (32.0, 36.0)
 
 
+def test_camera_settings_invert_the_add_on_camera():
+    s = camera_settings(Intrinsics(50.0, 50.0, 20.0, 30.0), 64, 48)
+    assert s["lens"] == pytest.approx(50.0 * 36.0 / 64) and s["sensor_fit"] == 'HORIZONTAL'
+    assert principal_point(s["shift_x"], s["shift_y"], s["sensor_fit"], 64, 48) == pytest.approx((20.0, 30.0))
+    assert camera_settings(40.0, 64, 48)["shift_x"] == camera_settings(40.0, 64, 48)["shift_y"] == 0.0
+    with pytest.raises(InputError, match="non-square pixels"):
+        camera_settings(Intrinsics(50.0, 45.0, 32.0, 24.0), 64, 48)
+
+
 @pytest.mark.blender
 def test_shifted_and_non_square_cameras_match_blenders_projection():
     proc = subprocess.run([sys.executable, str(SESSION), "--", str(REPO)], capture_output=True, text=True,
@@ -29,7 +40,9 @@ def test_shifted_and_non_square_cameras_match_blenders_projection():
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
     assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     rows = json.loads(lines[-1][len("RESULTS: "):])
-    assert len(rows) == 5
-    for row in rows:
+    assert len(rows) == 7
+    for row in rows[:5]:
         assert row["max_px_err"] < 1e-4, row  # float32 c2w: ~5e-6 px
         assert row["kind"] == ("float" if row["case"][3:] == [0.0, 0.0] else "Intrinsics")
+    for row in rows[5:]:  # dataset cameras set up in Blender with camera_settings: the same camera back
+        assert row["kind"] == "Intrinsics" and row["intrinsics_err"] < 1e-4 and row["max_px_err"] < 1e-4, row
