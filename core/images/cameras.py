@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import torch
 
+from core.util.errors import InputError
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -32,9 +34,9 @@ class Intrinsics:
         for name in ("fx", "fy", "cx", "cy"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
-                raise ValueError(f"Intrinsics.{name} must be a finite number, got {v!r}")
+                raise InputError(f"camera intrinsics: {name} must be a finite number of pixels, got {v!r}")
         if self.fx <= 0 or self.fy <= 0:
-            raise ValueError(f"Intrinsics focal lengths must be positive, got fx={self.fx!r}, fy={self.fy!r}")
+            raise InputError(f"camera intrinsics: focal lengths must be positive, got fx={self.fx!r}, fy={self.fy!r}")
 
     def scaled(self, factor: float) -> "Intrinsics":
         """The intrinsics of the image resized by `factor` (0.5 = half the pixels per side)."""
@@ -84,7 +86,8 @@ def focal_from_fov(width: int, camera_angle_x: float) -> float:
 def pixel_rays(c2w: torch.Tensor, height: int, width: int, focal) -> tuple[torch.Tensor, torch.Tensor]:
     """Rays through every pixel centre.
 
-    Args: c2w [4, 4] (or [3, 4]); focal in pixels or Intrinsics. Returns origins [H, W, 3] and unit directions [H, W, 3], row-major, row 0 = top.
+    Args: c2w [4, 4] (or [3, 4]); focal in pixels or Intrinsics. Returns origins [H, W, 3] and unit directions
+    [H, W, 3], row-major, row 0 = top.
     """
     dev, dt = c2w.device, c2w.dtype
     rows = torch.arange(height, device=dev, dtype=dt) + 0.5
@@ -101,8 +104,9 @@ def pixel_rays(c2w: torch.Tensor, height: int, width: int, focal) -> tuple[torch
 def project_points(points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal):
     """Project world points into the image.
 
-    Args: points [N, 3], c2w [4, 4], focal in pixels or Intrinsics. Returns pixel coords [N, 2] as (col, row) in pixel units (centre of pixel
-    (r, c) is (c + 0.5, r + 0.5)) and depth [N] along the viewing axis (> 0 in front of the camera).
+    Args: points [N, 3], c2w [4, 4], focal in pixels or Intrinsics. Returns pixel coords [N, 2] as (col, row) in
+    pixel units (centre of pixel (r, c) is (c + 0.5, r + 0.5)) and depth [N] along the viewing axis (> 0 in front
+    of the camera).
     """
     R = c2w[:3, :3]
     t = c2w[:3, 3]

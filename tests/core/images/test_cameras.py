@@ -124,6 +124,7 @@ def test_projection_on_a_ray_and_distance_agree():
 
 # ------------------------------------------------------------------ general intrinsics (fx, fy, cx, cy)
 from core.images.cameras import Intrinsics, focal_scale, intrinsics, simplest  # noqa: E402
+from core.util.errors import InputError  # noqa: E402
 
 
 def _reference_pixel_k(p, c2w, k):
@@ -177,5 +178,5 @@ def test_a_plain_focal_and_its_centred_intrinsics_agree_bit_for_bit():
 @pytest.mark.parametrize("bad", [dict(fx=0.0), dict(fy=-1.0), dict(cx=math.nan), dict(cy=math.inf), dict(fx=True)])
 def test_intrinsics_refuse_non_finite_or_non_positive_values(bad):
     args = dict(fx=5.0, fy=5.0, cx=2.0, cy=2.0) | bad
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="camera intrinsics"):
         Intrinsics(**args)
