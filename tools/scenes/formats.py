@@ -1,7 +1,7 @@
 """Write a NeRF-synthetic scene again in the layouts other tools write: nerfstudio, instant-ngp, BlenderNeRF.
 
 Nothing is re-rendered: the cameras and pixels of `<scene>/transforms_{train,val,test}.json` are rewritten with
-each tool's keys, so every layout must load to the same cameras, rays and images (tests/tools/test_formats.py).
+each tool's keys, so every layout must load to the same cameras, rays and images (tests/tools/test_scene_formats.py).
 
     nerfstudio    transforms.json: camera_model OPENCV with k1-k4, p1, p2 = 0, fl_x/fl_y/cx/cy/w/h at the top,
                   applied_transform, train/val/test_filenames; RGB images in images/<split>/ with their masks
