@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.images.cameras import Intrinsics
+from core.images.intrinsics import Intrinsics
 from core.util.errors import InputError
 
 
