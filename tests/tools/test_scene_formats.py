@@ -172,3 +172,25 @@ def test_fit_and_eval_on_an_off_centre_non_square_capture(tmp_path, capsys):
     report = json.loads((tmp_path / "e.json").read_text())
     assert report["views"] == 2 and (report["width"], report["height"]) == (28, 20)
     assert all(math.isfinite(v["psnr"]) for v in report["per_view"])
+
+
+def test_fit_names_the_way_out_for_photos_without_masks_and_checks_the_flags_first(tmp_path, capsys):
+    """RGB photos without mask_path stop `pointgt fit` with the three ways out; a bad --background-colour or
+    --test-every is refused before anything is read."""
+    from tools.cli import main
+
+    src = make_scene(tmp_path / "nerf-synthetic")
+    write_layout(src, tmp_path / "ns", "nerfstudio", log=lambda m: None)
+    doc = json.loads((tmp_path / "ns" / "transforms.json").read_text())
+    for f in doc["frames"]:
+        f.pop("mask_path")
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps(doc))
+    base = ["fit", str(tmp_path / "ns"), "--out", str(tmp_path / "m.pgt"), "--steps", "2", "--no-progress"]
+    assert main(base) == 2
+    err = capsys.readouterr().err
+    assert "has no alpha channel" in err and "'mask_path'" in err and "--background-colour R,G,B" in err
+    assert main(base + ["--background-colour", "1,2"]) == 2
+    assert "--background-colour must be three" in capsys.readouterr().err
+    assert main(base + ["--test-every", "1"]) == 2
+    assert "--test-every must be at least 2" in capsys.readouterr().err
+    assert not (tmp_path / "m.pgt").exists()
