@@ -287,3 +287,17 @@ def test_rays_stay_finite_at_the_accepted_extremes(tmp_path, scale):
     for dtype in (torch.float32, torch.float64):
         o, dirs = pixel_rays(d.c2w[0].to(dtype), d.height, d.width, d.focal)
         assert torch.isfinite(dirs).all() and torch.allclose(dirs.norm(dim=-1), torch.ones((), dtype=dtype))
+
+
+def test_memory_estimate_counts_the_downscaled_split(tmp_path, monkeypatch):
+    """Each image is reduced as it is read: a split too large for memory at full size loads with --downscale."""
+    import os
+
+    from core.images import dataset
+
+    make_nerfstudio(tmp_path, n=6)  # 5 train views of 12 x 8
+    decode = H * W * 16 * min(4, os.cpu_count() or 1)  # full-size decode buffers, one per reader thread
+    monkeypatch.setattr(dataset, "_memory_limit", lambda: 5 * (H // 2) * (W // 2) * 16 + decode)
+    with pytest.raises(DataError, match=r"transforms\.json: 5 images of 12x8 need .* use fewer frames or --downscale"):
+        load_split(tmp_path)
+    assert load_split(tmp_path, downscale=2).images.shape == (5, H // 2, W // 2, 3)
