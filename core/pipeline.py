@@ -9,7 +9,7 @@ from core.atlas.config import AtlasConfig
 from core.atlas.fit import fit_atlas
 from core.atlas.footprint import FootprintView, refit_texture_footprint
 from core.atlas.samples import extract_surface_samples
-from core.images.cameras import project_points
+from core.images.cameras import focal_scale, project_points
 from core.points.neighbors.select import select_neighbors
 
 
@@ -56,7 +56,7 @@ def footprint_views(model, split) -> list[FootprintView]:
         depth = ((x - tr["origins"]) * tr["dirs"]).sum(-1)
         views.append(FootprintView(points=x.view(h, w, 3), valid=((1.0 - tr["bg"]) > 0.5).view(h, w),
                                    depth=depth.view(h, w), image=split.images[i].to(dev),
-                                   alpha=split.alphas[i].to(dev), focal=float(split.focal)))
+                                   alpha=split.alphas[i].to(dev), focal=float(focal_scale(split.focal))))
     return views
 
 

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 
 from core.atlas.config import AtlasConfig
 from core.atlas.fit import choose_chart_count, flatness
-from core.images.cameras import project_points
+from core.images.cameras import focal_scale, project_points
 from core.points.init import visual_hull_points
 from core.points.model import ModelConfig, mean_spacing
 from core.util.errors import DataError
@@ -125,7 +125,7 @@ def scene_profile(train, hull_points: int = 3000, seed: int = 0, device: str = "
     pts = visual_hull_points(train.alphas, train.c2w, train.focal, hull_points, seed=seed, batch=50_000)
     spacing = mean_spacing(pts)
     dist = float(train.c2w[:, :3, 3].norm(dim=1).median())
-    spacing_px = spacing * train.focal / max(dist, 1e-9)
+    spacing_px = spacing * focal_scale(train.focal) / max(dist, 1e-9)
     cell = max(1, math.ceil(2.0 * spacing_px))  # a few hull points per cell: its front one is found
     pid, _, rgb, contrast = surface_colour_samples(train.images, train.alphas, train.c2w, train.focal, pts,
                                                    2.0 * spacing, cell)

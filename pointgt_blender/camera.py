@@ -1,14 +1,15 @@
 """Blender camera -> the core's pinhole camera: c2w [4, 4] (camera looks down -Z, +Y up, like Blender), image
-size and focal length in pixels.
+size and focal length in pixels (with lens shift: the core's Intrinsics, whose principal point is off-centre).
 
 The maths takes plain numbers (tested without Blender); `scene_camera` reads them from a scene. Only what the
-core can render is accepted: a perspective camera without lens shift and with square pixels; anything else is
-reported with what to change instead of rendering a silently wrong picture.
+core can render is accepted: a perspective camera with square pixels; anything else is reported with what to
+change instead of rendering a silently wrong picture.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from core.images.intrinsics import Intrinsics
 from core.util.errors import InputError
 
 
@@ -45,6 +46,31 @@ def focal_pixels(lens: float, sensor_width: float, sensor_height: float, sensor_
     raise InputError(f"unknown sensor fit {sensor_fit!r}; use Auto, Horizontal or Vertical")
 
 
+def principal_point(shift_x: float, shift_y: float, sensor_fit: str, width: int, height: int) -> tuple[float, float]:
+    """(cx, cy) in pixels from the top-left corner for Blender's lens shift, which is measured in units of the
+    image side the sensor is fitted to (AUTO: the larger side): +X shifts the view right, so the principal point
+    moves left; +Y shifts it up, so the principal point moves down (rows grow downwards)."""
+    if sensor_fit == 'AUTO':
+        sensor_fit = 'HORIZONTAL' if width >= height else 'VERTICAL'
+    side = width if sensor_fit == 'HORIZONTAL' else height
+    return 0.5 * width - shift_x * side, 0.5 * height + shift_y * side
+
+
+def camera_settings(focal, width: int, height: int, sensor_width: float = 36.0) -> dict:
+    """The Blender camera settings (lens, sensor_width, sensor_fit, shift_x, shift_y) that reproduce a dataset
+    camera — a focal length in pixels or Intrinsics — for a `width` x `height` render; the inverse of
+    focal_pixels + principal_point. Blender cameras have one focal length: fx != fy is refused."""
+    if isinstance(focal, Intrinsics):
+        if abs(focal.fx - focal.fy) > 1e-9 * focal.fx:
+            raise InputError(f"the camera has fx = {focal.fx:g} and fy = {focal.fy:g} pixels (non-square pixels); "
+                             "a Blender camera has one focal length")
+        f, cx, cy = focal.fx, focal.cx, focal.cy
+    else:
+        f, cx, cy = float(focal), 0.5 * width, 0.5 * height
+    return {"lens": f * sensor_width / width, "sensor_width": sensor_width, "sensor_fit": 'HORIZONTAL',
+            "shift_x": (0.5 * width - cx) / width, "shift_y": (cy - 0.5 * height) / width}
+
+
 def camera_to_world(matrix) -> np.ndarray:
     """A camera's matrix_world [4, 4] with its scale removed -> c2w [4, 4] float32 (orthonormal rotation)."""
     m = np.asarray(matrix, dtype=np.float64).reshape(4, 4)
@@ -60,8 +86,9 @@ def camera_to_world(matrix) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def scene_camera(scene, width: int, height: int, depsgraph=None) -> tuple[np.ndarray, float]:
-    """(c2w [4, 4] float32, focal in pixels) of the scene's active camera for a `width` x `height` image.
+def scene_camera(scene, width: int, height: int, depsgraph=None) -> tuple[np.ndarray, float | Intrinsics]:
+    """(c2w [4, 4] float32, focal in pixels — or Intrinsics when the lens is shifted) of the scene's active camera
+    for a `width` x `height` image.
     With a depsgraph the camera's evaluated (animated) transform is used."""
     cam = scene.camera
     if cam is None or cam.type != 'CAMERA':
@@ -73,12 +100,12 @@ def scene_camera(scene, width: int, height: int, depsgraph=None) -> tuple[np.nda
     if data.type != 'PERSP':
         raise InputError(f"camera '{cam.name}' is {data.type.lower()}; PointGT renders perspective cameras only "
                          f"(Camera properties > Lens > Type: Perspective)")
-    if abs(data.shift_x) > 1e-6 or abs(data.shift_y) > 1e-6:
-        raise InputError(f"camera '{cam.name}' uses lens shift ({data.shift_x:g}, {data.shift_y:g}); PointGT needs "
-                         f"a centred lens: set Shift X and Y to 0")
     r = scene.render
     if abs(r.pixel_aspect_x - r.pixel_aspect_y) > 1e-6:
         raise InputError(f"scene '{scene.name}' uses non-square pixels (aspect {r.pixel_aspect_x:g}:"
                          f"{r.pixel_aspect_y:g}); set Output > Format > Aspect X and Y equal")
-    focal = focal_pixels(data.lens, data.sensor_width, data.sensor_height, data.sensor_fit, width, height)
-    return camera_to_world(cam.matrix_world), float(focal)
+    focal = float(focal_pixels(data.lens, data.sensor_width, data.sensor_height, data.sensor_fit, width, height))
+    if data.shift_x != 0.0 or data.shift_y != 0.0:
+        cx, cy = principal_point(data.shift_x, data.shift_y, data.sensor_fit, width, height)
+        return camera_to_world(cam.matrix_world), Intrinsics(focal, focal, cx, cy)
+    return camera_to_world(cam.matrix_world), focal

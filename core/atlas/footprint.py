@@ -24,7 +24,7 @@ from core.images.filter import FILTER_WIDTH, blackman_harris_taps
 class FootprintView:
     """One training view as stage 1 sees it. points [H, W, 3] surface point of each pixel's ray (on the ray),
     valid [H, W] bool (the ray hits the object), depth [H, W] along the ray, image [H, W, 3] display colours,
-    alpha [H, W] ground-truth coverage, focal in pixels."""
+    alpha [H, W] ground-truth coverage, focal in pixels (sqrt(fx * fy) for cameras with Intrinsics)."""
 
     points: torch.Tensor
     valid: torch.Tensor

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from core.images.cameras import pixel_rays
+from core.images.cameras import Intrinsics, pixel_rays
 from core.util.errors import InputError
 
 
@@ -59,7 +59,8 @@ def extract_surface_samples(render_fn: Callable[[torch.Tensor, torch.Tensor], di
         if image.shape != (h, w, 3) or alpha.shape != (h, w):
             raise InputError(f"view {i}: image {tuple(image.shape)} / alpha {tuple(alpha.shape)} do not match "
                              f"{h}x{w} (expected [H, W, 3] and [H, W])")
-        o, d = pixel_rays(torch.as_tensor(c2w, dtype=torch.float32), h, w, float(focal))
+        o, d = pixel_rays(torch.as_tensor(c2w, dtype=torch.float32), h, w,
+                          focal if isinstance(focal, Intrinsics) else float(focal))
         sel = alpha.reshape(-1) > alpha_threshold
         o, d, rgb = o.reshape(-1, 3)[sel], d.reshape(-1, 3)[sel], image.reshape(-1, 3)[sel]
         for s in range(0, len(o), chunk):

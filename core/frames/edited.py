@@ -21,6 +21,7 @@ from core.edits.deformation import DeformationConfig, expansion_inverse, field_f
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
+from core.images.cameras import focal_scale
 from core.images.rays import project_on_ray
 from core.points.render import shade_frame, trace_frame
 from core.util.errors import InputError
@@ -250,7 +251,7 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
     depth = torch.zeros(n, dtype=xc.dtype, device=dev)
     depth[sel] = ((tr["x"][sel] - tr["origins"][sel]) * tr["dirs"][sel]).sum(-1)
     # neighbours on the same surface: depth within 3 pixel footprints (an occlusion edge jumps much further)
-    step = 3.0 * depth.abs() / focal
+    step = 3.0 * depth.abs() / focal_scale(focal)
     if texture_fn is None:  # the atlas: chart nets once per pixel, their outputs interpolated to the sub-pixels
         probs, uv, on = subpixel_chart_uv(state.bundle.atlas, canon.view(height, width, 3), valid.view(height, width),
                                           depth.view(height, width), sub, step.view(height, width))

@@ -1,13 +1,21 @@
-"""Loader for the NeRF-synthetic dataset layout.
+"""Dataset loader: the transforms-JSON layouts that NeRF tools write.
 
-    <root>/transforms_train.json   {"camera_angle_x": fov_x_radians,
-    <root>/transforms_val.json      "frames": [{"file_path": "./train/r_0", "transform_matrix": 4x4 c2w}, ...]}
-    <root>/transforms_test.json
-    <root>/train/r_0.png ...        RGBA PNGs (alpha = object mask)
+Four layouts, told apart by their files and keys (docs/formats.md lists every key):
 
-`file_path` is relative to <root>, with or without ".png". `transform_matrix` is camera-to-world in the Blender
-convention (camera looks down -Z, +Y up; see core/images/cameras.py). Every problem found on disk raises a
-DataError naming the file and saying how to fix it.
+    NeRF-synthetic   <root>/transforms_{train,val,test}.json  {"camera_angle_x", "frames": [{"file_path":
+                     "./train/r_0", "transform_matrix": 4x4 c2w}]}, RGBA PNGs (alpha = object mask)
+    BlenderNeRF      the same split files, plus fl_x/fl_y/cx/cy/w/h/camera_angle_y, and file_path with its extension
+    nerfstudio       <root>/transforms.json (one file, no split): fl_x, fl_y, cx, cy, w, h, camera_model,
+                     distortion k1-k4/p1/p2 — at the top or per frame —, mask_path, applied_transform,
+                     images/ with downscaled copies images_2/, images_4/, ...
+    instant-ngp      <root>/transforms.json or split files: camera_angle_x/y or fl_x/fl_y, cx, cy, w, h,
+                     aabb_scale, intrinsics per frame allowed
+
+`transform_matrix` is camera-to-world in the Blender/OpenGL convention (camera looks down -Z, +Y up; see
+core/images/cameras.py) in all four. A single transforms.json is split deterministically into train and test:
+explicit `train_filenames` / `test_filenames` lists when present, else every `test_every`-th frame (in file_path
+order) is a test view. Every problem found on disk raises a DataError naming the file (and frame, and key) and
+saying how to fix it.
 """
 from __future__ import annotations
 
@@ -15,103 +23,194 @@ import json
 import math
 import os
 import re
+import sys
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from core.images.cameras import focal_from_fov
+from core.config import opt
+from core.images.cameras import Intrinsics, focal_from_fov, simplest
 from core.images.png import read_png
 from core.util.errors import DataError, InputError
 
 SPLITS = ("train", "val", "test")
+SINGLE_FILE = "transforms.json"
 # NeRF-synthetic ships depth and normal renders next to the test images (r_0_depth_0000.png); they are not frames.
 _AUXILIARY = re.compile(r"_(depth|normal)(_\d+)?$", re.IGNORECASE)
 RIGID_TOL = 1e-3  # max |R^T R - I| entry and |last row - [0,0,0,1]|; NeRF-synthetic matrices are exact to ~1e-7
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV only with all distortion terms zero
+INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "camera_model",
+                  "is_fisheye") + DISTORTION_KEYS
+KEY_TOLERANCE = 0.04  # --background-colour: a pixel within this (max over channels) of the key is background
+
+
+@dataclass
+class LoadConfig:
+    """Reading a dataset: the train/test split of a single transforms.json and images without alpha."""
+    test_every: int = opt(8, "a single transforms.json (nerfstudio, instant-ngp) without train_filenames/"
+                             "test_filenames: every N-th frame in file_path order is a test view", min=2, max=10_000)
+    background_colour: str = opt("", "R,G,B of a studio backdrop (0-1 or 0-255): images without alpha or "
+                                     "mask_path are keyed on it; empty = such images are refused")
+
+    def loader_kwargs(self) -> dict:
+        """Keyword arguments of load_split / load_dataset."""
+        key = parse_colour(self.background_colour) if self.background_colour.strip() else None
+        return {"test_every": self.test_every, "background_colour": key}
 
 
 @dataclass
 class SplitData:
     """One split, ready for training/evaluation.
 
-    images [V, H, W, 3] float32 in [0, 1], composited onto `background`; alphas [V, H, W] float32 (all 1 when the
-    PNGs carry no alpha); c2w [V, 4, 4] float32 camera-to-world; focal in pixels at this (downscaled) size.
+    images [V, H, W, 3] float32 in [0, 1], composited onto `background`; alphas [V, H, W] float32 (the PNG's alpha,
+    the frames' masks, or the keyed background colour); c2w [V, 4, 4] float32 camera-to-world; focal: what the
+    pipeline takes — a float (pixels, at this downscaled size) for the centred square-pixel camera, else the
+    `Intrinsics` (fx, fy, cx, cy); `intrinsics` always holds the Intrinsics. layout: which layout was read.
     """
     split: str
     images: torch.Tensor
     alphas: torch.Tensor
     c2w: torch.Tensor
-    focal: float
+    focal: float | Intrinsics
     height: int
     width: int
     camera_angle_x: float
     files: list[Path]
+    intrinsics: Intrinsics | None = None
+    layout: str = "nerf-synthetic"
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.intrinsics is None:
+            f = self.focal
+            self.intrinsics = f if isinstance(f, Intrinsics) else \
+                Intrinsics(float(f), float(f), 0.5 * self.width, 0.5 * self.height)
 
     def __len__(self) -> int:
         return len(self.files)
 
 
 def transforms_path(root: str | os.PathLike, split: str) -> Path:
-    return Path(root) / f"transforms_{split}.json"
+    """The JSON holding `split`: transforms_<split>.json, or the single transforms.json when the folder has no
+    split files (nerfstudio, instant-ngp)."""
+    root = Path(root)
+    own = root / f"transforms_{split}.json"
+    if not own.exists() and (root / SINGLE_FILE).is_file() and not any(root.glob("transforms_*.json")):
+        return root / SINGLE_FILE
+    return own
 
 
 def load_dataset(root: str | os.PathLike, splits=SPLITS, required=("train",), downscale: int = 1,
-                 background=(1.0, 1.0, 1.0), check_extra_files: bool = True) -> dict[str, SplitData]:
-    """Load several splits. Splits listed in `required` must exist; the others are skipped when their
-    transforms_<split>.json is absent (a present but broken one still raises). Returns {split: SplitData}."""
+                 background=(1.0, 1.0, 1.0), check_extra_files: bool = True, test_every: int = 8,
+                 background_colour=None, progress: bool = False) -> dict[str, SplitData]:
+    """Load several splits. Splits listed in `required` must exist; the others are skipped when their JSON is
+    absent (a present but broken one still raises). A single transforms.json holds train and test (no val).
+    Returns {split: SplitData}; the other arguments as load_split."""
     root = _check_root(root)
     missing_required = [s for s in required if s not in splits]
     if missing_required:
         raise InputError(f"required splits {missing_required} are not among the requested splits {list(splits)}")
     out = {}
     for split in splits:
-        if split not in required and not transforms_path(root, split).exists():
+        path = transforms_path(root, split)
+        if split not in required and (not path.exists() or (path.name == SINGLE_FILE and split not in
+                                                            ("train", "test") and not _names_split(path, split))):
             continue
         out[split] = load_split(root, split, downscale=downscale, background=background,
-                                check_extra_files=check_extra_files)
+                                check_extra_files=check_extra_files, test_every=test_every,
+                                background_colour=background_colour, progress=progress)
     return out
 
 
+def _names_split(json_path: Path, split: str) -> bool:
+    """Whether a single transforms.json names the images of `split` (<split>_filenames); False when unreadable
+    (the error is reported when a required split is loaded)."""
+    try:
+        return f"{split}_filenames" in json.loads(json_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError, TypeError, RecursionError):
+        return False
+
+
 def load_split(root: str | os.PathLike, split: str = "train", downscale: int = 1, background=(1.0, 1.0, 1.0),
-               check_extra_files: bool = True) -> SplitData:
+               check_extra_files: bool = True, test_every: int = 8, background_colour=None,
+               progress: bool = False) -> SplitData:
     """Load one split: images [V, H, W, 3], alphas [V, H, W], c2w [V, 4, 4] (see SplitData).
 
-    downscale: integer factor; pixels are area-averaged with premultiplied alpha (no dark fringes at edges).
+    downscale: integer factor. Downscaled copies (images_<d>/, masks_<d>/ next to images/, masks/) are used when
+    every frame has one; otherwise pixels are area-averaged with premultiplied alpha (no dark fringes at edges).
+    Intrinsics are scaled to match.
     background: RGB in [0, 1] that transparent pixels are composited onto: rgb * a + bg * (1 - a).
-    check_extra_files: reject PNGs in the split folders that no frame references (depth/normal renders excepted).
+    check_extra_files: reject PNGs in the split folders that no frame references (depth/normal renders excepted;
+    split-file layouts only: a capture's images/ folder may hold photos the camera solver dropped).
+    test_every: a single transforms.json without train_filenames/test_filenames puts every N-th frame (sorted by
+    file_path, starting with the first) into test and the rest into train.
+    background_colour: RGB in [0, 1] of a studio backdrop; images without alpha or masks are keyed on it
+    (pixels within KEY_TOLERANCE of it become transparent). Without it such images are refused.
+    progress: print the memory estimate and a progress bar while loading (stderr).
     """
     root = _check_root(root)
     bg = _check_background(background)
+    key = None if background_colour is None else _check_background(background_colour, "--background-colour")
     if isinstance(downscale, bool) or not isinstance(downscale, (int, np.integer)) or downscale < 1:
         raise InputError(f"downscale must be a positive integer, got {downscale!r}")
+    if isinstance(test_every, bool) or not isinstance(test_every, (int, np.integer)) or test_every < 2:
+        raise InputError(f"--test-every must be an integer of at least 2, got {test_every!r}")
     json_path = transforms_path(root, split)
     doc = _read_json(json_path, root)
-    angle = _camera_angle(doc, json_path)
-    files, c2w = _frames(doc, json_path, root)
-    if check_extra_files:
+    frames = _split_frames(doc, json_path, split, int(test_every))
+    files, c2w = _frames(frames, json_path, root)
+    layout = _layout(doc, json_path)
+    if check_extra_files and json_path.name != SINGLE_FILE:
         _check_no_extra_files(root, json_path, files)
+    masks = _mask_files(frames, json_path, root)
+    _check_applied_transform(doc, json_path)
+    _check_aabb_scale(doc, json_path)
 
-    rgb, alpha = _read_images(files, json_path)
-    height, width = rgb.shape[1:3]
-    if height % downscale or width % downscale:
-        divisors = [d for d in range(2, 17) if height % d == 0 and width % d == 0]
-        raise DataError(f"{json_path}: images are {width}x{height}, which downscale={downscale} does not divide; "
-                        f"use one of {divisors or [1]}")
-    # In place where possible: a full-size split is V x 800 x 800 x 3 floats.
-    images = np.multiply(rgb, alpha[..., None], out=rgb)  # premultiplied colour
-    if downscale > 1:
-        images = _area_mean(images, downscale)
-        alpha = _area_mean(alpha[..., None], downscale)[..., 0]
+    # Downscaled copies: used when every frame (and mask) has one.
+    factor = int(downscale)
+    copies = _downscaled(files, "images", factor) if factor > 1 else None
+    mask_copies = _downscaled(masks, "masks", factor) if factor > 1 and masks is not None else None
+    use_copies = copies is not None and (masks is None or mask_copies is not None)
+    read_files = copies if use_copies else files
+    read_masks = (mask_copies if use_copies else masks)
+    height, width = _image_size(files[0])  # full size: the keys describe it
+    _check_key_presence(frames, doc, json_path)
+    specs = [_frame_camera(doc, fr, json_path, i, files[i], width, height) for i, fr in enumerate(frames)]
+    spec = _shared_camera(specs, json_path, files)
+    _check_plausible(spec, json_path, width, height)
+    if use_copies:
+        h, w = _image_size(read_files[0])
+        if abs(w * factor - width) >= factor or abs(h * factor - height) >= factor:
+            raise DataError(f"{read_files[0]}: downscaled copy is {w}x{h}, but {files[0].name} is {width}x{height} "
+                            f"(expected about {width / factor:g}x{height / factor:g} for --downscale {factor}); "
+                            f"regenerate the {read_files[0].parent.name}/ folder")
+        block = 1
+    else:
+        if height % factor or width % factor:
+            divisors = [d for d in range(2, 17) if height % d == 0 and width % d == 0]
+            raise DataError(f"{json_path}: images are {width}x{height}, which downscale={factor} does not divide; "
+                            f"use one of {divisors or [1]}")
+        h, w, block = height // factor, width // factor, factor
+    k = _intrinsics(spec, width, height, factor)
+
+    images, alpha = _read_images(read_files, json_path, read_masks, key, block, (h, w), progress)
     images += (1.0 - alpha[..., None]) * bg  # composite: rgb * a + bg * (1 - a)
     np.clip(images, 0.0, 1.0, out=images)
-    h, w = height // downscale, width // downscale
+    meta = {"json": str(json_path), "downscaled_copies": bool(use_copies)}
+    if "aabb_scale" in doc:
+        meta["aabb_scale"] = doc["aabb_scale"]
     return SplitData(split=split,
                      images=torch.from_numpy(images),
                      alphas=torch.from_numpy(alpha),
                      c2w=torch.from_numpy(c2w.astype(np.float32)),
-                     focal=focal_from_fov(w, angle), height=h, width=w, camera_angle_x=angle, files=files)
+                     focal=simplest(k, h, w), height=h, width=w,
+                     camera_angle_x=spec["camera_angle_x"] or 2.0 * math.atan(0.5 * (width / factor) / k.fx),
+                     files=files, intrinsics=k, layout=layout,
+                     meta=meta)
 
 
 def _area_mean(x: np.ndarray, d: int) -> np.ndarray:
@@ -127,18 +226,35 @@ def _check_root(root) -> Path:
     return root
 
 
-def _check_background(background) -> np.ndarray:
+def _check_background(background, flag: str = "background") -> np.ndarray:
     bg = np.asarray(background, dtype=np.float32)
     if bg.shape != (3,) or not np.all(np.isfinite(bg)) or bg.min() < 0 or bg.max() > 1:
-        raise InputError(f"background must be three numbers in [0, 1] (RGB), got {background!r}")
+        raise InputError(f"{flag} must be three numbers in [0, 1] (RGB), got {background!r}")
     return bg
+
+
+def parse_colour(text: str, flag: str = "--background-colour") -> tuple[float, float, float]:
+    """'R,G,B' with components in [0, 1] (or 0-255 integers when any exceeds 1) -> (r, g, b) in [0, 1]."""
+    try:
+        vals = [float(v) for v in str(text).split(",")]
+    except ValueError as exc:
+        raise InputError(f"{flag} must be R,G,B (e.g. 1,1,1 or 255,255,255), got {text!r}") from exc
+    if len(vals) != 3 or not all(math.isfinite(v) and v >= 0 for v in vals):
+        raise InputError(f"{flag} must be three non-negative numbers R,G,B, got {text!r}")
+    if max(vals) > 1:
+        if max(vals) > 255:
+            raise InputError(f"{flag}: components are in [0, 1] or 0-255, got {text!r}")
+        vals = [v / 255.0 for v in vals]
+    return tuple(vals)
 
 
 def _read_json(json_path: Path, root: Path) -> dict:
     if not json_path.is_file():
-        present = sorted(p.name for p in root.glob("transforms_*.json"))
-        hint = f"the folder has {present}" if present else "the folder has no transforms_*.json at all"
-        raise DataError(f"{json_path}: split file not found ({hint}); point to a NeRF-synthetic style dataset folder")
+        present = sorted(p.name for p in root.glob("transforms*.json"))
+        hint = f"the folder has {present}" if present else "the folder has no transforms*.json at all"
+        raise DataError(f"{json_path}: split file not found ({hint}); point to a dataset folder with "
+                        "transforms_train.json (NeRF-synthetic, BlenderNeRF) or transforms.json (nerfstudio, "
+                        "instant-ngp)")
     try:
         doc = json.loads(json_path.read_text(encoding="utf-8"))
     except UnicodeDecodeError as exc:
@@ -156,25 +272,61 @@ def _read_json(json_path: Path, root: Path) -> dict:
     return doc
 
 
-def _camera_angle(doc: dict, json_path: Path) -> float:
-    if "camera_angle_x" not in doc:
-        raise DataError(f"{json_path}: missing 'camera_angle_x' (horizontal field of view in radians); add it")
-    angle = doc["camera_angle_x"]
-    if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not math.isfinite(angle) \
-            or not 0.0 < angle < math.pi:
-        raise DataError(f"{json_path}: 'camera_angle_x' must be a finite field of view in radians strictly "
-                        f"between 0 and pi, got {angle!r} (degrees? convert with math.radians)")
-    return float(angle)
+def _layout(doc: dict, json_path: Path) -> str:
+    """Which tool's layout this is (reported, and used in messages; the keys decide how frames are read)."""
+    if json_path.name == SINGLE_FILE:
+        if "camera_model" in doc or "applied_transform" in doc:
+            return "nerfstudio"
+        masked = any(isinstance(f, dict) and "mask_path" in f for f in doc.get("frames") or [])
+        return "nerfstudio" if masked and "aabb_scale" not in doc else "instant-ngp"
+    if "aabb_scale" in doc and "fl_x" not in doc:
+        return "instant-ngp"
+    return "blendernerf" if "fl_x" in doc or "w" in doc else "nerf-synthetic"
 
 
-def _frames(doc: dict, json_path: Path, root: Path) -> tuple[list[Path], np.ndarray]:
-    """Image paths and c2w [V, 4, 4] float64 of the frames, validated."""
+def _split_frames(doc: dict, json_path: Path, split: str, test_every: int) -> list:
+    """The frames of `split`: all of a transforms_<split>.json; for a single transforms.json the frames named by
+    `<split>_filenames`, else every `test_every`-th frame in file_path order (test) or the others (train)."""
     frames = doc.get("frames")
     if not isinstance(frames, list):
         raise DataError(f"{json_path}: missing 'frames' list; add one entry per image "
                         "({'file_path': ..., 'transform_matrix': ...})")
     if not frames:
         raise DataError(f"{json_path}: 'frames' is empty; a split needs at least one image")
+    if json_path.name != SINGLE_FILE:
+        return frames
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict) or not isinstance(frame.get("file_path"), str):
+            raise DataError(f"{json_path}: frame {i} needs a 'file_path' string (and a 'transform_matrix')")
+    names_key = f"{split}_filenames"
+    if names_key in doc:
+        wanted = doc[names_key]
+        if not isinstance(wanted, list) or not all(isinstance(n, str) for n in wanted):
+            raise DataError(f"{json_path}: '{names_key}' must be a list of file_path strings")
+        by_path = {os.path.normpath(f["file_path"]): f for f in frames}
+        missing = [n for n in wanted if os.path.normpath(n) not in by_path]
+        if missing:
+            raise DataError(f"{json_path}: '{names_key}' names {len(missing)} image(s) no frame has, e.g. "
+                            f"{missing[0]!r}; list file_path values of 'frames'")
+        out = [by_path[os.path.normpath(n)] for n in wanted]
+    elif any(f"{s}_filenames" in doc for s in SPLITS):
+        raise DataError(f"{json_path}: has {[f'{s}_filenames' for s in SPLITS if f'{s}_filenames' in doc]} but "
+                        f"no '{names_key}'; list the {split} images too, or remove the lists to split every "
+                        f"--test-every frames")
+    elif split in ("train", "test"):
+        ordered = sorted(frames, key=lambda f: f["file_path"])
+        out = [f for i, f in enumerate(ordered) if (i % test_every == 0) == (split == "test")]
+    else:
+        raise DataError(f"{json_path}: a single transforms.json splits into 'train' and 'test' only, not "
+                        f"'{split}' (add '{names_key}' to name its images)")
+    if not out:
+        raise DataError(f"{json_path}: the {split} split is empty ({len(frames)} frames, --test-every "
+                        f"{test_every}); add frames or lower --test-every")
+    return out
+
+
+def _frames(frames: list, json_path: Path, root: Path) -> tuple[list[Path], np.ndarray]:
+    """Image paths and c2w [V, 4, 4] float64 of the frames, validated."""
     files, mats, seen = [], [], {}
     for i, frame in enumerate(frames):
         where = f"{json_path}: frame {i}"
@@ -196,6 +348,199 @@ def _frames(doc: dict, json_path: Path, root: Path) -> tuple[list[Path], np.ndar
     c2w = np.stack(mats)
     _check_rigid(c2w, files, json_path)
     return files, c2w
+
+
+def _number(value, json_path: Path, where: str, key: str, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            or (positive and value <= 0):
+        need = "a finite positive number" if positive else "a finite number"
+        raise DataError(f"{json_path}: {where}'{key}' must be {need}, got {value!r}")
+    return float(value)
+
+
+def _frame_camera(doc: dict, frame: dict, json_path: Path, i: int, file: Path, width: int, height: int) -> dict:
+    """The camera keys of frame i (its own, else the file's), checked: {fl_x, fl_y, cx, cy, camera_angle_x,
+    camera_angle_y} (None when absent) for a `width` x `height` image. Distortion and non-pinhole models are
+    refused."""
+    def get(key):
+        if key in frame:
+            return frame[key], f"frame {i} ({file.name}): "
+        return doc.get(key), ""
+
+    model, where = get("camera_model")
+    if model is not None and model not in PINHOLE_MODELS:
+        raise DataError(f"{json_path}: {where}'camera_model' is {model!r}; PointGT reads pinhole cameras "
+                        f"({', '.join(PINHOLE_MODELS)}): undistort the images first (e.g. COLMAP's "
+                        "image_undistorter, then ns-process-data with --camera-type perspective)")
+    fisheye, where = get("is_fisheye")
+    if fisheye:
+        raise DataError(f"{json_path}: {where}'is_fisheye' is true; PointGT reads pinhole cameras only: undistort "
+                        "the images to a pinhole camera first")
+    for key in DISTORTION_KEYS:
+        value, where = get(key)
+        if value is not None and _number(value, json_path, where, key) != 0.0:
+            raise DataError(f"{json_path}: {where}'{key}' = {value!r}: the images are distorted and PointGT does "
+                            "not undistort them; undistort them first (COLMAP image_undistorter, or "
+                            "ns-process-data) and write the pinhole intrinsics with all of k1-k4, p1, p2 at 0")
+    out = {}
+    for key in ("w", "h"):
+        value, where = get(key)
+        if value is not None:
+            size = width if key == "w" else height
+            if _number(value, json_path, where, key, positive=True) != size:
+                raise DataError(f"{json_path}: {where}'{key}' is {value!r} but {file.name} is {width}x{height}; "
+                                f"fix '{key}' or the image")
+    for key in ("fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y"):
+        value, where = get(key)
+        if value is None:
+            out[key] = None
+        elif key.startswith("camera_angle"):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                    or not 0.0 < value < math.pi:
+                raise DataError(f"{json_path}: {where}'{key}' must be a finite field of view in radians strictly "
+                                f"between 0 and pi, got {value!r} (degrees? convert with math.radians)")
+            out[key] = float(value)
+        else:
+            out[key] = _number(value, json_path, where, key, positive=key.startswith("fl_"))
+    if out["fl_x"] is None and out["camera_angle_x"] is None:
+        raise DataError(f"{json_path}: frame {i} ({file.name}) has no horizontal intrinsics: missing "
+                        "'camera_angle_x' (field of view in radians) and 'fl_x' (focal length in pixels); add "
+                        "one at the top of the file or in every frame")
+    return out
+
+
+def _check_key_presence(frames: list, doc: dict, json_path: Path, keys=INTRINSIC_KEYS + ("mask_path",)) -> None:
+    """A key that is absent at the top of the file must be in every frame or in none."""
+    for key in keys:
+        if key in doc or key == "mask_path":
+            continue
+        has = [isinstance(f, dict) and key in f for f in frames]
+        if any(has) and not all(has):
+            i = has.index(False)
+            raise DataError(f"{json_path}: frame {i} has no '{key}', but other frames do and the file has none at "
+                            f"the top; give '{key}' in every frame or once at the top of the file")
+
+
+FOCAL_RANGE = (1e-3, 1e5)  # focal lengths in units of the larger image side: fields of view ~180° to ~0.0006°
+CENTRE_RANGE = 10.0  # the principal point may lie this many image sizes outside the image
+
+
+def _check_plausible(spec: dict, json_path: Path, width: int, height: int) -> None:
+    """Intrinsics in pixels far outside any real camera (a unit mix-up: metres, millimetres, normalised) are
+    refused before they turn into rays of overflowing size."""
+    side = max(width, height)
+    for key in ("fl_x", "fl_y"):
+        v = spec[key]
+        if v is not None and not FOCAL_RANGE[0] * side <= v <= FOCAL_RANGE[1] * side:
+            raise DataError(f"{json_path}: '{key}' = {v:g} pixels is implausible for {width}x{height} images "
+                            f"(expected {FOCAL_RANGE[0] * side:g} to {FOCAL_RANGE[1] * side:g}); focal lengths "
+                            "are in pixels (fl_x = 0.5 * w / tan(0.5 * camera_angle_x)), not mm or normalised")
+    for key, size in (("cx", width), ("cy", height)):
+        v = spec[key]
+        if v is not None and not -CENTRE_RANGE * size <= v <= (1 + CENTRE_RANGE) * size:
+            raise DataError(f"{json_path}: '{key}' = {v:g} pixels lies far outside the {width}x{height} image; the "
+                            "principal point is in pixels from the top-left corner (about w/2, h/2)")
+
+
+def _shared_camera(specs: list[dict], json_path: Path, files: list[Path]) -> dict:
+    """The one camera all frames share; frames with different intrinsics are refused (not supported yet)."""
+    first = specs[0]
+    for i, spec in enumerate(specs[1:], start=1):
+        for key, value in spec.items():
+            if value != first[key]:
+                raise DataError(f"{json_path}: frame {i} ({files[i].name}) has '{key}' = {value!r} but frame 0 "
+                                f"({files[0].name}) has {first[key]!r}; PointGT needs one camera per split: "
+                                "give all frames the same intrinsics (resize/crop the images to one camera)")
+    return first
+
+
+def _intrinsics(spec: dict, width: int, height: int, factor: int) -> Intrinsics:
+    """Intrinsics at 1/factor of the `width` x `height` images the keys describe. Fields of view are turned into
+    focal lengths at the final size (so NeRF-synthetic gives exactly focal_from_fov(W / factor, angle))."""
+    w, h = width / factor, height / factor
+    fx = spec["fl_x"] / factor if spec["fl_x"] is not None else focal_from_fov(w, spec["camera_angle_x"])
+    if spec["fl_y"] is not None:
+        fy = spec["fl_y"] / factor
+    elif spec["camera_angle_y"] is not None:
+        fy = focal_from_fov(h, spec["camera_angle_y"])
+    else:
+        fy = fx
+    cx = spec["cx"] / factor if spec["cx"] is not None else 0.5 * w
+    cy = spec["cy"] / factor if spec["cy"] is not None else 0.5 * h
+    return Intrinsics(fx, fy, cx, cy)
+
+
+def _mask_files(frames: list, json_path: Path, root: Path) -> list[Path] | None:
+    """The frames' mask_path files (all frames or none), or None."""
+    has = [isinstance(f, dict) and "mask_path" in f for f in frames]
+    if not any(has):
+        return None
+    if not all(has):
+        i, j = has.index(False), has.index(True)
+        raise DataError(f"{json_path}: frame {j} has a 'mask_path' but frame {i} has none; give every frame a "
+                        "'mask_path' or remove them all")
+    out = []
+    for i, frame in enumerate(frames):
+        mp = frame["mask_path"]
+        if not isinstance(mp, str) or not mp.strip():
+            raise DataError(f"{json_path}: frame {i}: 'mask_path' must be a non-empty string, got {mp!r}")
+        out.append(_image_path(root, mp, f"{json_path}: frame {i} ('mask_path')"))
+    return out
+
+
+def _check_applied_transform(doc: dict, json_path: Path) -> None:
+    """nerfstudio's applied_transform (3x4 or 4x4) records the world change already applied to every
+    transform_matrix (COLMAP -> nerfstudio axes); the frames are used as they are, so it only has to be valid."""
+    if "applied_transform" not in doc:
+        return
+    try:
+        m = np.asarray(doc["applied_transform"], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise DataError(f"{json_path}: 'applied_transform' must be a 3x4 or 4x4 list of numbers ({exc})") from exc
+    if m.shape not in ((3, 4), (4, 4)) or not np.isfinite(m).all():
+        raise DataError(f"{json_path}: 'applied_transform' must be a finite 3x4 or 4x4 matrix, got shape "
+                        f"{m.shape}")
+
+
+def _check_aabb_scale(doc: dict, json_path: Path) -> None:
+    """instant-ngp's aabb_scale: a power of two from 1 to 128 (the size of its scene box; PointGT's points find
+    their own extent, so it is only checked and reported)."""
+    if "aabb_scale" not in doc:
+        return
+    v = doc["aabb_scale"]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or v not in (1, 2, 4, 8, 16, 32, 64, 128):
+        raise DataError(f"{json_path}: 'aabb_scale' must be a power of two from 1 to 128, got {v!r}")
+
+
+def _downscaled(files: list[Path], folder: str, factor: int) -> list[Path] | None:
+    """The `<folder>_<factor>/` copies of `files` (nerfstudio: images/x.png -> images_2/x.png, the innermost
+    path component named `folder` replaced), or None unless every one exists."""
+    out = []
+    for f in files:
+        parts = list(f.parts)
+        idx = [j for j, p in enumerate(parts[:-1]) if p == folder]
+        if not idx:
+            return None
+        parts[idx[-1]] = f"{folder}_{factor}"
+        copy = Path(*parts)
+        if not copy.is_file():
+            return None
+        out.append(copy)
+    return out
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(height, width) from the image header, without decoding the pixels."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as img:
+            w, h = img.size
+    except FileNotFoundError as exc:
+        raise DataError(f"{path}: image does not exist; check the frame's file_path") from exc
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        raise DataError(f"{path}: not a readable image ({exc}); re-export it as PNG or JPEG") from exc
+    return h, w
 
 
 def _frame_matrix(frame: dict, where: str) -> np.ndarray:
@@ -281,11 +626,22 @@ def _referenced_quietly(json_path: Path, root: Path) -> set[str]:
         return set()
 
 
-def _read_images(files: list[Path], json_path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """rgb [V, H, W, 3] and alpha [V, H, W] float32 from the frames' PNGs, all of one size."""
-    first = read_png(files[0])
-    v, (h, w) = len(files), first.shape[:2]
-    need = v * h * w * 4 * 4  # rgb + alpha, float32
+def _read_images(files: list[Path], json_path: Path, masks: list[Path] | None = None, key=None, block: int = 1,
+                 size: tuple[int, int] | None = None, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Premultiplied colour [V, h, w, 3] and alpha [V, h, w] float32 of the frames, each image area-averaged over
+    `block` x `block` pixels as it is read (so only one full-size image is in memory at a time).
+
+    Coverage: the image's alpha, times the frame's mask when `masks` are given; images without either are keyed
+    on the RGB `key` (background colour) or refused. size: (h, w) after the block average (default: from the
+    first image)."""
+    v = len(files)
+    full_h, full_w = _image_size(files[0])
+    h, w = size if size is not None else (full_h // block, full_w // block)
+    need = v * h * w * 4 * 4 + full_h * full_w * 4 * 4 * min(4, os.cpu_count() or 1)  # outputs + decode buffers
+    if progress:
+        print(f"[data] {json_path.name}: {v} images of {full_w}x{full_h}"
+              + (f" -> {w}x{h}" if (w, h) != (full_w, full_h) else "")
+              + f", about {need / 2**20:.0f} MiB as float32", file=sys.stderr, flush=True)
     if need > _memory_limit():
         raise DataError(f"{json_path}: {v} images of {w}x{h} need {need / 2**30:.1f} GiB as float32, more than this "
                         f"machine's memory ({_memory_limit() / 2**30:.1f} GiB); use fewer frames or --downscale")
@@ -297,18 +653,39 @@ def _read_images(files: list[Path], json_path: Path) -> tuple[np.ndarray, np.nda
                         f"({need / 2**30:.1f} GiB); use fewer frames or --downscale") from exc
 
     def fill(i: int) -> None:  # each call writes only its own slot, so threads never overlap
-        img = first if i == 0 else read_png(files[i])
-        if img.shape[:2] != (h, w):
-            raise DataError(f"{files[i]}: image is {img.shape[1]}x{img.shape[0]} but {files[0].name} is {w}x{h}; "
-                            f"all images of {json_path.name} must have one size")
-        rgb[i] = img[..., :3]
-        if img.shape[2] == 4:
-            alpha[i] = img[..., 3]
+        img = read_png(files[i])
+        ref = (full_h, full_w)
+        if img.shape[:2] != ref:
+            raise DataError(f"{files[i]}: image is {img.shape[1]}x{img.shape[0]} but {files[0].name} is "
+                            f"{full_w}x{full_h}; all images of {json_path.name} must have one size")
+        a = img[..., 3] if img.shape[2] == 4 else None
+        if masks is not None:
+            m = read_png(masks[i])
+            if m.shape[:2] != ref:
+                raise DataError(f"{masks[i]}: mask is {m.shape[1]}x{m.shape[0]} but its image {files[i].name} is "
+                                f"{full_w}x{full_h}; a mask must match its image")
+            a = m[..., 0] if a is None else a * m[..., 0]
+        if a is None:
+            if key is None:
+                raise DataError(f"{files[i]}: the image has no alpha channel and {json_path.name} gives no "
+                                "'mask_path', so PointGT cannot tell the object from the background. Provide "
+                                "masks (a 'mask_path' per frame: white = object, black = background; e.g. from "
+                                "rembg or SAM), save the images as RGBA PNGs with the object in alpha, or, for a "
+                                "plain studio backdrop, pass --background-colour R,G,B to key it out")
+            a = (np.abs(img[..., :3] - key).max(axis=-1) > KEY_TOLERANCE).astype(np.float32)
+        premul = img[..., :3] * a[..., None]
+        if block > 1:
+            premul = _area_mean(premul[None], block)[0]
+            a = _area_mean(a[None, ..., None], block)[0, ..., 0]
+        rgb[i], alpha[i] = premul, a
 
     # zlib and Pillow's decoder release the GIL, so a few threads overlap decoding with file reads.
-    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
+    from core.util.progress import Progress
+
+    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool, \
+            Progress(v, f"[data] {json_path.name}", enabled=progress) as bar:
         for _ in pool.map(fill, range(v)):  # re-raises the first error in frame order
-            pass
+            bar.update(1)
     return rgb, alpha
 
 
@@ -322,21 +699,23 @@ def _memory_limit() -> int:
 
 @dataclass
 class Cameras:
-    """Cameras of a transforms JSON without requiring its images: c2w [V, 4, 4] float32, names per frame."""
+    """Cameras of a transforms JSON without requiring its images: c2w [V, 4, 4] float32, names per frame; focal as
+    in SplitData (a float for the centred square-pixel camera, else Intrinsics)."""
     c2w: torch.Tensor
     camera_angle_x: float
     names: list[str]
     height: int
     width: int
-    focal: float
+    focal: float | Intrinsics
 
 
 def load_cameras(json_path: str | os.PathLike, size: int | None = None) -> Cameras:
-    """Read the cameras of a transforms_*.json for rendering. The image size comes from `size` (square) or,
-    when not given, from the first frame's image if it exists. Frame names are the file_path stems."""
+    """Read the cameras of a transforms JSON (any layout; all frames of a single transforms.json) for rendering.
+    The image size comes from `size` (the width; the height keeps the images' aspect ratio, square when it is
+    unknown) or, when not given, from the 'w'/'h' keys or the first frame's image. Frame names are the file_path
+    stems."""
     json_path = Path(json_path)
     doc = _read_json(json_path, json_path.parent)
-    angle = _camera_angle(doc, json_path)
     frames = doc.get("frames")
     if not isinstance(frames, list) or not frames:
         raise DataError(f"{json_path}: needs a non-empty 'frames' list with 'transform_matrix' entries")
@@ -349,17 +728,47 @@ def load_cameras(json_path: str | os.PathLike, size: int | None = None) -> Camer
         names.append(Path(fp).stem if isinstance(fp, str) and fp.strip() else f"frame_{i:04d}")
     c2w = np.stack(mats)
     _check_rigid(c2w, [Path(n) for n in names], json_path)
-    if size is None:
-        first = frames[0].get("file_path")
+    _check_key_presence(frames, doc, json_path)
+    w_key, h_key = frames[0].get("w", doc.get("w")), frames[0].get("h", doc.get("h"))
+    if isinstance(w_key, (int, float)) and isinstance(h_key, (int, float)) and not isinstance(w_key, bool) \
+            and w_key > 0 and h_key > 0 and float(w_key).is_integer() and float(h_key).is_integer():
+        full_h, full_w = int(h_key), int(w_key)
+    else:
         try:
-            img = read_png(_image_path(json_path.parent, first, f"{json_path}: frame 0"))
+            full_h, full_w = _image_size(_image_path(json_path.parent, frames[0].get("file_path"),
+                                                     f"{json_path}: frame 0"))
         except (DataError, TypeError, AttributeError) as exc:
-            raise DataError(f"{json_path}: cannot tell the image size (frame 0 has no readable image); "
-                            "pass the size explicitly (--size)") from exc
-        height, width = img.shape[:2]
+            if size is None:
+                raise DataError(f"{json_path}: cannot tell the image size (no 'w'/'h' and frame 0 has no readable "
+                                "image); pass the size explicitly (--size)") from exc
+            full_h = full_w = None
+    specs = [_frame_camera(doc, fr, json_path, i, Path(names[i]), full_w or 0, full_h or 0)
+             if full_w else _frame_camera({k: v for k, v in doc.items() if k not in ("w", "h")},
+                                          {k: v for k, v in fr.items() if k not in ("w", "h")},
+                                          json_path, i, Path(names[i]), 0, 0)
+             for i, fr in enumerate(frames)]
+    spec = _shared_camera(specs, json_path, [Path(n) for n in names])
+    if size is None:
+        height, width, scale = full_h, full_w, 1.0
     else:
         if int(size) < 1:
             raise InputError(f"image size must be positive, got {size}")
-        height = width = int(size)
+        width = int(size)
+        if full_w is None:
+            height, scale = width, None
+        else:
+            scale = width / full_w
+            height = max(1, round(full_h * scale))
+    if scale is None:  # size only: the keys must be fields of view or be given for this size
+        if spec["fl_x"] is not None or spec["cx"] is not None or spec["cy"] is not None:
+            raise DataError(f"{json_path}: intrinsics in pixels ('fl_x', 'cx', 'cy') need the image size the file "
+                            "describes; add 'w' and 'h' or the images")
+        k = _intrinsics(spec, width, height, 1)
+    else:
+        k = _intrinsics(spec, full_w, full_h, 1) if scale == 1.0 else _intrinsics(spec, full_w, full_h, 1).scaled(scale)
+        if spec["fl_x"] is None and spec["fl_y"] is None and spec["cx"] is None and spec["cy"] is None \
+                and spec["camera_angle_y"] is None:
+            k = _intrinsics(spec, width, height, 1)  # a field of view: the focal at this size, as load_split
+    angle = spec["camera_angle_x"] or 2.0 * math.atan(0.5 * width / k.fx)
     return Cameras(c2w=torch.from_numpy(c2w.astype(np.float32)), camera_angle_x=angle, names=names,
-                   height=height, width=width, focal=focal_from_fov(width, angle))
+                   height=height, width=width, focal=simplest(k, height, width))

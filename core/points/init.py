@@ -8,13 +8,17 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from core.images.cameras import project_points
+from core.images.cameras import Intrinsics, project_points
 from core.util.errors import DataError
 
 
-def scene_radius(c2w: torch.Tensor, focal: float, width: int) -> float:
-    """Half-size of the region every camera sees around the origin: distance × tan(half fov)."""
+def scene_radius(c2w: torch.Tensor, focal, width: int) -> float:
+    """Half-size of the region every camera sees around the origin: distance × tan(half the horizontal fov).
+    focal in pixels or Intrinsics (the wider side of the principal point: an off-centre camera may look at the
+    object off-axis)."""
     dist = c2w[:, :3, 3].norm(dim=-1).min()
+    if isinstance(focal, Intrinsics):
+        return float(dist * (max(focal.cx, width - focal.cx) / focal.fx))
     return float(dist * (0.5 * width / focal))
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from core.images.cameras import focal_from_fov, look_at, pixel_rays
+from core.images.cameras import Intrinsics, focal_from_fov, look_at, pixel_rays
 from core.images.dataset import SplitData
 
 
@@ -55,14 +55,18 @@ def _hit(shape: str, o: torch.Tensor, d: torch.Tensor):
 
 
 def render_split(shape: str, c2w: torch.Tensor, size: int, fov: float = 0.69, colour=stripes,
-                 background=(1.0, 1.0, 1.0), split: str = "train") -> SplitData:
-    """Render views of an analytic shape into a SplitData (images [V,H,W,3], alphas [V,H,W], ...)."""
-    focal = focal_from_fov(size, fov)
+                 background=(1.0, 1.0, 1.0), split: str = "train", height: int | None = None,
+                 intrinsics: Intrinsics | None = None) -> SplitData:
+    """Render views of an analytic shape into a SplitData (images [V,H,W,3], alphas [V,H,W], ...): `size` wide,
+    `height` (default `size`) high, through a centred camera of horizontal field of view `fov` or `intrinsics`."""
+    h, w = (height or size), size
+    focal = focal_from_fov(size, fov) if intrinsics is None else intrinsics
     ss = 2
+    cam = focal * ss if intrinsics is None else intrinsics.scaled(ss)
     bg = torch.tensor(background)
     ims, als = [], []
     for m in c2w:
-        o, d = pixel_rays(m, size * ss, size * ss, focal * ss)
+        o, d = pixel_rays(m, h * ss, w * ss, cam)
         o, d = o.reshape(-1, 3), d.reshape(-1, 3)
         t = _hit(shape, o, d)
         hit = torch.isfinite(t)
@@ -70,13 +74,14 @@ def render_split(shape: str, c2w: torch.Tensor, size: int, fov: float = 0.69, co
         p = o[hit] + t[hit, None] * d[hit]
         rgb[hit] = colour(p)
         a = hit.float()
-        rgb = rgb.reshape(size, ss, size, ss, 3).mean((1, 3))
-        a = a.reshape(size, ss, size, ss).mean((1, 3))
+        rgb = rgb.reshape(h, ss, w, ss, 3).mean((1, 3))
+        a = a.reshape(h, ss, w, ss).mean((1, 3))
         ims.append(rgb + (1 - a[..., None]) * bg)
         als.append(a)
     files = [Path(f"{split}/r_{i}.png") for i in range(len(c2w))]
+    angle = fov if intrinsics is None else 2 * math.atan(0.5 * w / intrinsics.fx)
     return SplitData(split=split, images=torch.stack(ims).float(), alphas=torch.stack(als).float(),
-                     c2w=c2w.float(), focal=focal, height=size, width=size, camera_angle_x=fov, files=files)
+                     c2w=c2w.float(), focal=focal, height=h, width=w, camera_angle_x=angle, files=files)
 
 
 def write_split(root: str | Path, split: SplitData, background=(1.0, 1.0, 1.0)) -> Path:

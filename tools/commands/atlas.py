@@ -12,11 +12,14 @@ def add_arguments(p):
     from tools.commands import add_model_and_data
 
     add_model_and_data(p, "model file (.pgt); rewritten in place, the previous version kept as .bak",
-                       "the dataset the model was trained on (NeRF-synthetic layout)")
+                       "the dataset the model was trained on (any layout of docs/formats.md)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--texel-map-only", action="store_true",
                    help="keep charts and texture; only recompute the texel->surface map with the current rules "
                         "(seconds; for models made before the forward-splat texel map)")
+    from core.images.dataset import LoadConfig
+
+    add_to_parser(p, LoadConfig)
     add_to_parser(p, AtlasConfig, prefix="atlas")
 
 
@@ -38,9 +41,12 @@ def run(args) -> int:
     check_output_file(Path(args.model).with_suffix(".atlas_history.json"), "MODEL (atlas history)")
     check_flag(args.downscale, "--downscale", min=1, max=64)
     cfg = from_args(AtlasConfig, args, prefix="atlas")
+    from core.images.dataset import LoadConfig
+
+    load_kw = from_args(LoadConfig, args).loader_kwargs()
     check_device(cfg.device, "--atlas-device")
     bundle = load_bundle(args.model, device=cfg.device)
-    train = load_split(args.data, "train", downscale=args.downscale)
+    train = load_split(args.data, "train", downscale=args.downscale, progress=not args.no_progress, **load_kw)
     if args.texel_map_only:
         info = refresh_texel_map(bundle, train, cfg)
         save_bundle(args.model, bundle)

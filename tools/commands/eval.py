@@ -12,11 +12,15 @@ ORDER = 30
 def add_arguments(p):
     from tools.commands import add_model_and_data
 
-    add_model_and_data(p, "model file (.pgt)", "dataset folder (NeRF-synthetic layout)")
+    add_model_and_data(p, "model file (.pgt)", "dataset folder (any layout of docs/formats.md)")
     p.add_argument("--split", default="test", help="split to evaluate")
     p.add_argument("--json", default=None, help="write the figures to this JSON file")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
     p.add_argument("--limit", type=int, default=0, help="evaluate only the first N views (0 = all)")
+    from core.config import add_to_parser
+    from core.images.dataset import LoadConfig
+
+    add_to_parser(p, LoadConfig)
 
 
 def run(args) -> int:
@@ -35,8 +39,12 @@ def run(args) -> int:
     check_flag(args.downscale, "--downscale", min=1, max=64)
     check_flag(args.limit, "--limit", min=0)
     check_device(args.device, "--device")
+    from core.config import from_args
+    from core.images.dataset import LoadConfig
+
+    load_kw = from_args(LoadConfig, args).loader_kwargs()
     bundle = load_bundle(args.model, device=args.device)
-    split = load_split(args.data, args.split, downscale=args.downscale)
+    split = load_split(args.data, args.split, downscale=args.downscale, **load_kw)
     n = len(split) if args.limit <= 0 else min(args.limit, len(split))
 
     def render(i):

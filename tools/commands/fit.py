@@ -10,6 +10,7 @@ import dataclasses
 
 from core.atlas.config import AtlasConfig
 from core.config import add_to_parser, from_args, to_dict
+from core.images.dataset import LoadConfig
 from core.points.model import ModelConfig
 from core.points.train import TrainConfig
 
@@ -19,7 +20,7 @@ ORDER = 20
 
 
 def add_arguments(p):
-    p.add_argument("data", help="dataset folder in the NeRF-synthetic layout (transforms_train.json, ...)")
+    p.add_argument("data", help="dataset folder: NeRF-synthetic or BlenderNeRF (transforms_train.json, ...), nerfstudio or instant-ngp (transforms.json); see docs/formats.md")
     p.add_argument("--out", required=True, help="model file to write (.pgt); the file that was there before the command is kept as .bak (one backup "
                         "per fit)")
     p.add_argument("--stage", choices=("papr", "atlas", "all"), default="all",
@@ -32,6 +33,7 @@ def add_arguments(p):
     p.add_argument("--profile", action=argparse.BooleanOptionalAction, default=True,
                    help="measure the scene and choose decoder, view dependence, K and chart count from it "
                         "(settings given on the command line always win)")
+    add_to_parser(p, LoadConfig)
     add_to_parser(p, ModelConfig)
     add_to_parser(p, TrainConfig)
     add_to_parser(p, AtlasConfig, prefix="atlas")
@@ -61,6 +63,7 @@ def run(args) -> int:
     for path, flag in _outputs(out):
         check_output_file(path, flag)
     check_flag(args.downscale, "--downscale", min=1, max=64)
+    load_kw = from_args(LoadConfig, args).loader_kwargs()
     if args.points is not None:
         args.num_points = args.points
     model_cfg = from_args(ModelConfig, args, names={"num_points": "--points"} if args.points is not None else None)
@@ -74,7 +77,8 @@ def run(args) -> int:
     bundle = None
     if args.stage == "atlas":
         bundle = load_bundle(out, device=train_cfg.device)  # before the images: a missing model is found at once
-    data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"), downscale=args.downscale)
+    data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"), downscale=args.downscale,
+                        progress=not args.no_progress, **load_kw)
     train, test = data["train"], data["test"]
     print(f"[fit] {args.data}: {len(train)} train / {len(test)} test views at {train.width}x{train.height}")
     profile = None
@@ -111,7 +115,8 @@ def run(args) -> int:
         guard = {**final.get("guard", {}), "blank_floor_all_views": floor,
                  "collapsed": collapse_reason(all_views, floor, train_cfg.guard_margin)}
         meta = {"scene": {"data": str(Path(args.data).resolve()), "width": train.width, "height": train.height,
-                          "camera_angle_x": train.camera_angle_x},
+                          "camera_angle_x": train.camera_angle_x, "layout": train.layout,
+                          "intrinsics": dict(zip(("fx", "fy", "cx", "cy"), train.intrinsics.as_list()))},
                 "profile": profile.to_dict() if profile else None,
                 "train": {"config": to_dict(train_cfg), "seconds": round(seconds, 2),
                           "train_seconds": final["seconds"], "steps": final["step"], "final": final,

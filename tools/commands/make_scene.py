@@ -1,5 +1,6 @@
-"""`pointgt make-scene`: render a built-in scene (Blender Cycles, CPU) in the NeRF-synthetic layout, or a posed /
-retextured variant of an existing one."""
+"""`pointgt make-scene`: render a built-in scene (Blender Cycles, CPU) in the NeRF-synthetic layout — and write it
+again in the nerfstudio / instant-ngp / BlenderNeRF layouts with --format — or a posed / retextured variant of an
+existing one."""
 from __future__ import annotations
 
 NAME = "make-scene"
@@ -7,7 +8,9 @@ HELP = "render a built-in scene of the library (--list) with its rig, poses and 
 DESCRIPTION = (
     "Render a built-in scene with Blender (Cycles, CPU) into DIR in the NeRF-synthetic layout "
     "(transforms_{train,val,test}.json + RGBA PNGs, scene.blend, scene.json). With --pose and/or --texture, "
-    "render the test cameras of the existing scene in DIR posed/retextured into DIR/poses/<pose>[_m<M>][_<tex>]/."
+    "render the test cameras of the existing scene in DIR posed/retextured into DIR/poses/<pose>[_m<M>][_<tex>]/. "
+    "With --format nerfstudio|instant-ngp|blendernerf, also write the same scene (same cameras and pixels, no "
+    "re-render when DIR already holds it) in that tool's layout into DIR/<format>/."
 )
 ORDER = 10
 
@@ -30,6 +33,10 @@ def add_arguments(parser) -> None:
                         help="render the existing scene with this texture (a name of core/edits/procedural.py's "
                              "TEXTURES, e.g. checker, stripes, decal)")
     parser.add_argument("--force", action="store_true", help="re-render a scene that already exists in --out")
+    parser.add_argument("--format", default="nerf-synthetic",
+                        choices=("nerf-synthetic", "nerfstudio", "instant-ngp", "blendernerf"),
+                        help="layout to write: nerf-synthetic (DIR itself) or another tool's, written into "
+                             "DIR/<format>/ from the NeRF-synthetic render in DIR (rendered first if absent)")
 
 
 def run(args) -> int:
@@ -69,7 +76,21 @@ def run(args) -> int:
                                     samples=args.samples, log=lambda m: print(m, flush=True))
         print(f"wrote {vdir}")
         return 0
-    build.make_scene(args.name, args.out, size=args.size, views_train=args.views_train, views_val=args.views_val,
-                     views_test=args.views_test, seed=args.seed, lit=args.lit, samples=args.samples,
-                     force=args.force, log=lambda m: print(m, flush=True))
+    from pathlib import Path
+
+    existing = Path(args.out) / "scene.json"
+    if args.format == "nerf-synthetic" or args.force or not existing.exists():
+        build.make_scene(args.name, args.out, size=args.size, views_train=args.views_train,
+                         views_val=args.views_val, views_test=args.views_test, seed=args.seed, lit=args.lit,
+                         samples=args.samples, force=args.force, log=lambda m: print(m, flush=True))
+    else:
+        spec = build.poses.load_scene_spec(args.out)
+        if spec.get("name") != args.name:
+            raise InputError(f"{existing} holds scene '{spec.get('name')}', not '{args.name}'; choose another --out")
+    if args.format != "nerf-synthetic":
+        from tools.scenes.formats import write_layout
+
+        first = write_layout(args.out, Path(args.out) / args.format, args.format,
+                             log=lambda m: print(m, flush=True))
+        print(f"wrote {first}")
     return 0

@@ -25,10 +25,12 @@ def add_arguments(p):
     from core.frames.edited import COMPRESSION, EditConfig
 
     p.add_argument("model", help="model file (.pgt)")
-    p.add_argument("--cameras", required=True, help="transforms_*.json whose cameras to render")
+    p.add_argument("--cameras", required=True, help="transforms JSON whose cameras to render (transforms_*.json, or "
+                                                   "every frame of a nerfstudio / instant-ngp transforms.json)")
     p.add_argument("--out", required=True, help="output folder for the PNGs")
     p.add_argument("--size", type=int, default=None,
-                   help="square image size, 1-8192 (default: size of the JSON's images)")
+                   help="image width, 1-8192; the height keeps the JSON's aspect ratio (square when the JSON "
+                        "gives no size) (default: the JSON's 'w'/'h' or its images' size)")
     p.add_argument("--device", default="auto", help="cpu | cuda | auto")
     p.add_argument("--json", default=None, help="write timings and counts to this JSON file")
     p.add_argument("--points", default=None, help="deformed point positions: .npy float [M, 3]")

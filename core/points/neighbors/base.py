@@ -9,6 +9,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from core.images.intrinsics import Intrinsics
 from core.util.errors import InputError
 
 METHODS = ("screen", "screen_depth", "perpendicular")
@@ -53,8 +54,11 @@ def check_camera(c2w, height, width, focal) -> None:
     for name, v in (("height", height), ("width", width)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
             raise InputError(f"neighbour search: {name} must be a positive integer, got {v!r}")
+    if isinstance(focal, Intrinsics):
+        return  # validated when it was made: finite, positive focal lengths
     if isinstance(focal, bool) or not (isinstance(focal, numbers.Real) and math.isfinite(focal) and focal > 0):
-        raise InputError(f"neighbour search: focal must be a finite positive number of pixels, got {focal!r}")
+        raise InputError(f"neighbour search: focal must be a finite positive number of pixels (or Intrinsics), "
+                         f"got {focal!r}")
 
 
 def present(points: torch.Tensor) -> torch.Tensor:

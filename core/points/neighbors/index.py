@@ -9,7 +9,7 @@ import math
 import numpy as np
 import torch
 
-from core.images.cameras import project_points
+from core.images.cameras import Intrinsics, focal_scale, project_points
 from core.points.neighbors import compiled
 from core.points.neighbors.base import (BACKENDS, Neighbors, check_camera, check_k, check_matrix, empty, finalize,
                                         present)
@@ -54,13 +54,14 @@ def check_backend(backend: str, device: torch.device, capped: bool = False) -> s
 class ScreenIndex:
     """Projected points of one camera, built once and queried many times (e.g. every chunk of a frame).
 
-    points [N, 3]; c2w [4, 4] or [3, 4]; height, width in pixels; focal in pixels. depth_factor=False ranks by
-    pixel distance (pixels), True by pixel distance × depth / focal (world units, ≈ perpendicular distance).
+    points [N, 3]; c2w [4, 4] or [3, 4]; height, width in pixels; focal in pixels or Intrinsics. depth_factor=False
+    ranks by pixel distance (pixels), True by pixel distance × depth / focal (world units, ≈ perpendicular
+    distance; with Intrinsics the focal is sqrt(fx * fy)).
     max_radius_px: candidates lie within this many pixels of the query; "auto" (or 0) derives it from the
     projected density and K (`radius_px(k)`), inf (or a negative number) means no cap.
     """
 
-    def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal: float,
+    def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
                  depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto"):
         check_matrix("points", points, 3)
         check_camera(c2w, height, width, focal)
@@ -70,12 +71,13 @@ class ScreenIndex:
         self.depth_factor = depth_factor
         self.height, self.width = int(height), int(width)
         p = points.detach().to(torch.float64)
-        px, depth = project_points(p, c2w.detach().to(p.device, torch.float64), height, width, float(focal))
+        cam = focal if isinstance(focal, Intrinsics) else float(focal)
+        px, depth = project_points(p, c2w.detach().to(p.device, torch.float64), height, width, cam)
         keep = present(p) & torch.isfinite(px).all(dim=1) & (depth > 0)
         keep &= (px[:, 0] >= -1) & (px[:, 0] <= width + 1) & (px[:, 1] >= -1) & (px[:, 1] <= height + 1)
         self.ids = torch.nonzero(keep).squeeze(1)  # [M] original point index of each candidate
         self.px = px[keep]  # [M, 2] (col, row)
-        self.weight = depth[keep] / float(focal) if depth_factor else None  # [M]
+        self.weight = depth[keep] / float(focal_scale(cam)) if depth_factor else None  # [M]
         self._density: float | None = None
         self._grids: dict[float, CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
         self._tree = None

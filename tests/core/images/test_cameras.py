@@ -120,3 +120,63 @@ def test_projection_on_a_ray_and_distance_agree():
     assert torch.allclose((x - proj).norm(dim=-1), distance_to_ray(x, o, d))
     behind = o - 3.0 * d  # t is clamped at the origin
     assert torch.allclose(project_on_ray(behind, o, d), o)
+
+
+# ------------------------------------------------------------------ general intrinsics (fx, fy, cx, cy)
+from core.images.cameras import Intrinsics, focal_scale, intrinsics, simplest  # noqa: E402
+from core.util.errors import InputError  # noqa: E402
+
+
+def _reference_pixel_k(p, c2w, k):
+    """Brute force with separate focal lengths and a principal point measured from the top-left corner."""
+    rel = p - c2w[:3, 3]
+    x, y, z = (float(rel @ c2w[:3, i]) for i in range(3))
+    return k.fx * x / -z + k.cx, k.fy * -y / -z + k.cy
+
+
+@pytest.mark.parametrize("h,w,k", [(5, 9, Intrinsics(7.0, 4.5, 3.1, 2.9)), (8, 3, Intrinsics(5.0, 5.0, 0.4, 6.5))])
+def test_pixel_rays_with_intrinsics_pass_through_their_pixel_centres(h, w, k):
+    c2w = _camera(4)
+    o, d = pixel_rays(c2w, h, w, k)
+    assert o.shape == d.shape == (h, w, 3)
+    for r in range(h):
+        for c in range(w):
+            col, row = _reference_pixel_k(o[r, c] + 1.7 * d[r, c], c2w, k)
+            assert col == pytest.approx(c + 0.5, abs=1e-9) and row == pytest.approx(r + 0.5, abs=1e-9)
+    px = torch.tensor([[0.25, 0.75], [w - 0.1, h - 2.3], [3.3, 1.1]], dtype=torch.float64)
+    o2, d2 = rays_for_pixels(c2w, px, h, w, k)
+    for i in range(len(px)):
+        col, row = _reference_pixel_k(o2[i] + 2.0 * d2[i], c2w, k)
+        assert (col, row) == (pytest.approx(float(px[i, 0]), abs=1e-9), pytest.approx(float(px[i, 1]), abs=1e-9))
+
+
+def test_project_points_with_intrinsics_matches_brute_force_and_inverts_rays():
+    c2w, h, w, k = _camera(5), 6, 10, Intrinsics(9.0, 6.0, 6.5, 2.0)
+    g = torch.Generator().manual_seed(6)
+    pts = torch.randn(40, 3, generator=g, dtype=torch.float64) + c2w[:3, 3] - 3 * c2w[:3, 2]
+    px, depth = project_points(pts, c2w, h, w, k)
+    for i in range(len(pts)):
+        col, row = _reference_pixel_k(pts[i], c2w, k)
+        assert px[i, 0].item() == pytest.approx(col, abs=1e-9) and px[i, 1].item() == pytest.approx(row, abs=1e-9)
+    o, d = rays_for_pixels(c2w, px, h, w, k)  # the ray through each projection passes through the point
+    assert torch.allclose(distance_to_ray(pts, o, d), torch.zeros(40, dtype=torch.float64), atol=1e-9)
+
+
+def test_a_plain_focal_and_its_centred_intrinsics_agree_bit_for_bit():
+    c2w, h, w, f = _camera(7), 7, 12, 9.25
+    k = intrinsics(f, h, w)
+    assert k == Intrinsics(f, f, 6.0, 3.5) and k.is_centred(h, w) and simplest(k, h, w) == f
+    assert isinstance(simplest(Intrinsics(f, f, 6.0, 3.0), h, w), Intrinsics)
+    for a, b in zip(pixel_rays(c2w, h, w, f), pixel_rays(c2w, h, w, k)):
+        assert torch.equal(a, b)
+    pts = torch.randn(20, 3, dtype=torch.float64) - 4 * c2w[:3, 2] + c2w[:3, 3]
+    assert torch.equal(project_points(pts, c2w, h, w, f)[0], project_points(pts, c2w, h, w, k)[0])
+    assert focal_scale(f) == f and focal_scale(Intrinsics(4.0, 9.0, 1, 1)) == pytest.approx(6.0)
+    assert intrinsics(f, h, w).scaled(0.5) == Intrinsics(f / 2, f / 2, 3.0, 1.75)
+
+
+@pytest.mark.parametrize("bad", [dict(fx=0.0), dict(fy=-1.0), dict(cx=math.nan), dict(cy=math.inf), dict(fx=True)])
+def test_intrinsics_refuse_non_finite_or_non_positive_values(bad):
+    args = dict(fx=5.0, fy=5.0, cx=2.0, cy=2.0) | bad
+    with pytest.raises(InputError, match="camera intrinsics"):
+        Intrinsics(**args)

@@ -67,11 +67,22 @@ def test_loads_images_alpha_cameras_and_focal(tmp_path, ext):
     torch.testing.assert_close(d.c2w, torch.tensor([_c2w(i) for i in range(3)], dtype=torch.float32))
 
 
-def test_rgb_images_get_alpha_one(tmp_path):
+def test_rgb_images_without_masks_are_refused_never_silently_opaque(tmp_path):
+    make_dataset(tmp_path, channels=3)
+    with pytest.raises(DataError, match=r"r_0\.png: the image has no alpha channel.*'mask_path'.*--background-colour"):
+        load_split(tmp_path, "test")
+
+
+def test_background_colour_keys_out_a_studio_backdrop(tmp_path):
     imgs = make_dataset(tmp_path, channels=3)
-    d = load_split(tmp_path, "test")
-    assert torch.all(d.alphas == 1)
-    torch.testing.assert_close(d.images, torch.tensor(np.stack(imgs["test"]), dtype=torch.float32) / 255.0)
+    key = imgs["test"][0][2, 3] / 255.0  # one pixel's colour is the "backdrop"
+    d = load_split(tmp_path, "test", background=(0.0, 0.0, 0.0), background_colour=tuple(key))
+    for v, img in enumerate(imgs["test"]):
+        raw = torch.tensor(img, dtype=torch.float64) / 255.0
+        near = (raw - torch.tensor(key)).abs().max(dim=-1).values <= 0.04  # brute force, pixel by pixel
+        assert torch.equal(d.alphas[v] == 0, near) and torch.all((d.alphas[v] == 0) | (d.alphas[v] == 1))
+        assert torch.all(d.images[v][near] == 0)  # keyed pixels take the composite background
+    assert float(d.alphas[0, 2, 3]) == 0.0
 
 
 def _reference_downscale(rgba: torch.Tensor, k: int, bg) -> tuple[torch.Tensor, torch.Tensor]:
@@ -200,7 +211,7 @@ def test_bad_transforms_are_rejected_with_file_and_problem(tmp_path, edit, patte
 def test_missing_and_unparseable_json(tmp_path):
     with pytest.raises(DataError, match="dataset folder not found"):
         load_split(tmp_path / "nowhere")
-    with pytest.raises(DataError, match=r"transforms_train\.json: split file not found.*no transforms_"):
+    with pytest.raises(DataError, match=r"transforms_train\.json: split file not found.*no transforms"):
         load_split(tmp_path)
     (tmp_path / "transforms_train.json").write_text('{"camera_angle_x": 0.6, "frames": [}')
     with pytest.raises(DataError, match=r"transforms_train\.json: invalid JSON at line 1, column"):

@@ -500,3 +500,37 @@ def test_model_config_cap_round_trips_and_is_used():
 def test_bad_input_is_a_clear_error(call, match):
     with pytest.raises(InputError, match=match):
         call()
+
+
+# ------------------------------------------------------------------ general intrinsics: non-square, off-centre
+def ref_screen_k(points, c2w, k_cam, h, w, query_px, k, depth_factor):
+    """Brute force written from the pinhole formula with fx, fy, cx, cy (not through cameras.project_points)."""
+    p, m = points.double(), c2w.double()
+    cam = (p - m[:3, 3]) @ m[:3, :3]
+    z = -cam[:, 2]
+    col = k_cam.fx * cam[:, 0] / z + k_cam.cx
+    row = -k_cam.fy * cam[:, 1] / z + k_cam.cy
+    keep = (z > 0) & (col >= -1) & (col <= w + 1) & (row >= -1) & (row <= h + 1) & ~_absent(points)
+    d = (query_px.double()[:, None, :] - torch.stack([col, row], -1)[None]).norm(dim=-1)
+    if depth_factor:
+        d = d * (z / math.sqrt(k_cam.fx * k_cam.fy))[None]
+    return _topk_ref(d.masked_fill(~keep[None] | ~torch.isfinite(d), math.inf), k)
+
+
+@pytest.mark.parametrize("method", nb.METHODS)
+def test_intrinsics_non_square_off_centre_match_brute_force(method):
+    from core.images.cameras import Intrinsics
+
+    h, w = 18, 31
+    k_cam = Intrinsics(1.3 * w, 0.9 * w, 0.62 * w, 0.35 * h)
+    pts, c2w = scene("blob", 700, 9), camera(9)
+    rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    q = torch.stack([cols.flatten() + 0.5, rows.flatten() + 0.5], -1).float()
+    cfg = nb.NeighborConfig(method=method, k=5, max_radius_px=-1.0)  # uncapped: the reference has no cap
+    got = nb.knn_for_pixels(cfg, pts, c2w, h, w, k_cam, q)
+    if method == "perpendicular":
+        o, d = pixel_rays(c2w.double(), h, w, k_cam)
+        ref = ref_perpendicular(pts, o.reshape(-1, 3), d.reshape(-1, 3), 5)
+    else:
+        ref = ref_screen_k(pts, c2w, k_cam, h, w, q, 5, method == "screen_depth")
+    assert_same(got, ref)

@@ -1,0 +1,48 @@
+"""Lens shift and non-square renders: the add-on's camera (an off-centre principal point for a shifted lens)
+projects points where Blender's own camera projection puts them."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from core.images.cameras import Intrinsics
+from core.util.errors import InputError
+from pointgt_blender.camera import camera_settings, principal_point
+
+SESSION = Path(__file__).with_name("camera_shift_session.py")
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_principal_point_of_a_centred_lens_is_the_image_centre():
+    for fit in ('AUTO', 'HORIZONTAL', 'VERTICAL'):
+        assert principal_point(0.0, 0.0, fit, 64, 48) == (32.0, 24.0)
+    assert principal_point(0.25, 0.0, 'AUTO', 64, 48) == (16.0, 24.0)  # AUTO fits the larger side
+    assert principal_point(0.0, 0.25, 'VERTICAL', 64, 48) == (32.0, 36.0)
+
+
+def test_camera_settings_invert_the_add_on_camera():
+    s = camera_settings(Intrinsics(50.0, 50.0, 20.0, 30.0), 64, 48)
+    assert s["lens"] == pytest.approx(50.0 * 36.0 / 64) and s["sensor_fit"] == 'HORIZONTAL'
+    assert principal_point(s["shift_x"], s["shift_y"], s["sensor_fit"], 64, 48) == pytest.approx((20.0, 30.0))
+    assert camera_settings(40.0, 64, 48)["shift_x"] == camera_settings(40.0, 64, 48)["shift_y"] == 0.0
+    with pytest.raises(InputError, match="non-square pixels"):
+        camera_settings(Intrinsics(50.0, 45.0, 32.0, 24.0), 64, 48)
+
+
+@pytest.mark.blender
+def test_shifted_and_non_square_cameras_match_blenders_projection():
+    proc = subprocess.run([sys.executable, str(SESSION), "--", str(REPO)], capture_output=True, text=True,
+                          timeout=300, cwd=REPO)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
+    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    rows = json.loads(lines[-1][len("RESULTS: "):])
+    assert len(rows) == 7
+    for row in rows[:5]:
+        assert row["max_px_err"] < 1e-4, row  # float32 c2w: ~5e-6 px
+        assert row["kind"] == ("float" if row["case"][3:] == [0.0, 0.0] else "Intrinsics")
+    for row in rows[5:]:  # dataset cameras set up in Blender with camera_settings: the same camera back
+        assert row["kind"] == "Intrinsics" and row["intrinsics_err"] < 1e-4 and row["max_px_err"] < 1e-4, row
