@@ -526,8 +526,11 @@ def test_intrinsics_non_square_off_centre_match_brute_force(method):
     pts, c2w = scene("blob", 700, 9), camera(9)
     rows, cols = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
     q = torch.stack([cols.flatten() + 0.5, rows.flatten() + 0.5], -1).float()
-    cfg = nb.NeighborConfig(method=method, k=5, max_radius_px=-1.0)  # uncapped: the reference has no cap
-    got = nb.knn_for_pixels(cfg, pts, c2w, h, w, k_cam, q)
+    if method == "perpendicular":
+        o32, d32 = pixel_rays(c2w, h, w, k_cam)
+        got = nb.rays_knn_perpendicular(pts, o32.reshape(-1, 3), d32.reshape(-1, 3), 5)
+    else:  # uncapped: the reference has no cap
+        got = nb.screen_knn(pts, c2w, h, w, k_cam, q, 5, depth_factor=method == "screen_depth", max_radius_px=-1.0)
     if method == "perpendicular":
         o, d = pixel_rays(c2w.double(), h, w, k_cam)
         ref = ref_perpendicular(pts, o.reshape(-1, 3), d.reshape(-1, 3), 5)
