@@ -55,12 +55,12 @@ class AtlasConfig:
     layout: str = opt("islands", "packed image: islands (each chart cut to the region the surface uses, packed by "
                       "xatlas, one chart per point) or grid (the paper's fixed chart squares)",
                       choices=("islands", "grid"))
-    atlas_size: int = opt(0, "islands: side of the square atlas image in texels; 0 = chosen per scene from the "
+    image_size: int = opt(0, "islands: side of the square atlas image in texels; 0 = chosen per scene from the "
                              "surface area and the training images' pixel footprint on it")
-    texels_per_pixel: float = opt(4.0, "islands, atlas_size 0: texels per training-image pixel footprint along the "
+    texels_per_pixel: float = opt(4.0, "islands, image_size 0: texels per training-image pixel footprint along the "
                                        "surface (4: a 2x2-filtered lookup of a pixel spans 2 texels, paint finer "
                                        "than the views see)")
-    max_atlas_size: int = opt(2048, "islands: largest automatic atlas side (a coarser texel beyond it)")
+    max_image_size: int = opt(2048, "islands: largest automatic atlas side (a coarser texel beyond it)")
     island_pad: int = opt(2, "islands: padding texels around each island (bilinear lookups and one mip level)")
     island_fill: float = opt(1.5, "islands: a texel belongs to an island when a sample lands within this many "
                                   "texels of it (closes gaps between samples; in sample spacings when coarser)")

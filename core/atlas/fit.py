@@ -66,7 +66,7 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
     charts. probs [S, n] and uv [S, n, 2] of the samples xyz [S, 3] (raw chart outputs); k_area: uv units per world
     unit the distortion loss aims at; R: the grid's chart side (sets the density when nothing else does).
     Texel size: pixel_size / texels_per_pixel when the images' footprint is known, else the grid's density; a fixed
-    cfg.atlas_size, or a side above cfg.max_atlas_size, coarsens it until the islands fit.
+    cfg.image_size, or a side above cfg.max_image_size, coarsens it until the islands fit.
     Returns (layout, info: texel size, per-chart scale, islands, seconds)."""
     from core.atlas.islands import build_islands, occupancy
     from core.atlas.texture import texel_spacing
@@ -77,8 +77,8 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
     _, _, sel, elem = sample_spacing(xyz, per_sample=True)
     own_sel = owner.cpu().numpy()[sel]
     area_c = np.array([elem[own_sel == c].sum() for c in range(n)]) * area / max(elem.sum(), 1e-30)
-    if cfg.atlas_size > 0:
-        h = math.sqrt(area / (0.7 * cfg.atlas_size ** 2))
+    if cfg.image_size > 0:
+        h = math.sqrt(area / (0.7 * cfg.image_size ** 2))
     elif pixel_size:
         h = pixel_size / max(cfg.texels_per_pixel, 1e-6)
     else:
@@ -97,14 +97,14 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
             scale[c] = s0 * float(np.clip(math.sqrt(area_c[c] / (h * h) / max(cells, 1)), 0.25, 4.0))
             sp = texel_spacing(uv[torch.from_numpy(m).to(uv.device), c] * float(scale[c]))
             fill[c] = cfg.island_fill * max(1.0, sp)
-        layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.atlas_size, fill, cfg.island_min_texels)
-        if layout is not None and (cfg.atlas_size > 0 or layout.size <= cfg.max_atlas_size):
+        layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.image_size, fill, cfg.island_min_texels)
+        if layout is not None and (cfg.image_size > 0 or layout.size <= cfg.max_image_size):
             info = {"texel_size": h, "chart_scale": scale.tolist(), "islands": layout.islands,
                     "atlas_size": layout.size, "island_seconds": time.perf_counter() - t0}
             return layout, info
-        grow = 1.06 if layout is None else max(1.02, 1.01 * layout.size / cfg.max_atlas_size)
+        grow = 1.06 if layout is None else max(1.02, 1.01 * layout.size / cfg.max_image_size)
         h *= grow
-    raise InputError(f"island layout: the charts do not fit a {cfg.atlas_size or cfg.max_atlas_size} texel atlas")
+    raise InputError(f"island layout: the charts do not fit a {cfg.image_size or cfg.max_image_size} texel atlas")
 
 
 def _kmeans(x: torch.Tensor, k: int, iters: int = 15) -> torch.Tensor:
