@@ -111,8 +111,8 @@ def round_trip(atlas) -> float:
     return float((miss <= 1.0).float().mean())
 
 
-def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", log=print) -> list[dict]:
-    """The per-scene figures (module doc) for every scene of the library found under root."""
+def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=None, log=print) -> list[dict]:
+    """The per-scene figures (module doc) for every scene of the library found under root (or those in only)."""
     import time
     from pathlib import Path
 
@@ -126,6 +126,8 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", log=p
 
     root, rows = Path(root), []
     for name in scene_names():
+        if only and name not in only:
+            continue
         scene, model = root / name, root / f"{name}.pgt"
         if not (scene / "transforms_train.json").exists() or not model.exists():
             log(f"[{name}] skipped: needs {scene}/ (pointgt make-scene) and {model} (pointgt fit)")
@@ -184,6 +186,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scene-root", help="per-scene mode: DIR/<scene>/ and DIR/<scene>.pgt for the library scenes")
     ap.add_argument("--layouts", default="islands,grid", help="per-scene mode: layouts to compare")
     ap.add_argument("--views", type=int, default=4, help="per-scene mode: test views scored")
+    ap.add_argument("--scenes", default="", help="per-scene mode: only these scenes (comma-separated)")
     add_to_parser(ap, AtlasConfig)
     args = ap.parse_args(argv)
     threads = from_args(AtlasConfig, args).threads
@@ -191,7 +194,8 @@ def main(argv=None) -> int:
         torch.set_num_threads(threads)
     cfg = from_args(AtlasConfig, args)
     if args.scene_root:
-        rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views)
+        rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
+                          only=[x for x in args.scenes.split(",") if x])
         print(markdown_rows(rows))
         if args.json:
             from core.util.atomic import atomic_write_text
