@@ -209,6 +209,45 @@ class Atlas(nn.Module):
                 samples.device)]
         self.bake_samples, self.bake_sigma = keep.detach().float().cpu().clone(), float(sigma)
 
+    def _newton_to_texels(self, x: torch.Tensor, slope: torch.Tensor, chart: torch.Tensor, target: torch.Tensor,
+                          iters: int = 6, max_move: float = 2.0, chunk: int = 16384) -> torch.Tensor:
+        """Move points x [K, 3] within their surface's tangent plane (slope [K, 2, 3]: dx per texel) until their
+        chart's forward map (chart [K]) sends them to target [K, 2] pixel (col, row): Gauss-Newton on
+        q -> pixel(x + q slope), at most max_move typical texel sizes from the local-linear point (a fold of the
+        map, where the samples around a texel come from two places, is not chased). Ill-conditioned steps are skipped."""
+        from core.atlas.distortion import uv_jacobian
+
+        L, A = self.layout, self.layout.size
+        aff = L.affine.to(self.device)
+        out = x.clone()
+        if len(x) == 0:
+            return out
+        reach = max_move * float(slope.norm(dim=-1).median())  # max_move texels of the typical texel size
+        for s in range(0, len(x), chunk):
+            x0, B, ch, tg = x[s:s + chunk], slope[s:s + chunk], chart[s:s + chunk], target[s:s + chunk]
+            ar = torch.arange(len(x0), device=self.device)
+            q = torch.zeros(len(x0), 2, device=self.device)
+            xs = x0.clone()
+            for _ in range(iters):
+                with torch.enable_grad():
+                    J, raw = uv_jacobian(self.tex, self.normalise(xs))  # d raw uv / d normalised x
+                J, raw = J.detach()[ar, ch] / self.half, raw.detach()[ar, ch]          # [K, 2, 3], [K, 2]
+                M2 = aff[ch, :, :2]                                                 # raw uv -> chart texels
+                Jp = M2 @ J                                                         # d pixel / d x
+                pix = self.layout.place(raw[:, None].expand(-1, self.n, -1).contiguous())[ar, ch] * A
+                r = pix - tg
+                Mq = Jp @ B.transpose(1, 2)                                         # d pixel / d q [K, 2, 2]
+                det = torch.linalg.det(Mq)
+                ok = (det.abs() > 0.05) & torch.isfinite(det)
+                dq = torch.zeros_like(r)
+                dq[ok] = -torch.linalg.solve(Mq[ok], r[ok][..., None])[..., 0]
+                q = q + dq
+                d = (q[:, :, None] * B).sum(1)
+                q = q * (reach / d.norm(dim=-1, keepdim=True).clamp_min(reach))  # stay near the samples
+                xs = x0 + (q[:, :, None] * B).sum(1)
+            out[s:s + chunk] = xs
+        return out
+
     @torch.no_grad()
     def _island_texel_points(self, samples: torch.Tensor, max_dist: float, max_cycle: float,
                              sigma: float) -> torch.Tensor:
@@ -220,17 +259,20 @@ class Atlas(nn.Module):
         chart = probs.argmax(-1)
         owner = L.owner.to(self.device)
         cand = torch.full((A, A, 3), float("nan"), device=self.device)
+        slope = torch.zeros(A, A, 2, 3, device=self.device)
         cov = torch.zeros(A, A, dtype=torch.bool, device=self.device)
         for c in range(self.n):  # one chart per point: each chart's samples give its own pixels' points
             sel = chart == c
             if not bool(sel.any()):
                 continue
-            pts_c, cov_c = local_linear_points(uv[sel, c] * A, samples[sel], A, sigma, labels=self.blur_labels)
+            pts_c, cov_c, slope_c = local_linear_points(uv[sel, c] * A, samples[sel], A, sigma,
+                                                        labels=self.blur_labels, with_slope=True)
             mine = (owner == c) & cov_c
-            cand[mine], cov[mine] = pts_c[mine], True
+            cand[mine], slope[mine], cov[mine] = pts_c[mine], slope_c[mine], True
         cov &= L.island_pixels.to(self.device) & torch.isfinite(cand).all(-1)
         rows, cols = torch.nonzero(cov, as_tuple=True)
-        pts = cand[rows, cols]
+        pts = self._newton_to_texels(cand[rows, cols], slope[rows, cols], owner[rows, cols],
+                                     torch.stack([cols + 0.5, rows + 0.5], -1).float())
         keep = torch.zeros(len(rows), dtype=torch.bool, device=self.device)
         miss = torch.full((len(rows),), float("inf"), device=self.device)
         if len(rows):

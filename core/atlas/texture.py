@@ -126,8 +126,7 @@ def kernel_texture(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: 
 
 
 def local_linear_points(pix: torch.Tensor, xyz: torch.Tensor, R: int, sigma: float, ridge: float = 0.05,
-                        min_weight: float = 1e-3, labels: torch.Tensor | None = None
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
+                        min_weight: float = 1e-3, labels: torch.Tensor | None = None, with_slope: bool = False):
     """The 3-D point that the forward map sends to each texel centre, by kernel-weighted local linear regression of
     the samples' positions on their texel coordinates: x(p) ~ a + B (p - c) around each texel centre c, and the
     texel's point is a. Unlike the kernel mean of the positions (which lands where the samples are dense, up to a
@@ -137,10 +136,12 @@ def local_linear_points(pix: torch.Tensor, xyz: torch.Tensor, R: int, sigma: flo
     sigma: kernel std in sample spacings (as kernel_texture). ridge: shrinks B (in units of the kernel variance)
     where the samples around a texel do not span two directions (edges), towards the kernel mean. labels [R, R]:
     as kernel_texture (the kernel stays inside one island).
-    Returns (points [R, R, 3] float32 (NaN where no sample is near), covered [R, R] bool)."""
+    Returns (points [R, R, 3] float32 (NaN where no sample is near), covered [R, R] bool); with_slope also the
+    local slope [R, R, 2, 3] (dx/d col, dx/d row: the surface's tangent plane in texel units)."""
     dev = pix.device
     if len(pix) == 0:
-        return torch.full((R, R, 3), float("nan"), device=dev), torch.zeros(R, R, dtype=torch.bool, device=dev)
+        empty = (torch.full((R, R, 3), float("nan"), device=dev), torch.zeros(R, R, dtype=torch.bool, device=dev))
+        return empty + (torch.zeros(R, R, 2, 3, device=dev),) if with_slope else empty
     p = pix.double()
     ref = R / 2.0
     q = (p - ref)  # centred texel coordinates (float64 moments stay exact)
@@ -166,4 +167,8 @@ def local_linear_points(pix: torch.Tensor, xyz: torch.Tensor, R: int, sigma: flo
     pts = x_mean + ((c - mu)[:, None, :] @ B)[:, 0]
     out = torch.full((R, R, 3), float("nan"), dtype=torch.float32, device=dev)
     out[rows, cols] = pts.float()
-    return out, covered
+    if not with_slope:
+        return out, covered
+    slope = torch.zeros(R, R, 2, 3, dtype=torch.float32, device=dev)
+    slope[rows, cols] = B.float()
+    return out, covered, slope
