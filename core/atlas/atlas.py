@@ -210,7 +210,7 @@ class Atlas(nn.Module):
         self.bake_samples, self.bake_sigma = keep.detach().float().cpu().clone(), float(sigma)
 
     def _newton_to_texels(self, x: torch.Tensor, slope: torch.Tensor, chart: torch.Tensor, target: torch.Tensor,
-                          iters: int = 6, max_move: float = 2.0, chunk: int = 16384) -> torch.Tensor:
+                          iters: int = 6, max_move: float = 8.0, chunk: int = 16384) -> torch.Tensor:
         """Move points x [K, 3] within their surface's tangent plane (slope [K, 2, 3]: dx per texel) until their
         chart's forward map (chart [K]) sends them to target [K, 2] pixel (col, row): Gauss-Newton on
         q -> pixel(x + q slope), at most max_move typical texel sizes from the local-linear point (a fold of the

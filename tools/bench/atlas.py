@@ -194,9 +194,14 @@ def main(argv=None) -> int:
         torch.set_num_threads(threads)
     cfg = from_args(AtlasConfig, args)
     if args.scene_root:
+        from tools.bench.machine import machine_info
+
+        machine = machine_info()
         rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
                           only=[x for x in args.scenes.split(",") if x])
         print(markdown_rows(rows))
+        print(f"machine: {machine}")
+        rows = [dict(r, machine=machine) for r in rows]
         if args.json:
             from core.util.atomic import atomic_write_text
             atomic_write_text(args.json, json.dumps(rows, indent=1))

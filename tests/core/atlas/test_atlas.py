@@ -231,14 +231,16 @@ def test_texel_map_from_forward_splat_is_consistent_with_lookups(strip_fit_grid)
     a.compute_texel_points(xyz, max_dist)  # leave the fixture's atlas as fit_atlas made it
 
 
-def test_bake_from_samples_matches_texel_points_on_smooth_colour_and_keeps_decal_masks(strip_fit):
+@pytest.mark.parametrize("layout", ["islands", "grid"])
+def test_bake_from_samples_matches_texel_points_on_smooth_colour_and_keeps_decal_masks(layout, strip_fit,
+                                                                                       strip_fit_grid):
     """Baking splats fn at the stored surface samples; for a smooth fn that is fn at the texel's point (the
     fallback), and a decal's mask stays a mask: 1 deep inside, 0 far outside, fractional only at its edge."""
     import copy
 
     from core.edits.bake import bake
 
-    a, _, xyz, _ = strip_fit
+    a, _, xyz, _ = strip_fit if layout == "islands" else strip_fit_grid
     lo, hi = xyz.min(0).values, xyz.max(0).values
     smooth = lambda p: (((p - lo) / (hi - lo)).clamp(0, 1), None)
     with_samples = bake(a, smooth)
@@ -254,8 +256,10 @@ def test_bake_from_samples_matches_texel_points_on_smooth_colour_and_keeps_decal
     ok = torch.isfinite(a.texel_points()).all(-1)
     assert ok.sum() > 100
     err = (with_samples[ok] - at_points[ok]).abs()
-    # island edges and folds of the quick fit: the texel point extrapolates, the samples around it are one-sided
-    assert err.median() < 0.01 and err.quantile(0.99) < 0.1
+    if a.islands:  # where the quick fit folds its map, a texel's point is one place that maps there, the samples
+        assert err.median() < 0.01 and err.quantile(0.75) < 0.03  # around it a mix of both (island texel map)
+    else:
+        assert err.median() < 0.01 and err.max() < 0.1
     assert not torch.equal(with_samples, at_points)  # the sample path really ran
 
     centre = xyz.mean(0)
