@@ -209,36 +209,39 @@ class Atlas(nn.Module):
                 samples.device)]
         self.bake_samples, self.bake_sigma = keep.detach().float().cpu().clone(), float(sigma)
 
+    @torch.no_grad()
     def _newton_to_texels(self, x: torch.Tensor, slope: torch.Tensor, chart: torch.Tensor, target: torch.Tensor,
-                          iters: int = 6, max_move: float = 8.0, chunk: int = 16384) -> torch.Tensor:
+                          iters: int = 6, max_move: float = 8.0, chunk: int = 32768, h: float = 0.25) -> torch.Tensor:
         """Move points x [K, 3] within their surface's tangent plane (slope [K, 2, 3]: dx per texel) until their
         chart's forward map (chart [K]) sends them to target [K, 2] pixel (col, row): Gauss-Newton on
-        q -> pixel(x + q slope), at most max_move typical texel sizes from the local-linear point (a fold of the
-        map, where the samples around a texel come from two places, is not chased). Ill-conditioned steps are skipped."""
-        from core.atlas.distortion import uv_jacobian
-
+        q -> pixel(x + q slope) with derivatives by finite differences of h texels along the slope, at most
+        max_move typical texel sizes from the local-linear point (and kept only if it still lies near a sample).
+        Ill-conditioned steps are skipped."""
         L, A = self.layout, self.layout.size
         aff = L.affine.to(self.device)
         out = x.clone()
         if len(x) == 0:
             return out
         reach = max_move * float(slope.norm(dim=-1).median())  # max_move texels of the typical texel size
+
+        def chart_texels(pts, ch, ar):  # raw t_c -> chart texel coordinates (before the island offset) [K, 2]
+            raw = self.tex(self.normalise(pts))[ar, ch]
+            return (aff[ch, :, :2] @ raw[..., None])[..., 0] + aff[ch, :, 2]
+
         for s in range(0, len(x), chunk):
             x0, B, ch, tg = x[s:s + chunk], slope[s:s + chunk], chart[s:s + chunk], target[s:s + chunk]
             ar = torch.arange(len(x0), device=self.device)
             q = torch.zeros(len(x0), 2, device=self.device)
             xs = x0.clone()
             for _ in range(iters):
-                with torch.enable_grad():
-                    J, raw = uv_jacobian(self.tex, self.normalise(xs))  # d raw uv / d normalised x
-                J, raw = J.detach()[ar, ch] / self.half, raw.detach()[ar, ch]          # [K, 2, 3], [K, 2]
-                M2 = aff[ch, :, :2]                                                 # raw uv -> chart texels
-                Jp = M2 @ J                                                         # d pixel / d x
-                pix = self.layout.place(raw[:, None].expand(-1, self.n, -1).contiguous())[ar, ch] * A
+                raw = self.tex(self.normalise(xs))[ar, ch]
+                pix = self.layout.place(raw[:, None].expand(-1, self.n, -1).contiguous())[:, 0] * A \
+                    if self.n == 1 else self._place_one(raw, ch) * A
                 r = pix - tg
-                Mq = Jp @ B.transpose(1, 2)                                         # d pixel / d q [K, 2, 2]
+                t0 = chart_texels(xs, ch, ar)
+                Mq = torch.stack([(chart_texels(xs + h * B[:, k], ch, ar) - t0) / h for k in range(2)], -1)
                 det = torch.linalg.det(Mq)
-                ok = (det.abs() > 0.05) & torch.isfinite(det)
+                ok = (det.abs() > 0.05) & torch.isfinite(det) & torch.isfinite(r).all(-1)
                 dq = torch.zeros_like(r)
                 dq[ok] = -torch.linalg.solve(Mq[ok], r[ok][..., None])[..., 0]
                 q = q + dq
@@ -246,6 +249,17 @@ class Atlas(nn.Module):
                 q = q * (reach / d.norm(dim=-1, keepdim=True).clamp_min(reach))  # stay near the samples
                 xs = x0 + (q[:, :, None] * B).sum(1)
             out[s:s + chunk] = xs
+        return out
+
+    def _place_one(self, raw: torch.Tensor, chart: torch.Tensor) -> torch.Tensor:
+        """Placement of raw t_c [K, 2] of chart[K] only -> image coordinates [K, 2] in [0, 1]."""
+        out = torch.empty_like(raw)
+        for c in range(self.n):
+            m = chart == c
+            if bool(m.any()):
+                uv = torch.zeros(int(m.sum()), self.n, 2, device=raw.device, dtype=raw.dtype)
+                uv[:, c] = raw[m]
+                out[m] = self.layout.place(uv)[:, c]
         return out
 
     @torch.no_grad()
