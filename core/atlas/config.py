@@ -62,7 +62,7 @@ class AtlasConfig:
                                        "than the views see)")
     max_image_size: int = opt(2048, "islands: largest automatic atlas side (a coarser texel beyond it)")
     island_pad: int = opt(2, "islands: padding texels around each island (bilinear lookups and one mip level)")
-    island_fill: float = opt(1.5, "islands: a texel belongs to an island when a sample lands within this many "
+    island_fill: float = opt(1.0, "islands: a texel belongs to an island when a sample lands within this many "
                                   "texels of it (closes gaps between samples; in sample spacings when coarser)")
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)")
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings")

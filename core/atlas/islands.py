@@ -25,6 +25,7 @@ import torch
 
 from core.util.errors import InputError, ModelFileError
 
+BRUTE_FORCE_SIDE = 1024  # xatlas tries every position up to this atlas side
 CLAMP_MARGIN = 0.5  # texels a lookup may reach past its nearest occupied cell (bilinear reads one more: pad >= 2)
 
 
@@ -260,20 +261,20 @@ def _cell_mesh(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def pack_islands(masks: list[np.ndarray], pad: int, size: int = 0):
     """Pack island cell masks (each [h, w] bool, cropped) with xatlas, no rotation, `pad` texels of padding, each
     island whole (xatlas cuts an island that does not fit into slivers: that counts as not fitting).
-    size > 0: into one size x size image (None when they do not fit); 0: the smallest square found, from the area
-    xatlas needed and the longest island, growing 3 % at a time. Returns (offsets [I, 2] int (col, row) of each
+    size > 0: into one size x size image (None when they do not fit); 0: the smallest square found, from the
+    islands' area with their padding and the longest island, growing 2 % at a time. Returns (offsets [I, 2] int (col, row) of each
     mask's cell (0, 0), side)."""
     if size > 0:
         got = _xatlas_pack(masks, pad, size)
         return None if got is None else (got[0], size)
-    first = _xatlas_pack(masks, pad, 0)
     longest = max(max(m.shape) for m in masks) + 2 * pad + 4
-    side = max(int(math.ceil(math.sqrt(first[1] * first[2]))), longest) if first is not None else longest
+    area = sum(int(m.sum()) + pad * (m.shape[0] + m.shape[1]) * 2 for m in masks)  # cells and their padding
+    side = max(int(math.ceil(math.sqrt(area / 0.9))), longest)
     for _ in range(200):
         got = _xatlas_pack(masks, pad, side)
         if got is not None:
             return got[0], side
-        side = int(math.ceil(side * 1.03))
+        side = int(math.ceil(side * 1.02))
     raise InputError("island layout: xatlas found no packing")
 
 
@@ -292,6 +293,7 @@ def _xatlas_pack(masks, pad, size):
     opts.rotate_charts = False
     opts.rotate_charts_to_axis = False
     opts.bilinear = True
+    opts.bruteForce = bool(size > 0 and size <= BRUTE_FORCE_SIDE)  # tighter, slower: small atlases only
     opts.resolution = max(int(size), 0)
     atlas.generate(pack_options=opts)
     if size > 0 and atlas.atlas_count > 1:

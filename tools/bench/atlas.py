@@ -149,7 +149,8 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                    "utilisation": float(torch.isfinite(atlas.texel_points()).all(-1).float().mean()),
                    "round_trip": round_trip(atlas),
                    "round_trip_all": hist.get("texel_stats", {}).get("round_trip_1", float("nan")),
-                   "islands": hist.get("islands", 0)}
+                   "islands": hist.get("islands", 0),
+                   "island_share": float(atlas.layout.island_pixels.float().mean()) if atlas.islands else float("nan")}
             row["atlas_colour"] = score_frames(EditState(bundle, cfg=EditConfig(colour="atlas")), test)["psnr_object"]
             edits = edited_atlases(bundle, spec, retexture)
             r = score_frames(EditState(bundle, atlas=edits["retexture"]), gts["retexture"], oracle=(retexture, spec))
