@@ -67,7 +67,10 @@ def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True,
     colour = cfg.sample_colour if bundle.model.decoder is None else "image"
     xyz, rgb = surface_samples(bundle.model, split, seed=cfg.seed, colour=colour)
     t_samples = time.perf_counter() - t0
-    atlas, history = fit_atlas(xyz, rgb, cfg, progress=progress_callback, quiet=not show_progress)
+    from core.atlas.fit import pixel_footprint
+
+    pixel = pixel_footprint(xyz, split.c2w[:, :3, 3], float(split.focal))  # sets the island atlas's resolution
+    atlas, history = fit_atlas(xyz, rgb, cfg, progress=progress_callback, quiet=not show_progress, pixel_size=pixel)
     bundle.atlas = atlas
     history = {**history, "samples": int(xyz.shape[0]), "sample_seconds": round(t_samples, 2)}
     if cfg.footprint:

@@ -8,12 +8,14 @@ from scipy.spatial import cKDTree
 from torch import nn
 
 from core.atlas.config import MAX_CHART_RES
+from core.atlas.islands import IslandLayout
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet
 from core.atlas.packing import GridLayout, pack, sample_charts, texel_uv, unpack, uv_to_pixel
-from core.atlas.texture import kernel_texture
+from core.atlas.texture import kernel_texture, local_linear_points
 from core.util.errors import InputError, ModelFileError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: island layout ("layout": "islands"); version 1 (grid layout) files still load
+READ_VERSIONS = (1, 2)
 _CHUNK = 65536
 MAX_BAKE_SAMPLES = 200_000  # stored surface samples for baking (2.4 MB); more are subsampled
 
@@ -34,6 +36,8 @@ MAX_CHARTS = 64
 
 class Atlas(nn.Module):
     """n charts with R x R texels each; points are normalised as (x - centre) / half before the networks.
+    Built on a grid layout (n squares, used while fitting); `set_layout` switches to an island layout
+    (core/atlas/islands.py), where every point has one chart and chart coordinates are placed in the packed image.
 
     Shapes: chart_uv(x [M, 3]) -> (probs [M, n], uv [M, n, 2]); lookup(x [M, 3], image [H, W, 3] | None) -> [M, 3];
     atlas_pixel_coords(x [M, 3]) -> (chart [M] long, pixel [M, 2] (col, row)); packed_image() -> [H, W, 3];
@@ -71,6 +75,37 @@ class Atlas(nn.Module):
         return self.layout.n
 
     @property
+    def islands(self) -> bool:
+        return getattr(self.layout, "kind", "grid") == "islands"
+
+    @property
+    def blur_labels(self) -> torch.Tensor | None:
+        """[R, R] island id of each pixel for texture kernels (island layout), None for the grid."""
+        return self.layout.label.to(self.device) if self.islands else None
+
+    def set_layout(self, layout: IslandLayout) -> None:
+        """Switch to an island layout: new textures [n, 3, size, size] (0.5) and an empty texel map."""
+        if layout.n != self.n:
+            raise InputError(f"island layout has {layout.n} charts, the atlas {self.n}")
+        self.layout = layout
+        self.textures = nn.Parameter(torch.full((self.n, 3, layout.size, layout.size), 0.5, device=self.device))
+        self.texel_xyz = torch.full((*layout.shape, 3), float("nan"), device=self.device)
+
+    @torch.no_grad()
+    def canonicalise_textures(self) -> None:
+        """Island layout: make every chart's texture the packed image (what a saved file holds), so lookups before
+        and after saving agree bit for bit. No-op for the grid layout."""
+        if self.islands:
+            self.textures.copy_(self.layout.unpack(self.layout.pack(self.textures.detach())))
+
+    def place(self, probs: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw chart outputs (probs [M, n], t_c(x) [M, n, 2]) -> what lookups use: unchanged for the grid layout;
+        for islands one chart per point (one-hot probs) and coordinates in the packed image (pixel = uv * R)."""
+        if not self.islands:
+            return probs, uv
+        return self.layout.hard_probs(probs), self.layout.place(uv)
+
+    @property
     def device(self) -> torch.device:
         return self.centre.device
 
@@ -84,13 +119,15 @@ class Atlas(nn.Module):
     # --- queries (no gradients, chunked) -------------------------------------------------------------
     @torch.no_grad()
     def chart_uv(self, x) -> tuple[torch.Tensor, torch.Tensor]:
-        """x [M, 3] world -> (probs [M, n] chart probabilities, uv [M, n, 2] per-chart texture coordinates)."""
+        """x [M, 3] world -> (probs [M, n] chart probabilities, uv [M, n, 2] per-chart texture coordinates).
+        Island layout: probs one-hot (one chart per point), uv already placed in the packed image (see place)."""
         x = check_points(x).to(self.device)
         ps, uvs = [], []
         for s in range(0, len(x), _CHUNK):
             xn = self.normalise(x[s:s + _CHUNK])
-            ps.append(torch.softmax(self.chart(xn), dim=-1))
-            uvs.append(self.tex(xn))
+            p, uv = self.place(torch.softmax(self.chart(xn), dim=-1), self.tex(xn))
+            ps.append(p)
+            uvs.append(uv)
         if not ps:
             return torch.zeros(0, self.n, device=self.device), torch.zeros(0, self.n, 2, device=self.device)
         return torch.cat(ps), torch.cat(uvs)
@@ -141,6 +178,12 @@ class Atlas(nn.Module):
             raise InputError(f"texel map mode must be 'splat' or 'inverse', got {mode!r}")
         L, R = self.layout, self.layout.R
         samples = check_points(samples, "surface samples").to(self.device)
+        if self.islands:
+            if mode != "splat":
+                raise InputError("the island layout builds its texel map from the forward map only (texel_map splat)")
+            out = self._island_texel_points(samples, max_dist, max_cycle, sigma)
+            self._keep_bake_samples(samples, sigma)
+            return out
         u = texel_uv(R, self.device)  # [R*R, 2]
         if mode == "splat":
             probs, uv = self.chart_uv(samples)
@@ -167,19 +210,119 @@ class Atlas(nn.Module):
             r0, c0 = L.origin(c)
             out[r0:r0 + R, c0:c0 + R] = pts.reshape(R, R, 3)
         self.texel_xyz.copy_(out)
+        self._keep_bake_samples(samples, sigma)
+        return out
+
+    def _keep_bake_samples(self, samples: torch.Tensor, sigma: float) -> None:
         keep = samples if samples.shape[0] <= MAX_BAKE_SAMPLES else samples[
             torch.randperm(samples.shape[0], generator=torch.Generator().manual_seed(0))[:MAX_BAKE_SAMPLES].to(
                 samples.device)]
         self.bake_samples, self.bake_sigma = keep.detach().float().cpu().clone(), float(sigma)
+
+    @torch.no_grad()
+    def _newton_to_texels(self, x: torch.Tensor, slope: torch.Tensor, chart: torch.Tensor, target: torch.Tensor,
+                          iters: int = 6, max_move: float = 8.0, chunk: int = 32768, h: float = 0.25) -> torch.Tensor:
+        """Move points x [K, 3] within their surface's tangent plane (slope [K, 2, 3]: dx per texel) until their
+        chart's forward map (chart [K]) sends them to target [K, 2] pixel (col, row): Gauss-Newton on
+        q -> pixel(x + q slope) with derivatives by finite differences of h texels along the slope, at most
+        max_move typical texel sizes from the local-linear point (and kept only if it still lies near a sample).
+        Ill-conditioned steps are skipped."""
+        L, A = self.layout, self.layout.size
+        aff = L.affine.to(self.device)
+        out = x.clone()
+        if len(x) == 0:
+            return out
+        reach = max_move * float(slope.norm(dim=-1).median())  # max_move texels of the typical texel size
+
+        def chart_texels(pts, ch, ar):  # raw t_c -> chart texel coordinates (before the island offset) [K, 2]
+            raw = self.tex(self.normalise(pts))[ar, ch]
+            return (aff[ch, :, :2] @ raw[..., None])[..., 0] + aff[ch, :, 2]
+
+        for s in range(0, len(x), chunk):
+            x0, B, ch, tg = x[s:s + chunk], slope[s:s + chunk], chart[s:s + chunk], target[s:s + chunk]
+            ar = torch.arange(len(x0), device=self.device)
+            q = torch.zeros(len(x0), 2, device=self.device)
+            xs = x0.clone()
+            for _ in range(iters):
+                raw = self.tex(self.normalise(xs))[ar, ch]
+                pix = self.layout.place(raw[:, None].expand(-1, self.n, -1).contiguous())[:, 0] * A \
+                    if self.n == 1 else self._place_one(raw, ch) * A
+                r = pix - tg
+                t0 = chart_texels(xs, ch, ar)
+                Mq = torch.stack([(chart_texels(xs + h * B[:, k], ch, ar) - t0) / h for k in range(2)], -1)
+                det = torch.linalg.det(Mq)
+                ok = (det.abs() > 0.05) & torch.isfinite(det) & torch.isfinite(r).all(-1)
+                dq = torch.zeros_like(r)
+                dq[ok] = -torch.linalg.solve(Mq[ok], r[ok][..., None])[..., 0]
+                q = q + dq
+                d = (q[:, :, None] * B).sum(1)
+                q = q * (reach / d.norm(dim=-1, keepdim=True).clamp_min(reach))  # stay near the samples
+                xs = x0 + (q[:, :, None] * B).sum(1)
+            out[s:s + chunk] = xs
+        return out
+
+    def _place_one(self, raw: torch.Tensor, chart: torch.Tensor) -> torch.Tensor:
+        """Placement of raw t_c [K, 2] of chart[K] only -> image coordinates [K, 2] in [0, 1]."""
+        out = torch.empty_like(raw)
+        for c in range(self.n):
+            m = chart == c
+            if bool(m.any()):
+                uv = torch.zeros(int(m.sum()), self.n, 2, device=raw.device, dtype=raw.dtype)
+                uv[:, c] = raw[m]
+                out[m] = self.layout.place(uv)[:, c]
+        return out
+
+    @torch.no_grad()
+    def _island_texel_points(self, samples: torch.Tensor, max_dist: float, max_cycle: float,
+                             sigma: float) -> torch.Tensor:
+        """Texel map of an island layout: every island pixel gets the kernel mean position of the samples that its
+        owning chart maps around it; kept where that point's own chart is the owner, it lies within max_dist of
+        a sample, and it maps back within max_cycle texels. Sets `texel_stats` (round trip of all candidates)."""
+        L, A = self.layout, self.layout.size
+        probs, uv = self.chart_uv(samples)
+        chart = probs.argmax(-1)
+        owner = L.owner.to(self.device)
+        cand = torch.full((A, A, 3), float("nan"), device=self.device)
+        slope = torch.zeros(A, A, 2, 3, device=self.device)
+        cov = torch.zeros(A, A, dtype=torch.bool, device=self.device)
+        for c in range(self.n):  # one chart per point: each chart's samples give its own pixels' points
+            sel = chart == c
+            if not bool(sel.any()):
+                continue
+            pts_c, cov_c, slope_c = local_linear_points(uv[sel, c] * A, samples[sel], A, sigma,
+                                                        labels=self.blur_labels, with_slope=True)
+            mine = (owner == c) & cov_c
+            cand[mine], slope[mine], cov[mine] = pts_c[mine], slope_c[mine], True
+        cov &= L.island_pixels.to(self.device) & torch.isfinite(cand).all(-1)
+        rows, cols = torch.nonzero(cov, as_tuple=True)
+        pts = self._newton_to_texels(cand[rows, cols], slope[rows, cols], owner[rows, cols],
+                                     torch.stack([cols + 0.5, rows + 0.5], -1).float())
+        keep = torch.zeros(len(rows), dtype=torch.bool, device=self.device)
+        miss = torch.full((len(rows),), float("inf"), device=self.device)
+        if len(rows):
+            p2, uv2 = self.chart_uv(pts)
+            c2 = p2.argmax(-1)
+            pix = uv2.gather(1, c2[:, None, None].expand(-1, 1, 2))[:, 0] * A
+            centre = torch.stack([cols + 0.5, rows + 0.5], -1).to(pix.dtype)
+            miss = torch.where(c2 == owner[rows, cols], (pix - centre).norm(dim=-1), miss)
+            dist, _ = cKDTree(samples.cpu().numpy()).query(pts.cpu().numpy(), k=1)
+            keep = (miss <= max_cycle) & torch.from_numpy(dist <= max_dist).to(self.device)
+        out = torch.full((A, A, 3), float("nan"), device=self.device)
+        out[rows[keep], cols[keep]] = pts[keep]
+        self.texel_xyz.copy_(out)
+        n_isl = int(L.island_pixels.sum())
+        self.texel_stats = {"island_texels": n_isl, "candidates": int(len(rows)), "kept": int(keep.sum()),
+                            "round_trip_1": float((miss <= 1.0).float().mean()) if len(rows) else float("nan"),
+                            "round_trip_1_of_island": float((miss <= 1.0).sum()) / max(n_isl, 1)}
         return out
 
     # --- serialisation ------------------------------------------------------------------------------
     def meta(self) -> dict:
         """JSON-able description needed to rebuild the atlas from its arrays."""
         L = self.layout
-        return dict(version=FORMAT_VERSION, n=L.n, R=L.R, pad=L.pad, half=self.half, height=L.shape[0],
-                    width=L.shape[1], layout="grid", uv_convention="u->col, v->row, row 0 = top",
-                    bake_sigma=self.bake_sigma, **self.arch)
+        return dict(version=FORMAT_VERSION if self.islands else 1, n=L.n, R=L.R, pad=L.pad, half=self.half,
+                    height=L.shape[0], width=L.shape[1], layout=getattr(L, "kind", "grid"),
+                    uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """All state as named float32 arrays: 'atlas/image' [H, W, 3], 'atlas/texel_points' [H, W, 3],
@@ -190,6 +333,8 @@ class Atlas(nn.Module):
         for name, p in self.named_parameters():
             if name != "textures":
                 arrays[f"atlas/net/{name}"] = p.detach().cpu().numpy().astype(np.float32)
+        if self.islands:
+            arrays.update(self.layout.to_arrays())
         if self.bake_samples is not None:
             arrays["atlas/bake_samples"] = self.bake_samples.cpu().numpy().astype(np.float32)
         return arrays
@@ -198,12 +343,17 @@ class Atlas(nn.Module):
     def from_arrays(cls, arrays: dict, meta: dict, device="cpu") -> "Atlas":
         """Rebuild from `to_arrays()` / `meta()` output; missing or mis-shaped arrays raise ModelFileError."""
         try:
-            if int(meta.get("version", -1)) != FORMAT_VERSION:
+            if int(meta.get("version", -1)) not in READ_VERSIONS:
                 raise ModelFileError(f"atlas: unsupported format version {meta.get('version')!r} "
-                                     f"(this build reads version {FORMAT_VERSION})")
+                                     f"(this build reads versions {', '.join(map(str, READ_VERSIONS))})")
+            kind = meta.get("layout", "grid")
+            if kind not in ("grid", "islands"):
+                raise ModelFileError(f"atlas: unknown layout {kind!r} (grid or islands)")
             keys = ("width_chart", "depth_chart", "width_map", "depth_map", "fourier_chart", "fourier_map")
-            atlas = cls(int(meta["n"]), int(meta["R"]), int(meta["pad"]), arrays["atlas/centre"], float(meta["half"]),
-                        **{k: int(meta[k]) for k in keys})
+            atlas = cls(int(meta["n"]), 2 if kind == "islands" else int(meta["R"]), int(meta["pad"]),
+                        arrays["atlas/centre"], float(meta["half"]), **{k: int(meta[k]) for k in keys})
+            if kind == "islands":
+                atlas.set_layout(IslandLayout.from_arrays(arrays, int(meta["n"]), int(meta["R"]), int(meta["pad"])))
         except KeyError as e:
             raise ModelFileError(f"atlas: missing entry {e} in the model file") from e
         except InputError as e:

@@ -61,8 +61,25 @@ class AtlasConfig:
                             above=0.0, max=1.0)
     texture_res: int = opt(0, "texels per chart side; 0 = round(256*sqrt(2/n)) as in the paper",
                            min=0, max=MAX_CHART_RES)
-    pad: int = opt(4, "padding texels around each chart in the packed image (edge-replicated, no bleeding)",
+    pad: int = opt(4, "grid layout: padding texels around each chart square (edge-replicated, no bleeding)",
                    min=0, max=64)
+    layout: str = opt("islands", "packed image: islands (each chart cut to the region the surface uses, packed by "
+                      "xatlas, one chart per point) or grid (the paper's fixed chart squares)",
+                      choices=("islands", "grid"))
+    image_size: int = opt(0, "islands: side of the square atlas image in texels; 0 = chosen per scene from the "
+                             "surface area and the training images' pixel footprint on it", min=0, max=MAX_CHART_RES)
+    texels_per_pixel: float = opt(4.0, "islands, image_size 0: texels per training-image pixel footprint along the "
+                                       "surface (4: a 2x2-filtered lookup of a pixel spans 2 texels, paint finer "
+                                       "than the views see)", above=0.0, max=64.0)
+    max_image_size: int = opt(2048, "islands: largest automatic atlas side (a coarser texel beyond it)", min=16,
+                              max=MAX_CHART_RES)
+    island_pad: int = opt(2, "islands: padding texels around each island (bilinear lookups and one mip level)",
+                          min=0, max=64)
+    island_fill: float = opt(1.0, "islands: a texel belongs to an island when a sample lands within this many "
+                                  "texels of it (closes gaps between samples; in sample spacings when coarser)",
+                             above=0.0, max=64.0)
+    island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
+                                 min=1, max=1_000_000)
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings",
                                 above=0.0)
     texel_map: str = opt("splat", "texel map from the forward map (splat: kernel mean of the sample positions around each "

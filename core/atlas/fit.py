@@ -24,13 +24,14 @@ MIN_SAMPLES = 64
 
 
 def sample_spacing(xyz: np.ndarray, k: int = 8, neighbours: int = 48, max_points: int = 4000,
-                   seed: int = 0) -> tuple[float, float]:
+                   seed: int = 0, per_sample: bool = False):
     """(median nearest-neighbour distance, estimated surface area) of samples xyz [S, 3].
 
     Area: a disc holding k samples has area pi r_k^2 ~ k / density, so area ~ S pi mean(r_k^2) / k. r_k is
     measured in each sample's tangent plane (PCA of its `neighbours` nearest samples): real samples form a
     slab a few spacings thick (noisy PAPR surface points), where 3-D distances overestimate the area ~2x
     (measured on the cloth samples: 2.72 in 3-D vs 1.45 in-plane, true ~1.3; docs/atlas.md).
+    per_sample: also return (sel [m] indices of the measured samples, their area elements [m], summing to the area).
     """
     S = len(xyz)
     k = min(k, S - 1)
@@ -43,7 +44,68 @@ def sample_spacing(xyz: np.ndarray, k: int = 8, neighbours: int = 48, max_points
     c = nb - nb.mean(1, keepdims=True)
     _, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", c, c))  # ascending: the last two span the tangent plane
     r = np.sort(np.linalg.norm(np.einsum("mki,mij->mkj", nb, vec[:, :, 1:]), axis=-1), axis=1)[:, k]
+    if per_sample:
+        elem = S * math.pi * r ** 2 / k / len(sel)
+        return float(np.median(d1[:, 1])), float(elem.sum()), sel, elem
     return float(np.median(d1[:, 1])), float(S * math.pi * np.mean(r ** 2) / k)
+
+
+def pixel_footprint(xyz, centres, focal: float) -> float:
+    """World size of one training-image pixel on the surface: median over views of the median camera distance of
+    the samples xyz [S, 3], divided by the focal length in pixels. centres [V, 3] camera positions."""
+    x = torch.as_tensor(xyz, dtype=torch.float64)
+    x = x[torch.linspace(0, len(x) - 1, min(len(x), 20000)).long()]
+    d = [float((x - torch.as_tensor(c, dtype=torch.float64)).norm(dim=-1).median()) for c in centres]
+    if not d or not focal > 0:
+        raise InputError("pixel footprint: need at least one camera and a positive focal length")
+    return float(np.median(d)) / float(focal)
+
+
+def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: float, k_area: float, R: int,
+                  cfg: AtlasConfig, pixel_size: float | None) -> tuple[object, dict]:
+    """Cut the charts to the surface they cover and pack them (core/atlas/islands.py) at one texel density for all
+    charts. probs [S, n] and uv [S, n, 2] of the samples xyz [S, 3] (raw chart outputs); k_area: uv units per world
+    unit the distortion loss aims at; R: the grid's chart side (sets the density when nothing else does).
+    Texel size: pixel_size / texels_per_pixel when the images' footprint is known, else the grid's density; a fixed
+    cfg.image_size, or a side above cfg.max_image_size, coarsens it until the islands fit.
+    Returns (layout, info: texel size, per-chart scale, islands, seconds)."""
+    from core.atlas.islands import build_islands, occupancy
+    from core.atlas.texture import texel_spacing
+
+    t0 = time.perf_counter()
+    n = probs.shape[1]
+    owner = probs.argmax(-1)
+    _, _, sel, elem = sample_spacing(xyz, per_sample=True)
+    own_sel = owner.cpu().numpy()[sel]
+    area_c = np.array([elem[own_sel == c].sum() for c in range(n)]) * area / max(elem.sum(), 1e-30)
+    if cfg.image_size > 0:
+        h = math.sqrt(area / (0.7 * cfg.image_size ** 2))
+    elif pixel_size:
+        h = pixel_size / max(cfg.texels_per_pixel, 1e-6)
+    else:
+        h = math.sqrt(area / (n * R * R * cfg.chart_fill))
+    uvn = uv.detach().cpu().numpy()
+    info = {}
+    for attempt in range(40):
+        s0 = 1.0 / (k_area * h)  # texels per uv unit where the distortion loss holds
+        scale, fill = np.full(n, s0), np.ones(n)
+        for c in range(n):  # measured density per chart: its world area over the texels its samples cover
+            m = (owner == c).cpu().numpy()
+            if not m.any():
+                continue
+            t = np.clip(uvn[m, c], 0, 1) * s0
+            cells = occupancy(t, int(math.ceil(s0)) + 1, 1.0).sum()
+            scale[c] = s0 * float(np.clip(math.sqrt(area_c[c] / (h * h) / max(cells, 1)), 0.25, 4.0))
+            sp = texel_spacing(uv[torch.from_numpy(m).to(uv.device), c] * float(scale[c]))
+            fill[c] = cfg.island_fill * max(1.0, sp)
+        layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.image_size, fill, cfg.island_min_texels)
+        if layout is not None and (cfg.image_size > 0 or layout.size <= cfg.max_image_size):
+            info = {"texel_size": h, "chart_scale": scale.tolist(), "islands": layout.islands,
+                    "atlas_size": layout.size, "island_seconds": time.perf_counter() - t0}
+            return layout, info
+        grow = 1.06 if layout is None else max(1.02, 1.01 * layout.size / cfg.max_image_size)
+        h *= grow
+    raise InputError(f"island layout: the charts do not fit a {cfg.image_size or cfg.max_image_size} texel atlas")
 
 
 def _kmeans(x: torch.Tensor, k: int, iters: int = 15) -> torch.Tensor:
@@ -134,21 +196,22 @@ def _predict(atlas: Atlas, xn: torch.Tensor, chunk: int = 32768) -> tuple[torch.
 
 
 def fit_atlas(xyz, rgb, cfg: AtlasConfig | None = None, progress: Optional[Callable[[float, str], None]] = None,
-              quiet: bool = False) -> tuple[Atlas, dict]:
+              quiet: bool = False, pixel_size: float | None = None) -> tuple[Atlas, dict]:
     """Learn an atlas from surface samples xyz [S, 3] and colours rgb [S, 3] in [0, 1] (see _fit_atlas), with
-    torch limited to cfg.threads CPU threads for the duration (restored afterwards)."""
+    torch limited to cfg.threads CPU threads for the duration (restored afterwards). pixel_size: world size of a
+    training pixel on the surface (`pixel_footprint`), which sets the island atlas's resolution."""
     cfg = cfg or AtlasConfig()
     before = torch.get_num_threads()
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     try:
-        return _fit_atlas(xyz, rgb, cfg, progress, quiet)
+        return _fit_atlas(xyz, rgb, cfg, progress, quiet, pixel_size)
     finally:
         torch.set_num_threads(before)
 
 
 def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, str], None]] = None,
-               quiet: bool = False) -> tuple[Atlas, dict]:
+               quiet: bool = False, pixel_size: float | None = None) -> tuple[Atlas, dict]:
     """Learn an atlas from surface samples xyz [S, 3] and colours rgb [S, 3] in [0, 1].
 
     progress: optional callback(fraction, info) (e.g. Blender's UI); a text bar goes to stderr unless quiet.
@@ -187,7 +250,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     hist = {"n": n, "flatness": flat, "R": R, "steps": [], "seconds": [], "psnr": [], "phase": []}
 
     def log(step: int, phase: str) -> float:
-        probs, uv = _predict(atlas, xn[ev])
+        probs, uv = atlas.place(*_predict(atlas, xn[ev]))
         with torch.no_grad():
             p = psnr((probs[..., None] * sample_charts(atlas.textures, uv)).sum(1), rgb[ev])
         hist["steps"].append(step)
@@ -215,15 +278,23 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
 
     # Final texture with the maps frozen: chart probabilities and uv of every sample are fixed.
     probs_all, uv_all = _predict(atlas, xn)
+    if cfg.layout == "islands":
+        layout, info = island_layout(probs_all, uv_all, xyz.numpy().astype(np.float64), area, k_area, R, cfg,
+                                     pixel_size)
+        atlas.set_layout(layout)
+        hist.update(info)
+        R = layout.size
+    probs_all, uv_all = atlas.place(probs_all, uv_all)
     if cfg.texture_mode == "kernel":
         # Kernel regression: each texel is the weighted mean colour of the samples around it (texture.py says why).
         with torch.no_grad():
-            tex, used, hist["texture_sigma_texels"] = kernel_texture(probs_all, uv_all, rgb, R, cfg.texture_sigma)
+            tex, used, hist["texture_sigma_texels"] = kernel_texture(probs_all, uv_all, rgb, R, cfg.texture_sigma,
+                                                                     labels=atlas.blur_labels)
             atlas.textures.copy_(tex)
         bar.update(cfg.texture_steps)
         p = log(cfg.steps + cfg.texture_steps, "texture")
     else:  # descent: Adam on the per-sample MSE, one bilinear lookup per chart and step
-        topt = torch.optim.Adam([atlas.textures], lr=cfg.texture_lr)
+        topt = torch.optim.Adam([atlas.textures], lr=cfg.texture_lr)  # (set_layout made new textures)
         for step in range(cfg.texture_steps):
             idx = torch.randint(len(xn), (min(8 * cfg.batch, len(xn)),), generator=gen).to(dev)
             pred = (probs_all[idx, :, None] * sample_charts(atlas.textures, uv_all[idx])).sum(1)
@@ -238,8 +309,11 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
 
     with torch.no_grad():
         atlas.textures.copy_(dilate_unused(atlas.textures.clamp(0, 1), used))
-        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle, cfg.texel_map,
-                                    cfg.texture_sigma)
+        atlas.canonicalise_textures()
+        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle,
+                                   "splat" if atlas.islands else cfg.texel_map, cfg.texture_sigma)
+    if atlas.islands:
+        hist["texel_stats"] = dict(atlas.texel_stats)
     p = log(total, "final")
     bar.close()
     hist["total_seconds"] = time.perf_counter() - t0

@@ -179,4 +179,5 @@ def refit_texture_footprint(atlas, views: list[FootprintView], sub: int = 2, lam
     new = linear_to_srgb(t).reshape(n, R, R, 3).permute(0, 3, 1, 2)
     # texels no pixel reaches keep the kernel texture's dilated colour (t stays at t0 there)
     atlas.textures.copy_(torch.where(touched.view(n, 1, R, R), new, tex))
+    atlas.canonicalise_textures()
     return info

@@ -28,6 +28,8 @@ class GridLayout:
     R: int
     pad: int
 
+    kind = "grid"
+
     @property
     def cols(self) -> int:
         return int(math.ceil(math.sqrt(self.n))) if self.n != 8 else 4  # 8 charts: 4 x 2, no empty cell
@@ -55,7 +57,10 @@ class GridLayout:
 
 
 def pack(textures: torch.Tensor, layout: GridLayout) -> torch.Tensor:
-    """Chart textures [n, 3, R, R] -> packed image [H, W, 3]; borders replicate chart edges, unused cells are 0."""
+    """Chart textures [n, 3, R, R] -> packed image [H, W, 3]; borders replicate chart edges, unused cells are 0.
+    An island layout (core/atlas/islands.py) takes each pixel from the chart that owns it."""
+    if getattr(layout, "kind", "grid") == "islands":
+        return layout.pack(textures)
     n, ch, R, R2 = textures.shape
     if (n, R, R2) != (layout.n, layout.R, layout.R):
         raise InputError(f"textures {tuple(textures.shape)} do not match the layout ({layout.n} charts of {layout.R}^2)")
@@ -69,12 +74,15 @@ def pack(textures: torch.Tensor, layout: GridLayout) -> torch.Tensor:
 
 
 def unpack(image: torch.Tensor, layout: GridLayout, source: str = "atlas image") -> torch.Tensor:
-    """Packed image [H, W, 3] -> chart textures [n, 3, R, R] (interiors only, bit-exact copies)."""
+    """Packed image [H, W, 3] -> chart textures [n, 3, R, R] (interiors only, bit-exact copies); for an island
+    layout n views of the image itself (R = its side)."""
     if image.dim() != 3 or tuple(image.shape[:2]) != layout.shape or image.shape[2] < 3:
         raise InputError(f"{source}: expected an image of {layout.shape[0]}x{layout.shape[1]} pixels with 3 "
                          f"channels, got shape {tuple(image.shape)}")
     if not torch.isfinite(image[..., :3]).all():
         raise InputError(f"{source}: contains NaN or infinite values")
+    if getattr(layout, "kind", "grid") == "islands":
+        return layout.unpack(image[..., :3])
     R = layout.R
     out = []
     for c in range(layout.n):

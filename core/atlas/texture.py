@@ -19,8 +19,8 @@ def splat(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: int, min_
           ) -> tuple[torch.Tensor, torch.Tensor]:
     """Bilinear splat of sample colours into chart textures.
 
-    probs [S, n] chart probabilities, uv [S, n, 2] texture coordinates (u -> column, v -> row), rgb [S, 3].
-    Returns (colour sums [n, 3, R, R], weights [n, R, R]); the weights use the same bilinear footprint as
+    probs [S, n] chart probabilities, uv [S, n, 2] texture coordinates (u -> column, v -> row), rgb [S, C] (any C).
+    Returns (colour sums [n, C, R, R], weights [n, R, R]); the weights use the same bilinear footprint as
     `packing.sample_charts` (texel centres at (j + 0.5) / R, clamp to edge) scaled by P(c|x).
     """
     S, n = probs.shape
@@ -39,10 +39,12 @@ def splat(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: int, min_
             idx_all.append(torch.arange(n, device=uv.device) * R * R + row * R + col)  # [S, n] flat texel ids
     w = torch.stack(w_all).reshape(-1)
     idx = torch.stack(idx_all).reshape(-1)
-    col = rgb[None, :, None, :].expand(4, S, n, 3).reshape(-1, 3)
+    C = rgb.shape[1]
+    w = w.to(rgb.dtype)
+    col = rgb[None, :, None, :].expand(4, S, n, C).reshape(-1, C)
     wsum = torch.zeros(n * R * R, device=uv.device, dtype=rgb.dtype).index_add_(0, idx, w)
-    csum = torch.zeros(n * R * R, 3, device=uv.device, dtype=rgb.dtype).index_add_(0, idx, col * w[:, None])
-    return csum.T.reshape(3, n, R, R).transpose(0, 1).contiguous(), wsum.view(n, R, R)
+    csum = torch.zeros(n * R * R, C, device=uv.device, dtype=rgb.dtype).index_add_(0, idx, col * w[:, None])
+    return csum.T.reshape(C, n, R, R).transpose(0, 1).contiguous(), wsum.view(n, R, R)
 
 
 def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -61,6 +63,26 @@ def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
     return y.view(B, C, H, W)
 
 
+def blur_within(img: torch.Tensor, sigma: float, labels: torch.Tensor | None) -> torch.Tensor:
+    """gaussian_blur of img [B, C, H, W] that never mixes pixels of different labels: each label's pixels are
+    blurred with the others zeroed, in a crop around them. labels [H, W] long (-1 = none: left 0); None = one label."""
+    if labels is None or sigma <= 0:
+        return gaussian_blur(img, sigma) if labels is None else img * (labels >= 0)
+    out = torch.zeros_like(img)
+    r = max(1, int(math.ceil(3 * sigma)))
+    H, W = labels.shape
+    active = torch.unique(labels[(img != 0).flatten(0, 1).any(0) & (labels >= 0)])
+    for lab in active.tolist():
+        mine = labels == lab
+        rows, cols = torch.nonzero(mine, as_tuple=True)
+        r0, r1 = max(int(rows.min()) - r, 0), min(int(rows.max()) + r + 1, H)
+        c0, c1 = max(int(cols.min()) - r, 0), min(int(cols.max()) + r + 1, W)
+        m = mine[r0:r1, c0:c1]
+        blurred = gaussian_blur(img[:, :, r0:r1, c0:c1] * m, sigma)
+        out[:, :, r0:r1, c0:c1] += blurred * m
+    return out
+
+
 def texel_spacing(pts: torch.Tensor, k: int = 8, max_points: int = 20000) -> float:
     """Mean sample spacing 1 / sqrt(density) of 2-D points pts [M, 2] (texel units), from the median distance r_k
     to the k-th neighbour (a disc of radius r_k holds k samples: density = k / (pi r_k^2)). 1.0 if M <= k."""
@@ -77,12 +99,14 @@ def texel_spacing(pts: torch.Tensor, k: int = 8, max_points: int = 20000) -> flo
 
 
 def kernel_texture(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: int, sigma: float,
-                   min_prob: float = 1e-3, min_weight: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor, float]:
+                   min_prob: float = 1e-3, min_weight: float = 1e-3, labels: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Chart textures as the Gaussian-weighted mean colour of the samples around each texel.
 
     probs [S, n], uv [S, n, 2], rgb [S, 3]; sigma: kernel std in units of the samples' mean spacing in texel
     space (`texel_spacing` of the samples whose most probable chart is c), so the kernel holds about the same
-    number of samples whatever the chart's scale. Returns (textures [n, 3, R, R] (0.5 where no sample is near),
+    number of samples whatever the chart's scale. labels [R, R] (island layouts: the island each pixel belongs
+    to) keeps the kernel inside one island. Returns (textures [n, 3, R, R] (0.5 where no sample is near),
     covered [n, R, R] bool (blurred weight > min_weight), sigma_texels (the mean kernel std in texels)).
     """
     csum, wsum = splat(probs, uv, rgb, R, min_prob)
@@ -92,10 +116,59 @@ def kernel_texture(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: 
     for c in range(n):  # n <= 8 charts; each chart has its own texel density
         spacing = texel_spacing(uv[owner == c, c] * R)
         s = sigma * spacing
-        num = gaussian_blur(csum[c][None], s)[0]
-        den = gaussian_blur(wsum[c][None, None], s)[0, 0]
+        num = blur_within(csum[c][None], s, labels)[0]
+        den = blur_within(wsum[c][None, None], s, labels)[0, 0]
         ok = den > min_weight * max(float(den.max()), 1e-30)
         out.append(torch.where(ok[None], num / den.clamp_min(1e-30)[None], torch.full_like(num, 0.5)))
         covered.append(ok)
         sig_used.append(s)
     return torch.stack(out), torch.stack(covered), float(sum(sig_used) / len(sig_used))
+
+
+def local_linear_points(pix: torch.Tensor, xyz: torch.Tensor, R: int, sigma: float, ridge: float = 0.05,
+                        min_weight: float = 1e-3, labels: torch.Tensor | None = None, with_slope: bool = False):
+    """The 3-D point that the forward map sends to each texel centre, by kernel-weighted local linear regression of
+    the samples' positions on their texel coordinates: x(p) ~ a + B (p - c) around each texel centre c, and the
+    texel's point is a. Unlike the kernel mean of the positions (which lands where the samples are dense, up to a
+    sample spacing off the texel), it is exact for a locally affine map, so t_c(point) returns to the texel.
+
+    pix [S, 2] continuous texel coordinates (col, row) of one chart's samples in an R x R image, xyz [S, 3];
+    sigma: kernel std in sample spacings (as kernel_texture). ridge: shrinks B (in units of the kernel variance)
+    where the samples around a texel do not span two directions (edges), towards the kernel mean. labels [R, R]:
+    as kernel_texture (the kernel stays inside one island).
+    Returns (points [R, R, 3] float32 (NaN where no sample is near), covered [R, R] bool); with_slope also the
+    local slope [R, R, 2, 3] (dx/d col, dx/d row: the surface's tangent plane in texel units)."""
+    dev = pix.device
+    if len(pix) == 0:
+        empty = (torch.full((R, R, 3), float("nan"), device=dev), torch.zeros(R, R, dtype=torch.bool, device=dev))
+        return empty + (torch.zeros(R, R, 2, 3, device=dev),) if with_slope else empty
+    p = pix.double()
+    ref = R / 2.0
+    q = (p - ref)  # centred texel coordinates (float64 moments stay exact)
+    x = xyz.double()
+    feats = torch.cat([q, q[:, :1] * q, q[:, 1:] * q[:, 1:], x, q[:, :1] * x, q[:, 1:] * x], 1)  # [S, 2+3+3+6]
+    ones = torch.ones(len(p), 1, dtype=torch.float64, device=dev)
+    csum, wsum = splat(ones, (p / R)[:, None], feats, R, 0.0)
+    s = sigma * texel_spacing(pix.float())
+    num = blur_within(csum, s, labels)[0]               # [14, R, R]
+    W = blur_within(wsum[:, None], s, labels)[0, 0]     # [R, R]
+    covered = W > min_weight * max(float(W.max()), 1e-30)
+    rows, cols = torch.nonzero(covered, as_tuple=True)
+    m = num[:, rows, cols].T / W[rows, cols, None]      # normalised moments [K, 14]
+    c = torch.stack([cols + 0.5, rows + 0.5], -1).double() - ref  # texel centres, same frame as q
+    mu, x_mean = m[:, 0:2], m[:, 5:8]
+    Suu = torch.stack([torch.stack([m[:, 2], m[:, 3]], -1), torch.stack([m[:, 3], m[:, 4]], -1)], -2)  # E[q q^T]
+    Sux = torch.stack([m[:, 8:11], m[:, 11:14]], 1)     # E[q x^T] [K, 2, 3]
+    # covariance form around the weighted mean: x(c) = x_mean + Cov(x, q) Cov(q)^-1 (c - mu)
+    cov_qq = Suu - mu[:, :, None] * mu[:, None, :]
+    cov_qx = Sux - mu[:, :, None] * x_mean[:, None, :]
+    eye = torch.eye(2, dtype=torch.float64, device=dev)
+    B = torch.linalg.solve(cov_qq + ridge * s * s * eye, cov_qx)  # [K, 2, 3]
+    pts = x_mean + ((c - mu)[:, None, :] @ B)[:, 0]
+    out = torch.full((R, R, 3), float("nan"), dtype=torch.float32, device=dev)
+    out[rows, cols] = pts.float()
+    if not with_slope:
+        return out, covered
+    slope = torch.zeros(R, R, 2, 3, dtype=torch.float32, device=dev)
+    slope[rows, cols] = B.float()
+    return out, covered, slope

@@ -74,11 +74,14 @@ def splat_function(atlas, fn) -> tuple[torch.Tensor, torch.Tensor]:
         else torch.nan_to_num(mask.float().to(atlas.device), nan=0.0).clamp(0, 1)
     probs, uv = atlas.chart_uv(samples)
     R = atlas.layout.R
-    num, covered, _ = kernel_texture(probs, uv, rgb * m[:, None], R, atlas.bake_sigma)   # mean of m·rgb
+    labels = getattr(atlas, "blur_labels", None)   # island atlases: kernels stay inside one island
+    num, covered, _ = kernel_texture(probs, uv, rgb * m[:, None], R, atlas.bake_sigma,
+                                     labels=labels)   # mean of m·rgb
     if mask is None:
         tex, m_tex = num, covered.float()
     else:
-        den, _, _ = kernel_texture(probs, uv, m[:, None].expand(-1, 3), R, atlas.bake_sigma)  # mean of m
+        den, _, _ = kernel_texture(probs, uv, m[:, None].expand(-1, 3), R, atlas.bake_sigma,
+                                   labels=labels)     # mean of m
         m_tex = torch.where(covered, den[:, 0], torch.zeros_like(den[:, 0]))
         tex = torch.where(m_tex[:, None] > 1e-6, num / m_tex[:, None].clamp_min(1e-6), torch.full_like(num, 0.5))
     rgb_img = pack(tex.clamp(0, 1), atlas.layout)

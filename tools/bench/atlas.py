@@ -3,7 +3,14 @@ fitting PSNR against time, distortion statistics with the distortion loss on and
 
     python -m tools.bench.atlas --surface sphere --compare-distortion
     python -m tools.bench.atlas --npz samples.npz --json out.json --png atlas.png
+    python -m tools.bench.atlas --scene-root DIR --layouts islands,grid   (needs bpy for the ground truth)
 Any AtlasConfig field is a flag (--steps, --batch, --width-map, --charts 8, ...).
+
+--scene-root DIR: for every scene of `pointgt make-scene --list` that DIR holds (DIR/<name>/ from make-scene and
+DIR/<name>.pgt, a stage-1 model of it), fit stage 2 in memory with each layout and report the atlas's utilisation
+(texels with a surface point / image pixels), the texel -> surface -> texel round trip (share within 1 texel),
+stage-2 seconds, the atlas-coloured render and, at rest, the retexture (with its perfect-atlas reference: the
+texture evaluated exactly at the surface points) and the decal, object PSNR on the scene's test views.
 """
 from __future__ import annotations
 
@@ -91,6 +98,80 @@ def run_one(xyz, rgb, cfg, label: str, out: dict, png: str | None = None) -> Non
         Image.fromarray(img).save(png)
 
 
+def round_trip(atlas) -> float:
+    """Share of the texels with a surface point whose point maps back (its chart, t_c, placement) within 1 texel."""
+    tp = atlas.texel_points()
+    ok = torch.isfinite(tp).all(-1)
+    if not bool(ok.any()):
+        return float("nan")
+    _, pix = atlas.atlas_pixel_coords(tp[ok])
+    rows, cols = torch.nonzero(ok, as_tuple=True)
+    miss = (pix - torch.stack([cols + 0.5, rows + 0.5], -1)).norm(dim=-1)
+    return float((miss <= 1.0).float().mean())
+
+
+def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=None, log=print) -> list[dict]:
+    """The per-scene figures (module doc) for every scene of the library found under root (or those in only)."""
+    import time
+    from pathlib import Path
+
+    from core.bundle import load_bundle
+    from core.frames.edited import EditConfig, EditState
+    from core.images.dataset import load_split
+    from core.pipeline import fit_atlas_stage
+    from tools.eval_edits import edited_atlases, ground_truth, score_frames, view_subset_dir
+    from tools.scenes.library import scene_names
+    from tools.scenes.poses import load_scene_spec
+
+    root, rows = Path(root), []
+    for name in scene_names():
+        if only and name not in only:
+            continue
+        scene, model = root / name, root / f"{name}.pgt"
+        if not (scene / "transforms_train.json").exists() or not model.exists():
+            log(f"[{name}] skipped: needs {scene}/ (pointgt make-scene) and {model} (pointgt fit)")
+            continue
+        spec = load_scene_spec(scene)
+        train = load_split(scene, "train")
+        gt_dir = view_subset_dir(scene, views)
+        gts = {e: ground_truth(gt_dir, "rest", 0.0, t, None, log) for e, t in (("retexture", retexture),
+                                                                               ("decal", "decal"))}
+        test = ground_truth(gt_dir, "rest", 0.0, None, None, log)
+        for layout in layouts:
+            bundle = load_bundle(model, "cpu")
+            t0 = time.perf_counter()
+            hist = fit_atlas_stage(bundle, train, dataclasses.replace(cfg, layout=layout), show_progress=False)
+            seconds = time.perf_counter() - t0
+            atlas = bundle.atlas
+            H, W = atlas.layout.shape
+            row = {"scene": name, "layout": layout, "size": f"{W}x{H}", "seconds": seconds,
+                   "utilisation": float(torch.isfinite(atlas.texel_points()).all(-1).float().mean()),
+                   "round_trip": round_trip(atlas),
+                   "round_trip_all": hist.get("texel_stats", {}).get("round_trip_1", float("nan")),
+                   "islands": hist.get("islands", 0),
+                   "island_share": float(atlas.layout.island_pixels.float().mean()) if atlas.islands else float("nan")}
+            row["atlas_colour"] = score_frames(EditState(bundle, cfg=EditConfig(colour="atlas")), test)["psnr_object"]
+            edits = edited_atlases(bundle, spec, retexture)
+            r = score_frames(EditState(bundle, atlas=edits["retexture"]), gts["retexture"], oracle=(retexture, spec))
+            row["retexture"], row["retexture_perfect"] = r["psnr_object"], r["psnr_object_oracle"]
+            row["decal"] = score_frames(EditState(bundle, atlas=edits["decal"]), gts["decal"])["psnr_object"]
+            rows.append(row)
+            log(f"[{name}/{layout}] " + "  ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
+                                                  for k, v in row.items() if k not in ("scene", "layout")))
+    return rows
+
+
+def markdown_rows(rows: list[dict]) -> str:
+    head = ("| scene | layout | atlas | utilisation | round trip ≤ 1 texel | stage 2 (s) | atlas-coloured | "
+            "retexture / perfect atlas | decal |")
+    out = [head, "|" + "---|" * 9]
+    for r in rows:
+        out.append(f"| {r['scene']} | {r['layout']} | {r['size']} | {100 * r['utilisation']:.1f} % | "
+                   f"{100 * r['round_trip']:.1f} % | {r['seconds']:.0f} | {r['atlas_colour']:.2f} | "
+                   f"{r['retexture']:.2f} / {r['retexture_perfect']:.2f} | {r['decal']:.2f} |")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     from core.atlas.config import AtlasConfig
 
@@ -102,7 +183,24 @@ def main(argv=None) -> int:
     ap.add_argument("--compare-distortion", action="store_true", help="also run with the distortion loss off")
     ap.add_argument("--json", help="write all figures to this JSON file")
     ap.add_argument("--png", help="save the packed atlas image (first run) as PNG")
+    ap.add_argument("--scene-root", help="per-scene mode: DIR/<scene>/ and DIR/<scene>.pgt for the library scenes")
+    ap.add_argument("--layouts", default="islands,grid", help="per-scene mode: layouts to compare")
+    ap.add_argument("--views", type=int, default=4, help="per-scene mode: test views scored")
+    ap.add_argument("--scenes", default="", help="per-scene mode: only these scenes (comma-separated)")
     args, cfg = parse_with_config(ap, AtlasConfig, argv)  # AtlasConfig.threads: the fit and everything else
+    if args.scene_root:
+        from tools.machine import machine_info
+
+        machine = machine_info()
+        rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
+                          only=[x for x in args.scenes.split(",") if x])
+        print(markdown_rows(rows))
+        print(f"machine: {machine}")
+        rows = [dict(r, machine=machine) for r in rows]
+        if args.json:
+            from core.util.atomic import atomic_write_text
+            atomic_write_text(args.json, json.dumps(rows, indent=1))
+        return 0
     xyz, rgb, source = load_samples(args)
     print(f"samples: {source}; config: steps={cfg.steps} batch={cfg.batch} width_map={cfg.width_map} "
           f"depth_map={cfg.depth_map} charts={cfg.charts} threads={cfg.threads}")

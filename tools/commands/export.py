@@ -1,8 +1,9 @@
-"""`pointgt export MODEL.pgt [--points P.npy] [--atlas A.png] [--texels T.npy]`."""
+"""`pointgt export MODEL.pgt [--points P.npy] [--atlas A.png] [--texels T.npy] [--outlines O.png]`."""
 from __future__ import annotations
 
 NAME = "export"
-HELP = "write a model's canonical points (N, 3), its atlas PNG and its texel->surface map (H, W, 3)"
+HELP = ("write a model's canonical points (N, 3), its atlas PNG, its texel->surface map (H, W, 3) and its island "
+        "outlines (RGBA PNG overlay)")
 ORDER = 45
 
 
@@ -12,6 +13,9 @@ def add_arguments(p):
     p.add_argument("--atlas", default=None, help="packed atlas image (.png), the one to paint")
     p.add_argument("--texels", default=None,
                    help="texel->surface map, float32 [H, W, 3] aligned with the atlas PNG (row 0 = top), NaN = none")
+    p.add_argument("--outlines", default=None,
+                   help="island outlines as an RGBA PNG the size of the atlas (transparent elsewhere), to lay over it "
+                        "while painting; atlases without islands outline the texels that have a surface point")
 
 
 def run(args) -> int:
@@ -27,14 +31,15 @@ def run(args) -> int:
 
     from core.util.atomic import check_output_file
 
-    if not (args.points or args.atlas or args.texels):
-        raise UserError("nothing to export: give --points, --atlas and/or --texels")
-    for path, flag in ((args.points, "--points"), (args.atlas, "--atlas"), (args.texels, "--texels")):
+    if not (args.points or args.atlas or args.texels or args.outlines):
+        raise UserError("nothing to export: give --points, --atlas, --texels and/or --outlines")
+    for path, flag in ((args.points, "--points"), (args.atlas, "--atlas"), (args.texels, "--texels"),
+                       (args.outlines, "--outlines")):
         if path:
             check_output_file(path, flag)
     with PgtFile(args.model) as f:  # numpy only: export needs no torch and never builds the networks
         names = set(f.names)
-        if (args.atlas or args.texels) and "atlas/image" not in names:
+        if (args.atlas or args.texels or args.outlines) and "atlas/image" not in names:
             raise ModelFileError(f"{args.model}: has no atlas yet; run `pointgt atlas {args.model} DATA` first")
 
         def save_npy(path, arr):
@@ -54,4 +59,13 @@ def run(args) -> int:
             print(f"wrote {args.atlas} {img.shape[1]}x{img.shape[0]}")
         if args.texels:
             save_npy(args.texels, f.read("atlas/texel_points"))
+        if args.outlines:
+            from core.atlas.outlines import island_mask, outline_overlay
+
+            shape = tuple(f.read("atlas/image").shape[:2])
+            keys = [k for k in ("atlas/islands/cells", "atlas/islands/offset", "atlas/texel_points") if k in names]
+            overlay = outline_overlay(island_mask({k: f.read(k) for k in keys}, shape))
+            write_png(args.outlines, overlay)
+            print(f"wrote {args.outlines} {shape[1]}x{shape[0]} RGBA, {int((overlay[..., 3] > 0).sum())} outline "
+                  "pixels")
     return 0

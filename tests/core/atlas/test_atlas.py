@@ -25,6 +25,18 @@ def strip_fit():
     return atlas, hist, xyz, rgb
 
 
+@pytest.fixture(scope="module")
+def strip_fit_grid():
+    xyz, rgb = synthetic_samples("strip", 6000, seed=1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        atlas, hist = fit_atlas(xyz, rgb, AtlasConfig(**QUICK, layout="grid"), quiet=True)
+    finally:
+        torch.set_num_threads(threads)
+    return atlas, hist, xyz, rgb
+
+
 def _random_atlas(n=4, R=16, pad=2):
     torch.manual_seed(0)
     a = Atlas(n, R, pad, torch.tensor([0.1, 0.2, 0.3]), 0.9, width_chart=16, depth_chart=1, width_map=16, depth_map=1)
@@ -69,7 +81,9 @@ def test_bad_inputs_raise_clear_errors():
 def test_round_trip_through_arrays_is_exact(strip_fit):
     a = strip_fit[0]
     arrays, meta = a.to_arrays(), a.meta()
-    assert all(k.startswith("atlas/") and v.dtype == np.float32 for k, v in arrays.items())
+    ints = ("atlas/islands/cells", "atlas/islands/offset")
+    assert all(k.startswith("atlas/") and v.dtype == (np.int32 if k in ints else np.float32) for k, v in arrays.items())
+    assert meta["layout"] == "islands" and a.islands  # the default layout
     assert arrays["atlas/image"].shape == (*a.layout.shape, 3)
     import json
     b = Atlas.from_arrays({k: v.copy() for k, v in arrays.items()}, json.loads(json.dumps(meta)), "cpu")
@@ -196,10 +210,10 @@ def _cycle_error_texels(a, tp) -> torch.Tensor:
     return (pix - torch.stack([cols + 0.5, rows + 0.5], -1)).norm(dim=-1)
 
 
-def test_texel_map_from_forward_splat_is_consistent_with_lookups(strip_fit):
-    """The default texel map (kernel mean of the sample positions around each texel) sends each texel's point back
-    to that texel; the surface-coordinate net alone (inverse) is the looser map it replaced."""
-    a, hist, xyz, _ = strip_fit
+def test_texel_map_from_forward_splat_is_consistent_with_lookups(strip_fit_grid):
+    """The grid layout's texel map (kernel mean of the sample positions around each texel) sends each texel's point
+    back to that texel; the surface-coordinate net alone (inverse) is the looser map it replaced."""
+    a, hist, xyz, _ = strip_fit_grid
     max_dist = 3.0 * hist["spacing"]
     splat = a.compute_texel_points(xyz, max_dist, max_cycle=1e9, mode="splat").clone()
     inverse = a.compute_texel_points(xyz, max_dist, max_cycle=1e9, mode="inverse").clone()
@@ -217,14 +231,16 @@ def test_texel_map_from_forward_splat_is_consistent_with_lookups(strip_fit):
     a.compute_texel_points(xyz, max_dist)  # leave the fixture's atlas as fit_atlas made it
 
 
-def test_bake_from_samples_matches_texel_points_on_smooth_colour_and_keeps_decal_masks(strip_fit):
+@pytest.mark.parametrize("layout", ["islands", "grid"])
+def test_bake_from_samples_matches_texel_points_on_smooth_colour_and_keeps_decal_masks(layout, strip_fit,
+                                                                                       strip_fit_grid):
     """Baking splats fn at the stored surface samples; for a smooth fn that is fn at the texel's point (the
     fallback), and a decal's mask stays a mask: 1 deep inside, 0 far outside, fractional only at its edge."""
     import copy
 
     from core.edits.bake import bake
 
-    a, _, xyz, _ = strip_fit
+    a, _, xyz, _ = strip_fit if layout == "islands" else strip_fit_grid
     lo, hi = xyz.min(0).values, xyz.max(0).values
     smooth = lambda p: (((p - lo) / (hi - lo)).clamp(0, 1), None)
     with_samples = bake(a, smooth)
@@ -240,7 +256,10 @@ def test_bake_from_samples_matches_texel_points_on_smooth_colour_and_keeps_decal
     ok = torch.isfinite(a.texel_points()).all(-1)
     assert ok.sum() > 100
     err = (with_samples[ok] - at_points[ok]).abs()
-    assert err.median() < 0.01 and err.max() < 0.1
+    if a.islands:  # where the quick fit folds its map, a texel's point is one place that maps there, the samples
+        assert err.median() < 0.01 and err.quantile(0.75) < 0.03  # around it a mix of both (island texel map)
+    else:
+        assert err.median() < 0.01 and err.max() < 0.1
     assert not torch.equal(with_samples, at_points)  # the sample path really ran
 
     centre = xyz.mean(0)

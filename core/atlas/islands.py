@@ -1,0 +1,387 @@
+"""Island layout: each chart is cut to the region of its UV square that the surface actually uses, the regions
+(islands) are packed by xatlas into one square image, and every island is placed by a pure integer offset.
+
+Lookup path: chart net -> t_c(x) (uv in [0, 1]^2 of chart c) -> texel coordinates of the chart, M_c [u, v, 1]
+(a scale, chosen so every chart has the same texel density on the surface, and a rotation that gives the chart's
+used region its smallest bounding box, so it packs tighter) -> clamp into the
+nearest occupied cell of the chart (so a point off the sampled surface never reads another island) -> + offset of
+that cell's island -> packed-image pixel (col, row). The image is square (size x size), so to code that indexes
+`n` chart textures of R x R texels at origin (0, 0) (core/frames, the add-on's paint transfer) an island atlas is n
+views of one image with R = size: chart c's coordinates, divided by size, are already image coordinates.
+
+Islands are built on a grid of one cell per texel: a cell is occupied when a sample whose most probable chart is c
+lands in it, or in a cell within `fill` cells (closing the gaps between samples); 4-connected components are the
+islands, components below `min_cells` are dropped (their points clamp to the nearest island). xatlas packs the
+islands' cell meshes with `pad` texels of padding around each, without rotations (a painter sees every island
+upright, and an island's texels stay aligned with image pixels).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from core.util.errors import InputError, ModelFileError
+
+BRUTE_FORCE_SIDE = 1024  # xatlas tries every position up to this atlas side
+CLAMP_MARGIN = 0.5  # texels a lookup may reach past its nearest occupied cell (bilinear reads one more: pad >= 2)
+
+
+@dataclass(eq=False)
+class IslandLayout:
+    """n charts packed as islands into one size x size image.
+
+    affine [n, 2, 3] float: chart texel coordinates (col, row) = affine[c] @ (u, v, 1); cells [n, G, G] int:
+    island id of each texel cell of chart c, -1 where unused; offset [I, 2] int: (col, row) pixel offset of
+    island i.
+    Derived on construction: nearest [n, G, G, 2] (row, col) of each cell's nearest occupied cell, island_pixels
+    [size, size] bool, owner [size, size] chart of the nearest island pixel, region [size, size] bool (islands and
+    their padding), label [size, size] the nearest island's id within pad + 1 (-1 beyond; texture kernels stay
+    inside one island)."""
+
+    n: int
+    size: int
+    pad: int
+    affine: torch.Tensor
+    cells: torch.Tensor
+    offset: torch.Tensor
+    nearest: torch.Tensor = field(init=False)
+    island_pixels: torch.Tensor = field(init=False)
+    owner: torch.Tensor = field(init=False)
+    region: torch.Tensor = field(init=False)
+    label: torch.Tensor = field(init=False)
+    fill_index: torch.Tensor = field(init=False)
+
+    kind = "islands"
+
+    def __post_init__(self):
+        from scipy.ndimage import distance_transform_edt
+
+        self.affine = torch.as_tensor(self.affine, dtype=torch.float32).reshape(-1, 2, 3).cpu()
+        self.cells = torch.as_tensor(self.cells).long().cpu()
+        self.offset = torch.as_tensor(self.offset).long().reshape(-1, 2).cpu()
+        n, size, I = self.n, self.size, self.offset.shape[0]
+        if self.affine.shape[0] != n or self.cells.dim() != 3 or self.cells.shape[0] != n or size < 2 or self.pad < 0:
+            raise InputError(f"island layout: inconsistent shapes (n={n}, affine {tuple(self.affine.shape)}, cells "
+                             f"{tuple(self.cells.shape)}, size {size}, pad {self.pad})")
+        if not torch.isfinite(self.affine).all():
+            raise InputError("island layout: chart transforms must be finite")
+        if int(self.cells.max()) >= I or int(self.cells.min()) < -1:
+            raise InputError(f"island layout: cell island ids outside [-1, {I})")
+        G = self.cells.shape[1]
+        cells = self.cells.numpy()
+        nearest = np.zeros((n, G, G, 2), np.int64)
+        for c in range(n):
+            occ = cells[c] >= 0
+            if occ.any():
+                _, (ri, ci) = distance_transform_edt(~occ, return_indices=True)
+                nearest[c, ..., 0], nearest[c, ..., 1] = ri, ci
+        self.nearest = torch.from_numpy(nearest)
+        # rasterise: cell (r, k) of island i covers pixel (r + oy, k + ox)
+        island_chart = np.full(I, -1, np.int64)
+        pix = np.full((size, size), -1, np.int64)
+        ids = np.full((size, size), -1, np.int64)
+        off = self.offset.numpy()
+        for c in range(n):
+            rr, kk = np.nonzero(cells[c] >= 0)
+            isl = cells[c][rr, kk]
+            island_chart[isl] = c
+            pr, pc = rr + off[isl, 1], kk + off[isl, 0]
+            if len(pr) and (pr.min() < 0 or pc.min() < 0 or pr.max() >= size or pc.max() >= size):
+                raise InputError(f"island layout: an island of chart {c} lies outside the {size}x{size} image")
+            if (pix[pr, pc] >= 0).any():
+                raise InputError(f"island layout: islands overlap (chart {c})")
+            pix[pr, pc] = c
+            ids[pr, pc] = isl
+        self.island_chart = torch.from_numpy(island_chart)
+        inside = pix >= 0
+        self.island_pixels = torch.from_numpy(inside)
+        if inside.any():
+            d, (ri, ci) = distance_transform_edt(~inside, return_indices=True)
+            self.owner = torch.from_numpy(pix[ri, ci])
+            self.region = torch.from_numpy(d <= self.pad)
+            self.label = torch.from_numpy(np.where(d <= self.pad + 1, ids[ri, ci], -1))
+            region = d <= self.pad
+            _, (rj, cj) = distance_transform_edt(~region, return_indices=True)
+            self.fill_index = torch.from_numpy(rj * size + cj)  # nearest pixel of the region, for unpack
+        else:
+            self.owner = torch.zeros(size, size, dtype=torch.long)
+            self.region = torch.zeros(size, size, dtype=torch.bool)
+            self.label = torch.full((size, size), -1, dtype=torch.long)
+            self.fill_index = torch.arange(size * size).view(size, size)
+        self.has_islands = torch.tensor([bool((cells[c] >= 0).any()) for c in range(n)])
+
+    # --- what the grid layout offers, so code indexing n chart textures keeps working --------------------------
+    @property
+    def R(self) -> int:
+        return self.size
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.size, self.size
+
+    def origin(self, c: int) -> tuple[int, int]:
+        return 0, 0
+
+    def origins(self, device=None) -> torch.Tensor:
+        return torch.zeros(self.n, 2, device=device, dtype=torch.float32)
+
+    @property
+    def islands(self) -> int:
+        return int(self.offset.shape[0])
+
+    # --- lookups -------------------------------------------------------------------------------------------------
+    def place(self, uv: torch.Tensor) -> torch.Tensor:
+        """Chart coordinates uv [M, n, 2] (u -> column, v -> row, [0, 1]^2 per chart) -> image coordinates
+        [M, n, 2] in [0, 1] (pixel = uv * size), each clamped into its chart's nearest island."""
+        dev = uv.device
+        out = torch.empty_like(uv)
+        G = self.cells.shape[1]
+        aff, nearest = self.affine.to(dev).to(uv.dtype), self.nearest.to(dev)
+        cells, offset = self.cells.to(dev), self.offset.to(dev).to(uv.dtype)
+        for c in range(self.n):
+            u = torch.nan_to_num(uv[:, c], nan=0.0, posinf=1.0, neginf=0.0).clamp(-1.0, 2.0)
+            t = u @ aff[c, :, :2].T + aff[c, :, 2]
+            k = t.floor().long().clamp(0, G - 1)
+            nb = nearest[c, k[:, 1], k[:, 0]]  # [M, 2] (row, col)
+            lo = nb.flip(-1).to(uv.dtype) - CLAMP_MARGIN  # (col, row)
+            t = torch.maximum(torch.minimum(t, lo + 1 + 2 * CLAMP_MARGIN), lo)
+            isl = cells[c, nb[:, 0], nb[:, 1]].clamp_min(0)
+            out[:, c] = (t + offset[isl]) / self.size
+        return out
+
+    def hard_probs(self, logits_or_probs: torch.Tensor) -> torch.Tensor:
+        """One chart per point: one-hot [M, n] of the most probable chart that has islands."""
+        p = logits_or_probs.masked_fill(~self.has_islands.to(logits_or_probs.device), float("-inf"))
+        return torch.nn.functional.one_hot(p.argmax(-1), self.n).to(logits_or_probs.dtype)
+
+    # --- images --------------------------------------------------------------------------------------------------
+    def pack(self, textures: torch.Tensor, background: float = 0.0) -> torch.Tensor:
+        """Chart textures [n, C, size, size] -> image [size, size, C]: each pixel from the chart that owns it;
+        pixels farther than pad from every island get `background`."""
+        n, C, H, W = textures.shape
+        if (n, H, W) != (self.n, self.size, self.size):
+            raise InputError(f"textures {tuple(textures.shape)} do not match the island layout "
+                             f"({self.n} charts, {self.size}^2)")
+        owner = self.owner.to(textures.device)
+        img = textures.gather(0, owner[None, None].expand(1, C, H, W))[0]
+        img = torch.where(self.region.to(textures.device)[None], img, torch.full_like(img, background))
+        return img.permute(1, 2, 0).contiguous()
+
+    def unpack(self, image: torch.Tensor) -> torch.Tensor:
+        """Image [size, size, C] -> n views of one texture [n, C, size, size]: the image with every pixel outside the
+        islands' padding replaced by the nearest padding pixel, so a lookup that strays past the padding (the
+        interpolated sub-pixel lookups of a pixel filter can) reads the island's edge colour, never the background
+        the image shows there. pack(unpack(image)) == image."""
+        C = image.shape[2]
+        flat = image.reshape(-1, C)[self.fill_index.to(image.device).reshape(-1)]
+        return flat.T.reshape(C, self.size, self.size)[None].expand(self.n, -1, -1, -1)
+
+    # --- storage -------------------------------------------------------------------------------------------------
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {"atlas/islands/affine": self.affine.numpy().astype(np.float32),
+                "atlas/islands/cells": self.cells.numpy().astype(np.int32),
+                "atlas/islands/offset": self.offset.numpy().astype(np.int32)}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict, n: int, size: int, pad: int) -> "IslandLayout":
+        for key in ("atlas/islands/affine", "atlas/islands/cells", "atlas/islands/offset"):
+            if key not in arrays:
+                raise ModelFileError(f"atlas: missing array '{key}' (island layout) in the model file")
+        try:
+            return cls(n, size, pad, torch.from_numpy(np.asarray(arrays["atlas/islands/affine"], np.float32).copy()),
+                       torch.from_numpy(np.asarray(arrays["atlas/islands/cells"]).astype(np.int64)),
+                       torch.from_numpy(np.asarray(arrays["atlas/islands/offset"]).astype(np.int64)))
+        except (InputError, ValueError, IndexError) as e:
+            raise ModelFileError(f"atlas: {e}") from e
+
+
+# --- building ----------------------------------------------------------------------------------------------------
+
+def occupancy(t: np.ndarray, G: int, fill: float = 1.0) -> np.ndarray:
+    """Occupied cells [G, G] bool of texel coordinates t [M, 2] (col, row): cells with a point, closed over gaps
+    of up to 2 * fill cells (dilate by fill, erode by fill - 1), small enclosed holes filled."""
+    from scipy.ndimage import distance_transform_edt
+
+    hit = np.zeros((G, G), bool)
+    k = np.clip(np.floor(t).astype(np.int64), 0, G - 1)
+    hit[k[:, 1], k[:, 0]] = True
+    if not hit.any():
+        return hit
+    grown = distance_transform_edt(~hit) <= fill
+    if fill > 1.0:  # erode back by fill - 1 (distance to the outside of the grown region), never below the hit cells
+        grown = (distance_transform_edt(np.pad(grown, 1))[1:-1, 1:-1] > fill - 1.0) | hit
+    return fill_small_holes(grown)
+
+
+def fill_small_holes(occ: np.ndarray, max_cells: int = 256) -> np.ndarray:
+    """occ [G, G] bool with its enclosed holes of at most max_cells cells filled: a lookup that lands in a hole
+    (sparse samples) then reads the island's dilated colour instead of the background."""
+    from scipy.ndimage import binary_fill_holes, label
+
+    holes = binary_fill_holes(occ) & ~occ
+    if not holes.any():
+        return occ
+    lab, k = label(holes)
+    small = np.bincount(lab.reshape(-1), minlength=k + 1) <= max_cells
+    small[0] = False
+    return occ | small[lab]
+
+
+def chart_islands(occ: np.ndarray, min_cells: int) -> tuple[np.ndarray, int]:
+    """4-connected components of occ [G, G] with at least min_cells cells (the largest is always kept):
+    (labels [G, G] int, -1 outside, 0..k-1 inside; k)."""
+    from scipy.ndimage import label
+
+    lab, k = label(occ)
+    if k == 0:
+        return np.full(occ.shape, -1, np.int64), 0
+    sizes = np.bincount(lab.reshape(-1), minlength=k + 1)[1:]
+    keep = sizes >= min_cells
+    keep[int(np.argmax(sizes))] = True
+    new = np.full(k + 1, -1, np.int64)
+    new[1:][keep] = np.arange(int(keep.sum()))
+    return new[lab], int(keep.sum())
+
+
+def _cell_mesh(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two triangles per True cell of mask [h, w]: (vertices [V, 2] float32 (col, row), triangles [T, 3] uint32)."""
+    rr, cc = np.nonzero(mask)
+    w = mask.shape[1]
+    corner = lambda r, k: r * (w + 1) + k  # noqa: E731
+    quads = np.stack([corner(rr, cc), corner(rr, cc + 1), corner(rr + 1, cc + 1), corner(rr + 1, cc)], -1)
+    tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    used, inv = np.unique(tris, return_inverse=True)
+    verts = np.stack([used % (w + 1), used // (w + 1)], -1).astype(np.float32)
+    return verts, inv.reshape(-1, 3).astype(np.uint32)
+
+
+def pack_islands(masks: list[np.ndarray], pad: int, size: int = 0):
+    """Pack island cell masks (each [h, w] bool, cropped) with xatlas, no rotation, `pad` texels of padding, each
+    island whole (xatlas cuts an island that does not fit into slivers: that counts as not fitting).
+    size > 0: into one size x size image (None when they do not fit); 0: the smallest square found, from the
+    islands' area with their padding and the longest island, growing 2 % at a time. Returns (offsets [I, 2] int (col, row) of each
+    mask's cell (0, 0), side)."""
+    if size > 0:
+        got = _xatlas_pack(masks, pad, size)
+        return None if got is None else (got[0], size)
+    longest = max(max(m.shape) for m in masks) + 2 * pad + 4
+    area = sum(int(m.sum()) + pad * (m.shape[0] + m.shape[1]) * 2 for m in masks)  # cells and their padding
+    side = max(int(math.ceil(math.sqrt(area / 0.9))), longest)
+    for _ in range(200):
+        got = _xatlas_pack(masks, pad, side)
+        if got is not None:
+            return got[0], side
+        side = int(math.ceil(side * 1.02))
+    raise InputError("island layout: xatlas found no packing")
+
+
+def _xatlas_pack(masks, pad, size):
+    import xatlas
+
+    atlas = xatlas.Atlas()
+    verts = []
+    for m in masks:
+        v, t = _cell_mesh(m)
+        verts.append(v)
+        atlas.add_uv_mesh(v, t)
+    opts = xatlas.PackOptions()
+    opts.padding = max(int(pad) - 1, 0)  # xatlas rasterises one texel more: islands end up >= 2 * pad apart
+    opts.texels_per_unit = 1.0
+    opts.rotate_charts = False
+    opts.rotate_charts_to_axis = False
+    opts.bilinear = True
+    opts.bruteForce = bool(size > 0 and size <= BRUTE_FORCE_SIDE)  # tighter, slower: small atlases only
+    opts.resolution = max(int(size), 0)
+    atlas.generate(pack_options=opts)
+    if size > 0 and atlas.atlas_count > 1:
+        return None
+    W, H = int(atlas.width), int(atlas.height)
+    side = max(W, H) if size <= 0 else size
+    offsets = np.zeros((len(masks), 2), np.int64)
+    for i, m in enumerate(masks):
+        vmap, _, uv = atlas[i]
+        d = uv * np.array([W, H], np.float64) - verts[i][vmap].astype(np.float64)
+        if np.ptp(d, axis=0).max() > 0.01:  # cut
+            return None
+        offsets[i] = np.floor(np.median(d, axis=0) + 0.5).astype(np.int64)  # xatlas places at half-texels
+        hi = offsets[i] + np.array([m.shape[1], m.shape[0]])
+        offsets[i] -= np.maximum(hi - side, 0)  # the rounding may reach one texel past the image
+        offsets[i] = np.maximum(offsets[i], 0)
+    return offsets, W, H
+
+
+def min_area_angle(t: np.ndarray, steps: int = 90) -> float:
+    """Rotation (radians, in [0, pi/2)) that gives 2-D points t [M, 2] their smallest axis-aligned bounding box."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    if len(t) < 3:
+        return 0.0
+    try:
+        h = t[ConvexHull(t).vertices]
+    except (QhullError, ValueError):
+        return 0.0
+    best, best_a = math.inf, 0.0
+    for a in np.linspace(0, math.pi / 2, steps, endpoint=False):
+        c, s = math.cos(a), math.sin(a)
+        r = h @ np.array([[c, s], [-s, c]])
+        area = np.ptp(r[:, 0]) * np.ptp(r[:, 1])
+        if area < best - 1e-9:
+            best, best_a = area, a
+    return float(best_a)
+
+
+def build_islands(probs: torch.Tensor, uv: torch.Tensor, scale: np.ndarray, pad: int, size: int = 0,
+                  fill=1.0, min_cells: int = 8, rotate: bool = True) -> IslandLayout | None:
+    """The island layout of samples with chart probabilities probs [S, n] and chart coordinates uv [S, n, 2], each
+    chart at scale[c] texels per uv unit (rotated to its smallest bounding box when rotate); fill: occupancy
+    radius in texels (one, or [n] per chart). size > 0: fixed image side (None when the islands do not fit)."""
+    n = probs.shape[1]
+    fill = np.broadcast_to(np.asarray(fill, np.float64), (n,))
+    owner = probs.argmax(-1).cpu().numpy()
+    uvn = uv.detach().cpu().numpy().astype(np.float64)
+    affine = np.zeros((n, 2, 3))
+    affine[:, 0, 0] = affine[:, 1, 1] = 1.0
+    per_chart = []
+    for c in range(n):
+        sel = owner == c
+        if not sel.any():
+            per_chart.append(None)
+            continue
+        u = np.clip(uvn[sel, c], 0.0, 1.0)
+        a = min_area_angle(u[np.linspace(0, len(u) - 1, min(len(u), 20000)).astype(np.int64)]) if rotate else 0.0
+        rot = float(scale[c]) * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        t = u @ rot.T
+        margin = float(fill[c]) + 2.0
+        shift = margin - t.min(0)
+        affine[c, :, :2], affine[c, :, 2] = rot, shift
+        per_chart.append(t + shift)
+    G = int(math.ceil(max(float((t.max(0)).max()) for t in per_chart if t is not None))) + int(fill.max()) + 3
+    cells = np.full((n, G, G), -1, np.int64)
+    masks, crops, mask_chart = [], [], []
+    for c in range(n):
+        if per_chart[c] is None:
+            continue
+        occ = occupancy(per_chart[c], G, float(fill[c]))
+        lab, k = chart_islands(occ, min_cells)
+        for j in range(k):
+            rr, kk = np.nonzero(lab == j)
+            r0, k0 = rr.min(), kk.min()
+            m = np.zeros((rr.max() - r0 + 1, kk.max() - k0 + 1), bool)
+            m[rr - r0, kk - k0] = True
+            mask_chart.append((c, lab == j))
+            masks.append(m)
+            crops.append((k0, r0))
+    if not masks:
+        raise InputError("island layout: no sample falls in any chart")
+    packed = pack_islands(masks, pad, size)
+    if packed is None:
+        return None
+    offsets, side = packed
+    for i, (c, sel) in enumerate(mask_chart):
+        cells[c][sel] = i
+    offsets = offsets - np.asarray(crops, np.int64)  # mask (0, 0) is chart cell (r0, k0)
+    return IslandLayout(n, side, pad, torch.from_numpy(affine).float(), torch.from_numpy(cells),
+                        torch.from_numpy(offsets))

@@ -1,0 +1,118 @@
+"""Island layout: local-linear texel points, building and packing islands, placement, images, storage, outlines."""
+import numpy as np
+import torch
+
+from core.atlas.atlas import Atlas
+from core.atlas.islands import IslandLayout, build_islands, occupancy
+from core.atlas.outlines import island_mask, outline_overlay
+from core.atlas.texture import local_linear_points
+
+
+def test_local_linear_points_invert_an_affine_map_where_the_kernel_mean_does_not():
+    g = torch.Generator().manual_seed(0)
+    pix = torch.rand(20000, 2, generator=g) ** 2 * 50 + 7  # uneven density: the kernel mean drifts to dense side
+    M, o = torch.tensor([[0.02, 0.005], [-0.003, 0.03], [0.01, 0.01]]), torch.tensor([1.0, 2.0, 3.0])
+    xyz = pix @ M.T + o
+    pts, cov = local_linear_points(pix, xyz, 64, 1.0)
+    rows, cols = torch.nonzero(cov, as_tuple=True)
+    centre = torch.stack([cols + 0.5, rows + 0.5], -1)
+    back = (pts[rows, cols] - o) @ torch.linalg.pinv(M).T
+    inner = ((centre > 10) & (centre < 54)).all(-1)
+    err = (back - centre)[inner].norm(dim=-1)
+    assert float(err.max()) < 0.15 and float(err.median()) < 0.01
+    from core.atlas.texture import kernel_texture
+    mean, _, _ = kernel_texture(torch.ones(len(pix), 1), (pix / 64)[:, None], xyz, 64, 1.0)
+    back_mean = (mean[0].permute(1, 2, 0)[rows, cols] - o) @ torch.linalg.pinv(M).T
+    assert float((back_mean - centre)[inner].norm(dim=-1).median()) > 0.05  # what the island map replaces
+    assert not torch.isfinite(pts[~cov]).any()
+
+
+def _two_chart_samples(S=6000):
+    g = torch.Generator().manual_seed(1)
+    chart = (torch.arange(S) % 2)
+    uv = torch.rand(S, 2, 2, generator=g) * 0.3 + 0.35  # both charts' coordinates near the square's middle
+    ring = (uv[:, 0] - 0.5).norm(dim=-1) > 0.08  # chart 0 holds a ring, chart 1 a full square patch
+    keep = ring | (chart == 1)
+    probs = torch.nn.functional.one_hot(chart, 2).float()
+    return probs[keep], uv[keep]
+
+
+def test_islands_do_not_overlap_and_samples_land_in_their_own_chart_islands():
+    probs, uv = _two_chart_samples()
+    lay = build_islands(probs, uv, np.array([60.0, 40.0]), pad=2, size=0, fill=1.5, min_cells=4)
+    assert lay is not None and lay.islands >= 2
+    pix = (lay.place(uv) * lay.size)  # [S, 2, 2]
+    for c in range(2):
+        p = pix[probs[:, c] > 0, c].floor().long()
+        assert bool(lay.island_pixels[p[:, 1], p[:, 0]].all())
+        assert bool((lay.owner[p[:, 1], p[:, 0]] == c).all())
+    # islands of different charts at least 2 * pad pixels apart (centre to centre)
+    from scipy.ndimage import distance_transform_edt
+    for c in range(2):
+        mine = lay.island_pixels.numpy() & (lay.owner.numpy() == c)
+        other = lay.island_pixels.numpy() & ~mine
+        assert distance_transform_edt(~mine)[other].min() >= 2 * lay.pad
+
+
+def test_points_off_the_islands_clamp_next_to_them_and_extreme_inputs_stay_finite():
+    probs, uv = _two_chart_samples()
+    lay = build_islands(probs, uv, np.array([60.0, 40.0]), pad=2)
+    far = torch.tensor([[[0.0, 0.0], [1.0, 1.0]], [[float("nan"), 1e30], [-1e30, float("inf")]]])
+    out = lay.place(far) * lay.size
+    assert torch.isfinite(out).all()
+    from scipy.ndimage import distance_transform_edt
+    d = distance_transform_edt(~lay.island_pixels.numpy())
+    for p in out.reshape(-1, 2):
+        assert d[int(p[1].clamp(0, lay.size - 1)), int(p[0].clamp(0, lay.size - 1))] <= 1.5
+
+
+def test_pack_takes_each_pixel_from_its_owner_and_unpack_is_a_view():
+    probs, uv = _two_chart_samples()
+    lay = build_islands(probs, uv, np.array([60.0, 40.0]), pad=2)
+    tex = torch.stack([torch.zeros(3, lay.size, lay.size), torch.ones(3, lay.size, lay.size)])
+    img = lay.pack(tex)
+    assert torch.equal(img[..., 0][lay.region], lay.owner[lay.region].float())
+    assert float(img[~lay.region].abs().max()) == 0.0  # no dilation outside the padding
+    views = lay.unpack(img)
+    assert views.shape == (2, 3, lay.size, lay.size) and torch.equal(lay.pack(views), img)
+    # lookups past the padding read the nearest padding pixel's colour, not the background
+    from scipy.ndimage import distance_transform_edt
+    _, (ri, ci) = distance_transform_edt(~lay.region.numpy(), return_indices=True)
+    assert torch.equal(views[0, 0], img[..., 0][torch.from_numpy(ri), torch.from_numpy(ci)])
+
+
+def test_island_atlas_round_trips_through_its_arrays_and_grid_files_still_load():
+    torch.manual_seed(0)
+    a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
+    x = torch.rand(3000, 3) * 2 - 1
+    probs, uv = a.chart_uv(x)
+    grid_arrays, grid_meta = a.to_arrays(), a.meta()
+    a.set_layout(build_islands(probs, uv, np.array([50.0, 50.0]), pad=2))
+    with torch.no_grad():
+        a.textures.uniform_(0, 1)
+    b = Atlas.from_arrays(a.to_arrays(), a.meta())
+    assert a.meta()["layout"] == "islands" and b.islands
+    assert torch.allclose(a.lookup(x), b.lookup(x), atol=1e-5)
+    p, _ = b.chart_uv(x)
+    assert torch.equal(p.sum(-1), torch.ones(len(x))) and set(p.unique().tolist()) <= {0.0, 1.0}
+    g = Atlas.from_arrays(grid_arrays, grid_meta)  # a version-1 (grid) file: soft charts as before
+    assert not g.islands and grid_meta["version"] == 1
+
+
+def test_occupancy_closes_gaps_between_sparse_samples():
+    t = torch.stack(torch.meshgrid(torch.arange(5, 25, 2.0), torch.arange(5, 25, 2.0), indexing="ij"), -1)
+    occ = occupancy(t.reshape(-1, 2).numpy() + 0.5, 32, fill=1.5)
+    assert occ[6:24, 6:24].all() and not occ[0, 0] and not occ[30, 30]
+
+
+def test_outline_overlay_marks_the_island_edges_only():
+    cells = -np.ones((1, 8, 8), np.int32)
+    cells[0, 2:6, 2:6] = 0
+    mask = island_mask({"atlas/islands/cells": cells, "atlas/islands/offset": np.array([[3, 1]], np.int32)}, (10, 12))
+    assert mask.sum() == 16 and mask[3, 5] and mask[6, 8]
+    ov = outline_overlay(mask)
+    assert ov.shape == (10, 12, 4) and int((ov[..., 3] > 0).sum()) == 12  # the 4x4 square's border
+    assert ov[..., 3][~mask].max() == 0.0
+    tp = np.full((4, 4, 3), np.nan, np.float32)
+    tp[1:3, 1:3] = 0.0
+    assert island_mask({"atlas/texel_points": tp}, (4, 4)).sum() == 4  # grid atlases: the texel map
