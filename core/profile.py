@@ -11,7 +11,9 @@ Measured from the data (all numbers are returned with the choices, JSON-able):
   colour is a blend of a few point colours (the attention learns to be sharp: ~2 effective neighbours), so detail
   finer than the projected point spacing is lost and gaps between points leak background. Above
   DETAIL_PIXELS_PER_POINT the UNet decoder restores it; the cloth scene (128², 1291 foreground pixels a view, 4000
-  points: 0.32) is measured with and without it in docs/results.md ("The decoder").
+  points: 0.32) is measured with and without it in docs/results.md ("The decoder"), and the rule's choice on every
+  scene of the library beside the other setting in "Scene library" (`python -m tools.bench.scenes`). The UNet is
+  residual (core/points/decoders.py): it starts as the decoder-free render, so choosing it risks no collapse.
 - thin sheets: the mean out-of-plane spread of the visual hull's clusters (`flatness` of core/atlas/fit.py, on the
   hull's volume points): a sheet's hull is a thin slab (low), a solid's hull is chunky (high). Thin → K = 40
   (the reference's cloth setting), else K = 20.
