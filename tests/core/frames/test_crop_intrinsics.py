@@ -9,14 +9,14 @@ import torch
 from core.frames.edited import EditState, render_edited
 from core.images.cameras import Intrinsics
 from core.points.render import render_frame
-from tests.helpers.tiny_fast import tiny_fast
+from tests.helpers.tiny import tiny_bundle
 
 R0, C0, h, w = 5, 9, 14, 19  # a non-square window off the centre of the 32 x 32 test view
 
 
 @pytest.fixture(scope="module")
 def model_pair():
-    bundle, _, test = tiny_fast()
+    bundle, _, test = tiny_bundle("fast")
     bundle = copy.deepcopy(bundle)  # the cached model is shared: change a copy
     # the perpendicular search picks neighbours per ray, independent of the frame (the screen searches cap their
     # radius from the frame's point density, which a crop changes)
