@@ -155,3 +155,50 @@ def test_same_deformation_field_for_any_point_set(scene_dir, tmp_path):
     for pose, (diff, moved) in out.items():
         assert diff < 1e-5, (pose, diff)
         assert moved > 0.05, (pose, moved)
+
+
+LIBRARY_GEOMETRY = r'''
+import json, sys
+import bpy
+import numpy as np
+import torch
+sys.path.insert(0, sys.argv[1])
+from core.edits.procedural import evaluate
+from tools.scenes import library
+
+out = {}
+for name, sdef in library.SCENES.items():
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    obj = library.build_object(sdef, name)
+    me = obj.data
+    co = np.empty(len(me.vertices) * 3)
+    me.vertices.foreach_get("co", co)
+    co = co.reshape(-1, 3)
+    lo, hi = co.min(0), co.max(0)
+    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    rgb, mask = evaluate(sdef.texture, torch.from_numpy(co), centre, half)
+    out[name] = {"verts": len(me.vertices), "faces": len(me.polygons), "radius": float(np.linalg.norm(co, axis=1).max()),
+                 "centre": float(np.abs(centre).max()), "finite": bool(torch.isfinite(rgb).all()),
+                 "colour_std": float(rgb.std(0).mean()), "poses": sorted(sdef.poses)}
+print(json.dumps(out))
+'''
+
+
+@pytest.mark.blender
+def test_library_scenes_build_centred_textured_and_posable(tmp_path):
+    """Every library object builds with faces, centred and fit to the radius, its base texture finite over it
+    (and not one flat colour unless it is the flat-colour texture), and the shared pose list."""
+    from pathlib import Path
+
+    script = tmp_path / "library.py"
+    script.write_text(LIBRARY_GEOMETRY)
+    root = str(Path(__file__).resolve().parents[2])
+    res = subprocess.run([sys.executable, str(script), root], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert len(out) >= 10
+    for name, r in out.items():
+        assert r["verts"] > 500 and r["faces"] > 100, (name, r)
+        assert abs(r["radius"] - 0.95) < 1e-4 and r["centre"] < 1e-6, (name, r)
+        assert r["finite"] and r["colour_std"] > 0.01, (name, r)
+        assert r["poses"] == sorted(["rest", "bend", "twist", "squash", "stretch", "arm"]), name
