@@ -96,11 +96,11 @@ class PointModel(nn.Module):
             self.decoder = None
         else:
             # Residual decoder: each value also carries an RGB colour (3 leading channels), blended like the
-            # decoder-free render and handed to the UNet as its base.
-            base = 3 if cfg.decoder_residual else 0
-            self.value_mlp = _mlp(cfg.feature_dim + dir_in, cfg.value_width, base + cfg.feature_dim, layers=1)
+            # decoder-free render and handed to the UNet as its base, with the attention's coverage.
+            colour = 3 if cfg.decoder_residual else 0
+            self.value_mlp = _mlp(cfg.feature_dim + dir_in, cfg.value_width, colour + cfg.feature_dim, layers=1)
             self.bg_value = nn.Parameter(torch.zeros(cfg.feature_dim))
-            self.decoder = UNetDecoder(base + cfg.feature_dim, alpha=cfg.decoder_alpha,
+            self.decoder = UNetDecoder((colour + 1 if colour else 0) + cfg.feature_dim, alpha=cfg.decoder_alpha,
                                        residual=cfg.decoder_residual)
 
     @property
@@ -182,8 +182,9 @@ class PointModel(nn.Module):
               features: torch.Tensor | None = None) -> dict:
         """Ray colours (no decoder) or ray features (decoder) from attention. background [3] display colour.
         Returns dict(rgb [R, 3] or None, feature [R, C] or None). With the residual decoder the feature's first
-        three channels are the decoder-free colour over the training background (the decoder's base; frames over
-        another background are moved by core/points/render.py like any decoder output)."""
+        three channels are the decoder-free colour over the training background and the fourth the attention's
+        coverage 1 − bg (the decoder's bases; frames over another background are recomposited by
+        core/points/render.py like any decoder output)."""
         v = self.point_values(dirs, idx, features)
         fv = (att["weights"][..., None] * v).sum(1)
         bg = att["bg"][:, None]
@@ -193,7 +194,7 @@ class PointModel(nn.Module):
         if self.cfg.decoder_residual:
             white = torch.as_tensor(TRAIN_BACKGROUND, dtype=fv.dtype, device=fv.device)
             base = fv[:, :3] + bg * white
-            return {"rgb": None, "feature": torch.cat([base, fv[:, 3:] + bg * self.bg_value], dim=1)}
+            return {"rgb": None, "feature": torch.cat([base, 1.0 - bg, fv[:, 3:] + bg * self.bg_value], dim=1)}
         return {"rgb": None, "feature": fv + bg * self.bg_value}
 
     def decode(self, feature_image: torch.Tensor) -> torch.Tensor:
@@ -208,10 +209,9 @@ class PointModel(nn.Module):
         return rgb, (torch.sigmoid(y[:, 3]) if y.shape[1] > 3 else None)
 
     def reset_decoder_correction(self) -> None:
-        """Residual decoder only: zero its last layer, so the decoder render is the decoder-free render again
+        """Residual decoder only: zero its last layers, so the decoder render is the decoder-free render again
         (the collapse guard's recovery, core/points/train.py)."""
-        nn.init.zeros_(self.decoder.out.weight)
-        nn.init.zeros_(self.decoder.out.bias)
+        self.decoder.reset_correction()
 
     # ---- (de)serialisation helpers ---------------------------------------------------------------------------
     def config_dict(self) -> dict:

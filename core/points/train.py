@@ -319,7 +319,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                     guard.decoder_resets += 1
                     guard.record(step, train_s, "reset the decoder's correction to zero", reason)
                     model.reset_decoder_correction()
-                    for p in model.decoder.out.parameters():
+                    zeroed = [*model.decoder.out.parameters()]
+                    if model.decoder.alpha_head is not None:
+                        zeroed += [*model.decoder.alpha_head[-1].parameters()]
+                    for p in zeroed:  # fresh Adam moments for the zeroed layers
                         opt.state.pop(p, None)
                 elif action == "restart":
                     model_cfg, model, opt, base_lrs, dens = restart(model_cfg, reason)

@@ -37,16 +37,18 @@ def test_residual_decoder_starts_as_the_decoder_free_render():
     dec, plain = _pair()
     split = _split()
     for i in range(2):
-        a = render_frame(dec, split.c2w[i], 32, 32, split.focal)["rgb"]
-        b = render_frame(plain, split.c2w[i], 32, 32, split.focal)["rgb"]
-        assert float((a - b).abs().max()) < 1e-5
-        assert float((a - 1.0).abs().mean()) > 0.01  # not trivially the white frame
+        for bg in ((1.0, 1.0, 1.0), (0.0, 0.0, 0.0)):  # colour and coverage: the same over any background
+            a = render_frame(dec, split.c2w[i], 32, 32, split.focal, background=bg)
+            b = render_frame(plain, split.c2w[i], 32, 32, split.focal, background=bg)
+            assert float((a["rgb"] - b["rgb"]).abs().max()) < 1e-5
+            assert float((a["alpha"] - b["alpha"]).abs().max()) < 1e-3  # the coverage logit is clamped at 1e-6
+            assert float((a["rgb"] - torch.tensor(bg)).abs().mean()) > 0.01  # not trivially the blank frame
 
 
 def _train_decoder(model, steps=100):
     torch.manual_seed(1)
     c = model.decoder.out.in_channels
-    feat = torch.rand(2, 3 + model.cfg.feature_dim if model.cfg.decoder_residual else model.cfg.feature_dim, 16, 16)
+    feat = torch.rand(2, 4 + model.cfg.feature_dim if model.cfg.decoder_residual else model.cfg.feature_dim, 16, 16)
     target = torch.rand(2, 3, 16, 16) * 0.8 + 0.1
     opt = torch.optim.Adam(model.decoder.parameters(), lr=5e-2)
     losses = []

@@ -82,8 +82,8 @@ def test_unet_decoder_any_size():
     feat = torch.randn(2, m.cfg.feature_dim, 17, 23)
     out = m.decode(feat)
     assert out.shape == (2, 3, 17, 23) and bool(((out >= 0) & (out <= 1)).all())
-    r = _model(decoder="unet")  # residual: 3 base colour channels before the features
-    feat = torch.randn(2, 3 + r.cfg.feature_dim, 17, 23)
+    r = _model(decoder="unet")  # residual: base colour and coverage before the features
+    feat = torch.randn(2, 4 + r.cfg.feature_dim, 17, 23)
     assert r.decode(feat).shape == (2, 3, 17, 23)
 
 
@@ -99,7 +99,7 @@ def test_unet_mask_head_and_older_files_without_it():
     from core.points.checkpoint import model_from_arrays, model_to_arrays
 
     m = _model(decoder="unet")
-    feat = torch.randn(1, 3 + m.cfg.feature_dim, 9, 8)
+    feat = torch.randn(1, 4 + m.cfg.feature_dim, 9, 8)
     rgb, alpha = m.decode_with_alpha(feat)
     assert rgb.shape == (1, 3, 9, 8) and alpha.shape == (1, 9, 8)
     assert torch.equal(rgb, m.decode(feat)) and bool(((alpha >= 0) & (alpha <= 1)).all())
