@@ -8,8 +8,8 @@ from bpy_extras.io_utils import ExportHelper
 
 from core.util.atomic import atomic_write_bytes
 
-from .evaluated import evaluated_points
-from .properties import poll_active_model
+from ..scene.evaluated import evaluated_points
+from ..ui.properties import poll_active_model
 from .reporting import reports_errors
 
 

@@ -5,8 +5,8 @@ import numpy as np
 
 from core.util.errors import InputError, PointGTError
 
-from .evaluated import to_world
-from .properties import poll_active_model
+from ..scene.evaluated import to_world
+from ..ui.properties import poll_active_model
 
 LATTICE_MODIFIER = "PointGT Lattice"
 ARMATURE_MODIFIER = "PointGT Armature"

@@ -1,7 +1,7 @@
 """Per-object PointGT settings (`object.pointgt`): where the model lives and how to preview/render it."""
 import bpy
 
-from .evaluated import ID_ATTRIBUTE
+from ..scene.evaluated import ID_ATTRIBUTE
 
 
 # Blender 5 warns about '//' paths in string properties that do not declare support for them.

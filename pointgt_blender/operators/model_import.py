@@ -8,8 +8,8 @@ from bpy_extras.io_utils import ImportHelper
 from core.modelfile.pgt import PgtFile
 from core.util.errors import InputError, ModelFileError, PointGTError
 
-from . import atlas_image
-from .properties import ID_ATTRIBUTE, poll_active_model
+from ..scene import atlas_image
+from ..ui.properties import ID_ATTRIBUTE, poll_active_model
 from .reporting import reports_errors
 
 POINTS = "points/xyz"
@@ -91,7 +91,7 @@ def import_model(context, path: str, name: str = "", pack: bool = True, **settin
         s.point_count = xyz.shape[0]
         s.atlas = image
         if pack:
-            from .model_pack import pack_file
+            from ..scene.model_pack import pack_file
 
             text = pack_file(path)
             if text.users == 0:
@@ -174,11 +174,13 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
 def blank_warning(obj) -> str:
     """The renderer's warning when the object's model renders blank ('' when it shows something, or when PyTorch
     is missing: then nothing can be checked). The warning also becomes the object's status line."""
-    from . import deps
+    from ..bridge import deps
 
     if not deps.torch_status().available:
         return ""
-    from . import frame_renderer, preview, scene_inputs
+    from ..bridge import frame_renderer
+    from . import preview
+    from ..scene import scene_inputs
 
     try:
         warning = frame_renderer.blank_warning(scene_inputs.model_file(obj), obj.pointgt.device.lower(),
@@ -207,7 +209,7 @@ class POINTGT_OT_pack_model(bpy.types.Operator):
 
     @reports_errors("Packing the model of '{obj}'")
     def execute(self, context):
-        from .model_pack import pack_file
+        from ..scene.model_pack import pack_file
 
         obj = context.active_object
         path = bpy.path.abspath(obj.pointgt.model_path)
@@ -240,7 +242,7 @@ class POINTGT_OT_unpack_model(bpy.types.Operator):
 
     @reports_errors("Unpacking the model of '{obj}'")
     def execute(self, context):
-        from .model_pack import unpack
+        from ..scene.model_pack import unpack
 
         obj = context.active_object
         target = self.filepath or obj.pointgt.model_path or f"//{obj.name}.pgt"

@@ -2,7 +2,7 @@
 Texture Paint), preview settings, re-render, transfer of preview paint, and Render Animation."""
 import bpy
 
-from . import preview
+from ..operators import preview
 from .preferences import draw_dependency_status
 from .properties import NO_ACTIVE_MODEL, is_pointgt_object
 

@@ -1,7 +1,7 @@
 """The PointGT tab in the 3D Viewport sidebar: dependency status, import, model settings, rig and export."""
 import bpy
 
-from . import preview
+from ..operators import preview
 from .preferences import draw_dependency_status
 from .properties import is_pointgt_object
 

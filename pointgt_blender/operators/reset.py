@@ -5,9 +5,9 @@ import numpy as np
 
 from core.util.errors import InputError
 
-from .evaluated import read_points
+from ..scene.evaluated import read_points
 from .model_import import read_model
-from .properties import poll_active_model
+from ..ui.properties import poll_active_model
 from .reporting import reports_errors
 
 DEFORM_MODIFIERS = {'ARMATURE', 'LATTICE', 'CAST', 'CURVE', 'DISPLACE', 'HOOK', 'LAPLACIANDEFORM', 'MESH_DEFORM',
@@ -31,7 +31,7 @@ def reset_modifiers(obj, action: str = 'DISABLE') -> int:
 def restore_positions(obj) -> int:
     """Write the model's canonical positions back into the mesh, matched by point id (works after points were
     deleted or duplicated in Edit Mode); returns the number of points written."""
-    from .scene_inputs import model_file
+    from ..scene.scene_inputs import model_file
 
     xyz, _atlas, _meta = read_model(model_file(obj))
     _pos, ids = read_points(obj.data)

@@ -8,8 +8,8 @@ import numpy as np
 
 from core.util.errors import InputError
 
-from .properties import poll_active_model
-from .proxy_mesh import proxy_arrays, read_texel_map
+from ..ui.properties import poll_active_model
+from ..scene.proxy_mesh import proxy_arrays, read_texel_map
 from .reporting import reports_errors
 
 PROXY_SUFFIX = " proxy"
@@ -129,7 +129,7 @@ class POINTGT_OT_add_proxy(bpy.types.Operator):
 
     @reports_errors("Making a proxy for '{obj}'")
     def execute(self, context):
-        from .scene_inputs import model_file
+        from ..scene.scene_inputs import model_file
 
         obj = context.active_object
         proxy = add_proxy(context, obj, model_file(obj), self.target_faces, self.follow)
