@@ -9,7 +9,7 @@ from core.modelfile.pgt import PgtFile
 from core.util.errors import InputError, ModelFileError, PointGTError
 
 from ..scene import atlas_image
-from ..ui.properties import ID_ATTRIBUTE, poll_active_model
+from ..ui.properties import ID_ATTRIBUTE, poll_model_unless
 from .reporting import reports_errors
 
 POINTS = "points/xyz"
@@ -200,12 +200,7 @@ class POINTGT_OT_pack_model(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if context.active_object.pointgt.packed_model is not None:
-            cls.poll_message_set("The model is packed already")
-            return False
-        return True
+        return poll_model_unless(cls, context, lambda c: "The model is packed already" if c.active_object.pointgt.packed_model is not None else None)
 
     @reports_errors("Packing the model of '{obj}'")
     def execute(self, context):
@@ -233,12 +228,7 @@ class POINTGT_OT_unpack_model(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if context.active_object.pointgt.packed_model is None:
-            cls.poll_message_set("The model is not packed")
-            return False
-        return True
+        return poll_model_unless(cls, context, lambda c: "The model is not packed" if c.active_object.pointgt.packed_model is None else None)
 
     @reports_errors("Unpacking the model of '{obj}'")
     def execute(self, context):

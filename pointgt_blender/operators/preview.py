@@ -22,7 +22,7 @@ from core.util.errors import InputError, PointGTError
 from ..scene import atlas_image
 from ..bridge import checks, deps
 from ..scene.camera import preview_size, scene_camera
-from ..ui.properties import is_pointgt_object, poll_active_model
+from ..ui.properties import is_pointgt_object, poll_active_model, poll_model_unless
 from .reporting import reports_errors
 from ..scene.session import SESSION
 
@@ -477,12 +477,7 @@ class POINTGT_OT_single_user_atlas(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if not atlas_users(context.active_object):
-            cls.poll_message_set("No other model shares this atlas")
-            return False
-        return True
+        return poll_model_unless(cls, context, lambda c: None if atlas_users(c.active_object) else "No other model shares this atlas")
 
     @reports_errors("Copying the atlas of '{obj}'")
     def execute(self, context):

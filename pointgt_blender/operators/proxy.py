@@ -8,7 +8,7 @@ import numpy as np
 
 from core.util.errors import InputError
 
-from ..ui.properties import poll_active_model
+from ..ui.properties import not_object_mode, poll_model_unless
 from ..scene.proxy_mesh import proxy_arrays, read_texel_map
 from .reporting import reports_errors
 
@@ -120,12 +120,7 @@ class POINTGT_OT_add_proxy(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode first")
-            return False
-        return True
+        return poll_model_unless(cls, context, not_object_mode)
 
     @reports_errors("Making a proxy for '{obj}'")
     def execute(self, context):

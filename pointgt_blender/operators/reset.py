@@ -7,7 +7,7 @@ from core.util.errors import InputError
 
 from ..scene.evaluated import read_points
 from .model_import import read_model
-from ..ui.properties import poll_active_model
+from ..ui.properties import not_object_mode, poll_model_unless
 from .reporting import reports_errors
 
 DEFORM_MODIFIERS = {'ARMATURE', 'LATTICE', 'CAST', 'CURVE', 'DISPLACE', 'HOOK', 'LAPLACIANDEFORM', 'MESH_DEFORM',
@@ -61,12 +61,7 @@ class POINTGT_OT_reset_canonical(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode first")
-            return False
-        return True
+        return poll_model_unless(cls, context, not_object_mode)
 
     @reports_errors("Resetting '{obj}'")
     def execute(self, context):

@@ -154,6 +154,21 @@ class POINTGT_OT_check_dependencies(bpy.types.Operator):
         return {'FINISHED'}
 
 
+class SidebarPanel:
+    """Mixin of the PointGT sidebar tabs (3D View, Image Editor): their label and category, and the PyTorch status
+    on top; subclasses set bl_idname and bl_space_type and draw the rest in `draw_body`."""
+    bl_label = "PointGT"
+    bl_region_type = 'UI'
+    bl_category = "PointGT"
+
+    def draw(self, context):
+        draw_dependency_status(self.layout)
+        self.draw_body(context, self.layout)
+
+    def draw_body(self, context, layout) -> None:
+        raise NotImplementedError
+
+
 def draw_dependency_status(layout) -> None:
     """The PyTorch status box, shared by the preferences and the sidebar panel."""
     status = deps.torch_status()

@@ -80,6 +80,23 @@ def poll_active_model(cls, context) -> bool:
     return False
 
 
+def poll_model_unless(cls, context, reason) -> bool:
+    """Operator poll: the active object is an imported PointGT model and `reason(context)` finds nothing against
+    running (returns None or ""); else its message (or NO_ACTIVE_MODEL) becomes the tooltip."""
+    if not poll_active_model(cls, context):
+        return False
+    why = reason(context)
+    if why:
+        cls.poll_message_set(why)
+        return False
+    return True
+
+
+def not_object_mode(context) -> str | None:
+    """A `poll_model_unless` reason: operators that change the mesh or its modifiers run in Object Mode."""
+    return None if context.mode == 'OBJECT' else "Switch to Object Mode first"
+
+
 CLASSES = (PointGTObjectSettings, PointGTSceneSettings)
 
 

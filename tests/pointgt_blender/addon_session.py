@@ -292,7 +292,7 @@ class Layout:
 def _():
     prefs = importlib.import_module(PKG + ".ui.preferences")
     panel = importlib.import_module(PKG + ".ui.view3d_panel").POINTGT_PT_main
-    fake = type("Fake", (), {"layout": Layout()})()
+    fake = type("Fake", (), {"layout": Layout(), "draw_body": panel.draw_body})()  # the panel's own methods
     bpy.context.view_layer.objects.active = None
     panel.draw(fake, bpy.context)
     no_model = list(Layout.calls)
