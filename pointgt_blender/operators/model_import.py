@@ -9,7 +9,7 @@ from core.modelfile.pgt import PgtFile
 from core.util.errors import InputError, ModelFileError, PointGTError
 
 from ..scene import atlas_image
-from ..ui.properties import ID_ATTRIBUTE, poll_model_unless
+from ..ui.properties import ID_ATTRIBUTE, ModelOperator
 from .reporting import reports_errors
 
 POINTS = "points/xyz"
@@ -192,15 +192,15 @@ def blank_warning(obj) -> str:
     return warning
 
 
-class POINTGT_OT_pack_model(bpy.types.Operator):
+class POINTGT_OT_pack_model(ModelOperator, bpy.types.Operator):
     """Pack the model file into the .blend, so the .blend renders without it"""
     bl_idname = "pointgt.pack_model"
     bl_label = "Pack Model"
     bl_options = {'REGISTER', 'UNDO'}
 
-    @classmethod
-    def poll(cls, context):
-        return poll_model_unless(cls, context, lambda c: "The model is packed already" if c.active_object.pointgt.packed_model is not None else None)
+    @staticmethod
+    def poll_reason(context):
+        return "The model is packed already" if context.active_object.pointgt.packed_model is not None else None
 
     @reports_errors("Packing the model of '{obj}'")
     def execute(self, context):
@@ -216,7 +216,7 @@ class POINTGT_OT_pack_model(bpy.types.Operator):
         return {'FINISHED'}
 
 
-class POINTGT_OT_unpack_model(bpy.types.Operator):
+class POINTGT_OT_unpack_model(ModelOperator, bpy.types.Operator):
     """Write the packed model to a .pgt file and use that file instead of the packed copy"""
     bl_idname = "pointgt.unpack_model"
     bl_label = "Unpack Model"
@@ -226,9 +226,9 @@ class POINTGT_OT_unpack_model(bpy.types.Operator):
                                        description="Where to write the model (default: the model path, or "
                                                    "'//<name>.pgt' next to the .blend)")
 
-    @classmethod
-    def poll(cls, context):
-        return poll_model_unless(cls, context, lambda c: "The model is not packed" if c.active_object.pointgt.packed_model is None else None)
+    @staticmethod
+    def poll_reason(context):
+        return "The model is not packed" if context.active_object.pointgt.packed_model is None else None
 
     @reports_errors("Unpacking the model of '{obj}'")
     def execute(self, context):

@@ -22,7 +22,7 @@ from core.util.errors import InputError, PointGTError
 from ..scene import atlas_image
 from ..bridge import checks, deps
 from ..scene.camera import preview_size, scene_camera
-from ..ui.properties import is_pointgt_object, poll_active_model, poll_model_unless
+from ..ui.properties import ModelOperator, is_pointgt_object
 from .reporting import reports_errors
 from ..scene.session import SESSION
 
@@ -445,15 +445,11 @@ class POINTGT_OT_refresh_preview(bpy.types.Operator):
         return {'FINISHED'}
 
 
-class POINTGT_OT_transfer_paint(bpy.types.Operator):
+class POINTGT_OT_transfer_paint(ModelOperator, bpy.types.Operator):
     """Write what was painted on the preview image into the atlas texels those pixels show"""
     bl_idname = "pointgt.transfer_paint"
     bl_label = "Transfer Preview Paint to Atlas"
     bl_options = {'REGISTER'}
-
-    @classmethod
-    def poll(cls, context):
-        return poll_active_model(cls, context)
 
     @reports_errors("Transferring the preview paint of '{obj}'")
     def execute(self, context):
@@ -469,15 +465,15 @@ class POINTGT_OT_transfer_paint(bpy.types.Operator):
         return {'FINISHED'}
 
 
-class POINTGT_OT_single_user_atlas(bpy.types.Operator):
+class POINTGT_OT_single_user_atlas(ModelOperator, bpy.types.Operator):
     """Give the active model its own copy of the atlas it shares with duplicates, so painting it leaves theirs"""
     bl_idname = "pointgt.single_user_atlas"
     bl_label = "Make Atlas Single-User"
     bl_options = {'REGISTER', 'UNDO'}
 
-    @classmethod
-    def poll(cls, context):
-        return poll_model_unless(cls, context, lambda c: None if atlas_users(c.active_object) else "No other model shares this atlas")
+    @staticmethod
+    def poll_reason(context):
+        return None if atlas_users(context.active_object) else "No other model shares this atlas"
 
     @reports_errors("Copying the atlas of '{obj}'")
     def execute(self, context):

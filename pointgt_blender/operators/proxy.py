@@ -8,7 +8,7 @@ import numpy as np
 
 from core.util.errors import InputError
 
-from ..ui.properties import not_object_mode, poll_model_unless
+from ..ui.properties import ModelOperator, not_object_mode
 from ..scene.proxy_mesh import proxy_arrays, read_texel_map
 from .reporting import reports_errors
 
@@ -105,7 +105,7 @@ def add_proxy(context, obj, path: str, target_faces: int = 4000, follow: bool = 
     return proxy
 
 
-class POINTGT_OT_add_proxy(bpy.types.Operator):
+class POINTGT_OT_add_proxy(ModelOperator, bpy.types.Operator):
     """Make a surface mesh of the model, UV-mapped into its atlas (paint it in 3-D), that the points follow
     (rig or simulate the proxy like any mesh)"""
     bl_idname = "pointgt.add_proxy"
@@ -118,9 +118,7 @@ class POINTGT_OT_add_proxy(bpy.types.Operator):
                                    description="Bind the points to the proxy with a Surface Deform modifier, "
                                                "so rigging the proxy poses the neural render")
 
-    @classmethod
-    def poll(cls, context):
-        return poll_model_unless(cls, context, not_object_mode)
+    poll_reason = staticmethod(not_object_mode)
 
     @reports_errors("Making a proxy for '{obj}'")
     def execute(self, context):

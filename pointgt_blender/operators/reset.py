@@ -7,7 +7,7 @@ from core.util.errors import InputError
 
 from ..scene.evaluated import read_points
 from .model_import import read_model
-from ..ui.properties import not_object_mode, poll_model_unless
+from ..ui.properties import ModelOperator, not_object_mode
 from .reporting import reports_errors
 
 DEFORM_MODIFIERS = {'ARMATURE', 'LATTICE', 'CAST', 'CURVE', 'DISPLACE', 'HOOK', 'LAPLACIANDEFORM', 'MESH_DEFORM',
@@ -45,7 +45,7 @@ def restore_positions(obj) -> int:
     return int(ids.size)
 
 
-class POINTGT_OT_reset_canonical(bpy.types.Operator):
+class POINTGT_OT_reset_canonical(ModelOperator, bpy.types.Operator):
     """Show the points in their canonical (unposed) positions"""
     bl_idname = "pointgt.reset_canonical"
     bl_label = "Reset to Canonical"
@@ -59,9 +59,7 @@ class POINTGT_OT_reset_canonical(bpy.types.Operator):
         name="Restore positions from model", default=False,
         description="Also reload the point positions from the .pgt file (undo edits made in Edit Mode)")
 
-    @classmethod
-    def poll(cls, context):
-        return poll_model_unless(cls, context, not_object_mode)
+    poll_reason = staticmethod(not_object_mode)
 
     @reports_errors("Resetting '{obj}'")
     def execute(self, context):

@@ -6,7 +6,7 @@ import numpy as np
 from core.util.errors import InputError
 
 from ..scene.evaluated import to_world
-from ..ui.properties import poll_active_model
+from ..ui.properties import ModelOperator
 from .reporting import reports_errors
 
 LATTICE_MODIFIER = "PointGT Lattice"
@@ -154,7 +154,7 @@ def _pick(context, name: str, kind: str, exclude):
     return None
 
 
-class POINTGT_OT_add_lattice(bpy.types.Operator):
+class POINTGT_OT_add_lattice(ModelOperator, bpy.types.Operator):
     """Add a Lattice around the points and deform them with it"""
     bl_idname = "pointgt.add_lattice"
     bl_label = "Add Lattice"
@@ -164,10 +164,6 @@ class POINTGT_OT_add_lattice(bpy.types.Operator):
     margin: bpy.props.FloatProperty(name="Margin", default=0.05, min=0.0, max=1.0,
                                     description="Extra room around the points, as a fraction of their size")
 
-    @classmethod
-    def poll(cls, context):
-        return poll_active_model(cls, context)
-
     @reports_errors("Adding a lattice to '{obj}'")
     def execute(self, context):
         obj = context.active_object
@@ -176,7 +172,7 @@ class POINTGT_OT_add_lattice(bpy.types.Operator):
         return {'FINISHED'}
 
 
-class POINTGT_OT_bind_armature(bpy.types.Operator):
+class POINTGT_OT_bind_armature(ModelOperator, bpy.types.Operator):
     """Deform the points with a selected Armature (bone envelopes, or weights from a selected proxy mesh)"""
     bl_idname = "pointgt.bind_armature"
     bl_label = "Bind to Armature"
@@ -188,10 +184,6 @@ class POINTGT_OT_bind_armature(bpy.types.Operator):
                ('PROXY', "From proxy mesh", "Copy vertex-group weights from the nearest vertex of a selected mesh")])
     armature: bpy.props.StringProperty(name="Armature", description="Armature object (default: the selected one)")
     proxy: bpy.props.StringProperty(name="Proxy", description="Weighted mesh (default: the selected one)")
-
-    @classmethod
-    def poll(cls, context):
-        return poll_active_model(cls, context)
 
     @reports_errors("Binding '{obj}'")
     def execute(self, context):

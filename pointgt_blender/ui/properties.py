@@ -92,6 +92,19 @@ def poll_model_unless(cls, context, reason) -> bool:
     return True
 
 
+class ModelOperator:
+    """Mixin for operators on the active PointGT model: poll() needs one, then asks `poll_reason(context)` for a
+    message when the operator cannot run now (the tooltip shows it), None when it can."""
+
+    @staticmethod
+    def poll_reason(context) -> str | None:
+        return None
+
+    @classmethod
+    def poll(cls, context):
+        return poll_model_unless(cls, context, cls.poll_reason)
+
+
 def not_object_mode(context) -> str | None:
     """A `poll_model_unless` reason: operators that change the mesh or its modifiers run in Object Mode."""
     return None if context.mode == 'OBJECT' else "Switch to Object Mode first"
