@@ -388,8 +388,9 @@ def _():
             return call
 
     make_active(obj())
-    fake = type("Fake", (), {"layout": Layout()})()
-    mod("ui.image_panel").POINTGT_PT_image.draw(fake, bpy.context)
+    panel = mod("ui.image_panel").POINTGT_PT_image
+    fake = type("Fake", (), {"layout": Layout(), "draw_body": panel.draw_body})()  # the panel's own methods
+    panel.draw(fake, bpy.context)
     return {"calls": calls}
 
 
