@@ -4,12 +4,17 @@ Registers without PyTorch: importing, rigging and exporting points need only Ble
 run the network check for torch in their poll(). When packaged (`pointgt package-addon`), `core` is vendored
 as a subpackage of this add-on and its imports are made relative; see docs/addon.md.
 
-Module layout (one job each): deps (torch detection, pip), preferences (status + install), properties
-(per-object settings), model_import, atlas_image, rig (lattice, armature), reset, evaluated (deformed points +
-checks), export, device_check, view3d_panel; session (the in-memory state, one clear()), handlers (every
-Blender handler and the UI timer), preview (coarse-to-fine preview jobs, paint transfer operators),
-render_engine (the "PointGT" engine), image_panel (Image Editor tab). Torch-only helpers, imported lazily:
-frame_renderer (model/state caches, compositing), scene_inputs, paint_transfer, camera.
+Package layout (one job per module; tests/pointgt_blender/test_addon_layers.py checks the import rules):
+- ui/: Blender classes the user sees: properties (per-object settings), preferences (status + install),
+  view3d_panel, image_panel (Image Editor tab).
+- operators/: the operators: model_import, proxy, rig, reset, export, device_check, preview (coarse-to-fine
+  preview jobs, paint transfer operators), reporting (their error decorator). No module-level torch.
+- render/: render_engine (the "PointGT" engine) and composite (Composite with Scene).
+- bridge/: the torch side, no bpy: deps (torch detection, pip), frame_renderer (model/state caches,
+  compositing), paint_transfer, checks.
+- scene/: reads and writes Blender data: evaluated (deformed points), scene_inputs, camera, proxy_mesh,
+  model_pack, atlas_image, session (the in-memory state, one clear()), handlers (every Blender handler and the
+  UI timer).
 """
 from __future__ import annotations
 
@@ -27,8 +32,9 @@ bl_info = {
     "category": "Render",
 }
 
-_MODULES = ("properties", "preferences", "model_import", "proxy", "rig", "reset", "export", "device_check", "view3d_panel",
-            "preview", "render_engine", "composite", "image_panel")
+_MODULES = ("ui.properties", "ui.preferences", "operators.model_import", "operators.proxy", "operators.rig",
+            "operators.reset", "operators.export", "operators.device_check", "ui.view3d_panel", "operators.preview",
+            "render.render_engine", "render.composite", "ui.image_panel")
 _registered: list = []
 
 
@@ -43,7 +49,10 @@ def register():
         for cls in getattr(mod, "CLASSES", ()):
             bpy.utils.register_class(cls)
             _registered.append(cls)
-    from . import handlers, model_import, preferences, properties, render_engine
+    from .scene import handlers
+    from .operators import model_import
+    from .ui import preferences, properties
+    from .render import render_engine
 
     properties.register_properties()
     model_import.register_menus()
@@ -55,7 +64,10 @@ def register():
 def unregister():
     import bpy
 
-    from . import handlers, model_import, preferences, properties, render_engine
+    from .scene import handlers
+    from .operators import model_import
+    from .ui import preferences, properties
+    from .render import render_engine
 
     handlers.unregister_handlers()
     render_engine.unregister_engine_panels()

@@ -43,7 +43,7 @@ def step(name):
 
 
 def evaluated(obj):
-    ev = importlib.import_module(PKG + ".evaluated")
+    ev = importlib.import_module(PKG + ".scene.evaluated")
     return ev.evaluated_points(obj, bpy.context.evaluated_depsgraph_get(), 'WORLD')
 
 
@@ -74,7 +74,7 @@ def _():
 
 @step("torch_missing")
 def _():
-    deps = importlib.import_module(PKG + ".deps")
+    deps = importlib.import_module(PKG + ".bridge.deps")
     st = deps.torch_status(refresh=True)
     return {"available": st.available, "message": st.message}
 
@@ -90,7 +90,7 @@ def _():
     co = np.empty(len(mesh.vertices) * 3, np.float32)
     mesh.vertices.foreach_get("co", co)
     img = obj.pointgt.atlas
-    atlas = importlib.import_module(PKG + ".atlas_image").read_atlas_image(img)
+    atlas = importlib.import_module(PKG + ".scene.atlas_image").read_atlas_image(img)
     attr = mesh.attributes["pointgt_id"]
     return {"result": sorted(res), "new_objects": len(bpy.data.objects) - before, "name": obj.name,
             "verts": len(mesh.vertices), "edges": len(mesh.edges), "faces": len(mesh.polygons),
@@ -108,7 +108,7 @@ def _():
     missing = op_error(bpy.ops.pointgt.import_model, filepath=os.path.join(work, "nope.pgt"))
     after = (len(bpy.data.objects), len(bpy.data.meshes), len(bpy.data.images))
     try:  # a failure half-way (here: a bad setting, after mesh, image and object exist) leaves nothing behind
-        importlib.import_module(PKG + ".model_import").import_model(bpy.context, model, correspondence="BAD")
+        importlib.import_module(PKG + ".operators.model_import").import_model(bpy.context, model, correspondence="BAD")
         late = ""
     except Exception as exc:
         late = f"{type(exc).__name__}: {exc}"
@@ -168,7 +168,7 @@ def _():
     bpy.context.view_layer.update()
     posed, _ = evaluated(obj)
     R["_arm"] = arm.name
-    cover = importlib.import_module(PKG + ".rig").envelope_coverage(obj, arm)
+    cover = importlib.import_module(PKG + ".operators.rig").envelope_coverage(obj, arm)
     move = np.abs(posed - rest).max(axis=1)
     return {"max_move": float(np.abs(posed - rest).max()), "finite": bool(np.isfinite(posed).all()),
             "uncovered": int((cover <= 0).sum()), "uncovered_move": float(move[cover <= 0].max(initial=0.0)),
@@ -232,7 +232,7 @@ def _():
     obj.data.attributes.remove(obj.data.attributes["pointgt_id"])
     obj.data.vertices.add(3)
     obj.data.update()
-    ev = importlib.import_module(PKG + ".evaluated")
+    ev = importlib.import_module(PKG + ".scene.evaluated")
     try:
         ev.evaluated_points(obj, bpy.context.evaluated_depsgraph_get())
         direct = ""
@@ -266,7 +266,7 @@ def _():
     bpy.ops.wm.save_as_mainfile(filepath=path)
     bpy.ops.wm.open_mainfile(filepath=path)
     obj = bpy.data.objects[name]
-    atlas = importlib.import_module(PKG + ".atlas_image").read_atlas_image(obj.pointgt.atlas)
+    atlas = importlib.import_module(PKG + ".scene.atlas_image").read_atlas_image(obj.pointgt.atlas)
     return {"atlas": atlas.tolist(), "k": obj.pointgt.neighbors, "model_path": obj.pointgt.model_path,
             "resolved": os.path.samefile(bpy.path.abspath(obj.pointgt.model_path), model)}
 
@@ -290,9 +290,9 @@ class Layout:
 
 @step("draw_ui")
 def _():
-    prefs = importlib.import_module(PKG + ".preferences")
-    panel = importlib.import_module(PKG + ".view3d_panel").POINTGT_PT_main
-    fake = type("Fake", (), {"layout": Layout()})()
+    prefs = importlib.import_module(PKG + ".ui.preferences")
+    panel = importlib.import_module(PKG + ".ui.view3d_panel").POINTGT_PT_main
+    fake = type("Fake", (), {"layout": Layout(), "draw_body": panel.draw_body})()  # the panel's own methods
     bpy.context.view_layer.objects.active = None
     panel.draw(fake, bpy.context)
     no_model = list(Layout.calls)
@@ -346,7 +346,7 @@ def _():
 
 @step("envelope_outside")
 def _():
-    rig = importlib.import_module(PKG + ".rig")
+    rig = importlib.import_module(PKG + ".operators.rig")
     bpy.ops.pointgt.import_model(filepath=model)
     obj = bpy.context.active_object
     bpy.ops.object.armature_add(location=(10.0, 0.0, 0.0))  # far away: no point inside its envelope
@@ -366,7 +366,7 @@ def _():
     res = bpy.ops.pointgt.install_torch(synchronous=True, requirement="pointgt-probe", index_url="",
                                         find_links=wheels)
     probe = importlib.import_module("pointgt_probe")
-    site = importlib.import_module(PKG + ".preferences").user_site_dir(create=False)
+    site = importlib.import_module(PKG + ".ui.preferences").user_site_dir(create=False)
     return {"result": sorted(res), "value": probe.VALUE, "in_site": probe.__file__.startswith(site)}
 
 

@@ -1,5 +1,5 @@
 """Run with the Python that has bpy: `python camera_shift_session.py -- REPO`. Projects points through the add-on's
-camera (pointgt_blender/camera.py -> core Intrinsics -> core.images.cameras.project_points) and through Blender's
+camera (pointgt_blender/scene/camera.py -> core Intrinsics -> core.images.cameras.project_points) and through Blender's
 own `world_to_camera_view` for shifted lenses, sensor fits and non-square renders; prints RESULTS: <json>."""
 import json
 import sys
@@ -14,7 +14,7 @@ from bpy_extras.object_utils import world_to_camera_view  # noqa: E402
 from mathutils import Vector  # noqa: E402
 
 from core.images.cameras import project_points  # noqa: E402
-from pointgt_blender.camera import scene_camera  # noqa: E402
+from pointgt_blender.scene.camera import scene_camera  # noqa: E402
 
 bpy.ops.wm.read_factory_settings(use_empty=True)
 scene = bpy.context.scene
@@ -41,7 +41,7 @@ for w, h, fit, sx, sy in cases:
     out.append({"case": [w, h, fit, sx, sy], "max_px_err": err, "kind": type(focal).__name__})
 # a dataset camera (off-centre principal point) -> Blender settings -> the add-on's camera: the same intrinsics
 from core.images.cameras import Intrinsics  # noqa: E402
-from pointgt_blender.camera import camera_settings  # noqa: E402
+from pointgt_blender.scene.camera import camera_settings  # noqa: E402
 
 for w, h, k in [(64, 48, Intrinsics(70.0, 70.0, 29.5, 26.0)), (40, 72, Intrinsics(55.0, 55.0, 21.0, 33.5))]:
     scene.render.resolution_x, scene.render.resolution_y = w, h

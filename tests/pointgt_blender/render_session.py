@@ -70,7 +70,7 @@ def render_error(**kw):
 
 def project(points, scene):
     """World points [N, 3] -> pixel (col, row) [N, 2] in the scene camera's W x H render."""
-    c2w, focal = mod("camera").scene_camera(scene, W, H)
+    c2w, focal = mod("scene.camera").scene_camera(scene, W, H)
     cam = (points - c2w[:3, 3]) @ c2w[:3, :3]
     return np.stack([focal * cam[:, 0] / -cam[:, 2] + W / 2, -focal * cam[:, 1] / -cam[:, 2] + H / 2], axis=1)
 
@@ -113,14 +113,14 @@ def _():
 
 @step("torch_missing")
 def _():
-    prev = mod("preview")
+    prev = mod("operators.preview")
     done = prev.update_previews(bpy.context.scene)
     err = render_error(write_still=False)
     return {"status": prev.status(obj()), "done": done, "render_error": err, "torch_loaded": "torch" in sys.modules}
 
 
 sys.meta_path.remove(BLOCKER)
-importlib.import_module(PKG + ".deps").torch_status(refresh=True)
+importlib.import_module(PKG + ".bridge.deps").torch_status(refresh=True)
 
 
 @step("rig")
@@ -159,7 +159,7 @@ def patch_ids():
 @step("paint_atlas")
 def _():
     img = obj().pointgt.atlas
-    atlas_image = mod("atlas_image")
+    atlas_image = mod("scene.atlas_image")
     atlas = atlas_image.read_atlas_image(img)
     mask = np.load(patch_path)
     atlas[mask] = (1.0, 0.0, 0.0)  # a red disc, written as pixels (strokes segfault in the module build)
@@ -176,7 +176,7 @@ def _():
     ids = patch_ids()
     expect = {}
     dg = bpy.context.evaluated_depsgraph_get()
-    ev = mod("evaluated")
+    ev = mod("scene.evaluated")
     for f in (1, 2, 3):
         scene.frame_set(f)
         pos, pid = ev.evaluated_points(obj(), dg)
@@ -184,14 +184,14 @@ def _():
         expect[f] = project(centre[None], scene)[0].tolist()
     scene.frame_set(1)
     files = sorted(os.listdir(os.path.join(work, "anim")))
-    return {"files": files, "expect": expect, "n_ids": int(len(ids)), "last": mod("render_engine").LAST.get("stats")}
+    return {"files": files, "expect": expect, "n_ids": int(len(ids)), "last": mod("render.render_engine").LAST.get("stats")}
 
 
 @step("live_preview")
 def _():
     scene = bpy.context.scene
-    prev = mod("preview")
-    fr = mod("frame_renderer")
+    prev = mod("operators.preview")
+    fr = mod("bridge.frame_renderer")
     counts = {}
     scene.frame_set(2)  # frame_change_post asks for a preview; the idle timer's slices render it
     prev.run_pending()
@@ -235,23 +235,23 @@ def _():
 @step("paint_preview")
 def _():
     scene = bpy.context.scene
-    prev = mod("preview")
+    prev = mod("operators.preview")
     scene.frame_set(1)
     make_active(obj())
     bpy.ops.pointgt.refresh_preview()
     img = obj().pointgt.preview_image
-    atlas_before = mod("atlas_image").read_atlas_image(obj().pointgt.atlas)
+    atlas_before = mod("scene.atlas_image").read_atlas_image(obj().pointgt.atlas)
     rec = prev._RECORDS["card"]
     rgb = rec.rendered.copy()
     r0, c0, size = 20, 16, 6  # a square on the card's left half (row 0 = top)
     rgb[r0:r0 + size, c0:c0 + size] = (0.1, 0.9, 0.1)
-    img.pixels.foreach_set(mod("atlas_image").atlas_to_pixels(rgb))
+    img.pixels.foreach_set(mod("scene.atlas_image").atlas_to_pixels(rgb))
     img.update()
     res = bpy.ops.pointgt.transfer_paint()
-    atlas_after = mod("atlas_image").read_atlas_image(obj().pointgt.atlas)
+    atlas_after = mod("scene.atlas_image").read_atlas_image(obj().pointgt.atlas)
     changed = np.linalg.norm(atlas_after - atlas_before, axis=-1) > 0.05
     # where is that square on the surface? the camera ray through its centre meets the card plane z = 0
-    c2w, focal = mod("camera").scene_camera(scene, W, H)
+    c2w, focal = mod("scene.camera").scene_camera(scene, W, H)
     px = np.array([c0 + size / 2, r0 + size / 2])
     d = c2w[:3, :3] @ np.array([(px[0] - W / 2) / focal, -(px[1] - H / 2) / focal, -1.0])
     o = c2w[:3, 3]
@@ -273,15 +273,15 @@ def _():
     bpy.ops.pointgt.refresh_preview()
     rgb = prev._RECORDS["card"].rendered.copy()
     rgb[24:28, 40:44] = (0.9, 0.9, 0.0)
-    img.pixels.foreach_set(mod("atlas_image").atlas_to_pixels(rgb))
+    img.pixels.foreach_set(mod("scene.atlas_image").atlas_to_pixels(rgb))
     img.update()
-    before_auto = mod("atlas_image").read_atlas_image(obj().pointgt.atlas)
+    before_auto = mod("scene.atlas_image").read_atlas_image(obj().pointgt.atlas)
     prev.tick()  # one tick of the UI timer: it finds the paint (headless, timers never fire by themselves)
     prev.run_pending()  # and the slices that follow transfer it
-    after_auto = mod("atlas_image").read_atlas_image(obj().pointgt.atlas)
+    after_auto = mod("scene.atlas_image").read_atlas_image(obj().pointgt.atlas)
     auto_changed = int((np.linalg.norm(after_auto - before_auto, axis=-1) > 0.05).sum())
     # undo the yellow square so the rest of the session sees only the red and green patches
-    obj().pointgt.atlas.pixels.foreach_set(mod("atlas_image").atlas_to_pixels(before_auto))
+    obj().pointgt.atlas.pixels.foreach_set(mod("scene.atlas_image").atlas_to_pixels(before_auto))
     obj().pointgt.atlas.update()
     return {"result": sorted(res), "changed_texels": int(changed.sum()), "green_pct": green_pct,
             "point": point.tolist(), "expect": expect, "auto_changed": auto_changed, "status": prev.status(obj())}
@@ -302,7 +302,7 @@ def _():
 @step("errors")
 def _():
     scene = bpy.context.scene
-    prev = mod("preview")
+    prev = mod("operators.preview")
     out = {}
     o = obj()
     scene.render.filepath = os.path.join(work, "err", "f_")
@@ -388,8 +388,9 @@ def _():
             return call
 
     make_active(obj())
-    fake = type("Fake", (), {"layout": Layout()})()
-    mod("image_panel").POINTGT_PT_image.draw(fake, bpy.context)
+    panel = mod("ui.image_panel").POINTGT_PT_image
+    fake = type("Fake", (), {"layout": Layout(), "draw_body": panel.draw_body})()  # the panel's own methods
+    panel.draw(fake, bpy.context)
     return {"calls": calls}
 
 

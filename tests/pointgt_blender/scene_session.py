@@ -52,7 +52,7 @@ def raw(image):
 def settle():
     """What the UI would do between events: the depsgraph update (handlers), then idle time for the preview."""
     bpy.context.view_layer.update()
-    prev = mod("preview")
+    prev = mod("operators.preview")
     if hasattr(prev, "run_pending"):
         prev.run_pending()
 
@@ -80,7 +80,7 @@ def _():
     r.resolution_x, r.resolution_y, r.resolution_percentage = W, H, 100
     res = bpy.ops.pointgt.import_model(filepath=model, preview_resolution=W)
     bpy.context.active_object.name = "card"
-    mod("preview").update_previews(scene, force=True)
+    mod("operators.preview").update_previews(scene, force=True)
     settle()
     return {"import": sorted(res), "preview": obj().pointgt.preview_image.name}
 
@@ -88,7 +88,7 @@ def _():
 @step("nonblocking")
 def _():
     scene = bpy.context.scene
-    prev = mod("preview")
+    prev = mod("operators.preview")
     S = prev.S
     o = obj()
     o.pointgt.preview_resolution = 128  # levels 128x96 <- 64x48
@@ -150,7 +150,7 @@ def _():
 @step("duplicates")
 def _():
     scene = bpy.context.scene
-    prev = mod("preview")
+    prev = mod("operators.preview")
     atlas = obj().pointgt.atlas
     before = raw(atlas)
     rendered0 = prev.COUNTS["rendered"]
@@ -216,7 +216,7 @@ def render_still(path, engine='POINTGT'):
 @step("warnings")
 def _():
     scene = bpy.context.scene
-    prev = mod("preview")
+    prev = mod("operators.preview")
     out = {}
     # a model that renders blank warns on import
     bpy.ops.pointgt.import_model(filepath=blank_model, preview_resolution=W)
@@ -245,7 +245,7 @@ def _():
     settle()
     out["off_camera"] = prev.status(obj())
     render_still(os.path.join(work, "off.png"))
-    out["off_camera_render"] = mod("render_engine").LAST.get("warning", "")
+    out["off_camera_render"] = mod("render.render_engine").LAST.get("warning", "")
     obj().location.x = 0.0
     settle()
     out["back"] = prev.status(obj())
@@ -269,7 +269,7 @@ def _():
     try:
         bpy.ops.wm.open_mainfile(filepath=blend)
         render_still(os.path.join(work, "after.png"))
-        out["error_after"] = mod("render_engine").LAST.get("error", "")
+        out["error_after"] = mod("render.render_engine").LAST.get("error", "")
     finally:
         os.rename(moved, model)
     # Unpack Model writes the packed bytes out and points the object at the file
@@ -318,7 +318,7 @@ def paint_through_uvs(proxy, image, centre, radius, colour):
 
 
 def project(points):
-    c2w, focal = mod("camera").scene_camera(bpy.context.scene, W, H)
+    c2w, focal = mod("scene.camera").scene_camera(bpy.context.scene, W, H)
     cam = (np.asarray(points) - c2w[:3, 3]) @ c2w[:3, :3]
     return np.stack([focal * cam[:, 0] / -cam[:, 2] + W / 2, -focal * cam[:, 1] / -cam[:, 2] + H / 2], axis=1)
 
@@ -388,7 +388,7 @@ def _():
     # 90 degrees: the points follow the proxy's heat weights (right half turned rigidly, left half still)
     pb.rotation_euler = (0.0, 0.0, math.radians(90.0))
     bpy.context.view_layer.update()
-    pos, ids = mod("evaluated").evaluated_points(o, bpy.context.evaluated_depsgraph_get())
+    pos, ids = mod("scene.evaluated").evaluated_points(o, bpy.context.evaluated_depsgraph_get())
     rest = np.empty(len(o.data.vertices) * 3, np.float32)
     o.data.vertices.foreach_get("co", rest)
     rest = rest.reshape(-1, 3)[ids]
@@ -408,7 +408,7 @@ def _():
     rgb = read_png(render_still(os.path.join(work, "proxy_posed.png")))
     out["posed"] = centroid(rgb, (1.0, 0.0, 0.0))
     out["posed_expect"] = project(turn(centre[None], 45.0))[0].tolist()
-    out["error"] = mod("render_engine").LAST.get("error", "")
+    out["error"] = mod("render.render_engine").LAST.get("error", "")
     return out
 
 
@@ -447,7 +447,7 @@ def _():
     scene.cycles.use_denoising = False
     scene.view_settings.view_transform = 'Standard'
     rgb = read_png(render_still(os.path.join(work, "composite.png"), engine=None))
-    layer = mod("composite").bpy.data.images["PointGT layer"]
+    layer = mod("render.composite").bpy.data.images["PointGT layer"]
     lay = np.empty(W * H * 4, np.float32)
     layer.pixels.foreach_get(lay)
     lay = lay.reshape(H, W, 4)[::-1]  # straight scene-linear RGBA, row 0 = top
@@ -455,7 +455,7 @@ def _():
     alone = read_png(render_still(os.path.join(work, "scene_only.png"), engine=None))
     scene.render.use_compositing = True
     # which pixels see what: rays through pixel centres against the card (z = 0), the floor and the sun
-    c2w, focal = mod("camera").scene_camera(scene, W, H)
+    c2w, focal = mod("scene.camera").scene_camera(scene, W, H)
     rows, cols = np.mgrid[0:H, 0:W] + 0.5
     d = np.stack([(cols - W / 2) / focal, -(rows - H / 2) / focal, -np.ones_like(cols)], -1) @ c2w[:3, :3].T
     eye = c2w[:3, 3]
@@ -487,7 +487,7 @@ def _():
     away = on_card & ~((cols > bx0 - 2) & (cols < bx1 + 2) & (rows > by0 - 2) & (rows < by1 + 2))
     away &= (card_hit[..., 0] > -0.75) & (card_hit[..., 0] < -0.1) & (np.abs(card_hit[..., 1]) < 0.35)  # left half
     out["card_px"] = int(away.sum())
-    ai = mod("atlas_image")
+    ai = mod("scene.atlas_image")
     a = lay[..., 3:4]
     expect = ai.linear_to_srgb(lay[..., :3] * a + ai.srgb_to_linear(alone) * (1.0 - a))  # the layer over the scene
     out["card_diff"] = float(np.abs(rgb[away] - expect[away]).mean())

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from core.util.errors import InputError
-from pointgt_blender import atlas_image as ai
+from pointgt_blender.scene import atlas_image as ai
 
 
 def _reference_srgb_to_linear(c):

@@ -1,4 +1,4 @@
-"""Blender camera -> pinhole camera maths (pointgt_blender/camera.py), without Blender."""
+"""Blender camera -> pinhole camera maths (pointgt_blender/scene/camera.py), without Blender."""
 import math
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 
 from core.images.cameras import focal_from_fov
 from core.util.errors import InputError
-from pointgt_blender.camera import camera_to_world, focal_pixels, preview_size, render_size
+from pointgt_blender.scene.camera import camera_to_world, focal_pixels, preview_size, render_size
 
 
 def test_render_size_follows_percentage():

@@ -11,7 +11,7 @@ import pytest
 
 from core.images.cameras import Intrinsics
 from core.util.errors import InputError
-from pointgt_blender.camera import camera_settings, principal_point
+from pointgt_blender.scene.camera import camera_settings, principal_point
 
 SESSION = Path(__file__).with_name("camera_shift_session.py")
 REPO = Path(__file__).resolve().parents[2]

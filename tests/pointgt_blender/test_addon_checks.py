@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pointgt_blender.checks import extent, in_view, pose_warning
+from pointgt_blender.bridge.checks import extent, in_view, pose_warning
 
 C2W = np.eye(4, dtype=np.float32)
 C2W[2, 3] = 3.0  # at z = 3 looking down -Z at the origin

@@ -4,7 +4,7 @@ from __future__ import annotations
 import sys
 import sysconfig
 
-from pointgt_blender import deps
+from pointgt_blender.bridge import deps
 
 
 def test_pip_command_installs_pinned_cpu_torch_into_target_with_blenders_python(tmp_path):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from core.util.errors import InputError
-from pointgt_blender.evaluated import check_points, to_world
+from pointgt_blender.scene.evaluated import check_points, to_world
 
 
 def test_missing_ids_with_same_count_become_identity():

@@ -1,9 +1,9 @@
-"""Compositing and caches of pointgt_blender/frame_renderer.py, against plain references (no Blender)."""
+"""Compositing and caches of pointgt_blender/bridge/frame_renderer.py, against plain references (no Blender)."""
 import numpy as np
 import pytest
 
 from core.util.errors import InputError, ModelFileError
-from pointgt_blender.frame_renderer import ModelCache, ObjectInputs, StateCache, composite
+from pointgt_blender.bridge.frame_renderer import ModelCache, ObjectInputs, StateCache, composite
 
 
 def _layers(rng, n=3, h=5, w=4):
@@ -58,7 +58,7 @@ def _inputs(pos, atlas=None):
 
 
 def test_state_cache_rebuilds_only_when_inputs_change(monkeypatch):
-    import pointgt_blender.frame_renderer as fr
+    import pointgt_blender.bridge.frame_renderer as fr
 
     built = []
     monkeypatch.setattr(fr, "EditState", lambda *a, **k: built.append(1) or object())
@@ -77,7 +77,7 @@ def test_state_cache_rebuilds_only_when_inputs_change(monkeypatch):
 
 def test_prepare_passes_the_objects_antialias_setting(monkeypatch):
     """The object's Anti-aliasing setting reaches EditConfig; changing it rebuilds the state (a new preview)."""
-    import pointgt_blender.frame_renderer as fr
+    import pointgt_blender.bridge.frame_renderer as fr
 
     bundle = type("B", (), {"model": type("M", (), {"num_points": 4, "cfg": type("C", (), {"k": 8})()})(),
                             "atlas": None})()
@@ -94,7 +94,7 @@ def test_prepare_passes_the_objects_antialias_setting(monkeypatch):
 
 
 def test_model_cache_reloads_changed_files_and_names_missing_ones(tmp_path, monkeypatch):
-    import pointgt_blender.frame_renderer as fr
+    import pointgt_blender.bridge.frame_renderer as fr
 
     loads = []
     monkeypatch.setattr(fr, "load_bundle", lambda path, device: loads.append(path) or object())
@@ -113,7 +113,7 @@ def test_decoder_layer_composites_like_the_render_over_white():
     """A UNet model's layer is premultiplied over black (no trained-white fringe): composited over white it is
     the frame rendered over white, over black its empty pixels are black, transparent gives the mask as alpha."""
     from core.frames.edited import EditConfig, EditState, render_edited
-    from pointgt_blender.frame_renderer import render_layer
+    from pointgt_blender.bridge.frame_renderer import render_layer
     from tests.helpers.tiny import tiny_bundle
 
     bundle, _, test = tiny_bundle("card", steps=400, decoder="unet")

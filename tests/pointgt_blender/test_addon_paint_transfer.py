@@ -1,11 +1,11 @@
-"""Preview paint -> atlas texels (pointgt_blender/paint_transfer.py) with a small real Atlas, no Blender."""
+"""Preview paint -> atlas texels (pointgt_blender/bridge/paint_transfer.py) with a small real Atlas, no Blender."""
 import numpy as np
 import pytest
 import torch
 
 from core.atlas.atlas import Atlas
 from core.util.errors import InputError
-from pointgt_blender.paint_transfer import painted_pixels, transfer
+from pointgt_blender.bridge.paint_transfer import painted_pixels, transfer
 
 H, W = 12, 16
 

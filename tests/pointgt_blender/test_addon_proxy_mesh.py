@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.util.errors import InputError
-from pointgt_blender.proxy_mesh import proxy_arrays
+from pointgt_blender.scene.proxy_mesh import proxy_arrays
 
 
 def _texel_map(R=16, pad=2, charts=(0, 1)):

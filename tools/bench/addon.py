@@ -27,7 +27,7 @@ def main(argv=None) -> int:
 
     import pointgt_blender
     from core.modelfile.pgt import save_pgt
-    from pointgt_blender.evaluated import evaluated_points
+    from pointgt_blender.scene.evaluated import evaluated_points
 
     rng = np.random.default_rng(0)
     tmp = Path(tempfile.mkdtemp(prefix="pointgt-bench-addon-"))

@@ -15,8 +15,9 @@ import numpy as np
 
 from core.util.errors import InputError, PointGTError
 
-from . import atlas_image, checks, deps
-from .properties import is_pointgt_object
+from ..scene import atlas_image
+from ..bridge import checks, deps
+from ..ui.properties import is_pointgt_object
 
 LAST: dict = {}  # the last render's warnings / error / stats (read by tests and the panel)
 
@@ -34,8 +35,9 @@ def render_objects(depsgraph) -> list:
 def render_pixels(depsgraph, width: int, height: int, progress=None, cancelled=None) -> np.ndarray | None:
     """RGBA float32 [H*W*4] scene-linear, rows bottom-up (Blender's pass layout) of one frame, or None when
     cancelled. Raises PointGTError."""
-    from . import frame_renderer, scene_inputs
-    from .camera import scene_camera
+    from ..bridge import frame_renderer
+    from ..scene import scene_inputs
+    from ..scene.camera import scene_camera
 
     scene = depsgraph.scene
     objs = render_objects(depsgraph)
@@ -84,7 +86,7 @@ class PointGTRenderEngine(bpy.types.RenderEngine):
             st = deps.torch_status()
             if not st.available:
                 raise InputError(st.message)
-            from . import scene_inputs
+            from ..scene import scene_inputs
 
             if scene.pointgt.composite and scene.render.use_compositing:
                 raise InputError("Composite with Scene is set up: render with Cycles or EEVEE (they render the "

@@ -3,10 +3,11 @@ weights transferred from a proxy mesh). Points have no faces, so automatic (heat
 import bpy
 import numpy as np
 
-from core.util.errors import InputError, PointGTError
+from core.util.errors import InputError
 
-from .evaluated import to_world
-from .properties import poll_active_model
+from ..scene.evaluated import to_world
+from ..ui.properties import ModelOperator
+from .reporting import reports_errors
 
 LATTICE_MODIFIER = "PointGT Lattice"
 ARMATURE_MODIFIER = "PointGT Armature"
@@ -153,7 +154,7 @@ def _pick(context, name: str, kind: str, exclude):
     return None
 
 
-class POINTGT_OT_add_lattice(bpy.types.Operator):
+class POINTGT_OT_add_lattice(ModelOperator, bpy.types.Operator):
     """Add a Lattice around the points and deform them with it"""
     bl_idname = "pointgt.add_lattice"
     bl_label = "Add Lattice"
@@ -163,22 +164,15 @@ class POINTGT_OT_add_lattice(bpy.types.Operator):
     margin: bpy.props.FloatProperty(name="Margin", default=0.05, min=0.0, max=1.0,
                                     description="Extra room around the points, as a fraction of their size")
 
-    @classmethod
-    def poll(cls, context):
-        return poll_active_model(cls, context)
-
+    @reports_errors("Adding a lattice to '{obj}'")
     def execute(self, context):
         obj = context.active_object
-        try:
-            lat = add_lattice(context, obj, tuple(self.resolution), self.margin)
-        except Exception as exc:
-            self.report({'ERROR'}, f"Adding a lattice to '{obj.name}' failed: {exc}")
-            return {'CANCELLED'}
+        lat = add_lattice(context, obj, tuple(self.resolution), self.margin)
         self.report({'INFO'}, f"Added lattice '{lat.name}' around '{obj.name}'")
         return {'FINISHED'}
 
 
-class POINTGT_OT_bind_armature(bpy.types.Operator):
+class POINTGT_OT_bind_armature(ModelOperator, bpy.types.Operator):
     """Deform the points with a selected Armature (bone envelopes, or weights from a selected proxy mesh)"""
     bl_idname = "pointgt.bind_armature"
     bl_label = "Bind to Armature"
@@ -191,40 +185,30 @@ class POINTGT_OT_bind_armature(bpy.types.Operator):
     armature: bpy.props.StringProperty(name="Armature", description="Armature object (default: the selected one)")
     proxy: bpy.props.StringProperty(name="Proxy", description="Weighted mesh (default: the selected one)")
 
-    @classmethod
-    def poll(cls, context):
-        return poll_active_model(cls, context)
-
+    @reports_errors("Binding '{obj}'")
     def execute(self, context):
         obj = context.active_object
-        try:
-            arm = _pick(context, self.armature, 'ARMATURE', obj)
-            if arm is None or arm.type != 'ARMATURE':
-                raise InputError("select an Armature as well as the points (the points active)")
-            if self.mode == 'ENVELOPE':
-                outside = bind_envelopes(obj, arm)
-                if outside:
-                    self.report({'WARNING'}, f"{outside} of {len(obj.data.vertices)} points are outside every bone "
-                                             f"envelope and will not move; scale the envelopes or use a proxy mesh")
-                else:
-                    self.report({'INFO'}, f"Bound '{obj.name}' to '{arm.name}' with bone envelopes")
+        arm = _pick(context, self.armature, 'ARMATURE', obj)
+        if arm is None or arm.type != 'ARMATURE':
+            raise InputError("select an Armature as well as the points (the points active)")
+        if self.mode == 'ENVELOPE':
+            outside = bind_envelopes(obj, arm)
+            if outside:
+                self.report({'WARNING'}, f"{outside} of {len(obj.data.vertices)} points are outside every bone "
+                                         f"envelope and will not move; scale the envelopes or use a proxy mesh")
             else:
-                proxy = _pick(context, self.proxy, 'MESH', obj)
-                if proxy is None:
-                    raise InputError("select a mesh with vertex groups as the proxy (the points active)")
-                n = bind_from_proxy(context, obj, arm, proxy)
-                still = unweighted_points(obj, arm)
-                if still:
-                    self.report({'WARNING'}, f"{still} of {len(obj.data.vertices)} points got no bone weight from "
-                                             f"'{proxy.name}' and will not move; weight the proxy where they are")
-                else:
-                    self.report({'INFO'}, f"Bound '{obj.name}' to '{arm.name}' with {n} groups from '{proxy.name}'")
-        except PointGTError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
-        except Exception as exc:
-            self.report({'ERROR'}, f"Binding '{obj.name}' failed: {type(exc).__name__}: {exc}")
-            return {'CANCELLED'}
+                self.report({'INFO'}, f"Bound '{obj.name}' to '{arm.name}' with bone envelopes")
+        else:
+            proxy = _pick(context, self.proxy, 'MESH', obj)
+            if proxy is None:
+                raise InputError("select a mesh with vertex groups as the proxy (the points active)")
+            n = bind_from_proxy(context, obj, arm, proxy)
+            still = unweighted_points(obj, arm)
+            if still:
+                self.report({'WARNING'}, f"{still} of {len(obj.data.vertices)} points got no bone weight from "
+                                         f"'{proxy.name}' and will not move; weight the proxy where they are")
+            else:
+                self.report({'INFO'}, f"Bound '{obj.name}' to '{arm.name}' with {n} groups from '{proxy.name}'")
         return {'FINISHED'}
 
 

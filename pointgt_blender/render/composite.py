@@ -16,9 +16,9 @@ import numpy as np
 
 from core.util.errors import InputError
 
-from . import atlas_image
-from .camera import render_size
-from .reporting import reports_errors
+from ..scene import atlas_image
+from ..scene.camera import render_size
+from ..operators.reporting import reports_errors
 
 LAYER = "PointGT layer"
 DEPTH = "PointGT depth"
@@ -40,8 +40,9 @@ def _image(name: str, width: int, height: int, data: bool):
 def layer_arrays(depsgraph, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """The PointGT layer of a frame: straight scene-linear RGBA [H, W, 4] and planar depth [H, W] (FAR where no
     model), rows top-down. Raises PointGTError."""
-    from . import frame_renderer, scene_inputs
-    from .camera import scene_camera
+    from ..bridge import frame_renderer
+    from ..scene import scene_inputs
+    from ..scene.camera import scene_camera
     from .render_engine import render_objects
 
     scene = depsgraph.scene

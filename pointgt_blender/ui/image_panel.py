@@ -2,8 +2,8 @@
 Texture Paint), preview settings, re-render, transfer of preview paint, and Render Animation."""
 import bpy
 
-from . import preview
-from .preferences import draw_dependency_status
+from ..operators import preview
+from .preferences import SidebarPanel
 from .properties import NO_ACTIVE_MODEL, is_pointgt_object
 
 
@@ -79,16 +79,11 @@ class POINTGT_OT_open_preview(_ImageEditorOp, bpy.types.Operator):
         return {'FINISHED'}
 
 
-class POINTGT_PT_image(bpy.types.Panel):
-    bl_label = "PointGT"
+class POINTGT_PT_image(SidebarPanel, bpy.types.Panel):
     bl_idname = "POINTGT_PT_image"
     bl_space_type = 'IMAGE_EDITOR'
-    bl_region_type = 'UI'
-    bl_category = "PointGT"
 
-    def draw(self, context):
-        layout = self.layout
-        draw_dependency_status(layout)
+    def draw_body(self, context, layout):
         obj = panel_object(context)
         if obj is None:
             layout.label(text="Select an imported model", icon='INFO')

@@ -81,7 +81,7 @@ def unpack(obj, filepath: str) -> str:
         raise InputError(f"{path}: choose a file name ending in .pgt")
     os.makedirs(os.path.dirname(os.path.abspath(path)) or ".", exist_ok=True)
     atomic_write_bytes(path, data, backup=True)
-    from .model_import import stored_path
+    from ..operators.model_import import stored_path
 
     for other in bpy.data.objects:
         s = getattr(other, "pointgt", None)

@@ -13,7 +13,8 @@ import time
 
 import bpy
 
-from . import atlas_image, model_import, preview
+from . import atlas_image
+from ..operators import model_import, preview
 from .session import SESSION
 
 FIRST_TICK = 0.05  # after a change, the timer looks again this soon (seconds)
@@ -101,7 +102,8 @@ def on_render_pre(scene, *_args):
     """render_pre: with Composite with Scene on and another engine rendering, the PointGT layer of this frame."""
     if scene is None or not scene.pointgt.composite or scene.render.engine == 'POINTGT':
         return
-    from . import composite, deps
+    from ..render import composite
+    from ..bridge import deps
 
     st = deps.torch_status()
     if not st.available:

@@ -1,7 +1,7 @@
 """Per-object PointGT settings (`object.pointgt`): where the model lives and how to preview/render it."""
 import bpy
 
-from .evaluated import ID_ATTRIBUTE
+from ..scene.evaluated import ID_ATTRIBUTE
 
 
 # Blender 5 warns about '//' paths in string properties that do not declare support for them.
@@ -78,6 +78,36 @@ def poll_active_model(cls, context) -> bool:
         return True
     cls.poll_message_set(NO_ACTIVE_MODEL)
     return False
+
+
+def poll_model_unless(cls, context, reason) -> bool:
+    """Operator poll: the active object is an imported PointGT model and `reason(context)` finds nothing against
+    running (returns None or ""); else its message (or NO_ACTIVE_MODEL) becomes the tooltip."""
+    if not poll_active_model(cls, context):
+        return False
+    why = reason(context)
+    if why:
+        cls.poll_message_set(why)
+        return False
+    return True
+
+
+class ModelOperator:
+    """Mixin for operators on the active PointGT model: poll() needs one, then asks `poll_reason(context)` for a
+    message when the operator cannot run now (the tooltip shows it), None when it can."""
+
+    @staticmethod
+    def poll_reason(context) -> str | None:
+        return None
+
+    @classmethod
+    def poll(cls, context):
+        return poll_model_unless(cls, context, cls.poll_reason)
+
+
+def not_object_mode(context) -> str | None:
+    """A `poll_model_unless` reason: operators that change the mesh or its modifiers run in Object Mode."""
+    return None if context.mode == 'OBJECT' else "Switch to Object Mode first"
 
 
 CLASSES = (PointGTObjectSettings, PointGTSceneSettings)

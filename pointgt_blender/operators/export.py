@@ -8,8 +8,8 @@ from bpy_extras.io_utils import ExportHelper
 
 from core.util.atomic import atomic_write_bytes
 
-from .evaluated import evaluated_points
-from .properties import poll_active_model
+from ..scene.evaluated import evaluated_points
+from ..ui.properties import ModelOperator
 from .reporting import reports_errors
 
 
@@ -36,7 +36,7 @@ def export_deformed(obj, depsgraph, filepath: str, space: str = 'WORLD') -> tupl
     return p_path, i_path, int(pos.shape[0])
 
 
-class POINTGT_OT_export_deformed(bpy.types.Operator, ExportHelper):
+class POINTGT_OT_export_deformed(ModelOperator, bpy.types.Operator, ExportHelper):
     """Save the deformed points of this frame as <name>_positions.npy [M,3] float32 and <name>_ids.npy [M] int64"""
     bl_idname = "pointgt.export_deformed"
     bl_label = "Export Deformed Points"
@@ -47,10 +47,6 @@ class POINTGT_OT_export_deformed(bpy.types.Operator, ExportHelper):
     space: bpy.props.EnumProperty(name="Space", default='WORLD',
                                   items=[('WORLD', "World", "Positions in world space (as the cameras see them)"),
                                          ('LOCAL', "Object", "Positions in the object's own space")])
-
-    @classmethod
-    def poll(cls, context):
-        return poll_active_model(cls, context)
 
     def invoke(self, context, event):
         if not self.filepath:

@@ -59,7 +59,7 @@ ATLASES = AtlasReader()
 
 def object_inputs(obj, depsgraph):
     """frame_renderer.ObjectInputs of one PointGT object at the depsgraph's state (needs torch)."""
-    from .frame_renderer import ObjectInputs
+    from ..bridge.frame_renderer import ObjectInputs
 
     s = obj.pointgt
     positions, ids = evaluated_points(obj, depsgraph, 'WORLD')
@@ -71,7 +71,7 @@ def object_inputs(obj, depsgraph):
 
 def rest_extent(obj) -> float:
     """Bounding-box diagonal of the object's undeformed points in world space."""
-    from .checks import extent
+    from ..bridge.checks import extent
 
     mesh = obj.data
     co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
@@ -81,7 +81,7 @@ def rest_extent(obj) -> float:
 
 def check_device(obj) -> None:
     """InputError when the object's device cannot run here (CUDA without a CUDA build)."""
-    from .device_check import device_problem
+    from ..operators.device_check import device_problem
 
     problem = device_problem(obj.pointgt.device)
     if problem:

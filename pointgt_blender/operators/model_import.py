@@ -8,8 +8,8 @@ from bpy_extras.io_utils import ImportHelper
 from core.modelfile.pgt import PgtFile
 from core.util.errors import InputError, ModelFileError, PointGTError
 
-from . import atlas_image
-from .properties import ID_ATTRIBUTE, poll_active_model
+from ..scene import atlas_image
+from ..ui.properties import ID_ATTRIBUTE, ModelOperator
 from .reporting import reports_errors
 
 POINTS = "points/xyz"
@@ -91,7 +91,7 @@ def import_model(context, path: str, name: str = "", pack: bool = True, **settin
         s.point_count = xyz.shape[0]
         s.atlas = image
         if pack:
-            from .model_pack import pack_file
+            from ..scene.model_pack import pack_file
 
             text = pack_file(path)
             if text.users == 0:
@@ -174,11 +174,13 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
 def blank_warning(obj) -> str:
     """The renderer's warning when the object's model renders blank ('' when it shows something, or when PyTorch
     is missing: then nothing can be checked). The warning also becomes the object's status line."""
-    from . import deps
+    from ..bridge import deps
 
     if not deps.torch_status().available:
         return ""
-    from . import frame_renderer, preview, scene_inputs
+    from ..bridge import frame_renderer
+    from . import preview
+    from ..scene import scene_inputs
 
     try:
         warning = frame_renderer.blank_warning(scene_inputs.model_file(obj), obj.pointgt.device.lower(),
@@ -190,24 +192,19 @@ def blank_warning(obj) -> str:
     return warning
 
 
-class POINTGT_OT_pack_model(bpy.types.Operator):
+class POINTGT_OT_pack_model(ModelOperator, bpy.types.Operator):
     """Pack the model file into the .blend, so the .blend renders without it"""
     bl_idname = "pointgt.pack_model"
     bl_label = "Pack Model"
     bl_options = {'REGISTER', 'UNDO'}
 
-    @classmethod
-    def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if context.active_object.pointgt.packed_model is not None:
-            cls.poll_message_set("The model is packed already")
-            return False
-        return True
+    @staticmethod
+    def poll_reason(context):
+        return "The model is packed already" if context.active_object.pointgt.packed_model is not None else None
 
     @reports_errors("Packing the model of '{obj}'")
     def execute(self, context):
-        from .model_pack import pack_file
+        from ..scene.model_pack import pack_file
 
         obj = context.active_object
         path = bpy.path.abspath(obj.pointgt.model_path)
@@ -219,7 +216,7 @@ class POINTGT_OT_pack_model(bpy.types.Operator):
         return {'FINISHED'}
 
 
-class POINTGT_OT_unpack_model(bpy.types.Operator):
+class POINTGT_OT_unpack_model(ModelOperator, bpy.types.Operator):
     """Write the packed model to a .pgt file and use that file instead of the packed copy"""
     bl_idname = "pointgt.unpack_model"
     bl_label = "Unpack Model"
@@ -229,18 +226,13 @@ class POINTGT_OT_unpack_model(bpy.types.Operator):
                                        description="Where to write the model (default: the model path, or "
                                                    "'//<name>.pgt' next to the .blend)")
 
-    @classmethod
-    def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if context.active_object.pointgt.packed_model is None:
-            cls.poll_message_set("The model is not packed")
-            return False
-        return True
+    @staticmethod
+    def poll_reason(context):
+        return "The model is not packed" if context.active_object.pointgt.packed_model is None else None
 
     @reports_errors("Unpacking the model of '{obj}'")
     def execute(self, context):
-        from .model_pack import unpack
+        from ..scene.model_pack import unpack
 
         obj = context.active_object
         target = self.filepath or obj.pointgt.model_path or f"//{obj.name}.pgt"

@@ -1,21 +1,16 @@
 """The PointGT tab in the 3D Viewport sidebar: dependency status, import, model settings, rig and export."""
 import bpy
 
-from . import preview
-from .preferences import draw_dependency_status
+from ..operators import preview
+from .preferences import SidebarPanel
 from .properties import is_pointgt_object
 
 
-class POINTGT_PT_main(bpy.types.Panel):
-    bl_label = "PointGT"
+class POINTGT_PT_main(SidebarPanel, bpy.types.Panel):
     bl_idname = "POINTGT_PT_main"
     bl_space_type = 'VIEW_3D'
-    bl_region_type = 'UI'
-    bl_category = "PointGT"
 
-    def draw(self, context):
-        layout = self.layout
-        draw_dependency_status(layout)
+    def draw_body(self, context, layout):
         layout.operator("pointgt.import_model", icon='IMPORT')
         obj = context.active_object
         if not is_pointgt_object(obj):

@@ -19,11 +19,12 @@ import numpy as np
 
 from core.util.errors import InputError, PointGTError
 
-from . import atlas_image, checks, deps
-from .camera import preview_size, scene_camera
-from .properties import is_pointgt_object, poll_active_model
+from ..scene import atlas_image
+from ..bridge import checks, deps
+from ..scene.camera import preview_size, scene_camera
+from ..ui.properties import ModelOperator, is_pointgt_object
 from .reporting import reports_errors
-from .session import SESSION
+from ..scene.session import SESSION
 
 POLL_SECONDS = 0.5      # idle timer period: look for paint on the previews
 SLICE_SECONDS = 0.05    # a timer call runs preview steps until this budget is spent
@@ -50,7 +51,7 @@ class PreviewRecord:
     def x_can(self) -> np.ndarray:
         """Canonical surface point [H, W, 3] of every preview pixel on the object (NaN elsewhere)."""
         if self._x_can is None:
-            from .paint_transfer import canonical_surface
+            from ..bridge.paint_transfer import canonical_surface
 
             self._x_can = canonical_surface(self.state, self.result)
         return self._x_can
@@ -161,7 +162,8 @@ def _painted_preview(obj, rec: PreviewRecord) -> np.ndarray | None:
 def transfer_paint(scene, obj) -> tuple[int, int]:
     """Write the strokes painted on the object's preview into its atlas image. Returns (painted pixels,
     changed texels). Raises PointGTError with what to do when it cannot."""
-    from . import paint_transfer, scene_inputs
+    from ..bridge import paint_transfer
+    from ..scene import scene_inputs
 
     rec = S.records.get(obj.name)
     s = obj.pointgt
@@ -219,7 +221,8 @@ def object_steps(scene, depsgraph, obj, force: bool = False, levels: bool = True
     'transferred+rendered' or 'painted' (paint kept, transfer off). Raises PointGTError.
     levels: render coarse-to-fine (`preview_levels`), writing each level into the image; else only the full
     size."""
-    from . import frame_renderer, scene_inputs
+    from ..bridge import frame_renderer
+    from ..scene import scene_inputs
 
     name = obj.name
     rec = S.records.get(name)
@@ -442,15 +445,11 @@ class POINTGT_OT_refresh_preview(bpy.types.Operator):
         return {'FINISHED'}
 
 
-class POINTGT_OT_transfer_paint(bpy.types.Operator):
+class POINTGT_OT_transfer_paint(ModelOperator, bpy.types.Operator):
     """Write what was painted on the preview image into the atlas texels those pixels show"""
     bl_idname = "pointgt.transfer_paint"
     bl_label = "Transfer Preview Paint to Atlas"
     bl_options = {'REGISTER'}
-
-    @classmethod
-    def poll(cls, context):
-        return poll_active_model(cls, context)
 
     @reports_errors("Transferring the preview paint of '{obj}'")
     def execute(self, context):
@@ -466,20 +465,15 @@ class POINTGT_OT_transfer_paint(bpy.types.Operator):
         return {'FINISHED'}
 
 
-class POINTGT_OT_single_user_atlas(bpy.types.Operator):
+class POINTGT_OT_single_user_atlas(ModelOperator, bpy.types.Operator):
     """Give the active model its own copy of the atlas it shares with duplicates, so painting it leaves theirs"""
     bl_idname = "pointgt.single_user_atlas"
     bl_label = "Make Atlas Single-User"
     bl_options = {'REGISTER', 'UNDO'}
 
-    @classmethod
-    def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if not atlas_users(context.active_object):
-            cls.poll_message_set("No other model shares this atlas")
-            return False
-        return True
+    @staticmethod
+    def poll_reason(context):
+        return None if atlas_users(context.active_object) else "No other model shares this atlas"
 
     @reports_errors("Copying the atlas of '{obj}'")
     def execute(self, context):

@@ -8,8 +8,8 @@ import numpy as np
 
 from core.util.errors import InputError
 
-from .properties import poll_active_model
-from .proxy_mesh import proxy_arrays, read_texel_map
+from ..ui.properties import ModelOperator, not_object_mode
+from ..scene.proxy_mesh import proxy_arrays, read_texel_map
 from .reporting import reports_errors
 
 PROXY_SUFFIX = " proxy"
@@ -105,7 +105,7 @@ def add_proxy(context, obj, path: str, target_faces: int = 4000, follow: bool = 
     return proxy
 
 
-class POINTGT_OT_add_proxy(bpy.types.Operator):
+class POINTGT_OT_add_proxy(ModelOperator, bpy.types.Operator):
     """Make a surface mesh of the model, UV-mapped into its atlas (paint it in 3-D), that the points follow
     (rig or simulate the proxy like any mesh)"""
     bl_idname = "pointgt.add_proxy"
@@ -118,18 +118,11 @@ class POINTGT_OT_add_proxy(bpy.types.Operator):
                                    description="Bind the points to the proxy with a Surface Deform modifier, "
                                                "so rigging the proxy poses the neural render")
 
-    @classmethod
-    def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode first")
-            return False
-        return True
+    poll_reason = staticmethod(not_object_mode)
 
     @reports_errors("Making a proxy for '{obj}'")
     def execute(self, context):
-        from .scene_inputs import model_file
+        from ..scene.scene_inputs import model_file
 
         obj = context.active_object
         proxy = add_proxy(context, obj, model_file(obj), self.target_faces, self.follow)

@@ -1,8 +1,8 @@
 """Operators that need PyTorch share `NeedsTorch.poll`; the device check is the first of them."""
 import bpy
 
-from . import deps
-from .properties import poll_active_model
+from ..bridge import deps
+from ..ui.properties import poll_active_model
 
 
 class NeedsTorch:

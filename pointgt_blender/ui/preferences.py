@@ -5,7 +5,10 @@ import tempfile
 
 import bpy
 
-from . import deps
+from ..bridge import deps
+
+# The add-on's own package (preferences are keyed by it), one level above this ui/ subpackage.
+ADDON_PACKAGE = __package__.rpartition(".")[0]
 
 _added_paths: list[str] = []  # sys.path entries this add-on added (removed again on unregister)
 _job: dict = {}  # the running background install: {"proc", "log", "target"}
@@ -15,7 +18,7 @@ _last_result = {"text": ""}
 def user_site_dir(create: bool = True) -> str:
     """The add-on's private site-packages (inside Blender's user extension folder)."""
     try:
-        return bpy.utils.extension_path_user(__package__, path="site-packages", create=create)
+        return bpy.utils.extension_path_user(ADDON_PACKAGE, path="site-packages", create=create)
     except Exception:  # installed as a legacy add-on: no extension folder
         path = os.path.join(bpy.utils.user_resource('SCRIPTS', path="pointgt"), "site-packages")
         if create:
@@ -24,7 +27,7 @@ def user_site_dir(create: bool = True) -> str:
 
 
 def prefs():
-    addon = bpy.context.preferences.addons.get(__package__)
+    addon = bpy.context.preferences.addons.get(ADDON_PACKAGE)
     return addon.preferences if addon else None
 
 
@@ -151,6 +154,21 @@ class POINTGT_OT_check_dependencies(bpy.types.Operator):
         return {'FINISHED'}
 
 
+class SidebarPanel:
+    """Mixin of the PointGT sidebar tabs (3D View, Image Editor): their label and category, and the PyTorch status
+    on top; subclasses set bl_idname and bl_space_type and draw the rest in `draw_body`."""
+    bl_label = "PointGT"
+    bl_region_type = 'UI'
+    bl_category = "PointGT"
+
+    def draw(self, context):
+        draw_dependency_status(self.layout)
+        self.draw_body(context, self.layout)
+
+    def draw_body(self, context, layout) -> None:
+        raise NotImplementedError
+
+
 def draw_dependency_status(layout) -> None:
     """The PyTorch status box, shared by the preferences and the sidebar panel."""
     status = deps.torch_status()
@@ -179,7 +197,7 @@ def _wrap(text: str, width: int) -> list[str]:
 
 
 class PointGTPreferences(bpy.types.AddonPreferences):
-    bl_idname = __package__
+    bl_idname = ADDON_PACKAGE
 
     site_packages: bpy.props.StringProperty(
         name="Existing site-packages", subtype='DIR_PATH', update=_on_site_packages,

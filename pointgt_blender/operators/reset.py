@@ -5,9 +5,9 @@ import numpy as np
 
 from core.util.errors import InputError
 
-from .evaluated import read_points
+from ..scene.evaluated import read_points
 from .model_import import read_model
-from .properties import poll_active_model
+from ..ui.properties import ModelOperator, not_object_mode
 from .reporting import reports_errors
 
 DEFORM_MODIFIERS = {'ARMATURE', 'LATTICE', 'CAST', 'CURVE', 'DISPLACE', 'HOOK', 'LAPLACIANDEFORM', 'MESH_DEFORM',
@@ -31,7 +31,7 @@ def reset_modifiers(obj, action: str = 'DISABLE') -> int:
 def restore_positions(obj) -> int:
     """Write the model's canonical positions back into the mesh, matched by point id (works after points were
     deleted or duplicated in Edit Mode); returns the number of points written."""
-    from .scene_inputs import model_file
+    from ..scene.scene_inputs import model_file
 
     xyz, _atlas, _meta = read_model(model_file(obj))
     _pos, ids = read_points(obj.data)
@@ -45,7 +45,7 @@ def restore_positions(obj) -> int:
     return int(ids.size)
 
 
-class POINTGT_OT_reset_canonical(bpy.types.Operator):
+class POINTGT_OT_reset_canonical(ModelOperator, bpy.types.Operator):
     """Show the points in their canonical (unposed) positions"""
     bl_idname = "pointgt.reset_canonical"
     bl_label = "Reset to Canonical"
@@ -59,14 +59,7 @@ class POINTGT_OT_reset_canonical(bpy.types.Operator):
         name="Restore positions from model", default=False,
         description="Also reload the point positions from the .pgt file (undo edits made in Edit Mode)")
 
-    @classmethod
-    def poll(cls, context):
-        if not poll_active_model(cls, context):
-            return False
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode first")
-            return False
-        return True
+    poll_reason = staticmethod(not_object_mode)
 
     @reports_errors("Resetting '{obj}'")
     def execute(self, context):

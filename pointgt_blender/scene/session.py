@@ -42,10 +42,11 @@ class Session:
         self.dirty = False
         self.handler_ms.clear()
         if "torch" in sys.modules:
-            from . import deps
+            from ..bridge import deps
 
             if deps.torch_status().available:
-                from . import frame_renderer, scene_inputs
+                from ..bridge import frame_renderer
+                from . import scene_inputs
 
                 frame_renderer.STATES.clear()
                 frame_renderer.MODELS.clear()

@@ -1,0 +1,1 @@
+"""The "PointGT" render engine and Composite with Scene (the PointGT layer merged with Cycles/EEVEE)."""

@@ -1,0 +1,1 @@
+"""Blender classes the user sees: per-object properties, add-on preferences, the 3D View and Image Editor panels."""
