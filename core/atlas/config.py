@@ -63,8 +63,9 @@ class AtlasConfig:
                            min=0, max=MAX_CHART_RES)
     pad: int = opt(4, "grid layout: padding texels around each chart square (edge-replicated, no bleeding)",
                    min=0, max=64)
-    layout: str = opt("islands", "packed image: islands (each chart cut to the region the surface uses, packed by "
-                      "xatlas, one chart per point) or grid (the paper's fixed chart squares)",
+    layout: str = opt("grid", "packed image: islands (each chart cut to the region the surface uses, packed by "
+                      "xatlas, one chart per point; denser, but the Blender proxy rigs poorly on its separate "
+                      "pieces, docs/atlas.md) or grid (the paper's fixed chart squares)",
                       choices=("islands", "grid"))
     image_size: int = opt(0, "islands: side of the square atlas image in texels; 0 = chosen per scene from the "
                              "surface area and the training images' pixel footprint on it", min=0, max=MAX_CHART_RES)

@@ -33,6 +33,13 @@ def read_texel_map(path: str) -> tuple[np.ndarray, int, int]:
                                  f"with `pointgt atlas` and re-import")
         tex = f.read(TEXELS)
     a = meta["atlas"]
+    if a.get("layout") == "islands":
+        # islands packed into one square image: the whole image is one "chart" (texels between islands are NaN,
+        # so no face bridges two islands)
+        if tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] != tex.shape[1] or tex.shape[0] < 2:
+            raise ModelFileError(f"{path}: '{TEXELS}' {list(tex.shape)} is not a square island atlas; re-export "
+                                 "the model")
+        return tex.astype(np.float32, copy=False), int(tex.shape[0]), 0
     try:
         R, pad = int(a["R"]), int(a["pad"])
     except (KeyError, TypeError, ValueError):
@@ -87,9 +94,25 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     uv = np.stack([(gc + 0.5) / W, 1.0 - (gr + 0.5) / H], -1).astype(np.float32)
     corner_uv = uv[tris]
     if stitch > 0:
-        chart = (gr // cell) * (W // cell) + gc // cell
+        # grid layout: the chart square a texel lies in; island layout (one cell): the connected piece
+        chart = (gr // cell) * (W // cell) + gc // cell if cell < max(H, W) else mesh_components(len(verts), tris)
         verts, tris = stitch_charts(verts, tris, chart, stitch * med)
     return verts, tris, corner_uv
+
+
+def mesh_components(n_verts: int, tris: np.ndarray) -> np.ndarray:
+    """Connected-component label [V] int64 of every vertex of triangles [F, 3] (the smallest vertex index in its
+    component): labels flow along triangles until nothing changes."""
+    label = np.arange(n_verts, dtype=np.int64)
+    while True:
+        low = label[tris].min(axis=1)                       # [F] smallest label at each triangle
+        new = label.copy()
+        for k in range(3):
+            np.minimum.at(new, tris[:, k], low)
+        new = new[new]                                      # follow labels to their own labels (pointer jumping)
+        if np.array_equal(new, label):
+            return label
+        label = new
 
 
 def _edge_counts(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
