@@ -45,7 +45,7 @@ def session(tmp_path_factory):
     work.mkdir()
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), OMP_NUM_THREADS="1")
     r = _run(HERE / "scene_session.py", [str(zip_path), str(model), str(blank), str(work)], env, tmp)
-    if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows this session's frames
+    if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows these frames
         out = Path(os.environ["POINTGT_DOC_IMAGES"])
         _strip([work / "proxy_rest.png", work / "proxy_posed.png"], out / "addon_proxy_paint_and_rig.png")
         _strip([work / "scene_only.png", work / "composite.png"], out / "addon_composite_with_scene.png")
