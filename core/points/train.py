@@ -61,9 +61,9 @@ class TrainConfig:
     guard: bool = opt(True, "watch stage 1 for a collapsed fit (test renders at the blank-frame floor or without "
                             "foreground) and non-finite steps, and recover (reset the decoder's correction, then "
                             "restart without a decoder); what it did is kept in the history and the model file")
-    guard_margin: float = opt(1.0, "dB: a fit whose object PSNR is within this of the blank frame's counts as "
-                                   "collapsed (when the blank frame itself is a poor match for the object)", min=0.0,
-                              max=100.0)
+    guard_margin: float = opt(1.0, "dB: a fit whose object PSNR is within this of the blank frame's, and whose "
+                                   "render is far closer to the blank frame than the truth, counts as collapsed",
+                              min=0.0, max=100.0)
     seed: int = opt(0, "random seed", min=0)
     device: str = opt("auto", "cpu | cuda | auto")
     threads: int = opt(0, "torch CPU threads (0 = torch default)", min=0, max=1024)
@@ -174,9 +174,10 @@ def evaluate(model: PointModel, split, views, background) -> dict:
         obj = split.alphas[i].to(gt.device) > 0.5
         bg = torch.as_tensor(background, dtype=gt.dtype, device=gt.device)
         nan = float("nan")
-        extra = {"coverage": float((out["alpha"][obj] > 0.5).float().mean()) if bool(obj.any()) else nan,
-                 "blank_distance": float((out["rgb"][obj] - bg).abs().mean()) if bool(obj.any()) else nan,
-                 "object_contrast": float((gt[obj] - bg).abs().mean()) if bool(obj.any()) else nan}
+        has = bool(obj.any())
+        extra = {"coverage": float((out["alpha"][obj] > 0.5).float().mean()) if has else nan,
+                 "blank_distance": float((out["rgb"][obj] - bg).abs().mean()) if has else nan,
+                 "object_contrast": float((gt[obj] - bg).abs().mean()) if has else nan}
         return {"rgb": out["rgb"], "alpha": out["alpha"], "extra": extra}
 
     return mean_scores(score_views(render, split.images, split.alphas, views))
