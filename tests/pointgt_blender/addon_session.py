@@ -8,7 +8,6 @@ import importlib
 import json
 import os
 import sys
-import traceback
 
 import numpy as np
 
@@ -26,33 +25,20 @@ BLOCKER = BlockTorch()
 sys.meta_path.insert(0, BLOCKER)
 
 import bpy  # noqa: E402
+from session_common import make_active, recorder  # noqa: E402
 
 zip_path, model, corrupt, work, wheels = sys.argv[sys.argv.index("--") + 1:]
 R = {}
 PKG = "bl_ext.user_default.pointgt"
 
 
-def step(name):
-    def deco(fn):
-        try:
-            R[name] = fn()
-        except Exception as exc:  # recorded, the test asserts on it
-            R[name] = {"error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc()[-1500:]}
-        return fn
-    return deco
+step = recorder(R, trace_chars=1500)
 
 
 def evaluated(obj):
     ev = importlib.import_module(PKG + ".scene.evaluated")
     return ev.evaluated_points(obj, bpy.context.evaluated_depsgraph_get(), 'WORLD')
 
-
-def make_active(obj, *others):
-    for o in bpy.context.view_layer.objects:
-        o.select_set(False)
-    for o in (obj, *others):
-        o.select_set(True)
-    bpy.context.view_layer.objects.active = obj
 
 
 def op_error(fn, **kw):

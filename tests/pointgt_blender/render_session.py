@@ -11,7 +11,6 @@ import math
 import os
 import shutil
 import sys
-import traceback
 import zipfile
 
 import numpy as np
@@ -28,6 +27,7 @@ BLOCKER = BlockTorch()
 sys.meta_path.insert(0, BLOCKER)
 
 import bpy  # noqa: E402
+from session_common import make_active, recorder  # noqa: E402
 
 zip_path, model, patch_path, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -41,22 +41,8 @@ def mod(name):
     return importlib.import_module(f"{PKG}.{name}")
 
 
-def step(name):
-    def deco(fn):
-        try:
-            R[name] = fn()
-        except Exception as exc:
-            R[name] = {"error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc()[-2000:]}
-        return fn
-    return deco
+step = recorder(R)
 
-
-def make_active(obj, *others):
-    for o in bpy.context.view_layer.objects:
-        o.select_set(False)
-    for o in (obj, *others):
-        o.select_set(True)
-    bpy.context.view_layer.objects.active = obj
 
 
 def render_error(**kw):

@@ -10,10 +10,10 @@ import math
 import os
 import sys
 import time
-import traceback
 
 import numpy as np
 import bpy
+from session_common import make_active, recorder  # noqa: E402
 
 zip_path, model, blank_model, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -25,22 +25,8 @@ def mod(name):
     return importlib.import_module(f"{PKG}.{name}")
 
 
-def step(name):
-    def deco(fn):
-        try:
-            R[name] = fn()
-        except Exception as exc:
-            R[name] = {"error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc()[-2000:]}
-        return fn
-    return deco
+step = recorder(R)
 
-
-def make_active(obj, *others):
-    for o in bpy.context.view_layer.objects:
-        o.select_set(False)
-    for o in (obj, *others):
-        o.select_set(True)
-    bpy.context.view_layer.objects.active = obj
 
 
 def raw(image):
