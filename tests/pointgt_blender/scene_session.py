@@ -270,6 +270,66 @@ def _():
     return out
 
 
+@step("outlines")
+def _():
+    """The chart outlines the Image Editor draws over the atlas: which editors get them, and their geometry
+    against the model's texel map."""
+    out = {}
+    o, scene = obj(), bpy.context.scene
+    panel, outl = mod("ui.image_panel"), mod("scene.chart_outlines")
+    out["draw_handlers"] = len(mod("scene.handlers")._DRAW)
+    win = bpy.context.window_manager.windows[0]
+    area = win.screen.areas[0]
+    old_type = area.type
+    area.type = 'IMAGE_EDITOR'
+    space = area.spaces.active
+    region = next(r for r in area.regions if r.type == 'WINDOW')
+    other = bpy.data.images.new("not an atlas", 8, 8)
+    try:
+        with bpy.context.temp_override(window=win, area=area, region=region):
+            space.image = o.pointgt.atlas
+            seg = panel.shown_outlines(bpy.context)
+            panel.draw_chart_outlines()  # headless the view was never drawn: it returns without drawing
+            scene.pointgt.chart_outlines = False
+            out["off"] = panel.shown_outlines(bpy.context) is None
+            scene.pointgt.chart_outlines = True
+            space.image = other
+            out["other_image"] = panel.shown_outlines(bpy.context) is None
+            space.image = o.pointgt.atlas
+            out["cached"] = panel.shown_outlines(bpy.context) is seg
+    finally:
+        area.type = old_type
+        bpy.data.images.remove(other)
+    # geometry: every unit edge of every segment separates two different charts (or a chart and no surface)
+    tex, R, pad = mod("scene.proxy_mesh").read_texel_map(mod("scene.scene_inputs").model_file(o))
+    H, W = tex.shape[:2]
+    cell = R + 2 * pad
+    rows, cols = np.mgrid[0:H, 0:W]
+    lab = np.where(np.isfinite(tex).all(-1), (rows // cell) * (W // cell) + cols // cell, -1)
+    at = np.pad(lab, 1, constant_values=-1)  # at[r + 1, c + 1] = lab[r, c]; -1 outside the image
+    px = np.stack([seg[..., 0] * W, (1.0 - seg[..., 1]) * H], -1)  # back to pixel corners, y down
+    out["on_grid"] = bool(np.abs(px - np.round(px)).max() < 1e-3)
+    px = np.round(px).astype(int)
+    bad = edges = 0
+    seen = set()
+    for (x0, y0), (x1, y1) in px.tolist():
+        if x0 == x1:  # vertical: pixels (y, x - 1) and (y, x) on either side
+            pairs = [((y, x0 - 1), (y, x0)) for y in range(min(y0, y1), max(y0, y1))]
+        else:
+            pairs = [((y0 - 1, x), (y0, x)) for x in range(min(x0, x1), max(x0, x1))]
+        for a, b in pairs:
+            la, lb = at[a[0] + 1, a[1] + 1], at[b[0] + 1, b[1] + 1]
+            bad += int(la == lb or max(la, lb) < 0)
+            edges += 1
+            seen |= {int(la), int(lb)}
+    # every such unit edge of the texel map is drawn: count them directly
+    dv = (at[1:-1, :-1] != at[1:-1, 1:]) & (np.maximum(at[1:-1, :-1], at[1:-1, 1:]) >= 0)
+    dh = (at[:-1, 1:-1] != at[1:, 1:-1]) & (np.maximum(at[:-1, 1:-1], at[1:, 1:-1]) >= 0)
+    out.update(segments=int(len(seg)), unit_edges=edges, bad=bad, expected_edges=int(dv.sum() + dh.sum()),
+               charts=int(len(np.unique(lab[lab >= 0]))), outlined_charts=len(seen - {-1}))
+    return out
+
+
 def paint_through_uvs(proxy, image, centre, radius, colour):
     """What Texture Paint on the proxy does: the texels inside the UV triangles of the proxy faces whose centre
     lies within `radius` of `centre` (object space) get `colour` (linear RGB). Returns the number of texels."""
@@ -482,4 +542,6 @@ def _():
     return out
 
 
+with open(os.path.join(work, "results.json"), "w") as fh:  # kept with pytest's temporary folders, to read
+    json.dump(R, fh, indent=1)
 print("RESULTS: " + json.dumps(R))

@@ -126,6 +126,14 @@ def test_the_blend_renders_without_its_model_file(session):
     assert r["repack"] == ["FINISHED"]
 
 
+def test_chart_outlines_are_drawn_over_the_atlas_only_and_lie_on_the_chart_borders(session):
+    r = _get(session, "outlines")
+    assert r["draw_handlers"] == 1 and r["off"] and r["other_image"] and r["cached"], r
+    assert r["on_grid"] and r["segments"] >= 4 * r["charts"], r  # at least a square per chart
+    assert r["bad"] == 0 and r["unit_edges"] == r["expected_edges"] > 0, r  # every border edge, nothing else
+    assert r["outlined_charts"] == r["charts"] >= 2, r
+
+
 def test_surface_proxy_shows_the_atlas_and_paint_through_its_uvs_lands_where_the_render_looks(session):
     r = _get(session, "proxy")
     assert 100 <= r["faces"] <= 4000 and r["triangles"] and r["uv"] == "PointGT atlas"
