@@ -400,6 +400,21 @@ def _():
     out["atlas"] = o.pointgt.atlas.name
     sd = o.modifiers.get("PointGT Surface Deform")
     out["bound"] = bool(sd and sd.is_bound and sd.target == proxy and o.modifiers[0] == sd)
+    # cracks: open edges and pieces of the proxy against the same texel map meshed chart by chart (not closed)
+    pm = mod("scene.proxy_mesh")
+    tri = np.empty(len(proxy.data.loops), np.int32)
+    proxy.data.loops.foreach_get("vertex_index", tri)
+    tri = tri.reshape(-1, 3)
+    tex, R_, pad_ = pm.read_texel_map(mod("scene.scene_inputs").model_file(o))
+    _, raw_tris, _ = pm.proxy_arrays(tex, R_, pad_, stitch=0.0, close=0, fill=0)
+
+    def cracks(t):
+        _, counts = pm._edge_counts(t)
+        label = pm.mesh_components(int(t.max()) + 1, t)
+        return {"open_edges": int((counts == 1).sum()), "pieces": len(np.unique(label[np.unique(t)])),
+                "most": int(counts.max())}
+
+    out["cracks"], out["cracks_per_chart"] = cracks(tri), cracks(raw_tris)
     # 3-D paint on the proxy: a red disc on the card's right half, written through the proxy's UV map
     centre = np.array([0.45, 0.15, 0.0])
     out["painted_texels"], out["painted_faces"] = paint_through_uvs(proxy, o.pointgt.atlas, centre, 0.12,

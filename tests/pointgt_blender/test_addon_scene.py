@@ -138,6 +138,11 @@ def test_surface_proxy_shows_the_atlas_and_paint_through_its_uvs_lands_where_the
     r = _get(session, "proxy")
     assert 100 <= r["faces"] <= 4000 and r["triangles"] and r["uv"] == "PointGT atlas"
     assert r["material_image"] == r["atlas"] and r["bound"]
+    # the card's charts meshed one by one leave cracks between them; the proxy is one piece (welded seams, filled
+    # notches), its open edges down to the card's outline, still manifold for Surface Deform
+    c, c0 = r["cracks"], r["cracks_per_chart"]
+    assert c0["pieces"] >= 2 and c["pieces"] == 1 and c["most"] == 2, r
+    assert c["open_edges"] < 0.7 * c0["open_edges"], r
     assert r["painted_faces"] >= 4 and r["painted_texels"] >= 10
     c, n = r["rest"]
     assert n >= 6 and np.hypot(c[0] - r["rest_expect"][0], c[1] - r["rest_expect"][1]) < 3.0, str(r)
