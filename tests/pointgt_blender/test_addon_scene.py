@@ -52,14 +52,14 @@ def session(tmp_path_factory):
     return {"r": r, "work": work, "model": model, "tmp": tmp, "env": env}
 
 
-def _strip(paths, target: Path) -> None:
-    """Frames side by side, 3x enlarged (nearest), for the docs."""
+def _strip(paths, target: Path, scale: int = 3) -> None:
+    """Frames side by side, `scale` times enlarged (nearest), for the docs."""
     target.parent.mkdir(parents=True, exist_ok=True)
     ims = [Image.open(p).convert("RGB") for p in paths]
     w, h = ims[0].size
-    canvas = Image.new("RGB", (len(ims) * (3 * w + 4) - 4, 3 * h), "white")
+    canvas = Image.new("RGB", (len(ims) * (scale * w + 4) - 4, scale * h), "white")
     for i, im in enumerate(ims):
-        canvas.paste(im.resize((3 * w, 3 * h), Image.NEAREST), (i * (3 * w + 4), 0))
+        canvas.paste(im.resize((scale * w, scale * h), Image.NEAREST), (i * (scale * w + 4), 0))
     canvas.save(target, optimize=True)
 
 
