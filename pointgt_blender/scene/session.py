@@ -21,6 +21,7 @@ class Session:
         self.rendering = False    # a render job runs: previews wait
         self.busy = False         # a synchronous preview update runs (guards against re-entry)
         self.handler_ms: list = []  # duration of the last handler calls (ms), newest last, at most 1000
+        self.progress: list = []  # fractions shown by the last synchronous preview update (wm progress)
         self.outlines: dict = {}  # model file -> (its size and mtime, chart outlines in UV space [S, 2, 2])
 
     def forget_previews(self) -> None:

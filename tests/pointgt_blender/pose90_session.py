@@ -185,7 +185,8 @@ def measure(angle):
         scene.render.filepath = path
         bpy.ops.render.render(write_still=True)
         rgb = read_png(path)
-        out[corr] = {"error": mod("render.render_engine").LAST.get("error", "")}
+        last = mod("render.render_engine").LAST
+        out[corr] = {"error": last.get("error", ""), "progress": list(last.get("progress", []))}
         for name, (centre, radius, colour) in SPOTS.items():
             c, npx = centroid(rgb, colour)
             e = out[name]["expect_px"]

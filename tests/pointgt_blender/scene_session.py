@@ -67,8 +67,9 @@ def _():
     res = bpy.ops.pointgt.import_model(filepath=model, preview_resolution=W)
     bpy.context.active_object.name = "card"
     mod("operators.preview").update_previews(scene, force=True)
+    sync_progress = list(mod("operators.preview").S.progress)
     settle()
-    return {"import": sorted(res), "preview": obj().pointgt.preview_image.name}
+    return {"import": sorted(res), "preview": obj().pointgt.preview_image.name, "sync_progress": sync_progress}
 
 
 @step("nonblocking")
@@ -130,7 +131,7 @@ def _():
             "slices": slices, "refining_seen": any("refining" in t for t in statuses),
             "slice_max_ms": max(slice_ms), "cancelled": S.counts["cancelled"] - cancelled0,
             "mean_x_after_move": final_state_pos, "levels": prev.preview_levels(128, 96),
-            "final_status": statuses[-1]}
+            "final_status": statuses[-1], "level_seen": any("level 1 of 2" in t for t in statuses)}
 
 
 @step("duplicates")
@@ -458,6 +459,7 @@ def _():
     scene.cycles.use_denoising = False
     scene.view_settings.view_transform = 'Standard'
     rgb = read_png(render_still(os.path.join(work, "composite.png"), engine=None))
+    out["layer_progress"] = dict(mod("render.composite").LAST_LAYER)
     layer = mod("render.composite").bpy.data.images["PointGT layer"]
     lay = np.empty(W * H * 4, np.float32)
     layer.pixels.foreach_get(lay)

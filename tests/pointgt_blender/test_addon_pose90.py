@@ -58,6 +58,11 @@ def test_points_follow_the_deformed_proxy(session, angle):
     assert r["points_near"] >= 20 and r["points_vs_proxy"] < 0.01, r  # Surface Deform carries them exactly
 
 
+def test_f12_reports_progress_per_stage(session):
+    p = _get(session, "pose0")["DEFORM_AWARE"]["progress"]
+    assert len(p) == 4 and p == sorted(p) and p[0] == 0.0 and p[-1] == 1.0, p  # loading, tracing, shading, done
+
+
 def test_paint_at_rest_lands_where_the_proxy_has_it(session):
     d = _get(session, "pose0")["DEFORM_AWARE"]
     assert d["error"] == "", d

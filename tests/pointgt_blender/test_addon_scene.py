@@ -94,8 +94,15 @@ def test_handlers_only_mark_dirty_and_the_preview_renders_coarse_to_fine_when_id
     assert r["handler_calls"] >= 10 and r["handler_max_ms"] <= 100.0, r["handler_max_ms"]
     assert r["levels"] == [[64, 48], [128, 96]]
     assert r["idle"] == {"rendered": 1, "levels": 2, "jobs": 1}  # one job for the whole batch, two levels
-    assert r["refining_seen"] and r["final_status"].startswith("Preview 128x96")
+    assert r["refining_seen"] and r["level_seen"] and r["final_status"].startswith("Preview 128x96")
     assert r["slices"] >= 4  # the work came in several slices
+
+
+def test_blocking_preview_updates_and_the_composite_layer_report_progress(session):
+    p = _get(session, "scene")["sync_progress"]
+    assert len(p) >= 3 and p == sorted(p) and 0.0 < p[0] < 1.0 and p[-1] == 1.0, p
+    lp = _get(session, "composite")["layer_progress"]
+    assert lp["progress"] == [1.0] and lp["frame"] == 1, lp  # one model: one step, printed to the console
 
 
 def test_a_new_change_cancels_the_running_preview(session):
