@@ -8,18 +8,7 @@ import numpy as np
 def island_mask(arrays: dict, shape: tuple[int, int]) -> np.ndarray:
     """Pixels [H, W] bool inside an island: from the island arrays of an island atlas (cells [n, G, G] island id or
     -1, offset [I, 2] (col, row)), else (grid atlases) the texels with a surface point ('atlas/texel_points')."""
-    H, W = shape
-    if "atlas/islands/cells" in arrays and "atlas/islands/offset" in arrays:
-        cells = np.asarray(arrays["atlas/islands/cells"]).astype(np.int64)
-        off = np.asarray(arrays["atlas/islands/offset"]).astype(np.int64).reshape(-1, 2)
-        mask = np.zeros((H, W), bool)
-        n, rr, kk = np.nonzero(cells >= 0)
-        isl = cells[n, rr, kk]
-        r, c = rr + off[isl, 1], kk + off[isl, 0]
-        ok = (r >= 0) & (r < H) & (c >= 0) & (c < W)
-        mask[r[ok], c[ok]] = True
-        return mask
-    return np.isfinite(np.asarray(arrays["atlas/texel_points"])).all(-1)
+    return chart_labels(arrays, shape) >= 0
 
 
 def outline_overlay(mask: np.ndarray, colour=(1.0, 0.0, 1.0), width: int = 1) -> np.ndarray:
