@@ -251,7 +251,7 @@ def object_steps(scene, depsgraph, obj, force: bool = False, levels: bool = True
         return "unchanged"
     t0 = time.perf_counter()
     sizes = preview_levels(w, h) if levels else [(w, h)]
-    for lw, lh in sizes:
+    for level, (lw, lh) in enumerate(sizes, 1):
         yield "level"
         f = focal * lw / w
         trace = frame_renderer.trace_layer(state, c2w, lh, lw, f, k=inputs.k)
@@ -266,7 +266,7 @@ def object_steps(scene, depsgraph, obj, force: bool = False, levels: bool = True
         S.written[name] = written
         S.counts["levels"] += 1
         if not final:
-            set_status(obj, f"Preview {w}x{h}: refining ({lw}x{lh} shown)")
+            set_status(obj, f"Preview {w}x{h}: refining ({lw}x{lh} shown, level {level} of {len(sizes)})")
             continue
         S.counts["rendered"] += 1
         S.records[name] = PreviewRecord(state=state, key=key, written=written, rendered=rgb,
@@ -326,14 +326,28 @@ def update_previews(scene, depsgraph=None, force: bool = False, objects=None) ->
         S.dirty = True
     S.busy = True
     done = {}
+    n = max(len(preview_objects(scene) if objects is None else list(objects)), 1)
+    # this path blocks Blender (an operator waits for it): the window manager's progress shows how far it is
+    wm = getattr(bpy.context, "window_manager", None)
+    S.progress = []
     try:
-        for _ in _job(scene, depsgraph, objects, force, False, done):
-            pass
+        if wm is not None:
+            wm.progress_begin(0.0, 1.0)
+        for label in _job(scene, depsgraph, objects, force, False, done):
+            S.progress.append(min((len(done) + SYNC_STAGES.get(label, 0.0)) / n, 1.0))
+            if wm is not None:
+                wm.progress_update(S.progress[-1])
+        S.progress.append(1.0)
     except Exception as exc:
         print(f"PointGT preview: {type(exc).__name__}: {exc}")
     finally:
         S.busy = False
+        if wm is not None:
+            wm.progress_end()
     return done
+
+
+SYNC_STAGES = {"inputs": 0.05, "level": 0.15, "traced": 0.65}  # how far one object's preview is at each step
 
 
 def live(scene) -> bool:

@@ -11,6 +11,8 @@ the rest.
 """
 from __future__ import annotations
 
+import time
+
 import bpy
 import numpy as np
 
@@ -24,6 +26,7 @@ LAYER = "PointGT layer"
 DEPTH = "PointGT depth"
 TREE = "PointGT Composite"
 FAR = 1.0e9
+LAST_LAYER: dict = {}  # the last layer rendered: its frame and progress fractions (read by tests)
 
 
 def _image(name: str, width: int, height: int, data: bool):
@@ -37,9 +40,9 @@ def _image(name: str, width: int, height: int, data: bool):
     return img
 
 
-def layer_arrays(depsgraph, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+def layer_arrays(depsgraph, width: int, height: int, progress=None) -> tuple[np.ndarray, np.ndarray]:
     """The PointGT layer of a frame: straight scene-linear RGBA [H, W, 4] and planar depth [H, W] (FAR where no
-    model), rows top-down. Raises PointGTError."""
+    model), rows top-down. progress(fraction, text) after each model. Raises PointGTError."""
     from ..bridge import frame_renderer
     from ..scene import scene_inputs
     from ..scene.camera import scene_camera
@@ -49,7 +52,9 @@ def layer_arrays(depsgraph, width: int, height: int) -> tuple[np.ndarray, np.nda
     c2w, focal = scene_camera(scene, width, height, depsgraph)
     fwd = -np.asarray(c2w, dtype=np.float64)[:3, 2]
     layers, depth = [], np.full((height, width), FAR, dtype=np.float64)
-    for obj in render_objects(depsgraph):
+    objs = render_objects(depsgraph)
+    for i, obj in enumerate(objs):
+        t0 = time.perf_counter()
         scene_inputs.check_device(obj)
         inputs = scene_inputs.object_inputs(obj, depsgraph)
         state = frame_renderer.prepare(inputs)
@@ -59,6 +64,8 @@ def layer_arrays(depsgraph, width: int, height: int) -> tuple[np.ndarray, np.nda
         covered = np.isfinite(layer["depth"]) & np.isfinite(z) & (layer["alpha"] > 0.02)
         depth = np.where(covered, np.minimum(depth, z), depth)
         layers.append(layer)
+        if progress is not None:
+            progress((i + 1) / len(objs), f"{obj.name} ({i + 1}/{len(objs)}) in {time.perf_counter() - t0:.2f} s")
     rgba = np.zeros((height, width, 4), dtype=np.float32)
     if layers:
         rgb, alpha = frame_renderer.composite(layers, transparent=True)
@@ -73,7 +80,17 @@ def update_layer(scene, depsgraph=None) -> int:
     r = scene.render
     width, height = render_size(r.resolution_x, r.resolution_y, r.resolution_percentage)
     depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
-    rgba, depth = layer_arrays(depsgraph, width, height)
+    frame = scene.frame_current
+    LAST_LAYER.clear()
+    LAST_LAYER.update(frame=frame, progress=[])
+
+    def progress(fraction, text):
+        # render_pre runs before the other engine starts (in its render thread, where Blender's progress bar
+        # belongs to that engine): the console gets the progress, which is what `blender -b ... -a` shows
+        LAST_LAYER["progress"].append(fraction)
+        print(f"PointGT layer, frame {frame}: {text} ({fraction:.0%})", flush=True)
+
+    rgba, depth = layer_arrays(depsgraph, width, height, progress=progress)
     img = _image(LAYER, width, height, data=False)
     img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).reshape(-1))
     img.update()

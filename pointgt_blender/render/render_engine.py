@@ -1,6 +1,7 @@
 """The "PointGT" render engine: F12 and Render Animation render every visible PointGT model from the scene
 camera, honouring resolution (and its percentage), frame range, film transparency and the output settings
-(Blender writes the frames itself). Progress goes to update_progress; test_break cancels between models.
+(Blender writes the frames itself). Progress goes to update_progress and the stage (model, loading / tracing /
+shading) to update_stats, after each stage of each model; test_break cancels between stages.
 
 Colours: the model renders display-space (sRGB-encoded) colour; the Combined pass is scene-linear, so the
 engine writes the linear equivalent, and Blender's Standard view transform turns it back into exactly the
@@ -32,9 +33,15 @@ def render_objects(depsgraph) -> list:
     return sorted(out, key=lambda o: o.name)
 
 
-def render_pixels(depsgraph, width: int, height: int, progress=None, cancelled=None) -> np.ndarray | None:
+# how far one model's frame is after each stage (the model loaded, the rays traced, the frame shaded)
+STAGES = (("loading the model", 0.0), ("tracing", 0.15), ("shading", 0.65))
+
+
+def render_pixels(depsgraph, width: int, height: int, progress=None, cancelled=None,
+                  stage=None) -> np.ndarray | None:
     """RGBA float32 [H*W*4] scene-linear, rows bottom-up (Blender's pass layout) of one frame, or None when
-    cancelled. Raises PointGTError."""
+    cancelled. progress(fraction in [0, 1]) after each stage of each model (LAST["progress"] keeps the
+    fractions); stage(text) says which model and stage runs. Raises PointGTError."""
     from ..bridge import frame_renderer
     from ..scene import scene_inputs
     from ..scene.camera import scene_camera
@@ -46,18 +53,34 @@ def render_pixels(depsgraph, width: int, height: int, progress=None, cancelled=N
                          f"PointGT Model) or enable its render visibility")
     c2w, focal = scene_camera(scene, width, height, depsgraph)
     layers, warnings = [], []
+    LAST["progress"] = []
+
+    def report(i, k):
+        text, done = STAGES[k] if k < len(STAGES) else ("done", 1.0)
+        frac = (i + done) / len(objs)
+        LAST["progress"].append(frac)
+        if progress is not None:
+            progress(frac)
+        if stage is not None and k < len(STAGES):
+            stage(f"{objs[i].name} ({i + 1}/{len(objs)}): {text}")
+
     for i, obj in enumerate(objs):
         if cancelled is not None and cancelled():
             return None
+        report(i, 0)
         scene_inputs.check_device(obj)
         inputs = scene_inputs.object_inputs(obj, depsgraph)
         warning = checks.pose_warning(obj.name, inputs.positions, inputs.rest_extent, c2w, focal, width, height)
         if warning:
             warnings.append(warning)
         state = frame_renderer.prepare(inputs)
-        layers.append(frame_renderer.render_layer(state, c2w, height, width, focal, k=inputs.k))
-        if progress is not None:
-            progress((i + 1) / len(objs))
+        report(i, 1)
+        trace = frame_renderer.trace_layer(state, c2w, height, width, focal, k=inputs.k)
+        if cancelled is not None and cancelled():
+            return None
+        report(i, 2)
+        layers.append(frame_renderer.render_layer(state, c2w, height, width, focal, k=inputs.k, trace=trace))
+        report(i, 3)
     transparent = bool(scene.render.film_transparent)
     rgb, alpha = frame_renderer.composite(layers, background=tuple(scene.pointgt.background), transparent=transparent)
     rgba = np.empty((height, width, 4), dtype=np.float32)
@@ -95,9 +118,11 @@ class PointGTRenderEngine(bpy.types.RenderEngine):
             if warning:
                 LAST["warning"] = warning
                 self.report({'WARNING'}, f"PointGT: {warning}")
-            self.update_stats("PointGT", f"Frame {scene.frame_current}: rendering")
+            frame = scene.frame_current
+            self.update_stats("PointGT", f"Frame {frame}: rendering")
             pixels = render_pixels(depsgraph, width, height, progress=self.update_progress,
-                                   cancelled=self.test_break)
+                                   cancelled=self.test_break,
+                                   stage=lambda text: self.update_stats("PointGT", f"Frame {frame}: {text}"))
             for text in LAST.get("pose_warnings", ()):
                 LAST["warning"] = text
                 self.report({'WARNING'}, f"PointGT: {text}")

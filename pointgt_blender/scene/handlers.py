@@ -1,4 +1,4 @@
-"""Every Blender handler and timer of the add-on, in one place.
+"""Every Blender handler, timer and draw handler of the add-on, in one place.
 
 Handlers do at most a cheap step: a change to the scene (depsgraph update, frame change) only marks the previews
 dirty (`preview.request`, constant time); the preview itself is rendered coarse-to-fine by the UI timer
@@ -128,7 +128,15 @@ HANDLERS = (("frame_change_post", on_frame_change), ("depsgraph_update_post", on
             ("render_cancel", on_render_end))
 
 
+_DRAW = []  # (space type, handle) of the draw handlers added by register_handlers
+
+
 def register_handlers():
+    from ..ui import image_panel
+
+    if not _DRAW:  # the chart outlines over a model's atlas in the Image Editor (drawn only where a GPU draws)
+        _DRAW.append((bpy.types.SpaceImageEditor, bpy.types.SpaceImageEditor.draw_handler_add(
+            image_panel.draw_chart_outlines, (), 'WINDOW', 'POST_PIXEL')))
     for name, fn in HANDLERS:
         lst = getattr(bpy.app.handlers, name)
         if fn not in lst:
@@ -138,6 +146,9 @@ def register_handlers():
 
 
 def unregister_handlers():
+    while _DRAW:
+        space, handle = _DRAW.pop()
+        space.draw_handler_remove(handle, 'WINDOW')
     for name, fn in HANDLERS:
         lst = getattr(bpy.app.handlers, name)
         if fn in lst:

@@ -5,10 +5,12 @@ anything that moves the proxy (Automatic Weights, weight painting, shape keys, c
 
 The mesh: atlas texels sampled every `s` texels inside each chart (s chosen so the proxy has at most
 `target_faces` triangles), two triangles per grid square whose four corners lie on the surface and whose edges
-are not much longer than the median edge (a square across a hole or a fold is skipped). Each vertex sits exactly
-on its texel's point and has that texel's centre as UV, so painting the proxy writes the texels that the neural
-render looks up there. Chart pieces are stitched where their borders meet (boundary vertices of two charts
-that are each other's nearest merge), so cracks between charts close where the sampling allows.
+are not much longer than the median edge (a square across a hole or a fold is skipped). Each vertex sits on its
+texel's point and has that texel's centre as UV, so painting the proxy writes the texels that the neural render
+looks up there. Then the cracks close where the surface goes on: small holes in a chart's texel mask get
+interpolated points before sampling, the pieces of neighbouring charts are welded along their seams (each face
+corner keeps its own UV), the faces are oriented alike, and the small holes left (the notches of jagged seams)
+are filled.
 This module needs only numpy; `proxy` makes the Blender objects.
 """
 from __future__ import annotations
@@ -52,12 +54,17 @@ def read_texel_map(path: str) -> tuple[np.ndarray, int, int]:
 
 
 def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int = 4000,
-                 max_edge: float = 4.0, stitch: float = 1.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 max_edge: float = 4.0, stitch: float = 1.5, close: int = 1,
+                 fill: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Triangle mesh of the texel map. texel_points [H, W, 3] (NaN = no surface), charts of R x R texels in cells
     of R + 2 pad. Returns vertices [V, 3] float32 (the texels' points), triangles [F, 3] int32 and the uv of every
     triangle corner [F, 3, 2] float32 (texel centres; v = 0 at the image's bottom row, Blender's convention).
-    Squares with an edge longer than `max_edge` times the median edge are skipped. Charts are then stitched
-    (`stitch_charts`) with `stitch` times the median edge as the tolerance (0: not stitched)."""
+    Squares with an edge longer than `max_edge` times the median edge are skipped. Cracks are then closed where the
+    surface goes on: with `close` > 0, holes and notches of a grid chart's texel mask narrower than about
+    2 `close` sampling steps get surface points interpolated from their neighbours first (`close_texel_map`);
+    chart pieces are welded along their seams (`stitch_charts`, `stitch` times the median edge as the tolerance;
+    0: not welded); holes left with at most `fill` edges and a perimeter of at most `fill` median edges are
+    filled (`fill_holes`; 0: not filled)."""
     tp = np.asarray(texel_points, dtype=np.float32)
     H, W = tp.shape[:2]
     cell = R + 2 * pad
@@ -65,7 +72,13 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     n_valid = int(valid.sum())
     if n_valid < 4:
         raise InputError(f"the texel map has {n_valid} texels on the surface; too few for a proxy mesh")
-    step = max(1, math.ceil(math.sqrt(2.0 * n_valid / max(int(target_faces), 2))))
+    budget = max(int(target_faces), 2) * (0.9 if fill > 0 else 1.0)  # room for the faces that fill holes
+    step = max(1, math.ceil(math.sqrt(2.0 * n_valid / budget)))
+    grid = cell < max(H, W)  # grid layout (an island atlas is one cell: its islands are not closed across)
+    if close > 0 and grid:
+        tp = close_texel_map(tp, cell, int(close) * step)
+        valid = np.isfinite(tp).all(-1)
+        step = max(step, math.ceil(math.sqrt(2.0 * int(valid.sum()) / budget)))
     offs = np.arange(0, R, step)
     rows = (np.arange(H // cell)[:, None] * cell + pad + offs[None]).reshape(-1)
     cols = (np.arange(W // cell)[:, None] * cell + pad + offs[None]).reshape(-1)
@@ -93,11 +106,60 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     verts = tp[gr, gc].astype(np.float32)
     uv = np.stack([(gc + 0.5) / W, 1.0 - (gr + 0.5) / H], -1).astype(np.float32)
     corner_uv = uv[tris]
+    # grid layout: the chart square a texel lies in; island layout (one cell): the connected piece
+    chart = (gr // cell) * (W // cell) + gc // cell if grid else mesh_components(len(verts), tris)
+    face_chart = chart[tris[:, 0]]
     if stitch > 0:
-        # grid layout: the chart square a texel lies in; island layout (one cell): the connected piece
-        chart = (gr // cell) * (W // cell) + gc // cell if cell < max(H, W) else mesh_components(len(verts), tris)
         verts, tris = stitch_charts(verts, tris, chart, stitch * med)
+    flip = orient_faces(tris, verts)
+    tris[flip] = tris[flip][:, [0, 2, 1]]
+    corner_uv[flip] = corner_uv[flip][:, [0, 2, 1]]
+    if fill > 0:
+        verts, tris, corner_uv = fill_holes(verts, tris, corner_uv, face_chart, int(fill), fill * med)
     return verts, tris, corner_uv
+
+
+def close_texel_map(texel_points: np.ndarray, cell: int, k: int) -> np.ndarray:
+    """Texel map [H, W, 3] with the holes and notches of every chart's texel mask narrower than about 2 k + 1
+    texels filled: a morphological closing (k dilations, then k erosions, 8-neighbour) per chart cell of `cell`
+    texels, whose new texels get the mean point of their already known 8-neighbours, ring by ring. Texels with a
+    surface point are kept; nothing grows outwards or across cells."""
+    tp = np.array(texel_points, dtype=np.float32)
+    H, W = tp.shape[:2]
+    if k < 1:
+        return tp
+
+    def grow(m, value):  # one 8-neighbour dilation (value False) or erosion (value True)
+        p = np.pad(m, 1, constant_values=value)
+        parts = [p[1 + dr:1 + dr + m.shape[0], 1 + dc:1 + dc + m.shape[1]]
+                 for dr in (-1, 0, 1) for dc in (-1, 0, 1)]
+        return np.logical_or.reduce(parts) if not value else np.logical_and.reduce(parts)
+
+    for r0 in range(0, H - cell + 1, cell):
+        for c0 in range(0, W - cell + 1, cell):
+            sub = tp[r0:r0 + cell, c0:c0 + cell]
+            known = np.isfinite(sub).all(-1)
+            if not known.any() or known.all():
+                continue
+            closed = known
+            for _ in range(k):
+                closed = grow(closed, False)
+            for _ in range(k):
+                closed = grow(closed, True)
+            todo = closed & ~known
+            for _ in range(2 * k + 2):
+                if not todo.any():
+                    break
+                vals = np.where(known[..., None], sub, 0.0)
+                pv = np.pad(vals, ((1, 1), (1, 1), (0, 0)))
+                pk = np.pad(known, 1).astype(np.float32)
+                acc = sum(pv[1 + dr:1 + dr + cell, 1 + dc:1 + dc + cell] for dr in (-1, 0, 1) for dc in (-1, 0, 1))
+                cnt = sum(pk[1 + dr:1 + dr + cell, 1 + dc:1 + dc + cell] for dr in (-1, 0, 1) for dc in (-1, 0, 1))
+                ring = todo & (cnt > 0)
+                sub[ring] = acc[ring] / cnt[ring][:, None]
+                known = known | ring
+                todo &= ~ring
+    return tp
 
 
 def mesh_components(n_verts: int, tris: np.ndarray) -> np.ndarray:
@@ -123,38 +185,276 @@ def _edge_counts(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def stitch_charts(verts: np.ndarray, tris: np.ndarray, chart: np.ndarray, tol: float,
                   chunk: int = 1024) -> tuple[np.ndarray, np.ndarray]:
-    """Close the cracks between chart pieces: boundary vertices [V] of different charts that are each other's
-    nearest boundary vertex of another chart and lie within `tol` are merged at their midpoint (triangles keep
-    their corner UVs, so seams stay seams in the atlas). verts [V, 3], tris [F, 3], chart [V] int. Returns
-    (verts [V', 3], tris [F, 3]); unchanged when nothing merges or merging would give an edge more than two
-    triangles (Surface Deform needs a manifold target)."""
+    """Close the cracks between chart pieces by welding: boundary vertices of different charts within `tol` of
+    each other are merged, closest pairs first, into clusters that hold at most one vertex of each chart (so no
+    triangle collapses), each at the mean of its vertices (triangles keep their corner UVs, so seams stay seams
+    in the atlas). Welds that would give an edge more than two triangles (Surface Deform needs a manifold
+    target) are undone. verts [V, 3], tris [F, 3], chart [V] int. Returns (verts [V', 3], tris [F, 3])."""
     edges, counts = _edge_counts(tris)
     boundary = np.unique(edges[counts == 1])
     if len(boundary) < 2 or not tol > 0:
         return verts, tris
     bp = verts[boundary].astype(np.float64)
-    bc = chart[boundary]
-    nearest = np.full(len(boundary), -1, dtype=np.int64)
-    dist = np.full(len(boundary), np.inf)
+    bc = np.asarray(chart)[boundary]
+    pi, pj, pd = [], [], []
     for s in range(0, len(boundary), chunk):  # [chunk, B] distances: a few thousand boundary vertices at most
         d = np.linalg.norm(bp[s:s + chunk, None] - bp[None], axis=-1)
-        d[bc[s:s + chunk, None] == bc[None]] = np.inf
-        nearest[s:s + chunk] = d.argmin(1)
-        dist[s:s + chunk] = d[np.arange(d.shape[0]), nearest[s:s + chunk]]
-    i = np.arange(len(boundary))
-    pair = np.isfinite(dist) & (dist <= tol) & (nearest[nearest] == i) & (i < nearest)
-    if not pair.any():
+        i, j = np.nonzero((d <= tol) & (bc[s:s + chunk, None] != bc[None]))
+        keep = s + i < j
+        pi.append(s + i[keep])
+        pj.append(j[keep])
+        pd.append(d[i[keep], j[keep]])
+    pi, pj, pd = np.concatenate(pi), np.concatenate(pj), np.concatenate(pd)
+    if not len(pi):
         return verts, tris
-    keep, drop = boundary[i[pair]], boundary[nearest[pair]]
-    new_verts = verts.copy()
-    new_verts[keep] = (verts[keep] + verts[drop]) / 2.0
-    remap = np.arange(len(verts))
-    remap[drop] = keep
-    merged = remap[tris]
-    _, counts = _edge_counts(merged)
-    if (counts > 2).any():
+    blocked: set = set()
+    for _ in range(8):
+        parent = list(range(len(boundary)))
+        charts = [{int(c)} for c in bc]
+
+        def root(x):
+            while parent[x] != x:
+                parent[x] = parent[parent[x]]
+                x = parent[x]
+            return x
+
+        for k in np.argsort(pd, kind="stable"):
+            a, b = root(int(pi[k])), root(int(pj[k]))
+            if a == b or charts[a] & charts[b] or int(pi[k]) in blocked or int(pj[k]) in blocked:
+                continue
+            parent[b] = a
+            charts[a] |= charts[b]
+        rep = np.array([root(x) for x in range(len(boundary))])
+        remap = np.arange(len(verts))
+        remap[boundary] = boundary[rep]
+        merged = remap[tris]
+        e, counts = _edge_counts(merged)
+        bad = e[counts > 2]
+        if not len(bad):
+            break
+        # undo the welds at the vertices of over-full edges: every boundary vertex welded into those clusters
+        hit = np.isin(remap[boundary], bad.reshape(-1))
+        blocked |= set(np.nonzero(hit)[0].tolist())
+    else:
         return verts, tris
+    new_verts = verts.astype(np.float64).copy()
+    sums = np.zeros_like(new_verts)
+    np.add.at(sums, remap, verts)
+    n = np.bincount(remap, minlength=len(verts)).astype(np.float64)
+    welded = n > 1
+    new_verts[welded] = sums[welded] / n[welded, None]
     used, inverse = np.unique(merged.reshape(-1), return_inverse=True)
     return new_verts[used].astype(np.float32), inverse.reshape(-1, 3).astype(np.int32)
 
 
+def orient_faces(tris: np.ndarray, verts: np.ndarray | None = None) -> np.ndarray:
+    """Which triangles [F, 3] to flip (bool [F]) so that every edge two triangles share runs opposite ways in
+    them (one orientation per connected piece; charts of an atlas can be mirrored against each other, so welded
+    pieces disagree until flipped). In each piece the orientation most triangles already have is kept; with
+    `verts` [V, 3], pieces that touch only at vertices are turned to agree with each other too."""
+    t = np.asarray(tris, np.int64)
+    F = len(t)
+    flip = np.zeros(F, bool)
+    label = np.zeros(F, np.int64)
+    if not F:
+        return flip
+    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    same_dir = np.concatenate([t[:, 0] < t[:, 1], t[:, 1] < t[:, 2], t[:, 2] < t[:, 0]])  # runs low -> high
+    face = np.tile(np.arange(F), 3)
+    order = np.lexsort((e[:, 1], e[:, 0]))
+    e, same_dir, face = e[order], same_dir[order], face[order]
+    first = np.ones(len(e), bool)
+    first[1:] = (e[1:] != e[:-1]).any(1)
+    group = np.cumsum(first) - 1
+    nbrs: list = [[] for _ in range(F)]
+    for g in np.nonzero(np.bincount(group) == 2)[0]:  # manifold edges: exactly two triangles
+        i = int(np.searchsorted(group, g))
+        a, b = int(face[i]), int(face[i + 1])
+        agree = bool(same_dir[i]) != bool(same_dir[i + 1])  # consistent when they run opposite ways
+        nbrs[a].append((b, agree))
+        nbrs[b].append((a, agree))
+    seen = np.zeros(F, bool)
+    for s0 in range(F):
+        if seen[s0]:
+            continue
+        seen[s0] = True
+        piece, stack = [s0], [s0]
+        while stack:
+            f = stack.pop()
+            for g, agree in nbrs[f]:
+                if not seen[g]:
+                    seen[g] = True
+                    flip[g] = flip[f] if agree else not flip[f]
+                    piece.append(g)
+                    stack.append(g)
+        if flip[piece].sum() * 2 > len(piece):
+            flip[piece] = ~flip[piece]
+        label[piece] = s0
+    if verts is not None:
+        flip ^= _align_pieces(np.asarray(verts, np.float64), np.where(flip[:, None], t[:, [0, 2, 1]], t), label)
+    return flip
+
+
+def _align_pieces(verts: np.ndarray, t: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """Pieces of triangles [F, 3] (label [F]) that touch only at vertices cannot be oriented through edges: flip
+    (bool [F]) whole pieces whose normals point against those of the pieces they touch (area-weighted normals
+    summed at the shared vertices), piece by piece from the largest."""
+    n = np.cross(verts[t[:, 1]] - verts[t[:, 0]], verts[t[:, 2]] - verts[t[:, 0]])   # [F, 3], |n| = 2 area
+    pieces, inv = np.unique(label, return_inverse=True)
+    if len(pieces) < 2:
+        return np.zeros(len(t), bool)
+    # normal of each (piece, vertex) pair
+    pv = np.stack([np.repeat(inv, 3), t.reshape(-1)], 1)
+    key, kinv = np.unique(pv, axis=0, return_inverse=True)
+    normal = np.zeros((len(key), 3))
+    np.add.at(normal, kinv.reshape(-1), np.repeat(n, 3, axis=0))
+    shared = np.bincount(key[:, 1], minlength=len(verts))[key[:, 1]] > 1
+    key, normal = key[shared], normal[shared]
+    score: dict = {}  # (piece a, piece b) -> summed dot of their normals at shared vertices
+    for v in np.unique(key[:, 1]):
+        rows = np.nonzero(key[:, 1] == v)[0]
+        for i in range(len(rows)):
+            for j in range(i + 1, len(rows)):
+                a, b = int(key[rows[i], 0]), int(key[rows[j], 0])
+                score[(a, b)] = score.get((a, b), 0.0) + float(normal[rows[i]] @ normal[rows[j]])
+    nbrs: dict = {}
+    for (a, b), d in score.items():
+        nbrs.setdefault(a, []).append((b, d))
+        nbrs.setdefault(b, []).append((a, d))
+    size = np.bincount(inv, minlength=len(pieces))
+    flip_piece = np.zeros(len(pieces), bool)
+    seen = np.zeros(len(pieces), bool)
+    for s0 in np.argsort(-size, kind="stable"):
+        if seen[s0]:
+            continue
+        seen[s0] = True
+        stack = [int(s0)]
+        while stack:
+            a = stack.pop()
+            for b, d in nbrs.get(a, ()):
+                if not seen[b]:
+                    seen[b] = True
+                    flip_piece[b] = flip_piece[a] ^ (d < 0)
+                    stack.append(b)
+    return flip_piece[inv]
+
+
+def boundary_loops(tris: np.ndarray) -> list[np.ndarray]:
+    """The closed loops of boundary edges of triangles [F, 3]: vertex indices [L] each, in the order of the
+    triangles' own boundary edges (a -> b where b -> a is in no triangle). A loop goes on along the boundary edge
+    found by turning around the vertex through the triangles; where separate fans of triangles touch at a vertex
+    (a pinch, as welding leaves between two pieces), it crosses to the next fan, so the gap between two pieces
+    welded at points comes out as a loop of its own."""
+    t = np.asarray(tris, np.int64)
+    if not len(t):
+        return []
+    face_of = {}  # directed edge (a, b) -> (triangle, corner of a)
+    for f, (x, y, z) in enumerate(t.tolist()):
+        face_of[(x, y)] = (f, 0)
+        face_of[(y, z)] = (f, 1)
+        face_of[(z, x)] = (f, 2)
+    und, cnt = _edge_counts(t)
+    single = set(map(tuple, und[cnt == 1].tolist()))  # undirected edges of one triangle
+    open_edges = [e for e in face_of if (min(e), max(e)) in single]
+
+    def next_edge(a, b):
+        """The boundary edge b -> c that follows a -> b around b's fan (None if the fan is broken)."""
+        f, k = face_of[(a, b)]
+        for _ in range(len(face_of)):
+            c = int(t[f, (k + 2) % 3])          # triangle f = (a, b, c): its edge out of b is b -> c
+            if (c, b) not in face_of:
+                return (b, c)
+            f, k = face_of[(c, b)]               # cross to the triangle (c, b, d) and turn on
+            a, b = c, b
+        return None
+
+    succ = {e: next_edge(*e) for e in open_edges}
+    # a pinch: fans of triangles that touch only at the vertex (welded pieces). The gap between them is the hole
+    # to find, so a loop arriving in one fan leaves through the next fan's boundary edge.
+    arriving: dict = {}
+    for e in open_edges:
+        arriving.setdefault(e[1], []).append(e)
+    for ins in arriving.values():
+        if len(ins) > 1:
+            outs = [succ[e] for e in ins]
+            for k, e in enumerate(ins):
+                succ[e] = outs[(k + 1) % len(ins)]
+    done, loops = set(), []
+    for e in open_edges:
+        if e in done:
+            continue
+        loop, cur = [], e
+        while cur is not None and cur not in done:
+            done.add(cur)
+            loop.append(cur[0])
+            cur = succ.get(cur)
+        if cur == e and all((min(x, y), max(x, y)) in single for x, y in zip(loop, loop[1:] + loop[:1])):
+            loops += _simple_loops(loop)
+    return loops
+
+
+def _simple_loops(loop: list) -> list[np.ndarray]:
+    """A closed walk that passes a vertex more than once, cut into loops that pass each vertex once (each at
+    least 3 long)."""
+    out, path, pos = [], [], {}
+    for v in loop + loop[:1]:
+        if v in pos:
+            k = pos[v]
+            piece = path[k:]
+            for x in piece[1:]:
+                del pos[x]
+            del path[k + 1:]
+            if len(piece) >= 3:
+                out.append(np.asarray(piece, np.int64))
+            continue
+        pos[v] = len(path)
+        path.append(v)
+    return out
+
+
+def fill_holes(verts: np.ndarray, tris: np.ndarray, corner_uv: np.ndarray, face_chart: np.ndarray,
+               max_edges: int, max_perimeter: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Fill the small holes: every boundary loop of at most `max_edges` edges whose perimeter is at most
+    `max_perimeter` gets a triangle (3 edges) or a fan around a new vertex at its centroid. A hole inside one chart
+    keeps its texture (the fan's corners take the UVs of the faces around the hole, the centre their mean);
+    a hole between charts gets the one UV of a neighbouring corner (its colour, and paint there writes nothing).
+    verts [V, 3], tris [F, 3], corner_uv [F, 3, 2], face_chart [F]. Returns (verts [V', 3], tris [F', 3],
+    corner_uv [F', 3, 2])."""
+    loops = boundary_loops(tris)
+    if not loops:
+        return verts, tris, corner_uv
+    # the face and corner of every directed boundary edge a -> b
+    n = len(verts)
+    d = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]).astype(np.int64)
+    F = len(tris)
+    face = np.tile(np.arange(F), 3)
+    corner = np.repeat([0, 1, 2], F)
+    where = {int(k): i for i, k in enumerate((d[:, 0] * n + d[:, 1]).tolist())}
+    new_v, new_t, new_uv = [], [], []
+    nv = n
+    for loop in loops:
+        nxt = np.roll(loop, -1)
+        per = float(np.linalg.norm(verts[nxt] - verts[loop], axis=1).sum())
+        if len(loop) > max_edges or not per <= max_perimeter:
+            continue
+        idx = [where[int(x) * n + int(y)] for x, y in zip(loop, nxt)]
+        f, c = face[idx], corner[idx]
+        uv_a = corner_uv[f, c]                 # uv of a in the face of edge a -> b
+        uv_b = corner_uv[f, (c + 1) % 3]       # uv of b there
+        single = len(set(face_chart[f].tolist())) == 1
+        if len(loop) == 3:
+            new_t.append([loop[0], loop[2], loop[1]])
+            new_uv.append([uv_a[0], uv_a[2], uv_a[1]] if single else [uv_a[0]] * 3)
+            continue
+        new_v.append(verts[loop].mean(0))
+        centre_uv = uv_a.mean(0) if single else uv_a[0]
+        for k in range(len(loop)):
+            new_t.append([nxt[k], loop[k], nv])
+            new_uv.append([uv_b[k], uv_a[k], centre_uv] if single else [uv_a[0]] * 3)
+        nv += 1
+    if not new_t:
+        return verts, tris, corner_uv
+    verts = np.concatenate([verts, np.asarray(new_v, np.float32).reshape(-1, 3)]).astype(np.float32)
+    tris = np.concatenate([tris, np.asarray(new_t, np.int32)]).astype(np.int32)
+    corner_uv = np.concatenate([corner_uv, np.asarray(new_uv, np.float32)]).astype(np.float32)
+    return verts, tris, corner_uv

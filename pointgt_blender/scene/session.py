@@ -21,6 +21,8 @@ class Session:
         self.rendering = False    # a render job runs: previews wait
         self.busy = False         # a synchronous preview update runs (guards against re-entry)
         self.handler_ms: list = []  # duration of the last handler calls (ms), newest last, at most 1000
+        self.progress: list = []  # fractions shown by the last synchronous preview update (wm progress)
+        self.outlines: dict = {}  # model file -> (its size and mtime, chart outlines in UV space [S, 2, 2])
 
     def forget_previews(self) -> None:
         """Forget what was written into the preview images (after an undo: the images may hold other pixels, which
@@ -41,6 +43,7 @@ class Session:
         self.status.clear()
         self.dirty = False
         self.handler_ms.clear()
+        self.outlines.clear()
         if "torch" in sys.modules:
             from ..bridge import deps
 

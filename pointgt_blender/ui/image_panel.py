@@ -1,5 +1,6 @@
 """The PointGT tab in the Image Editor sidebar: the model's preview and atlas images (the atlas opens ready for
-Texture Paint), preview settings, re-render, transfer of preview paint, and Render Animation."""
+Texture Paint), preview settings, re-render, transfer of preview paint, and Render Animation; and the chart
+outlines drawn over a model's atlas (`draw_chart_outlines`, a draw handler that scene/handlers.py registers)."""
 import bpy
 
 from ..operators import preview
@@ -19,6 +20,59 @@ def panel_object(context):
             if is_pointgt_object(o) and image in (o.pointgt.atlas, o.pointgt.preview_image):
                 return o
     return None
+
+
+def atlas_owner(scene, image):
+    """The PointGT model whose atlas `image` is (the first, when duplicates share it), or None."""
+    if image is None:
+        return None
+    for o in scene.objects:
+        if is_pointgt_object(o) and o.pointgt.atlas == image:
+            return o
+    return None
+
+
+def shown_outlines(context):
+    """Chart outlines [S, 2, 2] float32 in UV space to draw over the Image Editor of `context` (its space and
+    scene), or None when there is nothing to draw: outlines off, or the editor does not show a model's atlas.
+    Errors reading the model (a missing file) also give None: the overlay never stands in the way."""
+    from ..scene import chart_outlines
+    from ..scene.scene_inputs import model_file
+
+    scene, space = context.scene, context.space_data
+    if scene is None or getattr(space, "type", "") != 'IMAGE_EDITOR' or not scene.pointgt.chart_outlines:
+        return None
+    obj = atlas_owner(scene, space.image)
+    if obj is None:
+        return None
+    try:
+        return chart_outlines.model_outlines(model_file(obj))
+    except Exception:  # a missing or damaged model file: the panels say so, the overlay stays quiet
+        return None
+
+
+def draw_chart_outlines():
+    """SpaceImageEditor draw handler (POST_PIXEL): the chart outlines over the atlas, mapped through the editor's
+    pan and zoom. Blender calls it only where it draws (never headless)."""
+    from ..scene import chart_outlines
+
+    context = bpy.context
+    seg = shown_outlines(context)
+    if seg is None or not len(seg) or context.region is None:
+        return
+    v2d = context.region.view2d
+    origin, corner = v2d.view_to_region(0.0, 0.0, clip=False), v2d.view_to_region(1.0, 1.0, clip=False)
+    if origin == corner:  # the view is not set up yet (nothing drawn so far)
+        return
+    import gpu
+    from gpu_extras.batch import batch_for_shader
+
+    shader = gpu.shader.from_builtin('UNIFORM_COLOR')
+    batch = batch_for_shader(shader, 'LINES', {"pos": chart_outlines.to_region(seg, origin, corner)})
+    gpu.state.blend_set('ALPHA')
+    shader.uniform_float("color", tuple(context.scene.pointgt.outline_colour))
+    batch.draw(shader)
+    gpu.state.blend_set('NONE')
 
 
 def show_image(context, image, paint: bool) -> None:
@@ -96,6 +150,9 @@ class POINTGT_PT_image(SidebarPanel, bpy.types.Panel):
         col = layout.column()
         col.prop(s, "preview_image")
         col.prop(s, "atlas")
+        row = col.row(align=True)
+        row.prop(scene.pointgt, "chart_outlines")
+        row.prop(scene.pointgt, "outline_colour", text="")
         shared = preview.atlas_users(obj)
         if shared:
             box = col.box()

@@ -62,6 +62,13 @@ class PointGTSceneSettings(bpy.types.PropertyGroup):
     background: bpy.props.FloatVectorProperty(
         name="Background", subtype='COLOR_GAMMA', size=3, default=(1.0, 1.0, 1.0), min=0.0, max=1.0,
         description="Colour behind the models in previews and renders (Film > Transparent renders alpha instead)")
+    chart_outlines: bpy.props.BoolProperty(
+        name="Chart outlines", default=True,
+        description="Draw the outlines of the atlas's charts over a model's atlas in the Image Editor, so you can "
+                    "tell which texels belong together while painting")
+    outline_colour: bpy.props.FloatVectorProperty(
+        name="Outline colour", subtype='COLOR_GAMMA', size=4, default=(1.0, 0.0, 1.0, 0.8), min=0.0, max=1.0,
+        description="Colour and opacity of the chart outlines")
 
 
 def is_pointgt_object(obj) -> bool:

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 import bpy
-from session_common import make_active, recorder  # noqa: E402
+from session_common import centroid, make_active, paint_through_uvs, read_png, recorder  # noqa: E402
 
 zip_path, model, blank_model, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -67,8 +67,9 @@ def _():
     res = bpy.ops.pointgt.import_model(filepath=model, preview_resolution=W)
     bpy.context.active_object.name = "card"
     mod("operators.preview").update_previews(scene, force=True)
+    sync_progress = list(mod("operators.preview").S.progress)
     settle()
-    return {"import": sorted(res), "preview": obj().pointgt.preview_image.name}
+    return {"import": sorted(res), "preview": obj().pointgt.preview_image.name, "sync_progress": sync_progress}
 
 
 @step("nonblocking")
@@ -130,7 +131,7 @@ def _():
             "slices": slices, "refining_seen": any("refining" in t for t in statuses),
             "slice_max_ms": max(slice_ms), "cancelled": S.counts["cancelled"] - cancelled0,
             "mean_x_after_move": final_state_pos, "levels": prev.preview_levels(128, 96),
-            "final_status": statuses[-1]}
+            "final_status": statuses[-1], "level_seen": any("level 1 of 2" in t for t in statuses)}
 
 
 @step("duplicates")
@@ -270,60 +271,70 @@ def _():
     return out
 
 
-def paint_through_uvs(proxy, image, centre, radius, colour):
-    """What Texture Paint on the proxy does: the texels inside the UV triangles of the proxy faces whose centre
-    lies within `radius` of `centre` (object space) get `colour` (linear RGB). Returns the number of texels."""
-    m = proxy.data
-    co = np.empty(len(m.vertices) * 3, np.float32)
-    m.vertices.foreach_get("co", co)
-    co = co.reshape(-1, 3)
-    vi = np.empty(len(m.loops), np.int32)
-    m.loops.foreach_get("vertex_index", vi)
-    uv = np.empty(len(m.loops) * 2, np.float32)
-    m.uv_layers["PointGT atlas"].data.foreach_get("uv", uv)
-    tri_v, tri_uv = vi.reshape(-1, 3), uv.reshape(-1, 3, 2)
-    pick = np.linalg.norm(co[tri_v].mean(1) - np.asarray(centre), axis=1) < radius
-    w, h = image.size
-    px = np.empty(w * h * 4, np.float32)
-    image.pixels.foreach_get(px)
-    px = px.reshape(h, w, 4)
-    yy, xx = np.mgrid[0:h, 0:w]
-    centres = np.stack([(xx + 0.5) / w, (yy + 0.5) / h], -1).reshape(-1, 2)  # Blender rows: 0 = bottom
-    hit = np.zeros(h * w, bool)
-    for t in tri_uv[pick]:
-        a, b, c = t
-        m2 = np.array([b - a, c - a]).T
-        if abs(np.linalg.det(m2)) < 1e-12:
-            continue
-        lam = np.linalg.solve(m2, (centres - a).T).T
-        hit |= (lam >= -1e-6).all(1) & (lam.sum(1) <= 1 + 1e-6)
-    px.reshape(-1, 4)[hit, :3] = colour
-    image.pixels.foreach_set(px.reshape(-1))
-    image.update()
-    return int(hit.sum()), int(pick.sum())
+@step("outlines")
+def _():
+    """The chart outlines the Image Editor draws over the atlas: which editors get them, and their geometry
+    against the model's texel map."""
+    out = {}
+    o, scene = obj(), bpy.context.scene
+    panel, outl = mod("ui.image_panel"), mod("scene.chart_outlines")
+    out["draw_handlers"] = len(mod("scene.handlers")._DRAW)
+    win = bpy.context.window_manager.windows[0]
+    area = win.screen.areas[0]
+    old_type = area.type
+    area.type = 'IMAGE_EDITOR'
+    space = area.spaces.active
+    region = next(r for r in area.regions if r.type == 'WINDOW')
+    other = bpy.data.images.new("not an atlas", 8, 8)
+    try:
+        with bpy.context.temp_override(window=win, area=area, region=region):
+            space.image = o.pointgt.atlas
+            seg = panel.shown_outlines(bpy.context)
+            panel.draw_chart_outlines()  # headless the view was never drawn: it returns without drawing
+            scene.pointgt.chart_outlines = False
+            out["off"] = panel.shown_outlines(bpy.context) is None
+            scene.pointgt.chart_outlines = True
+            space.image = other
+            out["other_image"] = panel.shown_outlines(bpy.context) is None
+            space.image = o.pointgt.atlas
+            out["cached"] = panel.shown_outlines(bpy.context) is seg
+    finally:
+        area.type = old_type
+        bpy.data.images.remove(other)
+    # geometry: every unit edge of every segment separates two different charts (or a chart and no surface)
+    tex, R, pad = mod("scene.proxy_mesh").read_texel_map(mod("scene.scene_inputs").model_file(o))
+    H, W = tex.shape[:2]
+    cell = R + 2 * pad
+    rows, cols = np.mgrid[0:H, 0:W]
+    lab = np.where(np.isfinite(tex).all(-1), (rows // cell) * (W // cell) + cols // cell, -1)
+    at = np.pad(lab, 1, constant_values=-1)  # at[r + 1, c + 1] = lab[r, c]; -1 outside the image
+    px = np.stack([seg[..., 0] * W, (1.0 - seg[..., 1]) * H], -1)  # back to pixel corners, y down
+    out["on_grid"] = bool(np.abs(px - np.round(px)).max() < 1e-3)
+    px = np.round(px).astype(int)
+    bad = edges = 0
+    seen = set()
+    for (x0, y0), (x1, y1) in px.tolist():
+        if x0 == x1:  # vertical: pixels (y, x - 1) and (y, x) on either side
+            pairs = [((y, x0 - 1), (y, x0)) for y in range(min(y0, y1), max(y0, y1))]
+        else:
+            pairs = [((y0 - 1, x), (y0, x)) for x in range(min(x0, x1), max(x0, x1))]
+        for a, b in pairs:
+            la, lb = at[a[0] + 1, a[1] + 1], at[b[0] + 1, b[1] + 1]
+            bad += int(la == lb or max(la, lb) < 0)
+            edges += 1
+            seen |= {int(la), int(lb)}
+    # every such unit edge of the texel map is drawn: count them directly
+    dv = (at[1:-1, :-1] != at[1:-1, 1:]) & (np.maximum(at[1:-1, :-1], at[1:-1, 1:]) >= 0)
+    dh = (at[:-1, 1:-1] != at[1:, 1:-1]) & (np.maximum(at[:-1, 1:-1], at[1:, 1:-1]) >= 0)
+    out.update(segments=int(len(seg)), unit_edges=edges, bad=bad, expected_edges=int(dv.sum() + dh.sum()),
+               charts=int(len(np.unique(lab[lab >= 0]))), outlined_charts=len(seen - {-1}))
+    return out
 
 
 def project(points):
     c2w, focal = mod("scene.camera").scene_camera(bpy.context.scene, W, H)
     cam = (np.asarray(points) - c2w[:3, 3]) @ c2w[:3, :3]
     return np.stack([focal * cam[:, 0] / -cam[:, 2] + W / 2, -focal * cam[:, 1] / -cam[:, 2] + H / 2], axis=1)
-
-
-def read_png(path):
-    img = bpy.data.images.load(path)
-    w, h = img.size
-    buf = np.empty(w * h * img.channels, np.float32)
-    img.pixels.foreach_get(buf)
-    bpy.data.images.remove(img)
-    return buf.reshape(h, w, -1)[::-1, :, :3]  # row 0 = top
-
-
-def centroid(rgb, colour):
-    near = np.linalg.norm(rgb - np.asarray(colour, np.float32), axis=-1) < 0.45
-    rows, cols = np.nonzero(near)
-    if not len(rows):
-        return [float("nan"), float("nan")], 0
-    return [float(cols.mean() + 0.5), float(rows.mean() + 0.5)], int(near.sum())
 
 
 @step("proxy")
@@ -340,6 +351,21 @@ def _():
     out["atlas"] = o.pointgt.atlas.name
     sd = o.modifiers.get("PointGT Surface Deform")
     out["bound"] = bool(sd and sd.is_bound and sd.target == proxy and o.modifiers[0] == sd)
+    # cracks: open edges and pieces of the proxy against the same texel map meshed chart by chart (not closed)
+    pm = mod("scene.proxy_mesh")
+    tri = np.empty(len(proxy.data.loops), np.int32)
+    proxy.data.loops.foreach_get("vertex_index", tri)
+    tri = tri.reshape(-1, 3)
+    tex, R_, pad_ = pm.read_texel_map(mod("scene.scene_inputs").model_file(o))
+    _, raw_tris, _ = pm.proxy_arrays(tex, R_, pad_, stitch=0.0, close=0, fill=0)
+
+    def cracks(t):
+        _, counts = pm._edge_counts(t)
+        label = pm.mesh_components(int(t.max()) + 1, t)
+        return {"open_edges": int((counts == 1).sum()), "pieces": len(np.unique(label[np.unique(t)])),
+                "most": int(counts.max())}
+
+    out["cracks"], out["cracks_per_chart"] = cracks(tri), cracks(raw_tris)
     # 3-D paint on the proxy: a red disc on the card's right half, written through the proxy's UV map
     centre = np.array([0.45, 0.15, 0.0])
     out["painted_texels"], out["painted_faces"] = paint_through_uvs(proxy, o.pointgt.atlas, centre, 0.12,
@@ -433,6 +459,7 @@ def _():
     scene.cycles.use_denoising = False
     scene.view_settings.view_transform = 'Standard'
     rgb = read_png(render_still(os.path.join(work, "composite.png"), engine=None))
+    out["layer_progress"] = dict(mod("render.composite").LAST_LAYER)
     layer = mod("render.composite").bpy.data.images["PointGT layer"]
     lay = np.empty(W * H * 4, np.float32)
     layer.pixels.foreach_get(lay)
@@ -482,4 +509,6 @@ def _():
     return out
 
 
+with open(os.path.join(work, "results.json"), "w") as fh:  # kept with pytest's temporary folders, to read
+    json.dump(R, fh, indent=1)
 print("RESULTS: " + json.dumps(R))

@@ -24,7 +24,7 @@ def _texel_map(R=16, pad=2, charts=(0, 1)):
 
 def test_vertices_sit_on_their_texels_and_uvs_are_texel_centres():
     tp, R, pad = _texel_map()
-    verts, tris, uv = proxy_arrays(tp, R, pad, target_faces=100000, stitch=0.0)
+    verts, tris, uv = proxy_arrays(tp, R, pad, target_faces=100000, stitch=0.0, close=0, fill=0)
     H, W = tp.shape[:2]
     col = np.floor(uv[..., 0] * W).astype(int)
     row = np.floor((1.0 - uv[..., 1]) * H).astype(int)  # v = 0 at the bottom row
@@ -50,8 +50,8 @@ def test_charts_of_one_surface_are_stitched_along_their_seam():
     i, j = np.mgrid[0:R, 0:R].astype(np.float32)
     tp[pad:pad + R, pad:pad + R] = np.stack([j * 0.1, i * 0.1, 0 * i], -1)
     tp[pad:pad + R, cell + pad:cell + pad + R] = np.stack([(R - 1) * 0.1 + 0.14 + j * 0.1, i * 0.1, 0 * i], -1)
-    v0, t0, uv0 = proxy_arrays(tp, R, pad, target_faces=100000, stitch=0.0)
-    v1, t1, uv1 = proxy_arrays(tp, R, pad, target_faces=100000)
+    v0, t0, uv0 = proxy_arrays(tp, R, pad, target_faces=100000, stitch=0.0, fill=0)
+    v1, t1, uv1 = proxy_arrays(tp, R, pad, target_faces=100000, fill=0)
     open0, _ = _boundary_edges(t0)
     open1, most = _boundary_edges(t1)
     assert len(v1) == len(v0) - R and open1 == open0 - 2 * (R - 1) and most == 2
@@ -77,3 +77,86 @@ def test_empty_or_non_finite_maps_say_so():
     bad[np.isfinite(bad).all(-1)] = np.inf
     with pytest.raises(InputError):
         proxy_arrays(bad, R, pad)
+
+
+def _open_edges(tris):
+    """Undirected edges used by one triangle [B, 2], and whether every edge of two triangles runs opposite ways in
+    them (consistent orientation)."""
+    d = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    e = np.sort(d, axis=1)
+    u, inv, counts = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+    forward = (d[:, 0] < d[:, 1]).astype(int)
+    fw = np.bincount(inv.reshape(-1), weights=forward, minlength=len(u))
+    consistent = bool(((counts != 2) | (fw == 1)).all())
+    return u[counts == 1], consistent
+
+
+def _seam_map(R=12, pad=2, mirror=False, jag=True):
+    """One plane (x in [0, 2.4), y in [0, 1.2)) cut into two charts at x = 1.2: chart 0 the left half, chart 1 the
+    right half sampled on its own grid (offset by a third of a texel, optionally mirrored in the atlas), each
+    half's texel mask jagged along the seam (every other row two texels short), as atlas charts are."""
+    cell = R + 2 * pad
+    h = 1.2 / R
+    tp = np.full((cell, 2 * cell, 3), np.nan, np.float32)
+    i, j = np.mgrid[0:R, 0:R].astype(np.float32)
+    left = np.stack([j * h, i * h, 0 * i], -1)
+    right = np.stack([1.2 + h / 3 + j * h, i * h + h / 3, 0 * i], -1)
+    if jag:
+        left[1::2, -2:] = np.nan       # notches along the seam, on both sides
+        right[::2, :2] = np.nan
+    if mirror:
+        right = right[:, ::-1]
+    tp[pad:pad + R, pad:pad + R] = left
+    tp[pad:pad + R, cell + pad:cell + pad + R] = right
+    return tp, R, pad
+
+
+@pytest.mark.parametrize("mirror", [False, True])
+def test_jagged_seams_between_charts_close_into_one_piece(mirror):
+    """Cracks measured as open edges: without closing, the two halves are two pieces with a jagged crack between
+    them; with the defaults they are one piece whose only open edges are the plane's outer border, consistently
+    oriented (also when one chart is mirrored in the atlas), manifold, with finite vertices."""
+    from pointgt_blender.scene.proxy_mesh import boundary_loops, mesh_components
+
+    tp, R, pad = _seam_map(mirror=mirror)
+    v0, t0, _ = proxy_arrays(tp, R, pad, target_faces=100000, stitch=0.0, close=0, fill=0)
+    v1, t1, uv1 = proxy_arrays(tp, R, pad, target_faces=100000)
+    comp0, comp1 = mesh_components(len(v0), t0), mesh_components(len(v1), t1)
+    assert len(np.unique(comp0)) == 2 and len(np.unique(comp1[np.unique(t1)])) == 1
+    open0, _ = _open_edges(t0)
+    open1, consistent = _open_edges(t1)
+    _, most = _boundary_edges(t1)
+    assert consistent and most == 2 and np.isfinite(v1).all() and np.isfinite(uv1).all()
+    # the crack is gone: one loop of open edges (the plane's outline) holds them all, and the mesh covers the
+    # strip between the halves and their notches (0.5 of the plane's 2.88) without overlapping (no more than 2.88)
+    loops = boundary_loops(t1)
+    assert len(loops) == 1 and len(loops[0]) == len(open1) < len(open0)
+    area = lambda v, t: 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]),  # noqa
+                                             axis=1).sum()
+    assert area(v0, t0) + 0.45 < area(v1, t1) <= 2.4 * 1.2
+
+
+def test_holes_inside_a_chart_are_closed_and_keep_the_charts_texture():
+    """The 4 x 4 hole of chart 0: closed by the defaults with points in the plane; the faces over it map into the
+    chart's own texels (not across the atlas), so painting there paints that part of the chart."""
+    tp, R, pad = _texel_map()
+    v0, t0, _ = proxy_arrays(tp, R, pad, target_faces=100000, stitch=0.0, close=0, fill=0)
+    v1, t1, uv1 = proxy_arrays(tp, R, pad, target_faces=100000)
+    assert len(_open_edges(t1)[0]) == len(_open_edges(t0)[0]) - 4 * 5  # the hole's 20 open edges are gone
+    z = v1[t1][..., 2]
+    assert ((z == 0) | (z == 5)).all() and (z.min(1) == z.max(1)).all()  # charts 5 apart never joined
+    H, W = tp.shape[:2]
+    cell = R + 2 * pad
+    col = np.floor(uv1[..., 0] * W).astype(int)
+    assert (col.min(1) // cell == col.max(1) // cell).all()  # every face's UVs inside one chart's cell
+    on_hole = (np.abs(v1[t1].mean(1)[:, :2] - 0.1 * 7.5) < 0.2).all(1) & (z[:, 0] == 0)
+    assert on_hole.sum() >= 8
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1e6])
+def test_extreme_scales_give_the_same_mesh(scale):
+    tp, R, pad = _seam_map()
+    v, t, uv = proxy_arrays(tp, R, pad, target_faces=100000)
+    vs, ts, uvs = proxy_arrays(tp * np.float32(scale), R, pad, target_faces=100000)
+    assert np.isfinite(vs).all() and np.array_equal(t, ts) and np.array_equal(uv, uvs)
+    np.testing.assert_allclose(vs, v * scale, rtol=1e-4, atol=1e-6 * scale)

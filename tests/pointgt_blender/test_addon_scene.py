@@ -52,14 +52,14 @@ def session(tmp_path_factory):
     return {"r": r, "work": work, "model": model, "tmp": tmp, "env": env}
 
 
-def _strip(paths, target: Path) -> None:
-    """Frames side by side, 3x enlarged (nearest), for the docs."""
+def _strip(paths, target: Path, scale: int = 3) -> None:
+    """Frames side by side, `scale` times enlarged (nearest), for the docs."""
     target.parent.mkdir(parents=True, exist_ok=True)
     ims = [Image.open(p).convert("RGB") for p in paths]
     w, h = ims[0].size
-    canvas = Image.new("RGB", (len(ims) * (3 * w + 4) - 4, 3 * h), "white")
+    canvas = Image.new("RGB", (len(ims) * (scale * w + 4) - 4, scale * h), "white")
     for i, im in enumerate(ims):
-        canvas.paste(im.resize((3 * w, 3 * h), Image.NEAREST), (i * (3 * w + 4), 0))
+        canvas.paste(im.resize((scale * w, scale * h), Image.NEAREST), (i * (scale * w + 4), 0))
     canvas.save(target, optimize=True)
 
 
@@ -94,8 +94,15 @@ def test_handlers_only_mark_dirty_and_the_preview_renders_coarse_to_fine_when_id
     assert r["handler_calls"] >= 10 and r["handler_max_ms"] <= 100.0, r["handler_max_ms"]
     assert r["levels"] == [[64, 48], [128, 96]]
     assert r["idle"] == {"rendered": 1, "levels": 2, "jobs": 1}  # one job for the whole batch, two levels
-    assert r["refining_seen"] and r["final_status"].startswith("Preview 128x96")
+    assert r["refining_seen"] and r["level_seen"] and r["final_status"].startswith("Preview 128x96")
     assert r["slices"] >= 4  # the work came in several slices
+
+
+def test_blocking_preview_updates_and_the_composite_layer_report_progress(session):
+    p = _get(session, "scene")["sync_progress"]
+    assert len(p) >= 3 and p == sorted(p) and 0.0 < p[0] < 1.0 and p[-1] == 1.0, p
+    lp = _get(session, "composite")["layer_progress"]
+    assert lp["progress"] == [1.0] and lp["frame"] == 1, lp  # one model: one step, printed to the console
 
 
 def test_a_new_change_cancels_the_running_preview(session):
@@ -126,10 +133,23 @@ def test_the_blend_renders_without_its_model_file(session):
     assert r["repack"] == ["FINISHED"]
 
 
+def test_chart_outlines_are_drawn_over_the_atlas_only_and_lie_on_the_chart_borders(session):
+    r = _get(session, "outlines")
+    assert r["draw_handlers"] == 1 and r["off"] and r["other_image"] and r["cached"], r
+    assert r["on_grid"] and r["segments"] >= 4 * r["charts"], r  # at least a square per chart
+    assert r["bad"] == 0 and r["unit_edges"] == r["expected_edges"] > 0, r  # every border edge, nothing else
+    assert r["outlined_charts"] == r["charts"] >= 2, r
+
+
 def test_surface_proxy_shows_the_atlas_and_paint_through_its_uvs_lands_where_the_render_looks(session):
     r = _get(session, "proxy")
     assert 100 <= r["faces"] <= 4000 and r["triangles"] and r["uv"] == "PointGT atlas"
     assert r["material_image"] == r["atlas"] and r["bound"]
+    # the card's charts meshed one by one leave cracks between them; the proxy is one piece (welded seams, filled
+    # notches), its open edges down to the card's outline, still manifold for Surface Deform
+    c, c0 = r["cracks"], r["cracks_per_chart"]
+    assert c0["pieces"] >= 2 and c["pieces"] == 1 and c["most"] == 2, r
+    assert c["open_edges"] < 0.7 * c0["open_edges"], r
     assert r["painted_faces"] >= 4 and r["painted_texels"] >= 10
     c, n = r["rest"]
     assert n >= 6 and np.hypot(c[0] - r["rest_expect"][0], c[1] - r["rest_expect"][1]) < 3.0, str(r)
