@@ -414,6 +414,10 @@ def _():
     share = np.where(full > 1e-3, moved / np.maximum(full, 1e-3), 0.0)
     out["blended"] = int(((share > 0.1) & (share < 0.9)).sum())
     out["points"] = int(len(rest))
+    # 90 degrees: the paint follows in the neural render (F12)
+    rgb = read_png(render_still(os.path.join(work, "proxy_posed90.png")))
+    out["posed90"] = centroid(rgb, (1.0, 0.0, 0.0))
+    out["posed90_expect"] = project(turn(centre[None], 90.0))[0].tolist()
     # 45 degrees: the paint follows in the neural render
     pb.rotation_euler = (0.0, 0.0, math.radians(45.0))
     bpy.context.view_layer.update()

@@ -162,7 +162,10 @@ def test_automatic_weights_on_the_proxy_pose_the_neural_render(session):
     # near the joint the heat weights blend (not the stiff segments of Automatic Weights on bare points)
     assert r["right_moved"] > 0.5 and r["right_error"] < 0.05 and r["left_moved"] < 0.02, r
     assert r["blended"] >= 0.05 * r["points"], r
-    # at 45 degrees the paint sits where its surface went in the neural render
+    # at 90 and 45 degrees the paint sits where its surface went in the neural render
+    c, n = r["posed90"]
+    assert n >= 6, r
+    assert np.hypot(c[0] - r["posed90_expect"][0], c[1] - r["posed90_expect"][1]) < 3.0, r
     c, n = r["posed"]
     assert n >= 6, r
     assert np.hypot(c[0] - r["posed_expect"][0], c[1] - r["posed_expect"][1]) < 3.0, r
