@@ -437,41 +437,15 @@ def diffuse(name, colour):
     return mat
 
 
-@step("composite")
-def _():
+def judge_composite(rgb, alone, neural):
+    """Occlusion, the paint's place and the shadow, by pixels, in a composited frame rgb (sRGB, row 0 = top),
+    given the scene rendered alone and the PointGT engine's own frame."""
     out = {}
     scene = bpy.context.scene
-    o = obj()
-    arm = next(x for x in bpy.data.objects if x.type == 'ARMATURE')
-    # the card's right half stays turned by 45 degrees (proxy step), with the red disc painted through the proxy
-    neural = read_png(render_still(os.path.join(work, "neural_only.png")))  # the PointGT engine alone
-    bpy.ops.mesh.primitive_plane_add(size=6.0, location=(0.0, 0.0, -0.6))
-    floor = bpy.context.active_object
-    floor.data.materials.append(diffuse("floor", (0.8, 0.8, 0.8)))
-    bpy.ops.mesh.primitive_cube_add(size=0.25, location=(0.5, 0.1, 0.35))
-    box = bpy.context.active_object
-    box.data.materials.append(diffuse("box", (0.05, 0.8, 0.05)))
-    # the sun shines from +y at 45 degrees: the card's shadow falls 0.6 towards -y, partly beside the card
-    bpy.ops.object.light_add(type='SUN', location=(0.0, 0.0, 5.0), rotation=(math.radians(-45.0), 0.0, 0.0))
-    sun = bpy.context.active_object
-    sun.data.energy = 3.0
-    sun.data.angle = 0.0
-    make_active(o)
-    out["setup"] = sorted(bpy.ops.pointgt.setup_composite())
-    out["engine"] = scene.render.engine
-    scene.cycles.samples = 16
-    scene.cycles.use_denoising = False
-    scene.view_settings.view_transform = 'Standard'
-    rgb = read_png(render_still(os.path.join(work, "composite.png"), engine=None))
-    out["layer_progress"] = dict(mod("render.composite").LAST_LAYER)
     layer = mod("render.composite").bpy.data.images["PointGT layer"]
     lay = np.empty(W * H * 4, np.float32)
     layer.pixels.foreach_get(lay)
     lay = lay.reshape(H, W, 4)[::-1]  # straight scene-linear RGBA, row 0 = top
-    scene.render.use_compositing = False  # the scene alone (Cycles), to check the merge against
-    alone = read_png(render_still(os.path.join(work, "scene_only.png"), engine=None))
-    scene.render.use_compositing = True
-    # which pixels see what: rays through pixel centres against the card (z = 0), the floor and the sun
     c2w, focal = mod("scene.camera").scene_camera(scene, W, H)
     rows, cols = np.mgrid[0:H, 0:W] + 0.5
     d = np.stack([(cols - W / 2) / focal, -(rows - H / 2) / focal, -np.ones_like(cols)], -1) @ c2w[:3, :3].T
@@ -510,6 +484,59 @@ def _():
     out["card_diff"] = float(np.abs(rgb[away] - expect[away]).mean())
     out["card_vs_scene_alone"] = float(np.abs(rgb[away] - alone[away]).mean())
     out["card_alpha"] = float(a[away].mean())
+    return out
+
+
+@step("composite")
+def _():
+    out = {}
+    scene = bpy.context.scene
+    o = obj()
+    arm = next(x for x in bpy.data.objects if x.type == 'ARMATURE')
+    # the card's right half stays turned by 45 degrees (proxy step), with the red disc painted through the proxy
+    neural = read_png(render_still(os.path.join(work, "neural_only.png")))  # the PointGT engine alone
+    bpy.ops.mesh.primitive_plane_add(size=6.0, location=(0.0, 0.0, -0.6))
+    floor = bpy.context.active_object
+    floor.data.materials.append(diffuse("floor", (0.8, 0.8, 0.8)))
+    bpy.ops.mesh.primitive_cube_add(size=0.25, location=(0.5, 0.1, 0.35))
+    box = bpy.context.active_object
+    box.data.materials.append(diffuse("box", (0.05, 0.8, 0.05)))
+    # the sun shines from +y at 45 degrees: the card's shadow falls 0.6 towards -y, partly beside the card
+    bpy.ops.object.light_add(type='SUN', location=(0.0, 0.0, 5.0), rotation=(math.radians(-45.0), 0.0, 0.0))
+    sun = bpy.context.active_object
+    sun.data.energy = 3.0
+    sun.data.angle = 0.0
+    make_active(o)
+    out["setup"] = sorted(bpy.ops.pointgt.setup_composite())
+    out["engine"] = scene.render.engine
+    scene.cycles.samples = 16
+    scene.cycles.use_denoising = False
+    scene.view_settings.view_transform = 'Standard'
+    rgb = read_png(render_still(os.path.join(work, "composite.png"), engine=None))
+    out["layer_progress"] = dict(mod("render.composite").LAST_LAYER)
+    scene.render.use_compositing = False  # the scene alone (Cycles), to check the merge against
+    alone = read_png(render_still(os.path.join(work, "scene_only.png"), engine=None))
+    scene.render.use_compositing = True
+    # which pixels see what: rays through pixel centres against the card (z = 0), the floor and the sun
+    out.update(judge_composite(rgb, alone, neural))
+    return out
+
+
+@step("composite_eevee")
+def _():
+    """The same frame with EEVEE rendering the rest of the scene."""
+    scene = bpy.context.scene
+    out = {}
+    neural = read_png(os.path.join(work, "neural_only.png"))
+    scene.render.engine = 'BLENDER_EEVEE'
+    out["engine"] = scene.render.engine
+    t = time.perf_counter()
+    rgb = read_png(render_still(os.path.join(work, "composite_eevee.png"), engine=None))
+    out["seconds"] = time.perf_counter() - t
+    scene.render.use_compositing = False
+    alone = read_png(render_still(os.path.join(work, "scene_only_eevee.png"), engine=None))
+    scene.render.use_compositing = True
+    out.update(judge_composite(rgb, alone, neural))
     return out
 
 

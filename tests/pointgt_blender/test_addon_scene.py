@@ -175,6 +175,16 @@ def test_automatic_weights_on_the_proxy_pose_the_neural_render(session):
 def test_composite_with_scene_occludes_both_ways_and_casts_the_models_shadow(session):
     r = _get(session, "composite")
     assert r["setup"] == ["FINISHED"] and r["engine"] == "CYCLES"
+    _check_composite(r)
+
+
+def test_composite_with_scene_works_with_eevee_too(session):
+    r = _get(session, "composite_eevee")
+    assert r["engine"] == "BLENDER_EEVEE"
+    _check_composite(r)
+
+
+def _check_composite(r):
     g = r["box_px"]
     assert g[1] > g[0] + 0.15 and g[1] > g[2] + 0.15, r  # the green box hides the card behind it
     assert r["layer_alpha_at_box"] > 0.5 and np.abs(np.subtract(r["neural_at_box"], g)).max() > 0.1  # card behind
