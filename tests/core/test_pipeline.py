@@ -31,3 +31,22 @@ def test_stage2_refits_the_texture_for_pixel_filtered_lookups():
     bundle, _, _ = tiny_bundle("card")
     fp = bundle.meta["atlas_fit"]["footprint"]
     assert fp["pixels"] > 100 and fp["rmse_after"] < fp["rmse_before"]
+
+
+def test_stage2_runs_on_a_capture_camera_with_intrinsics():
+    """A capture's camera (fx != fy, off-centre principal point, non-square image) reaches stage 2 as Intrinsics:
+    the island atlas's resolution and the footprint refit use one focal scale, sqrt(fx * fy)."""
+    from core.images.cameras import Intrinsics
+    from core.pipeline import fit_atlas_stage
+    from tests.helpers.synthetic import fibonacci_cameras, render_split
+
+    bundle, _, _ = tiny_bundle("fast")
+    b = copy.deepcopy(bundle)
+    k = Intrinsics(40.0, 34.0, 17.0, 14.5)
+    split = render_split("card", fibonacci_cameras(4, seed=0), 36, height=28, intrinsics=k)
+    atlas_cfg = AtlasConfig(device="cpu", charts="4", steps=10, texture_steps=5, texture_res=16, batch=256,
+                            uv_batch=32, distortion_batch=32, width_chart=16, depth_chart=2, width_map=16, depth_map=2,
+                            eval_samples=256, layout="islands", log_every=10_000)
+    fit_atlas_stage(b, split, atlas_cfg, show_progress=False)
+    assert torch.isfinite(b.atlas.packed_image()).all()
+    assert b.meta["atlas_fit"]["footprint"]["pixels"] > 0
