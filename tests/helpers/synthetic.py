@@ -105,3 +105,41 @@ def write_split(root: str | Path, split: SplitData, background=(1.0, 1.0, 1.0)) 
     (root / f"transforms_{split.split}.json").write_text(
         json.dumps({"camera_angle_x": split.camera_angle_x, "frames": frames}))
     return root
+
+
+def write_capture(root: str | Path, splits: list[SplitData], frame_keys=None, top_keys: dict | None = None) -> Path:
+    """Write rendered splits as one nerfstudio capture: `images/<split>_<i>.png` (RGB, straight colour),
+    `masks/<split>_<i>.png` (the alpha), and `transforms.json` with the first split's intrinsics at the top
+    (`camera_model` OPENCV, zero distortion), `<split>_filenames` lists. frame_keys(split, i) -> dict of keys
+    added to (or overriding in) that frame; top_keys override the top-level keys. Returns root."""
+    import json
+
+    import numpy as np
+
+    from core.images.png import write_png
+
+    root = Path(root)
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    (root / "masks").mkdir(exist_ok=True)
+    first = splits[0]
+    k = first.intrinsics
+    doc = {"camera_model": "OPENCV", "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": first.width,
+           "h": first.height, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": []}
+    for split in splits:
+        bg = torch.ones(3)
+        names = []
+        for i in range(len(split.files)):
+            a = split.alphas[i][..., None]
+            straight = torch.where(a > 0, (split.images[i] - (1 - a) * bg) / a.clamp_min(1e-6), torch.zeros_like(a))
+            name = f"images/{split.split}_{i}.png"
+            write_png(root / name, straight.clamp(0, 1).numpy(), backup=False)
+            write_png(root / f"masks/{split.split}_{i}.png", a.expand(-1, -1, 3).numpy(), backup=False)
+            frame = {"file_path": name, "mask_path": f"masks/{split.split}_{i}.png",
+                     "transform_matrix": split.c2w[i].tolist()}
+            frame.update(frame_keys(split.split, i) if frame_keys else {})
+            doc["frames"].append(frame)
+            names.append(name)
+        doc[f"{split.split}_filenames"] = names
+    doc.update(top_keys or {})
+    (root / "transforms.json").write_text(json.dumps(doc, indent=1))
+    return root
