@@ -125,11 +125,57 @@ def test_missing_focal_names_the_file_and_keys(tmp_path):
         load_split(tmp_path, "train")
 
 
-def test_frames_with_different_intrinsics_are_refused(tmp_path):
-    make_nerfstudio(tmp_path, per_frame=("cx",))
-    _edit(tmp_path, lambda d: d["frames"][3].update(cx=5.0))
-    with pytest.raises(DataError, match=r"frame \d \(frame_\d+\.png\) has 'cx' = 5\.0 but frame 0"):
-        load_split(tmp_path, "test", test_every=2)
+def _per_frame_capture(root, extra):
+    """A card capture: 5 train + 1 test views through K_REF at 32 x 24, plus one train view per (intrinsics,
+    (h, w)) in `extra` with its own per-frame keys. Returns (root, reference train split rendered through K_REF
+    for all train views)."""
+    from tests.helpers.synthetic import fibonacci_cameras, render_split, write_capture
+
+    cams = fibonacci_cameras(5 + len(extra), seed=2)
+    train = render_split("card", cams[:5], 32, height=24, intrinsics=K_REF)
+    test = render_split("card", fibonacci_cameras(1, seed=7), 32, height=24, intrinsics=K_REF, split="test")
+    own = [render_split("card", cams[5 + j:6 + j], size[1], height=size[0], intrinsics=k, split=f"own{j}")
+           for j, (k, size) in enumerate(extra)]
+    keys = {f"own{j}": {"fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": size[1], "h": size[0]}
+            for j, (k, size) in enumerate(extra)}
+    write_capture(root, [train, test, *own], frame_keys=lambda split, i: keys.get(split, {}),
+                  top_keys={"train_filenames": [f"images/train_{i}.png" for i in range(5)]
+                            + [f"images/own{j}_0.png" for j in range(len(extra))]})
+    return root, render_split("card", cams, 32, height=24, intrinsics=K_REF)
+
+
+K_REF = Intrinsics(30.0, 27.0, 17.5, 12.0)
+
+
+def test_frames_with_their_own_intrinsics_are_resampled_onto_the_split_camera(tmp_path):
+    """Per-frame fl_x/fl_y/cx/cy/w/h: each such frame is resampled onto the camera most frames share, so the
+    split is exactly what that camera would have seen: a frame whose camera is the reference camera moved by
+    whole pixels (a larger image) resamples to the very same pixels, a zoomed one to within interpolation."""
+    shifted = (Intrinsics(30.0, 27.0, 17.5 + 3, 12.0 + 2), (30, 40))  # reference pixels = this image cropped
+    zoomed = (Intrinsics(45.0, 40.5, 27.0, 19.0), (40, 52))  # 1.5 x the focal lengths, another centre
+    root, ref = _per_frame_capture(tmp_path, [shifted, zoomed])
+    d = load_split(root, "train")
+    assert d.focal == K_REF and (d.height, d.width) == (24, 32) and len(d) == 7
+    assert d.meta["resampled"] == {"frames": 2, "min_coverage": 1.0}
+    torch.testing.assert_close(d.images[:5], ref.images[:5], atol=1.5 / 255, rtol=0)  # 8-bit PNGs
+    torch.testing.assert_close(d.images[5], ref.images[5], atol=1.5 / 255, rtol=0)
+    torch.testing.assert_close(d.alphas[5], ref.alphas[5], atol=1.5 / 255, rtol=0)
+    err = (d.images[6] - ref.images[6]).abs()
+    assert float(err.mean()) < 0.01 and float((d.alphas[6] - ref.alphas[6]).abs().mean()) < 0.01, float(err.mean())
+    # the test split and the camera-only reader get the same camera
+    assert load_split(root, "test").focal == K_REF and load_cameras(root / "transforms.json").focal == K_REF
+    # --downscale averages the resampled frames
+    d2 = load_split(root, "train", downscale=2)
+    assert d2.focal == K_REF.scaled(0.5)
+    torch.testing.assert_close(d2.alphas, d.alphas.reshape(7, 12, 2, 16, 2).mean((2, 4)), atol=1e-6, rtol=0)
+
+
+def test_a_frame_that_sees_too_little_of_the_split_camera_is_refused(tmp_path):
+    far = (Intrinsics(30.0, 27.0, 40.0, 12.0), (24, 32))  # the principal point 22.5 px further right
+    root, _ = _per_frame_capture(tmp_path, [far])
+    with pytest.raises(DataError, match=r"transforms\.json: frame own0_0\.png sees only \d+% of the split's camera "
+                                        r"view.*crop or remove the frame"):
+        load_split(root, "train")
 
 
 @pytest.mark.parametrize("where", ["top", "frame"])
