@@ -6,16 +6,17 @@ Four layouts, told apart by their files and keys (docs/formats.md lists every ke
                      "./train/r_0", "transform_matrix": 4x4 c2w}]}, RGBA PNGs (alpha = object mask)
     BlenderNeRF      the same split files, plus fl_x/fl_y/cx/cy/w/h/camera_angle_y, and file_path with its extension
     nerfstudio       <root>/transforms.json (one file, no split): fl_x, fl_y, cx, cy, w, h, camera_model,
-                     distortion k1-k4/p1/p2 — at the top or per frame —, mask_path, applied_transform,
-                     images/ with downscaled copies images_2/, images_4/, ...
+                     distortion k1-k3/p1/p2 (undistorted on load) — at the top or per frame —, mask_path,
+                     applied_transform, images/ with downscaled copies images_2/, images_4/, ...
     instant-ngp      <root>/transforms.json or split files: camera_angle_x/y or fl_x/fl_y, cx, cy, w, h,
                      aabb_scale, intrinsics per frame allowed
 
 `transform_matrix` is camera-to-world in the Blender/OpenGL convention (camera looks down -Z, +Y up; see
 core/images/cameras.py) in all four. A single transforms.json is split deterministically into train and test:
 explicit `train_filenames` / `test_filenames` lists when present, else every `test_every`-th frame (in file_path
-order) is a test view. Every problem found on disk raises a DataError naming the file (and frame, and key) and
-saying how to fix it.
+order) is a test view. A split has one pinhole camera: frames with their own intrinsics, size or lens distortion
+are resampled onto the camera most frames of the file share (core/images/resample.py). Every problem found on
+disk raises a DataError naming the file (and frame, and key) and saying how to fix it.
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ SINGLE_FILE = "transforms.json"
 _AUXILIARY = re.compile(r"_(depth|normal)(_\d+)?$", re.IGNORECASE)
 RIGID_TOL = 1e-3  # max |R^T R - I| entry and |last row - [0,0,0,1]|; NeRF-synthetic matrices are exact to ~1e-7
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV only with all distortion terms zero
+CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV's k1, k2, k3, p1, p2: undistorted on load
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "camera_model",
                   "is_fisheye") + DISTORTION_KEYS
 KEY_TOLERANCE = 0.04  # --background-colour: a pixel within this (max over channels) of the key is background
@@ -194,7 +195,7 @@ def load_split(root: str | os.PathLike, split: str = "train", downscale: int = 1
                             f"{json_path.name} must have one size, unless a frame gives its own 'w', 'h' (and "
                             "intrinsics): resize the image or add those keys to its frame")
     # Frames with their own camera are resampled onto the reference camera (core/images/resample.py).
-    own = [sp != spec or sz != (height, width) for sp, sz in zip(specs, sizes)]
+    own = [sp != spec or sz != (height, width) or sp["distortion"] is not None for sp, sz in zip(specs, sizes)]
     if use_copies:
         read_sizes = [_image_size(f) for f in read_files]
         kept = [sz for sz, o in zip(read_sizes, own) if not o]
@@ -214,8 +215,8 @@ def load_split(root: str | os.PathLike, split: str = "train", downscale: int = 1
         h, w, block = height // factor, width // factor, factor
         read_sizes, scale = sizes, 1.0
     k = _intrinsics(spec, width, height, factor)
-    warps = [(_intrinsics(sp, sz[1], sz[0], 1).scaled(scale), full_k.scaled(scale), (h * block, w * block))
-             if o else None for sp, sz, o in zip(specs, sizes, own)]
+    warps = [(_intrinsics(sp, sz[1], sz[0], 1).scaled(scale), full_k.scaled(scale), (h * block, w * block),
+              _distortion(sp)) if o else None for sp, sz, o in zip(specs, sizes, own)]
 
     coverage = [1.0] * len(files)
     images, alpha = _read_images(read_files, json_path, read_masks, key, block, (h, w), progress,
@@ -224,7 +225,8 @@ def load_split(root: str | os.PathLike, split: str = "train", downscale: int = 1
     np.clip(images, 0.0, 1.0, out=images)
     meta = {"json": str(json_path), "downscaled_copies": bool(use_copies)}
     if any(own):
-        meta["resampled"] = {"frames": int(sum(own)), "min_coverage": round(min(coverage), 4)}
+        meta["resampled"] = {"frames": int(sum(own)), "min_coverage": round(min(coverage), 4),
+                             "undistorted": sum(sp["distortion"] is not None for sp in specs)}
     if "aabb_scale" in doc:
         meta["aabb_scale"] = doc["aabb_scale"]
     return SplitData(split=split,
@@ -384,29 +386,35 @@ def _number(value, json_path: Path, where: str, key: str, positive: bool = False
 
 def _frame_camera(doc: dict, frame: dict, json_path: Path, i: int, file: Path, width: int, height: int) -> dict:
     """The camera keys of frame i (its own, else the file's), checked: {fl_x, fl_y, cx, cy, camera_angle_x,
-    camera_angle_y} (None when absent) for a `width` x `height` image. Distortion and non-pinhole models are
-    refused."""
+    camera_angle_y} (None when absent) and distortion ((k1, k2, k3, p1, p2), None when all are zero) for a
+    `width` x `height` image. Fisheye and other non-pinhole models, and k4, are refused."""
     def get(key):
         if key in frame:
             return frame[key], f"frame {i} ({file.name}): "
         return doc.get(key), ""
 
     model, where = get("camera_model")
-    if model is not None and model not in PINHOLE_MODELS:
-        raise DataError(f"{json_path}: {where}'camera_model' is {model!r}; PointGT reads pinhole cameras "
-                        f"({', '.join(PINHOLE_MODELS)}): undistort the images first (e.g. COLMAP's "
+    if model is not None and model not in CAMERA_MODELS:
+        kind = "a fisheye lens" if isinstance(model, str) and "FISHEYE" in model.upper() else "not a model PointGT reads"
+        raise DataError(f"{json_path}: {where}'camera_model' is {model!r}, {kind}; PointGT reads pinhole cameras "
+                        f"({', '.join(CAMERA_MODELS)}; OPENCV's k1, k2, k3, p1, p2 are undistorted as the images "
+                        "are read): undistort the images to a pinhole camera first (e.g. COLMAP's "
                         "image_undistorter, then ns-process-data with --camera-type perspective)")
     fisheye, where = get("is_fisheye")
     if fisheye:
-        raise DataError(f"{json_path}: {where}'is_fisheye' is true; PointGT reads pinhole cameras only: undistort "
-                        "the images to a pinhole camera first")
+        raise DataError(f"{json_path}: {where}'is_fisheye' is true; PointGT does not undistort fisheye lenses: "
+                        "undistort the images to a pinhole camera first (e.g. COLMAP's image_undistorter)")
+    coefficients = []
     for key in DISTORTION_KEYS:
         value, where = get(key)
-        if value is not None and _number(value, json_path, where, key) != 0.0:
-            raise DataError(f"{json_path}: {where}'{key}' = {value!r}: the images are distorted and PointGT does "
-                            "not undistort them; undistort them first (COLMAP image_undistorter, or "
-                            "ns-process-data) and write the pinhole intrinsics with all of k1-k4, p1, p2 at 0")
-    out = {}
+        value = 0.0 if value is None else _number(value, json_path, where, key)
+        if key == "k4" and value != 0.0:
+            raise DataError(f"{json_path}: {where}'k4' = {value!r}: k4 belongs to the fisheye (OPENCV_FISHEYE) and "
+                            "rational (FULL_OPENCV) lens models, which PointGT does not undistort; undistort the "
+                            "images first (COLMAP image_undistorter) and write pinhole intrinsics")
+        if key != "k4":
+            coefficients.append(value)
+    out = {"distortion": tuple(coefficients) if any(coefficients) else None}
     for key in ("w", "h"):
         value, where = get(key)
         if value is not None:
@@ -430,6 +438,16 @@ def _frame_camera(doc: dict, frame: dict, json_path: Path, i: int, file: Path, w
         raise DataError(f"{json_path}: frame {i} ({file.name}) has no horizontal intrinsics: missing "
                         "'camera_angle_x' (field of view in radians) and 'fl_x' (focal length in pixels); add "
                         "one at the top of the file or in every frame")
+    if out["distortion"] is not None and width > 0 and height > 0:
+        from core.images.resample import Distortion
+
+        k = _intrinsics(out, width, height, 1)
+        reach = max(math.hypot((x - k.cx) / k.fx, (y - k.cy) / k.fy) for x in (0, width) for y in (0, height))
+        if Distortion(*out["distortion"]).folds(reach):
+            raise DataError(f"{json_path}: frame {i} ({file.name}): the distortion k1, k2, k3, p1, p2 = "
+                            f"{list(out['distortion'])} folds the image over inside the frame (the radial scale "
+                            "stops growing before the corners), so it cannot be undone; check the coefficients "
+                            "(they act on normalised coordinates, as COLMAP's OPENCV model writes them)")
     return out
 
 
@@ -496,6 +514,15 @@ def _majority(specs: list[dict], sizes: list[tuple]) -> tuple[dict, int, int]:
         count, first, item = votes.get(key, (0, i, (spec, *size)))
         votes[key] = (count + 1, first, item)
     return max(votes.values(), key=lambda v: (v[0], -v[1]))[2]
+
+
+def _distortion(spec: dict):
+    """The frame's lens distortion (core.images.resample.Distortion) or None."""
+    if spec["distortion"] is None:
+        return None
+    from core.images.resample import Distortion
+
+    return Distortion(*spec["distortion"])
 
 
 def _key_size(doc: dict, frame: dict) -> tuple[int, int] | None:
@@ -688,8 +715,9 @@ def _read_images(files: list[Path], json_path: Path, masks: list[Path] | None = 
     Coverage: the image's alpha, times the frame's mask when `masks` are given; images without either are keyed
     on the RGB `key` (background colour) or refused. size: (h, w) after the block average (default: from the
     first image). read_sizes: each file's expected (h, w) (default: the first image's). warps: per frame None, or
-    (source Intrinsics, target Intrinsics, target (h, w)) at the file's resolution: the frame is resampled onto
-    the target camera (before the block average); coverage[i] receives the share of its pixels the frame saw."""
+    (source Intrinsics, target Intrinsics, target (h, w), source Distortion or None) at the file's resolution: the
+    frame is resampled (undistorted) onto the target pinhole camera before the block average; coverage[i] receives
+    the share of its pixels the frame saw."""
     v = len(files)
     full_h, full_w = _image_size(files[0])
     read_sizes = read_sizes or [(full_h, full_w)] * v
@@ -737,13 +765,14 @@ def _read_images(files: list[Path], json_path: Path, masks: list[Path] | None = 
         if warps[i] is not None:
             from core.images.resample import resample
 
-            source, target, out_size = warps[i]
-            both, seen = resample(np.concatenate([premul, a[..., None]], axis=-1), source, target, out_size)
+            source, target, out_size, lens = warps[i]
+            both, seen = resample(np.concatenate([premul, a[..., None]], axis=-1), source, target, out_size, lens)
             if seen < MIN_COVERAGE:
                 raise DataError(f"{json_path}: frame {files[i].name} sees only {seen:.0%} of the split's camera view "
-                                f"(its intrinsics or size differ: fx, fy, cx, cy = {source.as_list()} vs "
-                                f"{target.as_list()}); PointGT resamples frames with their own camera onto the "
-                                "camera most frames share, which needs most of that view: crop or remove the frame")
+                                f"(its intrinsics, size or lens distortion differ: fx, fy, cx, cy = "
+                                f"{source.as_list()} vs {target.as_list()}); PointGT resamples frames with their own "
+                                "camera onto the pinhole camera most frames share, which needs most of that view: "
+                                "crop or remove the frame")
             premul, a = both[..., :3], np.clip(both[..., 3], 0.0, 1.0)
             if coverage is not None:
                 coverage[i] = seen

@@ -41,6 +41,14 @@ class Distortion:
     def is_zero(self) -> bool:
         return self.k1 == self.k2 == self.k3 == self.p1 == self.p2 == 0.0
 
+    def folds(self, reach: float) -> bool:
+        """Whether the radial scale r -> r (1 + k1 r² + k2 r⁴ + k3 r⁶) stops growing for some normalised radius
+        r <= reach: the lens would then map two rays onto one image point, and no undistortion is correct."""
+        r = np.linspace(0.0, float(reach), 2049)
+        r2 = r * r
+        slope = 1.0 + r2 * (3.0 * self.k1 + r2 * (5.0 * self.k2 + r2 * 7.0 * self.k3))
+        return bool((slope <= 0.0).any() or not np.isfinite(slope).all())
+
     def apply(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Undistorted normalised coordinates x, y [...] -> distorted (x_d, y_d) [...], float64. Rays far outside
         the lens's calibrated field may overflow to inf; callers treat those as outside the image."""
@@ -55,13 +63,16 @@ class Distortion:
 
 
 def source_pixels(target: Intrinsics, size: tuple[int, int], source: Intrinsics,
-                  distortion: Distortion | None = None) -> tuple[np.ndarray, np.ndarray]:
+                  distortion: Distortion | None = None, rows: tuple[int, int] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """Where each pixel centre of the `size` = (h, w) target camera lies in the source image: column and row
-    coordinates (px, py) [h, w] float64, continuous (pixel (r, c) spans [c, c + 1] x [r, r + 1]). Non-finite
-    results (overflowing distortion) become -inf, i.e. outside the image."""
+    coordinates (px, py) [h, w] float64, continuous (pixel (r, c) spans [c, c + 1] x [r, r + 1]); rows = (r0, r1)
+    limits it to those target rows ([r1 - r0, w]). Non-finite results (overflowing distortion) become -inf,
+    i.e. outside the image."""
     h, w = size
+    r0, r1 = rows if rows is not None else (0, h)
     u = (np.arange(w, dtype=np.float64) + 0.5 - target.cx) / target.fx
-    v = (np.arange(h, dtype=np.float64) + 0.5 - target.cy) / target.fy
+    v = (np.arange(r0, r1, dtype=np.float64) + 0.5 - target.cy) / target.fy
     x, y = np.meshgrid(u, v)
     if distortion is not None and not distortion.is_zero:
         x, y = distortion.apply(x, y)
@@ -94,6 +105,7 @@ def bilinear(image: np.ndarray, px: np.ndarray, py: np.ndarray) -> tuple[np.ndar
 
 
 MAX_SUPERSAMPLING = 8  # samples per target pixel side when the source is denser than the target
+BAND_SAMPLES = 1 << 20  # source samples computed at once (~60 MB of float64 coordinates and weights)
 
 
 def resample(image: np.ndarray, source: Intrinsics, target: Intrinsics, size: tuple[int, int],
@@ -108,9 +120,16 @@ def resample(image: np.ndarray, source: Intrinsics, target: Intrinsics, size: tu
     ratio = max(source.fx / target.fx, source.fy / target.fy)
     s = int(min(max(math.ceil(ratio - 1e-9), 1), MAX_SUPERSAMPLING))
     fine = target if s == 1 else Intrinsics(target.fx * s, target.fy * s, target.cx * s, target.cy * s)
-    px, py = source_pixels(fine, (h * s, w * s), source, distortion)
-    out, inside = bilinear(image, px, py)
-    if s > 1:
-        out = out.reshape(h, s, w, s, -1).mean(axis=(1, 3), dtype=np.float32)
-        inside = inside.reshape(h, s, w, s).all(axis=(1, 3))
-    return out, float(inside.mean())
+    out = np.empty((h, w, image.shape[2]), dtype=np.float32)
+    seen = 0
+    band = max(1, BAND_SAMPLES // (w * s * s))  # target rows per band: bounded work memory for any image size
+    for r0 in range(0, h, band):
+        r1 = min(h, r0 + band)
+        px, py = source_pixels(fine, (h * s, w * s), source, distortion, rows=(r0 * s, r1 * s))
+        part, inside = bilinear(image, px, py)
+        if s > 1:
+            part = part.reshape(r1 - r0, s, w, s, -1).mean(axis=(1, 3), dtype=np.float32)
+            inside = inside.reshape(r1 - r0, s, w, s).all(axis=(1, 3))
+        out[r0:r1] = part
+        seen += int(inside.sum())
+    return out, seen / float(h * w)

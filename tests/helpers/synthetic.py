@@ -54,11 +54,27 @@ def _hit(shape: str, o: torch.Tensor, d: torch.Tensor):
     raise ValueError(shape)
 
 
+def undistort_normalised(lens, xd: torch.Tensor, yd: torch.Tensor, iters: int = 200):
+    """Brute-force inverse of OpenCV's radial-tangential model (lens = (k1, k2, k3, p1, p2)) by fixed-point
+    iteration: distorted normalised coordinates -> the undistorted ones that distort onto them (float64)."""
+    k1, k2, k3, p1, p2 = lens
+    xd, yd = xd.double(), yd.double()
+    x, y = xd.clone(), yd.clone()
+    for _ in range(iters):
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        x, y = ((xd - 2 * p1 * x * y - p2 * (r2 + 2 * x * x)) / radial,
+                (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * x * y) / radial)
+    return x, y
+
+
 def render_split(shape: str, c2w: torch.Tensor, size: int, fov: float = 0.69, colour=stripes,
                  background=(1.0, 1.0, 1.0), split: str = "train", height: int | None = None,
-                 intrinsics: Intrinsics | None = None) -> SplitData:
+                 intrinsics: Intrinsics | None = None, lens: tuple | None = None) -> SplitData:
     """Render views of an analytic shape into a SplitData (images [V,H,W,3], alphas [V,H,W], ...): `size` wide,
-    `height` (default `size`) high, through a centred camera of horizontal field of view `fov` or `intrinsics`."""
+    `height` (default `size`) high, through a centred camera of horizontal field of view `fov` or `intrinsics`,
+    seen through the distorting lens (k1, k2, k3, p1, p2) when `lens` is given (the SplitData keeps the pinhole
+    intrinsics)."""
     h, w = (height or size), size
     focal = focal_from_fov(size, fov) if intrinsics is None else intrinsics
     ss = 2
@@ -67,6 +83,14 @@ def render_split(shape: str, c2w: torch.Tensor, size: int, fov: float = 0.69, co
     ims, als = [], []
     for m in c2w:
         o, d = pixel_rays(m, h * ss, w * ss, cam)
+        if lens is not None:  # each pixel sees the ray that the lens bends onto it
+            k = Intrinsics(*[float(v) for v in (cam if isinstance(cam, Intrinsics) else
+                                                Intrinsics(cam, cam, w * ss / 2, h * ss / 2)).as_list()])
+            v, u = torch.meshgrid(torch.arange(h * ss) + 0.5, torch.arange(w * ss) + 0.5, indexing="ij")
+            x, y = undistort_normalised(lens, (u - k.cx) / k.fx, (v - k.cy) / k.fy)
+            dc = torch.stack([x, -y, -torch.ones_like(x)], -1)
+            d = (dc / dc.norm(dim=-1, keepdim=True)) @ m[:3, :3].double().T
+            d = d.to(o.dtype)
         o, d = o.reshape(-1, 3), d.reshape(-1, 3)
         t = _hit(shape, o, d)
         hit = torch.isfinite(t)

@@ -156,7 +156,7 @@ def test_frames_with_their_own_intrinsics_are_resampled_onto_the_split_camera(tm
     root, ref = _per_frame_capture(tmp_path, [shifted, zoomed])
     d = load_split(root, "train")
     assert d.focal == K_REF and (d.height, d.width) == (24, 32) and len(d) == 7
-    assert d.meta["resampled"] == {"frames": 2, "min_coverage": 1.0}
+    assert d.meta["resampled"] == {"frames": 2, "min_coverage": 1.0, "undistorted": 0}
     torch.testing.assert_close(d.images[:5], ref.images[:5], atol=1.5 / 255, rtol=0)  # 8-bit PNGs
     torch.testing.assert_close(d.images[5], ref.images[5], atol=1.5 / 255, rtol=0)
     torch.testing.assert_close(d.alphas[5], ref.alphas[5], atol=1.5 / 255, rtol=0)
@@ -178,18 +178,50 @@ def test_a_frame_that_sees_too_little_of_the_split_camera_is_refused(tmp_path):
         load_split(root, "train")
 
 
+LENS = (-0.25, 0.05, 0.01, 0.003, -0.002)  # k1, k2, k3, p1, p2: barrel, as phone and DSLR wide angles
+
+
 @pytest.mark.parametrize("where", ["top", "frame"])
-@pytest.mark.parametrize("key", ["k1", "k2", "k3", "k4", "p1", "p2"])
-def test_distortion_is_refused_naming_file_and_key(tmp_path, key, where):
+def test_opencv_distortion_is_undone_as_the_images_are_read(tmp_path, where):
+    """A card seen through a radial-tangential lens (rays bent by the brute-force inverse of the lens) loads as
+    the pinhole camera would have seen it; keys at the top or in every frame (instant-ngp) alike."""
+    from tests.helpers.synthetic import fibonacci_cameras, render_split, write_capture
+
+    k = Intrinsics(60.0, 56.0, 33.0, 25.0)
+    cams = fibonacci_cameras(4, radius=2.0, seed=3)
+    seen = render_split("card", cams, 64, height=48, intrinsics=k, lens=LENS)
+    pinhole = render_split("card", cams, 64, height=48, intrinsics=k)
+    keys = dict(zip(("k1", "k2", "k3", "p1", "p2"), LENS))
+    write_capture(tmp_path, [seen], top_keys=keys if where == "top" else {},
+                  frame_keys=(lambda split, i: keys) if where == "frame" else None)
+    d = load_split(tmp_path, "train")
+    assert d.focal == k and d.meta["resampled"] == {"frames": 4, "min_coverage": 1.0, "undistorted": 4}
+    # mean error: what is left is bilinear interpolation across the card's anti-aliased edges (the distorted
+    # photos themselves are 2.5 x further off)
+    err = float((d.images - pinhole.images).abs().mean())
+    raw = float((seen.images - pinhole.images).abs().mean())
+    assert err < 0.004 and raw > 2 * err, (err, raw)
+    a_err = float((d.alphas - pinhole.alphas).abs().mean())
+    assert a_err < 0.5 * float((seen.alphas - pinhole.alphas).abs().mean()), a_err
+    assert load_cameras(tmp_path / "transforms.json").focal == k  # the undistorted (pinhole) camera
+
+
+@pytest.mark.parametrize("where", ["top", "frame"])
+def test_k4_and_folding_lenses_are_refused_naming_file_and_key(tmp_path, where):
     make_nerfstudio(tmp_path)
     if where == "top":
-        _edit(tmp_path, lambda d: d.update({key: 0.01}))
-        pattern = rf"transforms\.json: '{key}' = 0\.01: the images are distorted"
+        _edit(tmp_path, lambda d: d.update(k4=0.01))
+        pattern = r"transforms\.json: 'k4' = 0\.01: k4 belongs to the fisheye"
     else:
-        _edit(tmp_path, lambda d: [f.update({key: 0.0 if i else -0.02}) for i, f in enumerate(d["frames"])])
-        pattern = rf"transforms\.json: frame \d \(frame_005\.png\): '{key}' = -0\.02: the images are distorted"
+        _edit(tmp_path, lambda d: [f.update(k4=0.0 if i else -0.02) for i, f in enumerate(d["frames"])])
+        pattern = r"transforms\.json: frame \d \(frame_005\.png\): 'k4' = -0\.02: k4 belongs to the fisheye"
     with pytest.raises(DataError, match=pattern):
         load_dataset(tmp_path, splits=("train", "test"), required=("train", "test"))
+    make_nerfstudio(tmp_path / "fold")
+    _edit(tmp_path / "fold", lambda d: d.update(k1=-2.0))
+    with pytest.raises(DataError, match=r"transforms\.json: frame 0 \(frame_\d+\.png\): the distortion k1, k2, k3, "
+                                        r"p1, p2 = \[-2\.0, 0\.0, 0\.0, 0\.0, 0\.0\] folds the image over"):
+        load_split(tmp_path / "fold")
 
 
 @pytest.mark.parametrize("model,ok", [("PINHOLE", True), ("SIMPLE_PINHOLE", True), ("OPENCV", True),
@@ -200,7 +232,8 @@ def test_camera_models(tmp_path, model, ok):
     if ok:
         assert load_split(tmp_path).intrinsics.fx == 11.0
     else:
-        with pytest.raises(DataError, match=rf"transforms\.json: 'camera_model' is '{model}'.*undistort"):
+        kind = "a fisheye lens" if "FISHEYE" in model else "not a model PointGT reads"
+        with pytest.raises(DataError, match=rf"transforms\.json: 'camera_model' is '{model}', {kind}.*undistort"):
             load_split(tmp_path)
 
 
