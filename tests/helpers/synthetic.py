@@ -148,7 +148,7 @@ def write_capture(root: str | Path, splits: list[SplitData], frame_keys=None, to
     first = splits[0]
     k = first.intrinsics
     doc = {"camera_model": "OPENCV", "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": first.width,
-           "h": first.height, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": []}
+           "h": first.height, "k1": 0.0, "k2": 0.0, "k3": 0.0, "p1": 0.0, "p2": 0.0, "frames": []}
     for split in splits:
         bg = torch.ones(3)
         names = []
