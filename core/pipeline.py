@@ -69,7 +69,7 @@ def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True,
     t_samples = time.perf_counter() - t0
     from core.atlas.fit import pixel_footprint
 
-    pixel = pixel_footprint(xyz, split.c2w[:, :3, 3], float(split.focal))  # sets the island atlas's resolution
+    pixel = pixel_footprint(xyz, split.c2w[:, :3, 3], float(focal_scale(split.focal)))  # island atlas resolution
     atlas, history = fit_atlas(xyz, rgb, cfg, progress=progress_callback, quiet=not show_progress, pixel_size=pixel)
     bundle.atlas = atlas
     history = {**history, "samples": int(xyz.shape[0]), "sample_seconds": round(t_samples, 2)}

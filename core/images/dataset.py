@@ -6,16 +6,17 @@ Four layouts, told apart by their files and keys (docs/formats.md lists every ke
                      "./train/r_0", "transform_matrix": 4x4 c2w}]}, RGBA PNGs (alpha = object mask)
     BlenderNeRF      the same split files, plus fl_x/fl_y/cx/cy/w/h/camera_angle_y, and file_path with its extension
     nerfstudio       <root>/transforms.json (one file, no split): fl_x, fl_y, cx, cy, w, h, camera_model,
-                     distortion k1-k4/p1/p2 — at the top or per frame —, mask_path, applied_transform,
-                     images/ with downscaled copies images_2/, images_4/, ...
+                     distortion k1-k3/p1/p2 (undistorted on load) — at the top or per frame —, mask_path,
+                     applied_transform, images/ with downscaled copies images_2/, images_4/, ...
     instant-ngp      <root>/transforms.json or split files: camera_angle_x/y or fl_x/fl_y, cx, cy, w, h,
                      aabb_scale, intrinsics per frame allowed
 
 `transform_matrix` is camera-to-world in the Blender/OpenGL convention (camera looks down -Z, +Y up; see
 core/images/cameras.py) in all four. A single transforms.json is split deterministically into train and test:
 explicit `train_filenames` / `test_filenames` lists when present, else every `test_every`-th frame (in file_path
-order) is a test view. Every problem found on disk raises a DataError naming the file (and frame, and key) and
-saying how to fix it.
+order) is a test view. A split has one pinhole camera: frames with their own intrinsics, size or lens distortion
+are resampled onto the camera most frames of the file share (core/images/resample.py). Every problem found on
+disk raises a DataError naming the file (and frame, and key) and saying how to fix it.
 """
 from __future__ import annotations
 
@@ -42,10 +43,11 @@ SINGLE_FILE = "transforms.json"
 _AUXILIARY = re.compile(r"_(depth|normal)(_\d+)?$", re.IGNORECASE)
 RIGID_TOL = 1e-3  # max |R^T R - I| entry and |last row - [0,0,0,1]|; NeRF-synthetic matrices are exact to ~1e-7
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV only with all distortion terms zero
+CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV's k1, k2, k3, p1, p2: undistorted on load
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "camera_model",
                   "is_fisheye") + DISTORTION_KEYS
 KEY_TOLERANCE = 0.04  # --background-colour: a pixel within this (max over channels) of the key is background
+MIN_COVERAGE = 0.5  # a frame resampled onto the split's camera must see at least this share of its view
 
 
 @dataclass
@@ -177,30 +179,54 @@ def load_split(root: str | os.PathLike, split: str = "train", downscale: int = 1
     use_copies = copies is not None and (masks is None or mask_copies is not None)
     read_files = copies if use_copies else files
     read_masks = (mask_copies if use_copies else masks)
-    height, width = _image_size(files[0])  # full size: the keys describe it
+    sizes = [_image_size(f) for f in files]  # (h, w) at full size: the keys describe it
     _check_key_presence(frames, doc, json_path)
-    specs = [_frame_camera(doc, fr, json_path, i, files[i], width, height) for i, fr in enumerate(frames)]
-    spec = _shared_camera(specs, json_path, files)
-    _check_plausible(spec, json_path, width, height)
+    specs = [_frame_camera(doc, fr, json_path, i, files[i], sizes[i][1], sizes[i][0]) for i, fr in enumerate(frames)]
+    for spec, (fh, fw) in zip(specs, sizes):
+        _check_plausible(spec, json_path, fw, fh)
+    spec, height, width = _reference_camera(doc, json_path, root, {id(fr): (sp, sz) for fr, sp, sz in
+                                                                   zip(frames, specs, sizes)})
+    full_k = _intrinsics(spec, width, height, 1)
+    for i, (fr, sp, sz) in enumerate(zip(frames, specs, sizes)):  # another size needs the frame's keys to say so
+        if sz != (height, width) and sp == spec and not ("w" in fr or "h" in fr):
+            j = next((j for j, z in enumerate(sizes) if z == (height, width)), None)
+            other = f"{files[j].name} is" if j is not None else "the split's camera is"
+            raise DataError(f"{files[i]}: image is {sz[1]}x{sz[0]} but {other} {width}x{height}; all images of "
+                            f"{json_path.name} must have one size, unless a frame gives its own 'w', 'h' (and "
+                            "intrinsics): resize the image or add those keys to its frame")
+    # Frames with their own camera are resampled onto the reference camera (core/images/resample.py).
+    own = [sp != spec or sz != (height, width) or sp["distortion"] is not None for sp, sz in zip(specs, sizes)]
     if use_copies:
-        h, w = _image_size(read_files[0])
-        if abs(w * factor - width) >= factor or abs(h * factor - height) >= factor:
-            raise DataError(f"{read_files[0]}: downscaled copy is {w}x{h}, but {files[0].name} is {width}x{height} "
-                            f"(expected about {width / factor:g}x{height / factor:g} for --downscale {factor}); "
-                            f"regenerate the {read_files[0].parent.name}/ folder")
+        read_sizes = [_image_size(f) for f in read_files]
+        kept = [sz for sz, o in zip(read_sizes, own) if not o]
+        h, w = kept[0] if kept else (height // factor, width // factor)
+        for i, ((ch, cw), (fh, fw)) in enumerate(zip(read_sizes, sizes)):
+            if abs(cw * factor - fw) >= factor or abs(ch * factor - fh) >= factor or (not own[i] and (ch, cw) != (h, w)):
+                raise DataError(f"{read_files[i]}: downscaled copy is {cw}x{ch}, but {files[i].name} is {fw}x{fh} "
+                                f"(expected about {fw / factor:g}x{fh / factor:g} for --downscale {factor}); "
+                                f"regenerate the {read_files[i].parent.name}/ folder")
         block = 1
+        scale = 1.0 / factor
     else:
         if height % factor or width % factor:
             divisors = [d for d in range(2, 17) if height % d == 0 and width % d == 0]
             raise DataError(f"{json_path}: images are {width}x{height}, which downscale={factor} does not divide; "
                             f"use one of {divisors or [1]}")
         h, w, block = height // factor, width // factor, factor
+        read_sizes, scale = sizes, 1.0
     k = _intrinsics(spec, width, height, factor)
+    warps = [(_intrinsics(sp, sz[1], sz[0], 1).scaled(scale), full_k.scaled(scale), (h * block, w * block),
+              _distortion(sp)) if o else None for sp, sz, o in zip(specs, sizes, own)]
 
-    images, alpha = _read_images(read_files, json_path, read_masks, key, block, (h, w), progress)
+    coverage = [1.0] * len(files)
+    images, alpha = _read_images(read_files, json_path, read_masks, key, block, (h, w), progress,
+                                 read_sizes=read_sizes, warps=warps, coverage=coverage)
     images += (1.0 - alpha[..., None]) * bg  # composite: rgb * a + bg * (1 - a)
     np.clip(images, 0.0, 1.0, out=images)
     meta = {"json": str(json_path), "downscaled_copies": bool(use_copies)}
+    if any(own):
+        meta["resampled"] = {"frames": int(sum(own)), "min_coverage": round(min(coverage), 4),
+                             "undistorted": sum(sp["distortion"] is not None for sp in specs)}
     if "aabb_scale" in doc:
         meta["aabb_scale"] = doc["aabb_scale"]
     return SplitData(split=split,
@@ -360,29 +386,35 @@ def _number(value, json_path: Path, where: str, key: str, positive: bool = False
 
 def _frame_camera(doc: dict, frame: dict, json_path: Path, i: int, file: Path, width: int, height: int) -> dict:
     """The camera keys of frame i (its own, else the file's), checked: {fl_x, fl_y, cx, cy, camera_angle_x,
-    camera_angle_y} (None when absent) for a `width` x `height` image. Distortion and non-pinhole models are
-    refused."""
+    camera_angle_y} (None when absent) and distortion ((k1, k2, k3, p1, p2), None when all are zero) for a
+    `width` x `height` image. Fisheye and other non-pinhole models, and k4, are refused."""
     def get(key):
         if key in frame:
             return frame[key], f"frame {i} ({file.name}): "
         return doc.get(key), ""
 
     model, where = get("camera_model")
-    if model is not None and model not in PINHOLE_MODELS:
-        raise DataError(f"{json_path}: {where}'camera_model' is {model!r}; PointGT reads pinhole cameras "
-                        f"({', '.join(PINHOLE_MODELS)}): undistort the images first (e.g. COLMAP's "
+    if model is not None and model not in CAMERA_MODELS:
+        kind = "a fisheye lens" if isinstance(model, str) and "FISHEYE" in model.upper() else "not a model PointGT reads"
+        raise DataError(f"{json_path}: {where}'camera_model' is {model!r}, {kind}; PointGT reads pinhole cameras "
+                        f"({', '.join(CAMERA_MODELS)}; OPENCV's k1, k2, k3, p1, p2 are undistorted as the images "
+                        "are read): undistort the images to a pinhole camera first (e.g. COLMAP's "
                         "image_undistorter, then ns-process-data with --camera-type perspective)")
     fisheye, where = get("is_fisheye")
     if fisheye:
-        raise DataError(f"{json_path}: {where}'is_fisheye' is true; PointGT reads pinhole cameras only: undistort "
-                        "the images to a pinhole camera first")
+        raise DataError(f"{json_path}: {where}'is_fisheye' is true; PointGT does not undistort fisheye lenses: "
+                        "undistort the images to a pinhole camera first (e.g. COLMAP's image_undistorter)")
+    coefficients = []
     for key in DISTORTION_KEYS:
         value, where = get(key)
-        if value is not None and _number(value, json_path, where, key) != 0.0:
-            raise DataError(f"{json_path}: {where}'{key}' = {value!r}: the images are distorted and PointGT does "
-                            "not undistort them; undistort them first (COLMAP image_undistorter, or "
-                            "ns-process-data) and write the pinhole intrinsics with all of k1-k4, p1, p2 at 0")
-    out = {}
+        value = 0.0 if value is None else _number(value, json_path, where, key)
+        if key == "k4" and value != 0.0:
+            raise DataError(f"{json_path}: {where}'k4' = {value!r}: k4 belongs to the fisheye (OPENCV_FISHEYE) and "
+                            "rational (FULL_OPENCV) lens models, which PointGT does not undistort; undistort the "
+                            "images first (COLMAP image_undistorter) and write pinhole intrinsics")
+        if key != "k4":
+            coefficients.append(value)
+    out = {"distortion": tuple(coefficients) if any(coefficients) else None}
     for key in ("w", "h"):
         value, where = get(key)
         if value is not None:
@@ -406,6 +438,16 @@ def _frame_camera(doc: dict, frame: dict, json_path: Path, i: int, file: Path, w
         raise DataError(f"{json_path}: frame {i} ({file.name}) has no horizontal intrinsics: missing "
                         "'camera_angle_x' (field of view in radians) and 'fl_x' (focal length in pixels); add "
                         "one at the top of the file or in every frame")
+    if out["distortion"] is not None and width > 0 and height > 0:
+        from core.images.resample import Distortion
+
+        k = _intrinsics(out, width, height, 1)
+        reach = max(math.hypot((x - k.cx) / k.fx, (y - k.cy) / k.fy) for x in (0, width) for y in (0, height))
+        if Distortion(*out["distortion"]).folds(reach):
+            raise DataError(f"{json_path}: frame {i} ({file.name}): the distortion k1, k2, k3, p1, p2 = "
+                            f"{list(out['distortion'])} folds the image over inside the frame (the radial scale "
+                            "stops growing before the corners), so it cannot be undone; check the coefficients "
+                            "(they act on normalised coordinates, as COLMAP's OPENCV model writes them)")
     return out
 
 
@@ -442,16 +484,54 @@ def _check_plausible(spec: dict, json_path: Path, width: int, height: int) -> No
                             "principal point is in pixels from the top-left corner (about w/2, h/2)")
 
 
-def _shared_camera(specs: list[dict], json_path: Path, files: list[Path]) -> dict:
-    """The one camera all frames share; frames with different intrinsics are refused (not supported yet)."""
-    first = specs[0]
-    for i, spec in enumerate(specs[1:], start=1):
-        for key, value in spec.items():
-            if value != first[key]:
-                raise DataError(f"{json_path}: frame {i} ({files[i].name}) has '{key}' = {value!r} but frame 0 "
-                                f"({files[0].name}) has {first[key]!r}; PointGT needs one camera per split: "
-                                "give all frames the same intrinsics (resize/crop the images to one camera)")
-    return first
+def _reference_camera(doc: dict, json_path: Path, root: Path, known: dict) -> tuple[dict, int, int]:
+    """The split's one camera: (spec, height, width) that most frames of the file share (ties: the earliest frame).
+    Frames with other intrinsics or another image size are resampled onto it by the loader. known maps id(frame)
+    -> (spec, (h, w)) for frames already read; the file's other frames (other splits of a single transforms.json)
+    are sized from their 'w'/'h' keys or image header, and skipped when neither is readable."""
+    specs, sizes = [], []
+    for i, frame in enumerate(doc["frames"]):
+        if id(frame) in known:
+            spec, size = known[id(frame)]
+        else:
+            try:
+                size = _key_size(doc, frame)
+                if size is None:
+                    size = _image_size(_image_path(root, frame["file_path"], f"{json_path}: frame {i}"))
+            except (DataError, KeyError, TypeError):
+                continue
+            spec = _frame_camera(doc, frame, json_path, i, Path(str(frame.get("file_path"))), size[1], size[0])
+        specs.append(spec)
+        sizes.append(tuple(size))
+    return _majority(specs, sizes)
+
+
+def _majority(specs: list[dict], sizes: list[tuple]) -> tuple[dict, int, int]:
+    """(spec, h, w) of the camera most frames share (ties: the earliest frame)."""
+    votes: dict = {}
+    for i, (spec, size) in enumerate(zip(specs, sizes)):
+        key = (tuple(sorted(spec.items())), size)
+        count, first, item = votes.get(key, (0, i, (spec, *size)))
+        votes[key] = (count + 1, first, item)
+    return max(votes.values(), key=lambda v: (v[0], -v[1]))[2]
+
+
+def _distortion(spec: dict):
+    """The frame's lens distortion (core.images.resample.Distortion) or None."""
+    if spec["distortion"] is None:
+        return None
+    from core.images.resample import Distortion
+
+    return Distortion(*spec["distortion"])
+
+
+def _key_size(doc: dict, frame: dict) -> tuple[int, int] | None:
+    """(h, w) from a frame's 'w'/'h' keys (its own, else the file's), or None when they are absent or invalid."""
+    w, h = frame.get("w", doc.get("w")), frame.get("h", doc.get("h"))
+    if all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 1
+           and float(v).is_integer() for v in (w, h)):
+        return int(h), int(w)
+    return None
 
 
 def _intrinsics(spec: dict, width: int, height: int, factor: int) -> Intrinsics:
@@ -627,15 +707,23 @@ def _referenced_quietly(json_path: Path, root: Path) -> set[str]:
 
 
 def _read_images(files: list[Path], json_path: Path, masks: list[Path] | None = None, key=None, block: int = 1,
-                 size: tuple[int, int] | None = None, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                 size: tuple[int, int] | None = None, progress: bool = False, read_sizes: list | None = None,
+                 warps: list | None = None, coverage: list | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Premultiplied colour [V, h, w, 3] and alpha [V, h, w] float32 of the frames, each image area-averaged over
     `block` x `block` pixels as it is read (so only one full-size image is in memory at a time).
 
     Coverage: the image's alpha, times the frame's mask when `masks` are given; images without either are keyed
     on the RGB `key` (background colour) or refused. size: (h, w) after the block average (default: from the
-    first image)."""
+    first image). read_sizes: each file's expected (h, w) (default: the first image's). warps: per frame None, or
+    (source Intrinsics, target Intrinsics, target (h, w), source Distortion or None) at the file's resolution: the
+    frame is resampled (undistorted) onto the target pinhole camera before the block average; coverage[i] receives
+    the share of its pixels the frame saw."""
     v = len(files)
     full_h, full_w = _image_size(files[0])
+    read_sizes = read_sizes or [(full_h, full_w)] * v
+    warps = warps or [None] * v
+    if warps[0] is not None:
+        full_h, full_w = warps[0][2]
     h, w = size if size is not None else (full_h // block, full_w // block)
     need = v * h * w * 4 * 4 + full_h * full_w * 4 * 4 * min(4, os.cpu_count() or 1)  # outputs + decode buffers
     if progress:
@@ -654,16 +742,16 @@ def _read_images(files: list[Path], json_path: Path, masks: list[Path] | None = 
 
     def fill(i: int) -> None:  # each call writes only its own slot, so threads never overlap
         img = read_png(files[i])
-        ref = (full_h, full_w)
+        ref = tuple(read_sizes[i])
         if img.shape[:2] != ref:
-            raise DataError(f"{files[i]}: image is {img.shape[1]}x{img.shape[0]} but {files[0].name} is "
-                            f"{full_w}x{full_h}; all images of {json_path.name} must have one size")
+            raise DataError(f"{files[i]}: image is {img.shape[1]}x{img.shape[0]} but {json_path.name} describes it "
+                            f"as {ref[1]}x{ref[0]} ('w'/'h', or the image header); re-export the image")
         a = img[..., 3] if img.shape[2] == 4 else None
         if masks is not None:
             m = read_png(masks[i])
             if m.shape[:2] != ref:
                 raise DataError(f"{masks[i]}: mask is {m.shape[1]}x{m.shape[0]} but its image {files[i].name} is "
-                                f"{full_w}x{full_h}; a mask must match its image")
+                                f"{ref[1]}x{ref[0]}; a mask must match its image")
             a = m[..., 0] if a is None else a * m[..., 0]
         if a is None:
             if key is None:
@@ -674,6 +762,20 @@ def _read_images(files: list[Path], json_path: Path, masks: list[Path] | None = 
                                 "plain studio backdrop, pass --background-colour R,G,B to key it out")
             a = (np.abs(img[..., :3] - key).max(axis=-1) > KEY_TOLERANCE).astype(np.float32)
         premul = img[..., :3] * a[..., None]
+        if warps[i] is not None:
+            from core.images.resample import resample
+
+            source, target, out_size, lens = warps[i]
+            both, seen = resample(np.concatenate([premul, a[..., None]], axis=-1), source, target, out_size, lens)
+            if seen < MIN_COVERAGE:
+                raise DataError(f"{json_path}: frame {files[i].name} sees only {seen:.0%} of the split's camera view "
+                                f"(its intrinsics, size or lens distortion differ: fx, fy, cx, cy = "
+                                f"{source.as_list()} vs {target.as_list()}); PointGT resamples frames with their own "
+                                "camera onto the pinhole camera most frames share, which needs most of that view: "
+                                "crop or remove the frame")
+            premul, a = both[..., :3], np.clip(both[..., 3], 0.0, 1.0)
+            if coverage is not None:
+                coverage[i] = seen
         if block > 1:
             premul = _area_mean(premul[None], block)[0]
             a = _area_mean(a[None, ..., None], block)[0, ..., 0]
@@ -713,7 +815,8 @@ def load_cameras(json_path: str | os.PathLike, size: int | None = None) -> Camer
     """Read the cameras of a transforms JSON (any layout; all frames of a single transforms.json) for rendering.
     The image size comes from `size` (the width; the height keeps the images' aspect ratio, square when it is
     unknown) or, when not given, from the 'w'/'h' keys or the first frame's image. Frame names are the file_path
-    stems."""
+    stems. Frames with their own intrinsics all get the camera most frames share, the one load_split resamples
+    their images onto."""
     json_path = Path(json_path)
     doc = _read_json(json_path, json_path.parent)
     frames = doc.get("frames")
@@ -742,12 +845,16 @@ def load_cameras(json_path: str | os.PathLike, size: int | None = None) -> Camer
                 raise DataError(f"{json_path}: cannot tell the image size (no 'w'/'h' and frame 0 has no readable "
                                 "image); pass the size explicitly (--size)") from exc
             full_h = full_w = None
-    specs = [_frame_camera(doc, fr, json_path, i, Path(names[i]), full_w or 0, full_h or 0)
-             if full_w else _frame_camera({k: v for k, v in doc.items() if k not in ("w", "h")},
-                                          {k: v for k, v in fr.items() if k not in ("w", "h")},
-                                          json_path, i, Path(names[i]), 0, 0)
-             for i, fr in enumerate(frames)]
-    spec = _shared_camera(specs, json_path, [Path(n) for n in names])
+    if full_w:
+        sizes = [_key_size(doc, fr) or (full_h, full_w) for fr in frames]
+        specs = [_frame_camera(doc, fr, json_path, i, Path(names[i]), sizes[i][1], sizes[i][0])
+                 for i, fr in enumerate(frames)]
+    else:
+        sizes = [(None, None)] * len(frames)
+        specs = [_frame_camera({k: v for k, v in doc.items() if k not in ("w", "h")},
+                               {k: v for k, v in fr.items() if k not in ("w", "h")}, json_path, i, Path(names[i]), 0, 0)
+                 for i, fr in enumerate(frames)]
+    spec, full_h, full_w = _majority(specs, sizes)  # the camera load_split resamples every frame onto
     if size is None:
         height, width, scale = full_h, full_w, 1.0
     else:

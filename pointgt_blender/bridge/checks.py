@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.images.intrinsics import Intrinsics
+
 COLLAPSED = 0.01   # deformed extent / rest extent below this: collapsed
 EXPLODED = 100.0   # above this: blown up
 
@@ -14,19 +16,25 @@ def extent(points: np.ndarray) -> float:
     return float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))) if len(p) else 0.0
 
 
-def in_view(points: np.ndarray, c2w: np.ndarray, focal: float, width: int, height: int) -> np.ndarray:
-    """[M] bool: world points [M, 3] in front of the camera (c2w [4, 4], looks down -Z) and inside its image."""
+def in_view(points: np.ndarray, c2w: np.ndarray, focal: float | Intrinsics, width: int, height: int) -> np.ndarray:
+    """[M] bool: world points [M, 3] in front of the camera (c2w [4, 4], looks down -Z; focal in pixels or
+    Intrinsics) and inside its image."""
+    if isinstance(focal, Intrinsics):
+        fx, fy, cx, cy = focal.fx, focal.fy, focal.cx, focal.cy
+    else:
+        fx = fy = float(focal)
+        cx, cy = width / 2.0, height / 2.0
     c2w = np.asarray(c2w, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         cam = (np.asarray(points, dtype=np.float64) - c2w[:3, 3]) @ c2w[:3, :3]
         z = -cam[:, 2]
         front = z > 1e-9
-        col = focal * cam[:, 0] / z + width / 2.0
-        row = -focal * cam[:, 1] / z + height / 2.0
+        col = fx * cam[:, 0] / z + cx
+        row = -fy * cam[:, 1] / z + cy
     return front & (col >= 0) & (col < width) & (row >= 0) & (row < height)
 
 
-def pose_warning(name: str, positions: np.ndarray, rest_extent: float, c2w: np.ndarray, focal: float,
+def pose_warning(name: str, positions: np.ndarray, rest_extent: float, c2w: np.ndarray, focal: float | Intrinsics,
                  width: int, height: int) -> str:
     """'' when the deformed points [M, 3] (world) look renderable from the camera, else one sentence saying what
     is wrong and what to check."""

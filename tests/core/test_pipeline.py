@@ -31,3 +31,60 @@ def test_stage2_refits_the_texture_for_pixel_filtered_lookups():
     bundle, _, _ = tiny_bundle("card")
     fp = bundle.meta["atlas_fit"]["footprint"]
     assert fp["pixels"] > 100 and fp["rmse_after"] < fp["rmse_before"]
+
+
+def test_stage2_runs_on_a_capture_camera_with_intrinsics():
+    """A capture's camera (fx != fy, off-centre principal point, non-square image) reaches stage 2 as Intrinsics:
+    the island atlas's resolution and the footprint refit use one focal scale, sqrt(fx * fy)."""
+    from core.images.cameras import Intrinsics
+    from core.pipeline import fit_atlas_stage
+    from tests.helpers.synthetic import fibonacci_cameras, render_split
+
+    bundle, _, _ = tiny_bundle("fast")
+    b = copy.deepcopy(bundle)
+    k = Intrinsics(40.0, 34.0, 17.0, 14.5)
+    split = render_split("card", fibonacci_cameras(4, seed=0), 36, height=28, intrinsics=k)
+    atlas_cfg = AtlasConfig(device="cpu", charts="4", steps=10, texture_steps=5, texture_res=16, batch=256,
+                            uv_batch=32, distortion_batch=32, width_chart=16, depth_chart=2, width_map=16, depth_map=2,
+                            eval_samples=256, layout="islands", log_every=10_000)
+    fit_atlas_stage(b, split, atlas_cfg, show_progress=False)
+    assert torch.isfinite(b.atlas.packed_image()).all()
+    assert b.meta["atlas_fit"]["footprint"]["pixels"] > 0
+
+
+def test_a_capture_with_its_own_cameras_per_frame_and_a_lens_fits_like_its_pinhole_twin(tmp_path):
+    """End to end through visual hull, neighbour search, training and stage 2's footprints: a capture whose frames
+    have their own intrinsics and image sizes, half of them seen through a distorting lens, loads onto one
+    pinhole camera and fits like the same views taken through that camera."""
+    from core.images.cameras import Intrinsics
+    from core.images.dataset import load_dataset
+    from core.images.metrics import psnr
+    from core.points.render import render_frame
+    from tests.helpers.synthetic import fibonacci_cameras, render_split, write_capture
+    from tests.helpers.tiny import fit_tiny
+
+    k = Intrinsics(40.0, 38.0, 17.0, 15.5)  # 32 x 32
+    cams, test_cams = fibonacci_cameras(8, seed=0), fibonacci_cameras(2, seed=5)
+    lens = (-0.2, 0.04, 0.0, 0.002, -0.001)
+    own = Intrinsics(60.0, 57.0, 27.5, 25.25)  # 1.5 x the focal lengths, 52 x 52 pixels
+    views = [render_split("card", cams[i:i + 1], 52 if i % 2 else 32, intrinsics=own if i % 2 else k,
+                          lens=None if i % 4 < 2 else lens, split=f"v{i}") for i in range(8)]
+    keys = {f"v{i}": {"fl_x": v.intrinsics.fx, "fl_y": v.intrinsics.fy, "cx": v.intrinsics.cx,
+                      "cy": v.intrinsics.cy, "w": v.width, "h": v.height,
+                      **(dict(zip(("k1", "k2", "k3", "p1", "p2"), lens)) if i % 4 >= 2 else {})}
+            for i, v in enumerate(views)}
+    test = render_split("card", test_cams, 32, intrinsics=k, split="test")
+    write_capture(tmp_path / "mixed", [test, *views], frame_keys=lambda split, i: keys.get(split, {}),
+                  top_keys={"train_filenames": [f"images/v{i}_0.png" for i in range(8)]})
+    twin = render_split("card", cams, 32, intrinsics=k)
+    write_capture(tmp_path / "pinhole", [twin, test])
+    scores, metas = [], []
+    for name in ("mixed", "pinhole"):
+        data = load_dataset(tmp_path / name, required=("train", "test"))
+        assert data["train"].focal == k and data["test"].focal == k
+        metas.append(data["train"].meta.get("resampled"))
+        bundle = fit_tiny("fast", data["train"], data["test"], steps=40, atlas_steps=10)
+        scores.append(sum(psnr(render_frame(bundle.model, data["test"].c2w[i], 32, 32, k)["rgb"].detach(),
+                               data["test"].images[i]) for i in range(2)) / 2)
+    assert metas == [{"frames": 6, "min_coverage": 1.0, "undistorted": 4}, None]
+    assert abs(scores[0] - scores[1]) < 1.0 and min(scores) > 15.0, scores

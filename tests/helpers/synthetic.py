@@ -54,11 +54,27 @@ def _hit(shape: str, o: torch.Tensor, d: torch.Tensor):
     raise ValueError(shape)
 
 
+def undistort_normalised(lens, xd: torch.Tensor, yd: torch.Tensor, iters: int = 200):
+    """Brute-force inverse of OpenCV's radial-tangential model (lens = (k1, k2, k3, p1, p2)) by fixed-point
+    iteration: distorted normalised coordinates -> the undistorted ones that distort onto them (float64)."""
+    k1, k2, k3, p1, p2 = lens
+    xd, yd = xd.double(), yd.double()
+    x, y = xd.clone(), yd.clone()
+    for _ in range(iters):
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        x, y = ((xd - 2 * p1 * x * y - p2 * (r2 + 2 * x * x)) / radial,
+                (yd - p1 * (r2 + 2 * y * y) - 2 * p2 * x * y) / radial)
+    return x, y
+
+
 def render_split(shape: str, c2w: torch.Tensor, size: int, fov: float = 0.69, colour=stripes,
                  background=(1.0, 1.0, 1.0), split: str = "train", height: int | None = None,
-                 intrinsics: Intrinsics | None = None) -> SplitData:
+                 intrinsics: Intrinsics | None = None, lens: tuple | None = None) -> SplitData:
     """Render views of an analytic shape into a SplitData (images [V,H,W,3], alphas [V,H,W], ...): `size` wide,
-    `height` (default `size`) high, through a centred camera of horizontal field of view `fov` or `intrinsics`."""
+    `height` (default `size`) high, through a centred camera of horizontal field of view `fov` or `intrinsics`,
+    seen through the distorting lens (k1, k2, k3, p1, p2) when `lens` is given (the SplitData keeps the pinhole
+    intrinsics)."""
     h, w = (height or size), size
     focal = focal_from_fov(size, fov) if intrinsics is None else intrinsics
     ss = 2
@@ -67,6 +83,14 @@ def render_split(shape: str, c2w: torch.Tensor, size: int, fov: float = 0.69, co
     ims, als = [], []
     for m in c2w:
         o, d = pixel_rays(m, h * ss, w * ss, cam)
+        if lens is not None:  # each pixel sees the ray that the lens bends onto it
+            k = Intrinsics(*[float(v) for v in (cam if isinstance(cam, Intrinsics) else
+                                                Intrinsics(cam, cam, w * ss / 2, h * ss / 2)).as_list()])
+            v, u = torch.meshgrid(torch.arange(h * ss) + 0.5, torch.arange(w * ss) + 0.5, indexing="ij")
+            x, y = undistort_normalised(lens, (u - k.cx) / k.fx, (v - k.cy) / k.fy)
+            dc = torch.stack([x, -y, -torch.ones_like(x)], -1)
+            d = (dc / dc.norm(dim=-1, keepdim=True)) @ m[:3, :3].double().T
+            d = d.to(o.dtype)
         o, d = o.reshape(-1, 3), d.reshape(-1, 3)
         t = _hit(shape, o, d)
         hit = torch.isfinite(t)
@@ -104,4 +128,42 @@ def write_split(root: str | Path, split: SplitData, background=(1.0, 1.0, 1.0)) 
         frames.append({"file_path": f"./{split.split}/r_{i}", "transform_matrix": split.c2w[i].tolist()})
     (root / f"transforms_{split.split}.json").write_text(
         json.dumps({"camera_angle_x": split.camera_angle_x, "frames": frames}))
+    return root
+
+
+def write_capture(root: str | Path, splits: list[SplitData], frame_keys=None, top_keys: dict | None = None) -> Path:
+    """Write rendered splits as one nerfstudio capture: `images/<split>_<i>.png` (RGB, straight colour),
+    `masks/<split>_<i>.png` (the alpha), and `transforms.json` with the first split's intrinsics at the top
+    (`camera_model` OPENCV, zero distortion), `<split>_filenames` lists. frame_keys(split, i) -> dict of keys
+    added to (or overriding in) that frame; top_keys override the top-level keys. Returns root."""
+    import json
+
+    import numpy as np
+
+    from core.images.png import write_png
+
+    root = Path(root)
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    (root / "masks").mkdir(exist_ok=True)
+    first = splits[0]
+    k = first.intrinsics
+    doc = {"camera_model": "OPENCV", "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": first.width,
+           "h": first.height, "k1": 0.0, "k2": 0.0, "k3": 0.0, "p1": 0.0, "p2": 0.0, "frames": []}
+    for split in splits:
+        bg = torch.ones(3)
+        names = []
+        for i in range(len(split.files)):
+            a = split.alphas[i][..., None]
+            straight = torch.where(a > 0, (split.images[i] - (1 - a) * bg) / a.clamp_min(1e-6), torch.zeros_like(a))
+            name = f"images/{split.split}_{i}.png"
+            write_png(root / name, straight.clamp(0, 1).numpy(), backup=False)
+            write_png(root / f"masks/{split.split}_{i}.png", a.expand(-1, -1, 3).numpy(), backup=False)
+            frame = {"file_path": name, "mask_path": f"masks/{split.split}_{i}.png",
+                     "transform_matrix": split.c2w[i].tolist()}
+            frame.update(frame_keys(split.split, i) if frame_keys else {})
+            doc["frames"].append(frame)
+            names.append(name)
+        doc[f"{split.split}_filenames"] = names
+    doc.update(top_keys or {})
+    (root / "transforms.json").write_text(json.dumps(doc, indent=1))
     return root

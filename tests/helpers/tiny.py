@@ -7,6 +7,7 @@ Presets (seconds each on one CPU thread; quality is low but real, trained rather
 - "addon": the "fast" networks trained longer on the 8 train views alone, with a finer atlas — the add-on tests,
   which save it to a file Blender opens (`save_tiny`).
 
+`fit_tiny(preset, train, test)` fits the preset on given splits (a loaded capture).
 `tiny_bundle(preset, ...)` is cached per process: treat the result as read-only. `model_config(preset, **changes)`
 is the preset's ModelConfig for tests that build or train a model themselves. The card lies in the plane z = 0
 (|x| < 0.9, |y| < 0.5); its colour is `synthetic.stripes`.
@@ -65,28 +66,36 @@ def model_config(preset: str, **changes) -> ModelConfig:
     return ModelConfig(**{**PRESETS[preset].model, **changes})
 
 
+def fit_tiny(preset: str, train, test, steps: int | None = None, atlas_steps: int | None = None,
+             decoder: str = "none", name: str = "card") -> Bundle:
+    """Stage 1 + stage 2 of `preset` on any split (e.g. one loaded from a capture folder); steps / atlas_steps
+    override the preset's, decoder "none" | "unet". Runs on one CPU thread."""
+    p = PRESETS[preset]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors on a shared CPU: one thread is faster than fighting for two
+    try:
+        torch.manual_seed(0)
+        tcfg = TrainConfig(**{**_TRAIN, **p.train, **({"steps": steps} if steps is not None else {})})
+        model, _ = fit_points(train, test, model_config(preset, decoder=decoder), tcfg, show_progress=False)
+        model.eval()
+        bundle = Bundle(model=model, meta={"scene": {"name": name}})
+        acfg = AtlasConfig(**{**_ATLAS, **p.atlas, **({"steps": atlas_steps} if atlas_steps is not None else {})})
+        fit_atlas_stage(bundle, train, acfg, show_progress=False)
+    finally:
+        torch.set_num_threads(threads)
+    return bundle
+
+
 @functools.lru_cache(maxsize=None)
 def tiny_bundle(preset: str = "card", shape: str = "card", steps: int | None = None,
                 atlas_steps: int | None = None, decoder: str = "none") -> tuple[Bundle, object, object]:
     """(bundle with atlas, train split, test split) of `preset` on the analytic scene `shape` (card | sphere);
     steps / atlas_steps override the preset's, decoder "none" | "unet"."""
     p = PRESETS[preset]
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors on a shared CPU: one thread is faster than fighting for two
-    try:
-        torch.manual_seed(0)
-        train = render_split(shape, fibonacci_cameras(p.train_views, seed=0), p.size)
-        test = render_split(shape, fibonacci_cameras(p.test_views, seed=5), p.size, split="test") \
-            if p.test_views else train
-        tcfg = TrainConfig(**{**_TRAIN, **p.train, **({"steps": steps} if steps is not None else {})})
-        model, _ = fit_points(train, test, model_config(preset, decoder=decoder), tcfg, show_progress=False)
-        model.eval()
-        bundle = Bundle(model=model, meta={"scene": {"name": shape}})
-        acfg = AtlasConfig(**{**_ATLAS, **p.atlas, **({"steps": atlas_steps} if atlas_steps is not None else {})})
-        fit_atlas_stage(bundle, train, acfg, show_progress=False)
-    finally:
-        torch.set_num_threads(threads)
-    return bundle, train, test
+    train = render_split(shape, fibonacci_cameras(p.train_views, seed=0), p.size)
+    test = render_split(shape, fibonacci_cameras(p.test_views, seed=5), p.size, split="test") \
+        if p.test_views else train
+    return fit_tiny(preset, train, test, steps, atlas_steps, decoder, name=shape), train, test
 
 
 def save_tiny(path: str | Path, preset: str = "addon") -> Path:

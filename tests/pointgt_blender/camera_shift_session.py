@@ -24,11 +24,14 @@ scene.collection.objects.link(cam)
 scene.camera = cam
 cam.location = (3.0, -2.0, 1.5)
 cam.rotation_euler = (1.1, 0.1, 0.9)
-cases = [(64, 48, 'AUTO', 0.1, -0.05), (48, 64, 'AUTO', -0.2, 0.15), (80, 40, 'VERTICAL', 0.05, 0.1),
-         (40, 80, 'HORIZONTAL', 0.3, 0.0), (50, 50, 'AUTO', 0.0, 0.0)]
+cases = [(64, 48, 'AUTO', 0.1, -0.05, 1.0, 1.0), (48, 64, 'AUTO', -0.2, 0.15, 1.0, 1.0),
+         (80, 40, 'VERTICAL', 0.05, 0.1, 1.0, 1.0), (40, 80, 'HORIZONTAL', 0.3, 0.0, 1.0, 1.0),
+         (50, 50, 'AUTO', 0.0, 0.0, 1.0, 1.0), (64, 48, 'AUTO', 0.1, 0.05, 1.0, 1.5),  # AUTO turns vertical
+         (40, 60, 'VERTICAL', -0.1, 0.2, 2.0, 1.0)]
 out = []
-for w, h, fit, sx, sy in cases:
+for w, h, fit, sx, sy, ax, ay in cases:
     scene.render.resolution_x, scene.render.resolution_y = w, h
+    scene.render.pixel_aspect_x, scene.render.pixel_aspect_y = ax, ay
     data.sensor_fit, data.shift_x, data.shift_y, data.lens = fit, sx, sy, 35.0
     bpy.context.view_layer.update()
     c2w, focal = scene_camera(scene, w, h)
@@ -38,13 +41,15 @@ for w, h, fit, sx, sy in cases:
     for p, q in zip(pts, px.numpy()):
         v = world_to_camera_view(scene, cam, Vector(p))  # x right, y up, both 0..1 over the frame
         err = max(err, abs(v.x * w - q[0]), abs((1.0 - v.y) * h - q[1]))
-    out.append({"case": [w, h, fit, sx, sy], "max_px_err": err, "kind": type(focal).__name__})
+    out.append({"case": [w, h, fit, sx, sy, ax, ay], "max_px_err": err, "kind": type(focal).__name__})
 # a dataset camera (off-centre principal point) -> Blender settings -> the add-on's camera: the same intrinsics
 from core.images.cameras import Intrinsics  # noqa: E402
-from pointgt_blender.scene.camera import camera_settings  # noqa: E402
+from pointgt_blender.scene.camera import camera_settings, pixel_aspect  # noqa: E402
 
-for w, h, k in [(64, 48, Intrinsics(70.0, 70.0, 29.5, 26.0)), (40, 72, Intrinsics(55.0, 55.0, 21.0, 33.5))]:
+for w, h, k in [(64, 48, Intrinsics(70.0, 70.0, 29.5, 26.0)), (40, 72, Intrinsics(55.0, 55.0, 21.0, 33.5)),
+                (48, 40, Intrinsics(52.0, 60.0, 21.0, 23.5))]:
     scene.render.resolution_x, scene.render.resolution_y = w, h
+    scene.render.pixel_aspect_x, scene.render.pixel_aspect_y = pixel_aspect(k)
     for name, value in camera_settings(k, w, h).items():
         setattr(data, name, value)
     bpy.context.view_layer.update()

@@ -1,4 +1,5 @@
-"""Lens shift and non-square renders: the add-on's camera (an off-centre principal point for a shifted lens)
+"""Lens shift, non-square renders and non-square pixels: the add-on's camera (an off-centre principal point for
+a shifted lens, fx != fy for a pixel aspect other than 1:1)
 projects points where Blender's own camera projection puts them."""
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 
 from core.images.cameras import Intrinsics
 from core.util.errors import InputError
-from pointgt_blender.scene.camera import camera_settings, principal_point
+from pointgt_blender.scene.camera import camera_settings, focal_pixels, pixel_aspect, principal_point
 
 SESSION = Path(__file__).with_name("camera_shift_session.py")
 REPO = Path(__file__).resolve().parents[2]
@@ -29,8 +30,16 @@ def test_camera_settings_invert_the_add_on_camera():
     assert s["lens"] == pytest.approx(50.0 * 36.0 / 64) and s["sensor_fit"] == 'HORIZONTAL'
     assert principal_point(s["shift_x"], s["shift_y"], s["sensor_fit"], 64, 48) == pytest.approx((20.0, 30.0))
     assert camera_settings(40.0, 64, 48)["shift_x"] == camera_settings(40.0, 64, 48)["shift_y"] == 0.0
-    with pytest.raises(InputError, match="non-square pixels"):
-        camera_settings(Intrinsics(50.0, 45.0, 32.0, 24.0), 64, 48)
+    k = Intrinsics(50.0, 45.0, 20.0, 30.0)  # fx != fy: non-square pixels, fy / fx = aspect_x / aspect_y
+    s = camera_settings(k, 64, 48)
+    ax, ay = pixel_aspect(k)
+    assert (ax, ay) == pytest.approx((1.0, 50.0 / 45.0))
+    assert focal_pixels(s["lens"], s["sensor_width"], 24.0, s["sensor_fit"], 64, 48, ax, ay) * ax / ay \
+        == pytest.approx(45.0)
+    assert principal_point(s["shift_x"], s["shift_y"], s["sensor_fit"], 64, 48, ax, ay) == pytest.approx((20.0, 30.0))
+    assert pixel_aspect(Intrinsics(40.0, 60.0, 1.0, 1.0)) == pytest.approx((1.5, 1.0))
+    with pytest.raises(InputError, match="pixel aspect"):
+        pixel_aspect(Intrinsics(1.0, 500.0, 32.0, 24.0))
 
 
 @pytest.mark.blender
@@ -40,9 +49,9 @@ def test_shifted_and_non_square_cameras_match_blenders_projection():
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
     assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     rows = json.loads(lines[-1][len("RESULTS: "):])
-    assert len(rows) == 7
-    for row in rows[:5]:
+    assert len(rows) == 10
+    for row in rows[:7]:
         assert row["max_px_err"] < 1e-4, row  # float32 c2w: ~5e-6 px
-        assert row["kind"] == ("float" if row["case"][3:] == [0.0, 0.0] else "Intrinsics")
-    for row in rows[5:]:  # dataset cameras set up in Blender with camera_settings: the same camera back
+        assert row["kind"] == ("float" if row["case"][3:] == [0.0, 0.0, 1.0, 1.0] else "Intrinsics")
+    for row in rows[7:]:  # dataset cameras set up in Blender with camera_settings: the same camera back
         assert row["kind"] == "Intrinsics" and row["intrinsics_err"] < 1e-4 and row["max_px_err"] < 1e-4, row

@@ -37,3 +37,18 @@ def test_non_finite_points_do_not_break_the_checks():
     assert not seen[:8].any() and seen[8:].any()
     assert pose_warning("card", pts, extent(_card()), C2W, 60.0, 64, 48) == ""
     assert "no finite point" in pose_warning("card", np.full((4, 3), np.nan, np.float32), 1.0, C2W, 60.0, 64, 48)
+
+
+def test_in_view_follows_an_off_centre_camera_with_two_focal_lengths():
+    """A shifted lens / capture camera: the brute-force projection through Intrinsics decides what is in view."""
+    from core.images.intrinsics import Intrinsics
+
+    k = Intrinsics(60.0, 45.0, 10.0, 40.0)  # principal point near the left edge and the bottom
+    pts = np.random.default_rng(0).uniform(-2, 2, (400, 3)).astype(np.float32)
+    cam = pts.astype(np.float64) - C2W[:3, 3]
+    col = k.fx * cam[:, 0] / -cam[:, 2] + k.cx
+    row = -k.fy * cam[:, 1] / -cam[:, 2] + k.cy
+    expect = (-cam[:, 2] > 0) & (col >= 0) & (col < 64) & (row >= 0) & (row < 48)
+    assert 20 < expect.sum() < 380
+    np.testing.assert_array_equal(in_view(pts, C2W, k, 64, 48), expect)
+    assert pose_warning("card", _card(), extent(_card()), C2W, k, 64, 48) == ""

@@ -125,25 +125,103 @@ def test_missing_focal_names_the_file_and_keys(tmp_path):
         load_split(tmp_path, "train")
 
 
-def test_frames_with_different_intrinsics_are_refused(tmp_path):
-    make_nerfstudio(tmp_path, per_frame=("cx",))
-    _edit(tmp_path, lambda d: d["frames"][3].update(cx=5.0))
-    with pytest.raises(DataError, match=r"frame \d \(frame_\d+\.png\) has 'cx' = 5\.0 but frame 0"):
-        load_split(tmp_path, "test", test_every=2)
+def _per_frame_capture(root, extra):
+    """A card capture: 5 train + 1 test views through K_REF at 32 x 24, plus one train view per (intrinsics,
+    (h, w)) in `extra` with its own per-frame keys. Returns (root, reference train split rendered through K_REF
+    for all train views)."""
+    from tests.helpers.synthetic import fibonacci_cameras, render_split, write_capture
+
+    cams = fibonacci_cameras(5 + len(extra), seed=2)
+    train = render_split("card", cams[:5], 32, height=24, intrinsics=K_REF)
+    test = render_split("card", fibonacci_cameras(1, seed=7), 32, height=24, intrinsics=K_REF, split="test")
+    own = [render_split("card", cams[5 + j:6 + j], size[1], height=size[0], intrinsics=k, split=f"own{j}")
+           for j, (k, size) in enumerate(extra)]
+    keys = {f"own{j}": {"fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": size[1], "h": size[0]}
+            for j, (k, size) in enumerate(extra)}
+    write_capture(root, [train, test, *own], frame_keys=lambda split, i: keys.get(split, {}),
+                  top_keys={"train_filenames": [f"images/train_{i}.png" for i in range(5)]
+                            + [f"images/own{j}_0.png" for j in range(len(extra))]})
+    return root, render_split("card", cams, 32, height=24, intrinsics=K_REF)
+
+
+K_REF = Intrinsics(30.0, 27.0, 17.5, 12.0)
+
+
+def test_frames_with_their_own_intrinsics_are_resampled_onto_the_split_camera(tmp_path):
+    """Per-frame fl_x/fl_y/cx/cy/w/h: each such frame is resampled onto the camera most frames share, so the
+    split is exactly what that camera would have seen: a frame whose camera is the reference camera moved by
+    whole pixels (a larger image) resamples to the very same pixels, a zoomed one to within interpolation."""
+    shifted = (Intrinsics(30.0, 27.0, 17.5 + 3, 12.0 + 2), (30, 40))  # reference pixels = this image cropped
+    zoomed = (Intrinsics(45.0, 40.5, 27.0, 19.0), (40, 52))  # 1.5 x the focal lengths, another centre
+    root, ref = _per_frame_capture(tmp_path, [shifted, zoomed])
+    d = load_split(root, "train")
+    assert d.focal == K_REF and (d.height, d.width) == (24, 32) and len(d) == 7
+    assert d.meta["resampled"] == {"frames": 2, "min_coverage": 1.0, "undistorted": 0}
+    torch.testing.assert_close(d.images[:5], ref.images[:5], atol=1.5 / 255, rtol=0)  # 8-bit PNGs
+    torch.testing.assert_close(d.images[5], ref.images[5], atol=1.5 / 255, rtol=0)
+    torch.testing.assert_close(d.alphas[5], ref.alphas[5], atol=1.5 / 255, rtol=0)
+    err = (d.images[6] - ref.images[6]).abs()
+    assert float(err.mean()) < 0.01 and float((d.alphas[6] - ref.alphas[6]).abs().mean()) < 0.01, float(err.mean())
+    # the test split and the camera-only reader get the same camera
+    assert load_split(root, "test").focal == K_REF and load_cameras(root / "transforms.json").focal == K_REF
+    # --downscale averages the resampled frames
+    d2 = load_split(root, "train", downscale=2)
+    assert d2.focal == K_REF.scaled(0.5)
+    torch.testing.assert_close(d2.alphas, d.alphas.reshape(7, 12, 2, 16, 2).mean((2, 4)), atol=1e-6, rtol=0)
+
+
+def test_a_frame_that_sees_too_little_of_the_split_camera_is_refused(tmp_path):
+    far = (Intrinsics(30.0, 27.0, 40.0, 12.0), (24, 32))  # the principal point 22.5 px further right
+    root, _ = _per_frame_capture(tmp_path, [far])
+    with pytest.raises(DataError, match=r"transforms\.json: frame own0_0\.png sees only \d+% of the split's camera "
+                                        r"view.*crop or remove the frame"):
+        load_split(root, "train")
+
+
+LENS = (-0.25, 0.05, 0.01, 0.003, -0.002)  # k1, k2, k3, p1, p2: barrel, as phone and DSLR wide angles
 
 
 @pytest.mark.parametrize("where", ["top", "frame"])
-@pytest.mark.parametrize("key", ["k1", "k2", "k3", "k4", "p1", "p2"])
-def test_distortion_is_refused_naming_file_and_key(tmp_path, key, where):
+def test_opencv_distortion_is_undone_as_the_images_are_read(tmp_path, where):
+    """A card seen through a radial-tangential lens (rays bent by the brute-force inverse of the lens) loads as
+    the pinhole camera would have seen it; keys at the top or in every frame (instant-ngp) alike."""
+    from tests.helpers.synthetic import fibonacci_cameras, render_split, write_capture
+
+    k = Intrinsics(60.0, 56.0, 33.0, 25.0)
+    cams = fibonacci_cameras(4, radius=2.0, seed=3)
+    seen = render_split("card", cams, 64, height=48, intrinsics=k, lens=LENS)
+    pinhole = render_split("card", cams, 64, height=48, intrinsics=k)
+    keys = dict(zip(("k1", "k2", "k3", "p1", "p2"), LENS))
+    write_capture(tmp_path, [seen], top_keys=keys if where == "top" else {},
+                  frame_keys=(lambda split, i: keys) if where == "frame" else None)
+    d = load_split(tmp_path, "train")
+    assert d.focal == k and d.meta["resampled"] == {"frames": 4, "min_coverage": 1.0, "undistorted": 4}
+    # mean error: what is left is bilinear interpolation across the card's anti-aliased edges (the distorted
+    # photos themselves are 2.5 x further off)
+    err = float((d.images - pinhole.images).abs().mean())
+    raw = float((seen.images - pinhole.images).abs().mean())
+    assert err < 0.004 and raw > 2 * err, (err, raw)
+    a_err = float((d.alphas - pinhole.alphas).abs().mean())
+    assert a_err < 0.5 * float((seen.alphas - pinhole.alphas).abs().mean()), a_err
+    assert load_cameras(tmp_path / "transforms.json").focal == k  # the undistorted (pinhole) camera
+
+
+@pytest.mark.parametrize("where", ["top", "frame"])
+def test_k4_and_folding_lenses_are_refused_naming_file_and_key(tmp_path, where):
     make_nerfstudio(tmp_path)
     if where == "top":
-        _edit(tmp_path, lambda d: d.update({key: 0.01}))
-        pattern = rf"transforms\.json: '{key}' = 0\.01: the images are distorted"
+        _edit(tmp_path, lambda d: d.update(k4=0.01))
+        pattern = r"transforms\.json: 'k4' = 0\.01: k4 belongs to the fisheye"
     else:
-        _edit(tmp_path, lambda d: [f.update({key: 0.0 if i else -0.02}) for i, f in enumerate(d["frames"])])
-        pattern = rf"transforms\.json: frame \d \(frame_005\.png\): '{key}' = -0\.02: the images are distorted"
+        _edit(tmp_path, lambda d: [f.update(k4=0.0 if i else -0.02) for i, f in enumerate(d["frames"])])
+        pattern = r"transforms\.json: frame \d \(frame_005\.png\): 'k4' = -0\.02: k4 belongs to the fisheye"
     with pytest.raises(DataError, match=pattern):
         load_dataset(tmp_path, splits=("train", "test"), required=("train", "test"))
+    make_nerfstudio(tmp_path / "fold")
+    _edit(tmp_path / "fold", lambda d: d.update(k1=-2.0))
+    with pytest.raises(DataError, match=r"transforms\.json: frame 0 \(frame_\d+\.png\): the distortion k1, k2, k3, "
+                                        r"p1, p2 = \[-2\.0, 0\.0, 0\.0, 0\.0, 0\.0\] folds the image over"):
+        load_split(tmp_path / "fold")
 
 
 @pytest.mark.parametrize("model,ok", [("PINHOLE", True), ("SIMPLE_PINHOLE", True), ("OPENCV", True),
@@ -154,7 +232,8 @@ def test_camera_models(tmp_path, model, ok):
     if ok:
         assert load_split(tmp_path).intrinsics.fx == 11.0
     else:
-        with pytest.raises(DataError, match=rf"transforms\.json: 'camera_model' is '{model}'.*undistort"):
+        kind = "a fisheye lens" if "FISHEYE" in model else "not a model PointGT reads"
+        with pytest.raises(DataError, match=rf"transforms\.json: 'camera_model' is '{model}', {kind}.*undistort"):
             load_split(tmp_path)
 
 
