@@ -12,20 +12,11 @@ import sys
 import numpy as np
 
 
-class BlockTorch:
-    """Makes `import torch` fail as it would in a Blender without PyTorch."""
+from session_common import block_torch, make_active, recorder
 
-    def find_spec(self, name, path=None, target=None):
-        if name == "torch" or name.startswith("torch."):
-            raise ImportError(f"No module named '{name}' (blocked by the test)")
-        return None
-
-
-BLOCKER = BlockTorch()
-sys.meta_path.insert(0, BLOCKER)
+BLOCKER = block_torch()
 
 import bpy  # noqa: E402
-from session_common import make_active, recorder  # noqa: E402
 
 zip_path, model, corrupt, work, wheels = sys.argv[sys.argv.index("--") + 1:]
 R = {}

@@ -16,18 +16,11 @@ import zipfile
 import numpy as np
 
 
-class BlockTorch:
-    def find_spec(self, name, path=None, target=None):
-        if name == "torch" or name.startswith("torch."):
-            raise ImportError(f"No module named '{name}' (blocked by the test)")
-        return None
+from session_common import block_torch, camera_only_scene, make_active, recorder
 
-
-BLOCKER = BlockTorch()
-sys.meta_path.insert(0, BLOCKER)
+BLOCKER = block_torch()
 
 import bpy  # noqa: E402
-from session_common import make_active, recorder  # noqa: E402
 
 zip_path, model, patch_path, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -74,13 +67,7 @@ def _():
 
 @step("scene")
 def _():
-    scene = bpy.context.scene
-    for o in list(bpy.data.objects):
-        if o.type != 'CAMERA':
-            bpy.data.objects.remove(o)
-    cam = scene.camera
-    cam.location = (0.0, 0.0, 3.0)
-    cam.rotation_euler = (0.0, 0.0, 0.0)  # looking down -Z at the card
+    scene, cam = camera_only_scene()
     cam.scale = (2.0, 2.0, 2.0)  # scale must not change the view
     r = scene.render
     r.engine = 'POINTGT'
