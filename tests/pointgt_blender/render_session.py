@@ -16,7 +16,7 @@ import zipfile
 import numpy as np
 
 
-from session_common import block_torch, camera_only_scene, make_active, recorder
+from session_common import block_torch, camera_only_scene, drop_ids_modifier, make_active, recorder
 
 BLOCKER = block_torch()
 
@@ -298,19 +298,7 @@ def _():
     o.data.vertices.foreach_set("co", co)
     o.data.update()
     # a modifier that changes the point count and drops the ids
-    ng = bpy.data.node_groups.new("drop ids", 'GeometryNodeTree')
-    ng.interface.new_socket("Geometry", in_out='INPUT', socket_type='NodeSocketGeometry')
-    ng.interface.new_socket("Geometry", in_out='OUTPUT', socket_type='NodeSocketGeometry')
-    gin, gout = ng.nodes.new('NodeGroupInput'), ng.nodes.new('NodeGroupOutput')
-    remove = ng.nodes.new('GeometryNodeRemoveAttribute')
-    remove.inputs["Name"].default_value = "pointgt_id"
-    merge = ng.nodes.new('GeometryNodeMergeByDistance')
-    merge.inputs["Distance"].default_value = 0.2
-    ng.links.new(gin.outputs[0], remove.inputs[0])
-    ng.links.new(remove.outputs[0], merge.inputs[0])
-    ng.links.new(merge.outputs[0], gout.inputs[0])
-    gn = o.modifiers.new("drop", 'NODES')
-    gn.node_group = ng
+    gn = drop_ids_modifier(o, 0.2)
     bpy.context.view_layer.update()
     prev.run_pending()
     out["count_status"] = prev.status(o)

@@ -52,6 +52,27 @@ def camera_only_scene():
     return scene, cam
 
 
+def drop_ids_modifier(obj, distance: float):
+    """Add a Geometry Nodes modifier that removes the pointgt_id attribute and merges points closer than
+    `distance`: the point count changes and the ids are gone, as a careless node setup would leave them."""
+    import bpy
+
+    ng = bpy.data.node_groups.new("drop ids", 'GeometryNodeTree')
+    ng.interface.new_socket("Geometry", in_out='INPUT', socket_type='NodeSocketGeometry')
+    ng.interface.new_socket("Geometry", in_out='OUTPUT', socket_type='NodeSocketGeometry')
+    gin, gout = ng.nodes.new('NodeGroupInput'), ng.nodes.new('NodeGroupOutput')
+    remove = ng.nodes.new('GeometryNodeRemoveAttribute')
+    remove.inputs["Name"].default_value = "pointgt_id"
+    merge = ng.nodes.new('GeometryNodeMergeByDistance')
+    merge.inputs["Distance"].default_value = distance
+    ng.links.new(gin.outputs[0], remove.inputs[0])
+    ng.links.new(remove.outputs[0], merge.inputs[0])
+    ng.links.new(merge.outputs[0], gout.inputs[0])
+    mod = obj.modifiers.new("drop", 'NODES')
+    mod.node_group = ng
+    return mod
+
+
 def make_active(obj, *others):
     """Select obj and others, obj active."""
     import bpy
