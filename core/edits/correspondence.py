@@ -50,18 +50,21 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
     return x_def + disp
 
 
-def ray_canonical_points(trace: Trace, sel: torch.Tensor, p_def: torch.Tensor | None = None,
+def ray_canonical_points(trace: Trace, sel: torch.Tensor | None = None, p_def: torch.Tensor | None = None,
                          p_can: torch.Tensor | None = None, mode: str = "deform-aware",
                          inv_f: torch.Tensor | None = None) -> torch.Tensor:
     """Canonical surface points [S, 3] of the rays `sel` of a traced frame.
 
-    trace: `trace_frame` of the points p_def [M, 3]; sel: [S] ray indices (or an [R] bool mask with S set);
+    trace: `trace_frame` of the points p_def [M, 3]; sel: [S] ray indices (or an [R] bool mask with S set; None:
+    all R rays);
     p_can [M, 3] the canonical positions of the same points; mode and inv_f [M, 3, 3] as `canonical_points`.
     p_def None: nothing moved, so the canonical point is the ray's surface point projected on its ray, Π(x̂), as
     the atlas saw it while fitting. Non-finite rows of p_def (a broken rig) enter the arithmetic as 0, as in
     `trace_frame` (no ray selects them as a neighbour). The result can be non-finite where the correspondence
     breaks down (e.g. a singular inv_f); what such rays become is the caller's choice.
     """
+    if sel is None:
+        sel = slice(None)
     x_hat, origins, dirs = trace.x[sel], trace.origins[sel], trace.dirs[sel]
     if p_def is None:
         return project_on_ray(x_hat, origins, dirs)

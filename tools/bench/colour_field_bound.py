@@ -70,7 +70,7 @@ def main(argv=None) -> int:
     from core.images.metrics import object_mask, psnr
     from core.points.render import shade_frame, trace_frame
     from core.images.dataset import load_split
-    from core.images.rays import project_on_ray
+    from core.edits.correspondence import ray_canonical_points
     from core.frames.edited import render_edited
     from tools.bench.atlas_vs_papr import atlas_coloured, knn_colour
 
@@ -89,7 +89,7 @@ def main(argv=None) -> int:
         """(trace, true hits [R, 3] (NaN = miss), x_i on its ray [R, 3], coverage [R]) of view i."""
         tr = trace_frame(model, split.c2w[i], split.height, split.width, split.focal)
         fg = 1.0 - tr.bg
-        x = project_on_ray(tr.x, tr.origins, tr.dirs)
+        x = ray_canonical_points(tr)
         hits = torch.full_like(x, float("nan"))
         look = (split.alphas[i].reshape(-1) > 0.5) | (fg > 0.5)
         hits[look] = torch.from_numpy(cast(tr.origins[look].double().numpy(),

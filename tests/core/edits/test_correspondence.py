@@ -130,6 +130,7 @@ def test_ray_canonical_points_matches_the_loop_on_selected_rays():
     rest = ray_canonical_points(tr, sel)
     want = torch.stack([o[i] + max(float(torch.dot(x_hat[i] - o[i], d[i])), 0.0) * d[i] for i in sel.tolist()])
     assert torch.allclose(rest, want, atol=1e-6)
+    assert torch.equal(ray_canonical_points(tr)[sel], rest)  # sel None: every ray
     inv_f = torch.eye(3).expand(p_def.shape[0], 3, 3)
     grad = ray_canonical_points(tr, sel, p_def, p_can, "deform-gradient", inv_f=inv_f)
     assert torch.allclose(grad, ray_canonical_points(tr, sel, p_def, p_can, "deform-aware"), atol=1e-5)
