@@ -45,16 +45,16 @@ def footprint_views(model, split) -> list[FootprintView]:
     """Per training view: the model's surface points (projected on their rays), which rays hit, their depths, and
     the ground truth — the input of the footprint texture refit."""
     from core.points.render import trace_frame
-    from core.images.rays import project_on_ray
+    from core.edits.correspondence import ray_canonical_points
 
     views = []
     dev = model.xyz.device
     for i in range(len(split)):
         tr = trace_frame(model, split.c2w[i].to(dev), split.height, split.width, split.focal)
-        h, w = tr["shape"]
-        x = project_on_ray(tr["x"], tr["origins"], tr["dirs"])
-        depth = ((x - tr["origins"]) * tr["dirs"]).sum(-1)
-        views.append(FootprintView(points=x.view(h, w, 3), valid=((1.0 - tr["bg"]) > 0.5).view(h, w),
+        h, w = tr.shape
+        x = ray_canonical_points(tr)  # where render_edited looks the atlas up (nothing moved)
+        depth = tr.depth.clamp_min(0.0)  # of x, the surface point moved onto its ray
+        views.append(FootprintView(points=x.view(h, w, 3), valid=(tr.fg > 0.5).view(h, w),
                                    depth=depth.view(h, w), image=split.images[i].to(dev),
                                    alpha=split.alphas[i].to(dev), focal=float(focal_scale(split.focal))))
     return views

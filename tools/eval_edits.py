@@ -23,11 +23,12 @@ import numpy as np
 import torch
 
 from core.edits.bake import bake
-from core.edits.correspondence import canonical_points
+from core.edits.correspondence import ray_canonical_points
 from core.edits.procedural import evaluate, get_texture
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.images.metrics import blank_floor, mean_scores, score_views
 from core.images.rays import project_on_ray
+from core.points.trace import Trace
 from core.util.atomic import atomic_write_text
 from core.util.errors import DataError, InputError
 
@@ -198,23 +199,21 @@ def diagnostics(out: dict, state: EditState) -> dict:
     corr_gap equals ray_dist: the correspondences differ only as far as x̂ is off its ray.
     """
     tr = out["trace"]
-    hit = tr["active"] & ((1.0 - tr["bg"]) > 0.5)
+    hit = tr.active & (tr.fg > 0.5)
     if not bool(hit.any()):
         return {"rays_object": 0, "max_weight": float("nan"), "ray_dist": float("nan"),
                 "ray_dist_spacings": float("nan"), "corr_gap": float("nan")}
-    w, idx = tr["fg_weights"][hit], tr["idx"][hit]
-    x, o, d = tr["x"][hit], tr["origins"][hit], tr["dirs"][hit]
-    off = (x - project_on_ray(x, o, d)).norm(dim=-1)
+    x = tr.x[hit]
+    off = (x - project_on_ray(x, tr.origins[hit], tr.dirs[hit])).norm(dim=-1)
     spacing = float(state.bundle.model.spacing)
-    pts = torch.nan_to_num(state.points, nan=0.0, posinf=0.0, neginf=0.0)
-    naive = canonical_points(w, idx, x, o, d, pts, state.p_can, "naive")
-    aware = canonical_points(w, idx, x, o, d, pts, state.p_can, "deform-aware")
-    return {"rays_object": int(hit.sum()), "max_weight": float(w.max(dim=1).values.mean()),
+    naive = ray_canonical_points(tr, hit, state.points, state.p_can, "naive")
+    aware = ray_canonical_points(tr, hit, state.points, state.p_can, "deform-aware")
+    return {"rays_object": int(hit.sum()), "max_weight": float(tr.fg_weights[hit].max(dim=1).values.mean()),
             "ray_dist": float(off.mean()), "ray_dist_spacings": float(off.mean()) / max(spacing, 1e-12),
             "corr_gap": float((naive - aware).norm(dim=-1).mean())}
 
 
-def oracle_retexture(state: EditState, view: tuple, trace: dict, texture: str, spec: dict,
+def oracle_retexture(state: EditState, view: tuple, trace: Trace, texture: str, spec: dict,
                      background=(1.0, 1.0, 1.0)) -> torch.Tensor:
     """The frame with the global texture evaluated exactly at the canonical points (no atlas), rendered like the
     atlas is — same correspondence, pixel filter and coverage: what the correspondence alone would give with a

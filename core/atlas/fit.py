@@ -14,7 +14,7 @@ from core.atlas.atlas import Atlas, check_points
 from core.atlas.config import AtlasConfig
 from core.atlas.distortion import distortion_terms, uv_jacobian
 from core.atlas.packing import dilate_unused, sample_charts
-from core.atlas.texture import kernel_texture
+from core.atlas.texture import filled_kernel_texture
 from core.images.metrics import psnr
 from core.util.device import resolve_device
 from core.util.errors import InputError
@@ -288,8 +288,8 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     if cfg.texture_mode == "kernel":
         # Kernel regression: each texel is the weighted mean colour of the samples around it (texture.py says why).
         with torch.no_grad():
-            tex, used, hist["texture_sigma_texels"] = kernel_texture(probs_all, uv_all, rgb, R, cfg.texture_sigma,
-                                                                     labels=atlas.blur_labels)
+            tex, _, hist["texture_sigma_texels"] = filled_kernel_texture(probs_all, uv_all, rgb, R,
+                                                                         cfg.texture_sigma, labels=atlas.blur_labels)
             atlas.textures.copy_(tex)
         bar.update(cfg.texture_steps)
         p = log(cfg.steps + cfg.texture_steps, "texture")
@@ -306,9 +306,10 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
                 p = log(cfg.steps + step + 1, "texture")
             bar.update(1, psnr=p)
         used = _used_texels(probs_all, uv_all, R)
+        with torch.no_grad():
+            atlas.textures.copy_(dilate_unused(atlas.textures.clamp(0, 1), used))
 
     with torch.no_grad():
-        atlas.textures.copy_(dilate_unused(atlas.textures.clamp(0, 1), used))
         atlas.canonicalise_textures()
         atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle,
                                    "splat" if atlas.islands else cfg.texel_map, cfg.texture_sigma)

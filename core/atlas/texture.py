@@ -14,6 +14,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from core.atlas.packing import dilate_unused
+
 
 def splat(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: int, min_prob: float = 1e-3
           ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -123,6 +125,19 @@ def kernel_texture(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: 
         covered.append(ok)
         sig_used.append(s)
     return torch.stack(out), torch.stack(covered), float(sum(sig_used) / len(sig_used))
+
+
+def filled_kernel_texture(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: int, sigma: float,
+                          labels: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """The atlas texture from samples in one step: `kernel_texture` clamped to [0, 1], then its gutters filled —
+    texels no sample reaches take their nearest covered texel's colour (`packing.dilate_unused`), so bilinear
+    lookups at the edge of the covered region never read the placeholder grey.
+
+    probs [S, n], uv [S, n, 2], rgb [S, 3], sigma, labels as `kernel_texture`. Returns (textures [n, 3, R, R] in
+    [0, 1], covered [n, R, R] bool, sigma_texels).
+    """
+    tex, covered, sigma_texels = kernel_texture(probs, uv, rgb, R, sigma, labels=labels)
+    return dilate_unused(tex.clamp(0, 1), covered), covered, sigma_texels
 
 
 def local_linear_points(pix: torch.Tensor, xyz: torch.Tensor, R: int, sigma: float, ridge: float = 0.05,

@@ -7,12 +7,16 @@ deform-gradient (beyond the paper): x_can = Σ_j a_ij (p_can_ij + F_ij⁻¹ (x_d
                              ray's surface point back through its own local affine map, so local rotations and
                              stretches are undone, not only translations (F = I gives deform-aware).
 a_ij are the deformed-space attention weights over the K neighbours (background slot dropped, renormalised).
+
+`ray_canonical_points` is the one place a traced frame's rays get their canonical surface points (the edited
+render, the add-on's paint transfer and the edit evaluation all call it); `canonical_points` is its arithmetic.
 """
 from __future__ import annotations
 
 import torch
 
 from core.images.rays import project_on_ray
+from core.points.trace import Trace
 
 MODES = ("deform-aware", "naive", "deform-gradient")
 
@@ -44,3 +48,28 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
         return (w[..., None] * (p_can[safe] + back)).sum(1) + (1.0 - w.sum(1, keepdim=True)) * x_def
     disp = (w[..., None] * (p_can[safe] - p_def[safe])).sum(1)
     return x_def + disp
+
+
+def ray_canonical_points(trace: Trace, sel: torch.Tensor | None = None, p_def: torch.Tensor | None = None,
+                         p_can: torch.Tensor | None = None, mode: str = "deform-aware",
+                         inv_f: torch.Tensor | None = None) -> torch.Tensor:
+    """Canonical surface points [S, 3] of the rays `sel` of a traced frame.
+
+    trace: `trace_frame` of the points p_def [M, 3]; sel: [S] ray indices (or an [R] bool mask with S set; None:
+    all R rays);
+    p_can [M, 3] the canonical positions of the same points; mode and inv_f [M, 3, 3] as `canonical_points`.
+    p_def None: nothing moved, so the canonical point is the ray's surface point projected on its ray, Π(x̂), as
+    the atlas saw it while fitting. Non-finite rows of p_def (a broken rig) enter the arithmetic as 0, as in
+    `trace_frame` (no ray selects them as a neighbour). The result can be non-finite where the correspondence
+    breaks down (e.g. a singular inv_f); what such rays become is the caller's choice.
+    """
+    if sel is None:
+        sel = slice(None)
+    x_hat, origins, dirs = trace.x[sel], trace.origins[sel], trace.dirs[sel]
+    if p_def is None:
+        return project_on_ray(x_hat, origins, dirs)
+    if p_can is None:
+        raise ValueError("ray_canonical_points: p_def was given without p_can (the canonical positions)")
+    pts = torch.nan_to_num(p_def, nan=0.0, posinf=0.0, neginf=0.0)
+    return canonical_points(trace.fg_weights[sel], trace.idx[sel], x_hat, origins, dirs, pts, p_can, mode,
+                            inv_f=inv_f)

@@ -16,14 +16,14 @@ import torch
 from core.atlas.packing import sample_charts, unpack
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
-from core.edits.correspondence import MODES, canonical_points
+from core.edits.correspondence import MODES, ray_canonical_points
 from core.edits.deformation import DeformationConfig, expansion_inverse, field_for, inverse, stretch
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
 from core.images.cameras import focal_scale
-from core.images.rays import project_on_ray
 from core.points.render import shade_frame, trace_frame
+from core.points.trace import Trace
 from core.util.errors import InputError
 
 
@@ -208,6 +208,16 @@ class EditState:
             self._f = other._f
             self.fit_seconds = self.deformation_seconds = other.fit_seconds
 
+    def canonical_surface(self, trace: Trace, sel: torch.Tensor) -> torch.Tensor:
+        """Canonical surface points [S, 3] of the rays sel [S] of a trace of these points, by the configured
+        correspondence (core.edits.correspondence.ray_canonical_points; F is fitted only when the mode needs it).
+        Can be non-finite where the correspondence breaks down."""
+        if not self.moved:  # the ray's surface point on its ray, as the atlas saw it
+            return ray_canonical_points(trace, sel)
+        mode = self.cfg.correspondence
+        return ray_canonical_points(trace, sel, self.points, self.p_can, mode,
+                                    inv_f=self.inv_f_keys if mode == "deform-gradient" else None)
+
     @property
     def textured(self) -> bool:
         return self.atlas_image is not None
@@ -235,7 +245,7 @@ def _painted(state: EditState, probs: torch.Tensor, uv: torch.Tensor) -> torch.T
     return (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)[:, :4]  # rgb, first mask channel
 
 
-def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Tensor, height: int, width: int,
+def _filtered_lookup(state: EditState, tr: Trace, sel: torch.Tensor, xc: torch.Tensor, height: int, width: int,
                      focal: float, sub: int, texture_fn=None, threshold: bool = False) -> tuple[torch.Tensor,
                                                                                                torch.Tensor]:
     """Painted colour and mask of the rays `sel` [S] from sub x sub lookups per pixel, Blackman-Harris filtered in
@@ -249,7 +259,7 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
     canon = torch.zeros(n, 3, dtype=xc.dtype, device=dev)
     canon[sel] = xc
     depth = torch.zeros(n, dtype=xc.dtype, device=dev)
-    depth[sel] = ((tr["x"][sel] - tr["origins"][sel]) * tr["dirs"][sel]).sum(-1)
+    depth[sel] = tr.depth[sel]
     # neighbours on the same surface: depth within 3 pixel footprints (an occlusion edge jumps much further)
     step = 3.0 * depth.abs() / focal_scale(focal)
     if texture_fn is None:  # the atlas: chart nets once per pixel, their outputs interpolated to the sub-pixels
@@ -273,7 +283,7 @@ def _filtered_lookup(state: EditState, tr: dict, sel: torch.Tensor, xc: torch.Te
 
 @torch.no_grad()
 def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, focal: float,
-                  background=(1.0, 1.0, 1.0), trace: dict | None = None, texture_fn=None) -> dict:
+                  background=(1.0, 1.0, 1.0), trace: Trace | None = None, texture_fn=None) -> dict:
     """One frame: dict(rgb [H, W, 3] over `background`, alpha [H, W] (the coverage: decoder mask head, else 1 − bg),
     x_can [H, W, 3] (NaN off the object), stats, trace).
 
@@ -293,26 +303,21 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
     rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True)
     rgb = rgb.reshape(-1, 3)
-    fg = 1.0 - tr["bg"]
+    fg = tr.fg
     # Coverage of painted rays: the decoder's mask head when it has one (sharp silhouettes, opaque interior),
     # else the attention's foreground weight.
     cover = fg if dec_alpha is None else dec_alpha.reshape(-1)
-    hit = tr["active"] & (fg > 1e-4)
-    x_can = torch.full_like(tr["x"], float("nan"))
-    stats = {"rays": int(tr["idx"].shape[0]), "rays_shaded": int(tr["active"].sum()),
+    hit = tr.active & (fg > 1e-4)
+    x_can = torch.full_like(tr.x, float("nan"))
+    stats = {"rays": int(tr.idx.shape[0]), "rays_shaded": int(tr.active.sum()),
              "non_finite_points": state.non_finite_points, "texture_rays": 0, "correspondence": "skipped",
              "trace_seconds": trace_seconds}
     if state.textured and bool(hit.any()):
         sel = torch.nonzero(hit).squeeze(1)
-        x_hat = tr["x"][sel]
+        x_hat = tr.x[sel]
+        xc = state.canonical_surface(tr, sel)
         if state.moved:
-            pts = torch.nan_to_num(state.points, nan=0.0, posinf=0.0, neginf=0.0)
-            xc = canonical_points(tr["fg_weights"][sel], tr["idx"][sel], x_hat, tr["origins"][sel],
-                                  tr["dirs"][sel], pts, state.p_can, cfg.correspondence,
-                                  inv_f=state.inv_f_keys if cfg.correspondence == "deform-gradient" else None)
             stats["correspondence"] = cfg.correspondence
-        else:  # nothing moved: the canonical point is the ray's surface point on its ray (as the atlas saw it)
-            xc = project_on_ray(x_hat, tr["origins"][sel], tr["dirs"][sel])
         bad = ~torch.isfinite(xc).all(1)
         stats["non_finite_lookups_repaired"] = int(bad.sum())
         xc = torch.where(bad[:, None], x_hat.nan_to_num(0.0), xc)

@@ -22,18 +22,18 @@ def surface_stats(model: PointModel, split, views) -> dict:
     inter = union = 0
     for i in views:
         tr = trace_frame(model, split.c2w[i], split.height, split.width, split.focal)
-        gt_fg = (split.alphas[i].reshape(-1) > 0.5).to(tr["x"].device)
-        pred_fg = (1.0 - tr["bg"]) > 0.5
+        gt_fg = (split.alphas[i].reshape(-1) > 0.5).to(tr.x.device)
+        pred_fg = tr.fg > 0.5
         inter += int((gt_fg & pred_fg).sum())
         union += int((gt_fg | pred_fg).sum())
         sel = gt_fg & pred_fg
         if not bool(sel.any()):
             continue
-        x = tr["x"][sel]
-        dist_sum += float(distance_to_ray(x, tr["origins"][sel], tr["dirs"][sel]).sum())
-        idx = tr["idx"][sel]
+        x = tr.x[sel]
+        dist_sum += float(distance_to_ray(x, tr.origins[sel], tr.dirs[sel]).sum())
+        idx = tr.idx[sel]
         p = model.xyz[idx.clamp_min(0)]
-        w = tr["fg_weights"][sel] * (idx >= 0)
+        w = tr.fg_weights[sel] * (idx >= 0)
         spread = (w * (p - x[:, None, :]).norm(dim=-1)).sum(1) / w.sum(1).clamp_min(1e-12)
         spread_sum += float(spread.sum())
         n_fg += int(sel.sum())

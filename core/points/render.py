@@ -10,6 +10,7 @@ import torch
 from core.images.cameras import pixel_rays
 from core.points.model import TRAIN_BACKGROUND, PointModel
 from core.points.neighbors.select import select_neighbors
+from core.points.trace import Trace
 
 
 def pixel_grid(height: int, width: int, device) -> torch.Tensor:
@@ -23,7 +24,7 @@ def pixel_grid(height: int, width: int, device) -> torch.Tensor:
 def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
-                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0) -> dict:
+                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0) -> Trace:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -32,8 +33,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     influence [M] (default: the model's, which requires M == N);
     inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
     `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this.
-    Returns dict of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
-    fg_weights [R, K], bg [R], x [R, 3], plus 'shape' (H, W).
+    Returns a Trace of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
+    fg_weights [R, K], bg [R], x [R, 3], active [R], plus shape (H, W) and depth [R] on demand.
     """
     dev = model.xyz.device
     c2w = c2w.to(dev, torch.float32)
@@ -61,24 +62,23 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
         att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi)
         for key in res:
             res[key][sl] = att[key]
-    res.update(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),
-               non_finite_points=int((~finite).sum()))
-    return res
+    return Trace(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),
+                 non_finite_points=int((~finite).sum()), **res)
 
 
 @torch.no_grad()
-def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chunk: int = 16384,
+def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chunk: int = 16384,
                 features: torch.Tensor | None = None, with_alpha: bool = False):
     """Colours of a traced frame from the point values: rgb [H, W, 3] in [0, 1].
     features [M, h]: per-point features of the traced points when they are not the model's own (ids).
     with_alpha: return (rgb, alpha [H, W] from the decoder's mask head, or None without one)."""
-    h, w = trace["shape"]
+    h, w = trace.shape
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
-    for s in range(0, trace["idx"].shape[0], chunk):
+    for s in range(0, trace.idx.shape[0], chunk):
         sl = slice(s, s + chunk)
-        att = {"weights": trace["weights"][sl], "bg": trace["bg"][sl]}
-        parts.append(model.shade(att, trace["dirs"][sl], trace["idx"][sl], bg, features=features))
+        att = {"weights": trace.weights[sl], "bg": trace.bg[sl]}
+        parts.append(model.shade(att, trace.dirs[sl], trace.idx[sl], bg, features=features))
     alpha = None
     if model.decoder is None:
         rgb = torch.cat([p["rgb"] for p in parts]).reshape(h, w, 3)
@@ -92,7 +92,7 @@ def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chun
         # composite it with a over the requested background: the same frame over white, the white share moved
         # onto any other background, and no faint tint of the decoder where nothing is covered (a frame over
         # black then composites over white into the frame over white).
-        cover = (alpha if alpha is not None else (1.0 - trace["bg"]).reshape(h, w)).clamp(0, 1)[..., None]
+        cover = (alpha if alpha is not None else (1.0 - trace.bg).reshape(h, w)).clamp(0, 1)[..., None]
         white = torch.as_tensor(TRAIN_BACKGROUND, dtype=torch.float32, device=bg.device)
         c = ((rgb - (1.0 - cover) * white) / cover.clamp_min(1e-4)).clamp(0.0, 1.0)
         rgb = cover * c + (1.0 - cover) * bg
@@ -108,10 +108,10 @@ def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, 
     the attention's foreground weight 1 − bg."""
     tr = trace_frame(model, c2w, height, width, focal, **kw)
     rgb, alpha = shade_frame(model, tr, background, with_alpha=True)
-    h, w = tr["shape"]
+    h, w = tr.shape
     if alpha is None:
-        alpha = (1.0 - tr["bg"]).reshape(h, w)
-    return {"rgb": rgb, "alpha": alpha.clamp(0, 1), "x": tr["x"].reshape(h, w, 3), "trace": tr}
+        alpha = (1.0 - tr.bg).reshape(h, w)
+    return {"rgb": rgb, "alpha": alpha.clamp(0, 1), "x": tr.x.reshape(h, w, 3), "trace": tr}
 
 
 def straight_colour(premul: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 1.0 / 510) -> torch.Tensor:

@@ -16,6 +16,7 @@ import torch
 from core.bundle import load_bundle
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.points.render import trace_frame
+from core.points.trace import Trace
 from core.util.errors import InputError, ModelFileError
 
 CORRESPONDENCE = {'DEFORM_AWARE': "deform-aware", 'NAIVE': "naive", 'DEFORM_GRADIENT': "deform-gradient"}
@@ -120,10 +121,10 @@ def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCach
 
 
 def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float,
-                k: int | None = None) -> dict:
+                k: int | None = None) -> Trace:
     """Neighbours and attention of one model's frame (core `trace_frame` with the state's points and the
     object's K; None: the model's own K): the expensive half of `render_layer`, so a preview can yield between
-    the two. Returns the trace dict (flat per-ray tensors, R = height * width)."""
+    the two. Returns the Trace (flat per-ray tensors, R = height * width)."""
     c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float32))
     return trace_frame(state.bundle.model, c2w_t, height, width, focal, points=state.points,
                        influence=state.influence, k=None if k is None else int(k),
@@ -131,7 +132,7 @@ def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, foca
 
 
 def render_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float, k: int | None = None,
-                 trace: dict | None = None) -> dict:
+                 trace: Trace | None = None) -> dict:
     """One model over a black background: premultiplied display-space colour [H, W, 3], alpha [H, W], depth
     [H, W] along the ray (inf off the object) and the raw result of `render_edited`. k: neighbours per ray
     (None: the model's own); trace: from `trace_layer` with the same arguments (skips tracing)."""
@@ -141,7 +142,7 @@ def render_layer(state: EditState, c2w: np.ndarray, height: int, width: int, foc
     res = render_edited(state, c2w_t, height, width, focal, background=(0.0, 0.0, 0.0), trace=trace)
     tr = res["trace"]
     alpha = res["alpha"].clamp(0, 1)
-    depth = ((tr["x"] - tr["origins"]) * tr["dirs"]).sum(-1).reshape(height, width)
+    depth = tr.depth.reshape(height, width)
     depth = torch.where((alpha > 1e-4) & torch.isfinite(depth), depth, torch.full_like(depth, float("inf")))
     return {"premul": res["rgb"].cpu().numpy(), "alpha": alpha.cpu().numpy(), "depth": depth.cpu().numpy(),
             "result": res}

@@ -60,7 +60,7 @@ def layer_arrays(depsgraph, width: int, height: int, progress=None) -> tuple[np.
         state = frame_renderer.prepare(inputs)
         layer = frame_renderer.render_layer(state, c2w, height, width, focal, k=inputs.k)
         tr = layer["result"]["trace"]
-        z = ((tr["x"] - tr["origins"]).cpu().numpy().astype(np.float64) @ fwd).reshape(height, width)
+        z = ((tr.x - tr.origins).cpu().numpy().astype(np.float64) @ fwd).reshape(height, width)
         covered = np.isfinite(layer["depth"]) & np.isfinite(z) & (layer["alpha"] > 0.02)
         depth = np.where(covered, np.minimum(depth, z), depth)
         layers.append(layer)

@@ -12,20 +12,11 @@ import sys
 import numpy as np
 
 
-class BlockTorch:
-    """Makes `import torch` fail as it would in a Blender without PyTorch."""
+from session_common import block_torch, drop_ids_modifier, make_active, recorder
 
-    def find_spec(self, name, path=None, target=None):
-        if name == "torch" or name.startswith("torch."):
-            raise ImportError(f"No module named '{name}' (blocked by the test)")
-        return None
-
-
-BLOCKER = BlockTorch()
-sys.meta_path.insert(0, BLOCKER)
+BLOCKER = block_torch()
 
 import bpy  # noqa: E402
-from session_common import make_active, recorder  # noqa: E402
 
 zip_path, model, corrupt, work, wheels = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -227,18 +218,7 @@ def _():
     # realistic: a Geometry Nodes modifier drops the id attribute and merges points
     bpy.ops.pointgt.import_model(filepath=model)
     obj = bpy.context.active_object
-    ng = bpy.data.node_groups.new("drop ids", 'GeometryNodeTree')
-    ng.interface.new_socket("Geometry", in_out='INPUT', socket_type='NodeSocketGeometry')
-    ng.interface.new_socket("Geometry", in_out='OUTPUT', socket_type='NodeSocketGeometry')
-    gin, gout = ng.nodes.new('NodeGroupInput'), ng.nodes.new('NodeGroupOutput')
-    remove = ng.nodes.new('GeometryNodeRemoveAttribute')
-    remove.inputs["Name"].default_value = "pointgt_id"
-    merge = ng.nodes.new('GeometryNodeMergeByDistance')
-    merge.inputs["Distance"].default_value = 0.3
-    ng.links.new(gin.outputs[0], remove.inputs[0])
-    ng.links.new(remove.outputs[0], merge.inputs[0])
-    ng.links.new(merge.outputs[0], gout.inputs[0])
-    obj.modifiers.new("drop", 'NODES').node_group = ng
+    drop_ids_modifier(obj, 0.3)
     make_active(obj)
     n_eval = len(obj.evaluated_get(bpy.context.evaluated_depsgraph_get()).data.vertices)
     err = op_error(bpy.ops.pointgt.export_deformed, filepath=os.path.join(work, "merged.npy"))

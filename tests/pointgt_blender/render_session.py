@@ -16,18 +16,11 @@ import zipfile
 import numpy as np
 
 
-class BlockTorch:
-    def find_spec(self, name, path=None, target=None):
-        if name == "torch" or name.startswith("torch."):
-            raise ImportError(f"No module named '{name}' (blocked by the test)")
-        return None
+from session_common import block_torch, camera_only_scene, drop_ids_modifier, make_active, recorder
 
-
-BLOCKER = BlockTorch()
-sys.meta_path.insert(0, BLOCKER)
+BLOCKER = block_torch()
 
 import bpy  # noqa: E402
-from session_common import make_active, recorder  # noqa: E402
 
 zip_path, model, patch_path, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -74,13 +67,7 @@ def _():
 
 @step("scene")
 def _():
-    scene = bpy.context.scene
-    for o in list(bpy.data.objects):
-        if o.type != 'CAMERA':
-            bpy.data.objects.remove(o)
-    cam = scene.camera
-    cam.location = (0.0, 0.0, 3.0)
-    cam.rotation_euler = (0.0, 0.0, 0.0)  # looking down -Z at the card
+    scene, cam = camera_only_scene()
     cam.scale = (2.0, 2.0, 2.0)  # scale must not change the view
     r = scene.render
     r.engine = 'POINTGT'
@@ -311,19 +298,7 @@ def _():
     o.data.vertices.foreach_set("co", co)
     o.data.update()
     # a modifier that changes the point count and drops the ids
-    ng = bpy.data.node_groups.new("drop ids", 'GeometryNodeTree')
-    ng.interface.new_socket("Geometry", in_out='INPUT', socket_type='NodeSocketGeometry')
-    ng.interface.new_socket("Geometry", in_out='OUTPUT', socket_type='NodeSocketGeometry')
-    gin, gout = ng.nodes.new('NodeGroupInput'), ng.nodes.new('NodeGroupOutput')
-    remove = ng.nodes.new('GeometryNodeRemoveAttribute')
-    remove.inputs["Name"].default_value = "pointgt_id"
-    merge = ng.nodes.new('GeometryNodeMergeByDistance')
-    merge.inputs["Distance"].default_value = 0.2
-    ng.links.new(gin.outputs[0], remove.inputs[0])
-    ng.links.new(remove.outputs[0], merge.inputs[0])
-    ng.links.new(merge.outputs[0], gout.inputs[0])
-    gn = o.modifiers.new("drop", 'NODES')
-    gn.node_group = ng
+    gn = drop_ids_modifier(o, 0.2)
     bpy.context.view_layer.update()
     prev.run_pending()
     out["count_status"] = prev.status(o)

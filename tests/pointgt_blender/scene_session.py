@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 import bpy
-from session_common import centroid, make_active, paint_through_uvs, read_png, recorder  # noqa: E402
+from session_common import camera_only_scene, centroid, make_active, paint_through_uvs, read_png, recorder  # noqa: E402
 
 zip_path, model, blank_model, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -55,13 +55,7 @@ def _():
 
 @step("scene")
 def _():
-    scene = bpy.context.scene
-    for o in list(bpy.data.objects):
-        if o.type != 'CAMERA':
-            bpy.data.objects.remove(o)
-    cam = scene.camera
-    cam.location = (0.0, 0.0, 3.0)
-    cam.rotation_euler = (0.0, 0.0, 0.0)
+    scene, _ = camera_only_scene()
     r = scene.render
     r.resolution_x, r.resolution_y, r.resolution_percentage = W, H, 100
     res = bpy.ops.pointgt.import_model(filepath=model, preview_resolution=W)

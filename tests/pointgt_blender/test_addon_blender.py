@@ -3,10 +3,7 @@ zip, register without torch, import a .pgt, rig it with a lattice and armatures,
 One Blender session runs every step (tests/pointgt_blender/addon_session.py); the tests below check its record."""
 from __future__ import annotations
 
-import json
 import os
-import subprocess
-import sys
 import zipfile
 from pathlib import Path
 
@@ -14,6 +11,7 @@ import numpy as np
 import pytest
 
 from core.modelfile.pgt import save_pgt
+from tests.helpers.blender import run_session, step_result
 from tools.package_addon import build_addon
 
 pytestmark = pytest.mark.blender
@@ -58,18 +56,13 @@ def session(tmp_path_factory):
     wheels.mkdir()
     _probe_wheel(wheels)
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), PIP_NO_INDEX="1")
-    proc = subprocess.run([sys.executable, str(SESSION), "--", str(zip_path), str(model), str(corrupt), str(work),
-                           str(wheels)], capture_output=True, text=True, env=env, timeout=300, cwd=tmp)
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
-    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-    results = json.loads(lines[-1][len("RESULTS: "):])
+    results = run_session(SESSION, [str(zip_path), str(model), str(corrupt), str(work), str(wheels)], env, tmp,
+                          timeout=300)
     return {"r": results, "xyz": xyz, "atlas": atlas, "model": model, "corrupt": corrupt, "work": work}
 
 
 def _get(session, step):
-    res = session["r"][step]
-    assert "error" not in res or not isinstance(res.get("trace"), str), f"{step} failed: {res.get('trace')}"
-    return res
+    return step_result(session["r"], step)
 
 
 def test_installs_and_registers_without_torch(session):

@@ -3,9 +3,6 @@ a shifted lens, fx != fy for a pixel aspect other than 1:1)
 projects points where Blender's own camera projection puts them."""
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -13,6 +10,7 @@ import pytest
 from core.images.cameras import Intrinsics
 from core.util.errors import InputError
 from pointgt_blender.scene.camera import camera_settings, focal_pixels, pixel_aspect, principal_point
+from tests.helpers.blender import run_session
 
 SESSION = Path(__file__).with_name("camera_shift_session.py")
 REPO = Path(__file__).resolve().parents[2]
@@ -44,11 +42,7 @@ def test_camera_settings_invert_the_add_on_camera():
 
 @pytest.mark.blender
 def test_shifted_and_non_square_cameras_match_blenders_projection():
-    proc = subprocess.run([sys.executable, str(SESSION), "--", str(REPO)], capture_output=True, text=True,
-                          timeout=300, cwd=REPO)
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
-    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
-    rows = json.loads(lines[-1][len("RESULTS: "):])
+    rows = run_session(SESSION, [str(REPO)], cwd=REPO, timeout=300)
     assert len(rows) == 10
     for row in rows[:7]:
         assert row["max_px_err"] < 1e-4, row  # float32 c2w: ~5e-6 px

@@ -62,3 +62,24 @@ def test_nothing_painted_changes_nothing_and_bad_shapes_are_named():
     nan_x = np.full_like(x_can, np.nan)
     new, changed, n = transfer(atlas, img, rendered * 0, rendered, nan_x)  # all off the object: finite, no-op
     assert n == 0 and np.isfinite(new).all()
+
+
+@pytest.mark.parametrize("moved", [False, True])
+def test_canonical_surface_is_where_the_render_looked_the_atlas_up(moved):
+    """The paint transfer's x_can is the edited render's own (one correspondence function for both): equal on
+    every pixel both cover, at rest and after a move (sheared, so the correspondence has work to do)."""
+    from core.frames.edited import EditConfig, EditState, render_edited
+    from pointgt_blender.bridge.paint_transfer import canonical_surface
+    from tests.helpers.tiny import tiny_bundle
+
+    bundle, _, test = tiny_bundle("card")
+    pts = bundle.model.xyz.detach()
+    if moved:
+        pts = pts + torch.stack([0.2 * pts[:, 1], torch.zeros_like(pts[:, 0]), 0.1 * pts[:, 0]], 1)
+    state = EditState(bundle, points=pts if moved else None, cfg=EditConfig(colour="atlas", antialias=1))
+    out = render_edited(state, test.c2w[0], test.height, test.width, test.focal)
+    mine = canonical_surface(state, out)
+    theirs = out["x_can"].numpy()
+    both = np.isfinite(mine).all(-1) & np.isfinite(theirs).all(-1)
+    assert both.sum() > 100 and np.isfinite(theirs).all(-1)[np.isfinite(mine).all(-1)].all()
+    np.testing.assert_allclose(mine[both], theirs[both], atol=1e-6)

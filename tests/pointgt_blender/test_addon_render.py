@@ -3,10 +3,7 @@ subprocesses (own BLENDER_USER_RESOURCES) with a tiny trained card model. One se
 every step; a second, fresh process (reload_session.py) renders the saved .blend."""
 from __future__ import annotations
 
-import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,8 +12,7 @@ import torch
 from PIL import Image
 
 from core.bundle import load_bundle
-from tests.helpers.tiny import save_tiny
-from tools.package_addon import build_addon
+from tests.helpers.blender import addon_setup, image_strip, run_session, step_result
 
 pytestmark = pytest.mark.blender
 HERE = Path(__file__).parent
@@ -50,26 +46,15 @@ def patch_mask(model: Path) -> np.ndarray:
     return mask
 
 
-def _run(script: Path, args: list[str], env: dict, cwd: Path) -> dict:
-    proc = subprocess.run([sys.executable, str(script), "--", *args], capture_output=True, text=True, env=env,
-                          timeout=600, cwd=cwd)
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
-    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
-    return json.loads(lines[-1][len("RESULTS: "):])
-
-
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("render")
-    zip_path = build_addon(tmp / "dist")
-    model = save_tiny(tmp / "card.pgt", "addon")
+    s = addon_setup(tmp)
+    model, work = s.model, s.work
     np.save(tmp / "patch.npy", patch_mask(model))
-    work = tmp / "work"
-    work.mkdir()
-    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), OMP_NUM_THREADS="1")
-    first = _run(HERE / "render_session.py", [str(zip_path), str(model), str(tmp / "patch.npy"), str(work)], env,
-                 tmp)
-    second = _run(HERE / "reload_session.py", [str(work / "posed.blend")], env, tmp) \
+    first = run_session(HERE / "render_session.py", [str(s.zip_path), str(model), str(tmp / "patch.npy"), str(work)],
+                        s.env, tmp)
+    second = run_session(HERE / "reload_session.py", [str(work / "posed.blend")], s.env, tmp) \
         if (work / "posed.blend").exists() else {"error": "posed.blend was not saved"}
     if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows this test's frames
         _doc_images(work, Path(os.environ["POINTGT_DOC_IMAGES"]))
@@ -78,24 +63,12 @@ def session(tmp_path_factory):
 
 def _doc_images(work: Path, out: Path) -> None:
     """Small strips for the docs: the posed animation frames, and the other-camera view of preview paint."""
-    out.mkdir(parents=True, exist_ok=True)
-
-    def strip(paths, name):
-        ims = [Image.open(p).convert("RGB") for p in paths]
-        w, h = ims[0].size
-        canvas = Image.new("RGB", (len(ims) * (3 * w + 4) - 4, 3 * h), "white")
-        for i, im in enumerate(ims):
-            canvas.paste(im.resize((3 * w, 3 * h), Image.NEAREST), (i * (3 * w + 4), 0))
-        canvas.save(out / name, optimize=True)
-
-    strip([work / "anim" / f"f_000{f}.png" for f in (1, 2, 3)], "addon_patch_follows_pose.png")
-    strip([work / "anim" / "f_0001.png", work / "other_view.png"], "addon_preview_paint_other_view.png")
+    image_strip([work / "anim" / f"f_000{f}.png" for f in (1, 2, 3)], out / "addon_patch_follows_pose.png")
+    image_strip([work / "anim" / "f_0001.png", work / "other_view.png"], out / "addon_preview_paint_other_view.png")
 
 
 def _get(session, step):
-    res = session["r"][step]
-    assert not (isinstance(res.get("trace"), str)), f"{step} failed: {res.get('trace')}"
-    return res
+    return step_result(session["r"], step)
 
 
 def _png(path: Path) -> np.ndarray:

@@ -3,10 +3,7 @@
 card model."""
 from __future__ import annotations
 
-import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,58 +12,33 @@ from PIL import Image
 
 from core.modelfile import load_pgt, save_pgt
 
-from tests.helpers.tiny import save_tiny
-from tools.package_addon import build_addon
+from tests.helpers.blender import addon_setup, image_strip, run_session, step_result
 
 pytestmark = pytest.mark.blender
 HERE = Path(__file__).parent
 
 
-def _run(script: Path, args: list[str], env: dict, cwd: Path) -> dict:
-    proc = subprocess.run([sys.executable, str(script), "--", *args], capture_output=True, text=True, env=env,
-                          timeout=600, cwd=cwd)
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
-    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
-    return json.loads(lines[-1][len("RESULTS: "):])
-
-
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("scene")
-    zip_path = build_addon(tmp / "dist")
-    model = save_tiny(tmp / "card.pgt", "addon")
+    s = addon_setup(tmp)
+    model, work = s.model, s.work
     arrays, meta = load_pgt(model)
     # attention goes to the background only
     arrays["net/bg_logit"] = np.array(np.asarray(arrays["net/bg_logit"], dtype=np.float32) + np.float32(60.0),
                                       dtype=np.float32, ndmin=1).reshape(np.shape(arrays["net/bg_logit"]))
     blank = save_pgt(tmp / "blank.pgt", arrays, meta, backup=False,
                      allow_nonfinite=[n for n in arrays if n.startswith("atlas/texel")])
-    work = tmp / "work"
-    work.mkdir()
-    env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), OMP_NUM_THREADS="1")
-    r = _run(HERE / "scene_session.py", [str(zip_path), str(model), str(blank), str(work)], env, tmp)
+    r = run_session(HERE / "scene_session.py", [str(s.zip_path), str(model), str(blank), str(work)], s.env, tmp)
     if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows these frames
         out = Path(os.environ["POINTGT_DOC_IMAGES"])
-        _strip([work / "proxy_rest.png", work / "proxy_posed.png"], out / "addon_proxy_paint_and_rig.png")
-        _strip([work / "scene_only.png", work / "composite.png"], out / "addon_composite_with_scene.png")
-    return {"r": r, "work": work, "model": model, "tmp": tmp, "env": env}
-
-
-def _strip(paths, target: Path, scale: int = 3) -> None:
-    """Frames side by side, `scale` times enlarged (nearest), for the docs."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    ims = [Image.open(p).convert("RGB") for p in paths]
-    w, h = ims[0].size
-    canvas = Image.new("RGB", (len(ims) * (scale * w + 4) - 4, scale * h), "white")
-    for i, im in enumerate(ims):
-        canvas.paste(im.resize((scale * w, scale * h), Image.NEAREST), (i * (scale * w + 4), 0))
-    canvas.save(target, optimize=True)
+        image_strip([work / "proxy_rest.png", work / "proxy_posed.png"], out / "addon_proxy_paint_and_rig.png")
+        image_strip([work / "scene_only.png", work / "composite.png"], out / "addon_composite_with_scene.png")
+    return {"r": r, "work": work, "model": model, "tmp": tmp, "env": s.env}
 
 
 def _get(session, step):
-    res = session["r"][step]
-    assert "trace" not in res, f"{step} failed: {res.get('trace')}"
-    return res
+    return step_result(session["r"], step)
 
 
 def test_duplicates_and_moves_leave_the_atlas_bit_identical(session):

@@ -10,4 +10,4 @@ def check_frame(out, h, w):
     assert bool(torch.isfinite(alpha).all()) and float(alpha.min()) >= 0.0 and float(alpha.max()) <= 1.0 + 1e-6
     assert not bool(torch.isinf(x).any())
     for key in ("weights", "fg_weights", "bg", "x"):
-        assert bool(torch.isfinite(out["trace"][key]).all()), key
+        assert bool(torch.isfinite(getattr(out["trace"], key)).all()), key

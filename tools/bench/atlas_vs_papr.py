@@ -66,14 +66,13 @@ def with_kernel_texture(atlas, xyz: torch.Tensor, rgb: torch.Tensor, sigma: floa
     (as fit_atlas makes them with texture_mode='kernel')."""
     import copy
 
-    from core.atlas.packing import dilate_unused
-    from core.atlas.texture import kernel_texture
+    from core.atlas.texture import filled_kernel_texture
 
     out = copy.deepcopy(atlas)
     probs, uv = out.chart_uv(xyz)
     with torch.no_grad():
-        tex, covered, _ = kernel_texture(probs, uv, rgb.clamp(0, 1), out.layout.R, sigma)
-        out.textures.copy_(dilate_unused(tex.clamp(0, 1), covered))
+        tex, _, _ = filled_kernel_texture(probs, uv, rgb.clamp(0, 1), out.layout.R, sigma, labels=out.blur_labels)
+        out.textures.copy_(tex)
     return out
 
 

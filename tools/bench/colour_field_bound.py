@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +70,7 @@ def main(argv=None) -> int:
     from core.images.metrics import object_mask, psnr
     from core.points.render import shade_frame, trace_frame
     from core.images.dataset import load_split
-    from core.images.rays import project_on_ray
+    from core.edits.correspondence import ray_canonical_points
     from core.frames.edited import render_edited
     from tools.bench.atlas_vs_papr import atlas_coloured, knn_colour
 
@@ -87,12 +88,12 @@ def main(argv=None) -> int:
     def view(split, i):
         """(trace, true hits [R, 3] (NaN = miss), x_i on its ray [R, 3], coverage [R]) of view i."""
         tr = trace_frame(model, split.c2w[i], split.height, split.width, split.focal)
-        fg = 1.0 - tr["bg"]
-        x = project_on_ray(tr["x"], tr["origins"], tr["dirs"])
+        fg = 1.0 - tr.bg
+        x = ray_canonical_points(tr)
         hits = torch.full_like(x, float("nan"))
         look = (split.alphas[i].reshape(-1) > 0.5) | (fg > 0.5)
-        hits[look] = torch.from_numpy(cast(tr["origins"][look].double().numpy(),
-                                           tr["dirs"][look].double().numpy())).float()
+        hits[look] = torch.from_numpy(cast(tr.origins[look].double().numpy(),
+                                           tr.dirs[look].double().numpy())).float()
         return tr, hits, x, fg
 
     samples = {"true surface": ([], []), "x_i": ([], [])}
@@ -113,7 +114,7 @@ def main(argv=None) -> int:
     dist, along = [], []
     for i in range(0, len(test), args.every):
         tr, hits, x, fg = view(test, i)
-        h, w = tr["shape"]
+        h, w = tr.shape
         papr = shade_frame(model, tr).clamp(0, 1)
         gt, alpha = test.images[i], test.alphas[i]
         mask = object_mask(alpha, fg.reshape(h, w))
@@ -122,9 +123,9 @@ def main(argv=None) -> int:
         at_true = torch.where(found[:, None], hits, x)
         cam = (test.c2w[i], test.height, test.width, test.focal)
         frames = {"point render": papr,
-                  "colour field at the true surface": render_edited(state, *cam, trace=dict(tr, x=at_true),
+                  "colour field at the true surface": render_edited(state, *cam, trace=replace(tr, x=at_true),
                                                                     texture_fn=fields["true surface"])["rgb"],
-                  "colour field at x_i": render_edited(state, *cam, trace=dict(tr, x=x),
+                  "colour field at x_i": render_edited(state, *cam, trace=replace(tr, x=x),
                                                        texture_fn=fields["x_i"])["rgb"]}
         # per-point colour capacity alone: true hits and the image's own alpha as coverage (no model at all)
         a = alpha.reshape(-1)
@@ -137,7 +138,7 @@ def main(argv=None) -> int:
         both = (fg > 0.5) & found
         dv = (x[both] - hits[both]).double()
         dist.append(dv.norm(dim=1).numpy())
-        along.append((dv * tr["dirs"][both].double()).sum(1).abs().numpy())
+        along.append((dv * tr.dirs[both].double()).sum(1).abs().numpy())
     dist, along = np.concatenate(dist), np.concatenate(along)
     pixel = float(np.median(np.linalg.norm(test.c2w[:, :3, 3].numpy(), axis=1))) / test.focal
     result = {"model": args.model, "scene": str(scene), "every": args.every, "knn": args.knn,

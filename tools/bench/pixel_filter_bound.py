@@ -142,7 +142,7 @@ def main(argv=None) -> int:
                 frames[f"true hits, filter over {w:g} px, {space}"] = composite(torch.nan_to_num(px, nan=1.0), ok)
         if model is not None:
             tr = trace_frame(model, test.c2w[i], H, W, focal)
-            valid = (1 - tr["bg"]).reshape(H, W) > 0.5
+            valid = (1 - tr.bg).reshape(H, W) > 0.5
 
             def object_colour(image=None, texture_fn=None, sub=1):
                 """The object colour [H, W, 3] an edited frame gives each ray: rendered over black, coverage divided

@@ -161,7 +161,7 @@ def timed_parts(bundle, acc: dict):
     wrap(render_mod, "select_neighbors", "neighbour search")
     wrap(bundle.model, "attend", "attention")
     wrap(edited_mod, "shade_frame", "point colours (shade)")
-    wrap(edited_mod, "canonical_points", "correspondence")
+    wrap(edited_mod, "ray_canonical_points", "correspondence")
     wrap(bundle.atlas, "lookup", "atlas lookups (texture + mask)")
     try:
         yield

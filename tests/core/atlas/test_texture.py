@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from core.atlas.packing import sample_charts
-from core.atlas.texture import gaussian_blur, kernel_texture, splat, texel_spacing
+from core.atlas.texture import filled_kernel_texture, gaussian_blur, kernel_texture, splat, texel_spacing
 
 
 def _samples(S=500, n=3, seed=0):
@@ -89,3 +89,27 @@ def test_kernel_texture_is_finite_for_degenerate_samples():
         assert torch.isfinite(tex).all() and math.isfinite(st)
         assert cov[0].any() and not cov[1].any()
         assert torch.allclose(tex[1], torch.full_like(tex[1], 0.5))
+
+
+def test_filled_kernel_texture_fills_every_gutter_texel_from_its_nearest_covered_one():
+    """Against a plain reference: covered texels keep the kernel colour (clamped), every other texel of a chart
+    with coverage takes the colour of a covered texel at the smallest distance; a chart nobody reaches stays grey."""
+    g = torch.Generator().manual_seed(3)
+    S, R = 300, 12
+    uv = torch.rand(S, 2, 2, generator=g) * 0.4 + 0.3          # samples in the middle of each chart
+    probs = torch.tensor([[1.0, 0.0]]).expand(S, 2).clone()    # chart 1 gets nothing
+    rgb = torch.rand(S, 3, generator=g) * 1.4 - 0.2              # some outside [0, 1]
+    tex, cov, st = filled_kernel_texture(probs, uv, rgb, R, 0.5)
+    raw, raw_cov, raw_st = kernel_texture(probs, uv, rgb, R, 0.5)
+    assert torch.equal(cov, raw_cov) and st == raw_st and cov[0].any() and not cov[0].all()
+    assert torch.equal(tex[0][:, cov[0]], raw[0].clamp(0, 1)[:, cov[0]])
+    src = torch.nonzero(cov[0]).float()                                  # [C, 2] covered (row, col)
+    for r in range(R):
+        for c in range(R):
+            if cov[0, r, c]:
+                continue
+            d = ((src - torch.tensor([r, c], dtype=torch.float32)) ** 2).sum(1)
+            near = src[d == d.min()].long()                             # ties: any nearest one will do
+            cands = raw[0].clamp(0, 1)[:, near[:, 0], near[:, 1]].T       # [T, 3]
+            assert bool((cands - tex[0][:, r, c]).abs().max(1).values.min() < 1e-6), (r, c)
+    assert torch.allclose(tex[1], torch.full_like(tex[1], 0.5))

@@ -1,8 +1,9 @@
 """Canonical correspondence against a per-ray loop reference, and its geometric invariants."""
 import torch
 
-from core.edits.correspondence import canonical_points
+from core.edits.correspondence import canonical_points, ray_canonical_points
 from core.images.rays import project_on_ray
+from core.points.trace import Trace
 
 
 def _reference(w, idx, x_hat, o, d, p_def, p_can, mode):
@@ -100,3 +101,36 @@ def test_deform_gradient_undoes_an_affine_deformation_exactly():
         assert "inv_f" in str(exc)
     else:
         raise AssertionError("deform-gradient without inv_f must raise")
+
+
+def _trace(w, idx, x_hat, o, d):
+    """A Trace holding the case's rays (every ray active, all attention on the neighbours)."""
+    r = w.shape[0]
+    return Trace(origins=o, dirs=d, idx=idx, weights=w, fg_weights=w, bg=torch.zeros(r), x=x_hat,
+                 active=torch.ones(r, dtype=torch.bool), shape=(1, r))
+
+
+def test_ray_canonical_points_matches_the_loop_on_selected_rays():
+    """The per-ray function every caller uses: selected rays of a trace, by index or mask, against the loop;
+    a non-finite deformed point (a broken rig) enters as the origin; nothing moved = the projection on the ray."""
+    w, idx, x_hat, o, d, p_def, p_can = _case(6)
+    p_def = p_def.clone()
+    p_def[int(idx[3, 0])] = float("nan")
+    clean = torch.nan_to_num(p_def, nan=0.0)
+    x_hat = (w[..., None] * clean[idx.clamp_min(0)]).sum(1)
+    tr = _trace(w, idx, x_hat, o, d)
+    sel = torch.tensor([0, 3, 7, 11])
+    mask = torch.zeros(w.shape[0], dtype=torch.bool)
+    mask[sel] = True
+    for mode in ("deform-aware", "naive"):
+        ref = _reference(w, idx, x_hat, o, d, clean, p_can, mode)[sel]
+        for s in (sel, mask):
+            got = ray_canonical_points(tr, s, p_def, p_can, mode)
+            assert torch.isfinite(got).all() and torch.allclose(got, ref, atol=1e-5), mode
+    rest = ray_canonical_points(tr, sel)
+    want = torch.stack([o[i] + max(float(torch.dot(x_hat[i] - o[i], d[i])), 0.0) * d[i] for i in sel.tolist()])
+    assert torch.allclose(rest, want, atol=1e-6)
+    assert torch.equal(ray_canonical_points(tr)[sel], rest)  # sel None: every ray
+    inv_f = torch.eye(3).expand(p_def.shape[0], 3, 3)
+    grad = ray_canonical_points(tr, sel, p_def, p_can, "deform-gradient", inv_f=inv_f)
+    assert torch.allclose(grad, ray_canonical_points(tr, sel, p_def, p_can, "deform-aware"), atol=1e-5)

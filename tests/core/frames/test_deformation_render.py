@@ -41,7 +41,7 @@ def test_rest_frames_equal_todays_with_every_part_on(tiny):
         ta = trace_frame(bundle.model, test.c2w[i], test.height, test.width, test.focal)
         tb = trace_frame(bundle.model, test.c2w[i], test.height, test.width, test.focal,
                          inv_f=torch.eye(3).expand(n, 3, 3))
-        assert torch.allclose(ta["weights"], tb["weights"], atol=1e-5)
+        assert torch.allclose(ta.weights, tb.weights, atol=1e-5)
 
 
 def test_canonical_frame_attention_undoes_a_uniform_scale(tiny):
@@ -79,7 +79,7 @@ def test_deform_gradient_correspondence_undoes_a_stretch(tiny):
         tr = out["trace"]
         hit = torch.isfinite(out["x_can"].reshape(-1, 3)).all(1) & (out["alpha"].reshape(-1) > 0.5)
         assert int(hit.sum()) > 50
-        x_def = project_on_ray(tr["x"][hit], tr["origins"][hit], tr["dirs"][hit])
+        x_def = project_on_ray(tr.x[hit], tr.origins[hit], tr.dirs[hit])
         err[mode] = float((out["x_can"].reshape(-1, 3)[hit] - x_def / s).norm(dim=1).mean())
     assert err["deform-gradient"] < 1e-3
     assert err["deform-gradient"] < 0.2 * min(err["naive"], err["deform-aware"]), err

@@ -24,54 +24,54 @@ def test_trace_matches_per_ray_attention_and_chunks_do_not_matter(scene):
     c2w, h, w, f = _view(test)
     tr = trace_frame(model, c2w, h, w, f)
     r = h * w
-    assert tr["shape"] == (h, w) and tr["idx"].shape == (r, model.cfg.k) and tr["x"].shape == (r, 3)
+    assert tr.shape == (h, w) and tr.idx.shape == (r, model.cfg.k) and tr.x.shape == (r, 3)
     o, d = pixel_rays(c2w.float(), h, w, f)
-    assert torch.allclose(tr["origins"], o.reshape(-1, 3)) and torch.allclose(tr["dirs"], d.reshape(-1, 3))
+    assert torch.allclose(tr.origins, o.reshape(-1, 3)) and torch.allclose(tr.dirs, d.reshape(-1, 3))
     idx = select_neighbors(model.xyz, model.cfg.neighbors, model.cfg.k, c2w.float(), h, w, f, pixel_grid(h, w, "cpu"),
-                           tr["origins"], tr["dirs"])
-    assert torch.equal(tr["idx"], idx)
+                           tr.origins, tr.dirs)
+    assert torch.equal(tr.idx, idx)
     active = (idx >= 0).any(1)
-    assert torch.equal(tr["active"], active) and 0 < int(active.sum()) < r
+    assert torch.equal(tr.active, active) and 0 < int(active.sum()) < r
     # rays without a neighbour: pure background, surface point at the ray origin
-    assert bool((tr["bg"][~active] == 1).all()) and bool((tr["weights"][~active] == 0).all())
-    assert torch.equal(tr["x"][~active], tr["origins"][~active])
+    assert bool((tr.bg[~active] == 1).all()) and bool((tr.weights[~active] == 0).all())
+    assert torch.equal(tr.x[~active], tr.origins[~active])
     # active rays: the model's attention evaluated ray by ray
     for i in torch.nonzero(active).squeeze(1)[::37].tolist():
         with torch.no_grad():
-            a = model.attend(model.xyz, model.influence, tr["origins"][i:i + 1], tr["dirs"][i:i + 1], idx[i:i + 1])
-        assert torch.allclose(tr["weights"][i], a["weights"][0], atol=1e-6)
-        assert torch.allclose(tr["bg"][i], a["bg"][0], atol=1e-6)
-        assert torch.allclose(tr["x"][i], a["x"][0], atol=1e-5)
+            a = model.attend(model.xyz, model.influence, tr.origins[i:i + 1], tr.dirs[i:i + 1], idx[i:i + 1])
+        assert torch.allclose(tr.weights[i], a["weights"][0], atol=1e-6)
+        assert torch.allclose(tr.bg[i], a["bg"][0], atol=1e-6)
+        assert torch.allclose(tr.x[i], a["x"][0], atol=1e-5)
     small = trace_frame(model, c2w, h, w, f, chunk=13)
     for key in ("weights", "fg_weights", "bg", "x"):
-        assert torch.allclose(small[key], tr[key], atol=1e-6), key
+        assert torch.allclose(getattr(small, key), getattr(tr, key), atol=1e-6), key
 
 
 def test_shade_puts_the_background_weight_on_the_background(scene):
     model, test = scene
     assert model.decoder is None
     tr = trace_frame(model, *_view(test, 1))
-    h, w = tr["shape"]
+    h, w = tr.shape
     grey = shade_frame(model, tr, background=(0.5, 0.5, 0.5))
     black = shade_frame(model, tr, background=(0.0, 0.0, 0.0))
-    bg = tr["bg"].reshape(h, w, 1).expand(h, w, 3)
+    bg = tr.bg.reshape(h, w, 1).expand(h, w, 3)
     inside = (grey < 1) & (grey > 0) & (black > 0)  # not clamped
     assert int(inside.sum()) > 100
     assert torch.allclose((grey - black)[inside], 0.5 * bg[inside], atol=1e-5)
     out = render_frame(model, *_view(test, 1), background=(0.0, 0.0, 0.0))
-    assert torch.allclose(out["rgb"], black) and torch.allclose(out["alpha"], (1 - tr["bg"]).reshape(h, w))
-    assert torch.allclose(out["x"], tr["x"].reshape(h, w, 3))
+    assert torch.allclose(out["rgb"], black) and torch.allclose(out["alpha"], (1 - tr.bg).reshape(h, w))
+    assert torch.allclose(out["x"], tr.x.reshape(h, w, 3))
 
 
 def test_non_finite_points_are_absent(scene):
     model, test = scene
     pts = model.xyz.detach().clone()
-    used = trace_frame(model, *_view(test))["idx"]
+    used = trace_frame(model, *_view(test)).idx
     victim = int(used[used >= 0][0])
     pts[victim] = float("nan")
     tr = trace_frame(model, *_view(test), points=pts)
-    assert tr["non_finite_points"] == 1 and not bool((tr["idx"] == victim).any())
-    assert all(bool(torch.isfinite(tr[k]).all()) for k in ("weights", "bg", "x"))
+    assert tr.non_finite_points == 1 and not bool((tr.idx == victim).any())
+    assert all(bool(torch.isfinite(getattr(tr, k)).all()) for k in ("weights", "bg", "x"))
     assert bool(torch.isfinite(shade_frame(model, tr)).all())
 
 
