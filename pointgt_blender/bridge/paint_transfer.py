@@ -15,7 +15,6 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from core.edits.correspondence import canonical_points
 from core.util.errors import InputError
 
 CHART_FLOOR = 0.05  # charts blended with less probability than this keep their texels
@@ -32,14 +31,7 @@ def canonical_surface(state, result: dict, min_alpha: float = 0.5) -> np.ndarray
     out = torch.full((h * w, 3), float("nan"), device=fg.device)
     sel = torch.nonzero(hit).squeeze(1)
     if sel.numel():
-        x_hat = tr["x"][sel]
-        if state.moved:
-            pts = torch.nan_to_num(state.points, nan=0.0, posinf=0.0, neginf=0.0)
-            xc = canonical_points(tr["fg_weights"][sel], tr["idx"][sel], x_hat, tr["origins"][sel], tr["dirs"][sel],
-                                  pts, state.p_can, state.cfg.correspondence,
-                                  inv_f=state.inv_f_keys if state.cfg.correspondence == "deform-gradient" else None)
-        else:
-            xc = x_hat
+        xc = state.canonical(tr, sel) if state.moved else tr["x"][sel]
         out[sel] = torch.where(torch.isfinite(xc).all(1, keepdim=True), xc, torch.full_like(xc, float("nan")))
     return out.reshape(h, w, 3).cpu().numpy().astype(np.float32)
 
