@@ -337,28 +337,33 @@ class DeformationField:
         m = pts.shape[0]
         lc, ld = dc.norm(dim=-1), dd.norm(dim=-1)                                   # [M, k]
         grow = ld / lc.clamp_min(1e-30)
-        me = torch.arange(m, device=self.device)[:, None]
-        # each pair once: keep j -> l when j < l, or when l does not list j (one-sided neighbourhoods)
-        back = ((rows[rows] == me[..., None]) & (w[rows] > 0)).any(-1)
-        sel = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow > ratio) & \
-              (grow <= self.cfg.max_stretch) & ((me < rows) | ~back)
+        sel = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow > ratio) & (grow <= self.cfg.max_stretch)
         j, slot = torch.nonzero(sel, as_tuple=True)
         if j.numel() == 0:
             return empty
+        # each pair once: keep j -> l when j < l, or when l does not list j (one-sided neighbourhoods)
+        other = rows[j, slot]
+        back = ((rows[other] == j[:, None]) & (w[other] > 0)).any(1)
+        once = (j < other) | ~back
+        j, slot = j[once], slot[once]
         g = grow[j, slot].double()
         cap = int(max_per_pair)
 
-        def count(r: float) -> torch.Tensor:
-            return (torch.ceil(g / r) - 1.0).clamp(0, cap).long()
+        def count(r: float) -> torch.Tensor:  # points per pair at ratio r (g / r = i exactly gives i − 1)
+            return (torch.ceil(g / r * (1.0 - 1e-12)) - 1.0).clamp(0, cap).long()
 
         n = count(ratio)
         limit = int(budget * m)
-        if int(n.sum()) > limit:  # raise the ratio until the budget holds (monotone: fewer points as it grows)
-            lo, hi = float(ratio), float(g.max()) + 1.0
-            for _ in range(24):
-                mid = 0.5 * (lo + hi)
-                lo, hi = (lo, mid) if int(count(mid).sum()) <= limit else (mid, hi)
-            n = count(hi)
+        if int(n.sum()) > limit:
+            # raise the ratio to the smallest that keeps the budget: the count only changes where the ratio
+            # crosses some g / i (i = 1 .. cap) and falls as the ratio grows, so bisect over those values
+            steps = g[:, None] / torch.arange(1, cap + 1, dtype=g.dtype, device=g.device)
+            cands = torch.unique(steps[steps >= ratio])                          # ascending; count(max) = 0
+            lo, hi = 0, cands.numel() - 1
+            while lo < hi:
+                mid = (lo + hi) // 2
+                lo, hi = (lo, mid) if int(count(float(cands[mid])).sum()) <= limit else (mid + 1, hi)
+            n = count(float(cands[lo]))
         keep = n > 0
         j, slot, n = j[keep], slot[keep], n[keep]
         if j.numel() == 0:

@@ -51,7 +51,7 @@ class EditConfig:
                                   "point lies within this many point spacings of its most-attended neighbour's "
                                   "(drops the other side of a fold, a part behind); 0 = keep all (the paper's)",
                              min=0.0, max=1e6)
-    f_fill: bool = opt(False, "moved points: add points along canonical neighbour pairs the pose pulled apart "
+    f_fill: bool = opt(True, "moved points: add points along canonical neighbour pairs the pose pulled apart "
                               "(stretched surfaces, a joint's blend band), taking features and F from the nearer "
                               "end; rest frames are unchanged")
     f_fill_ratio: float = opt(1.5, "f_fill: a pair whose distance grew by more than this gets points, spaced at most "
