@@ -40,9 +40,9 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-keep": {**_PAPER, "f_attention": True, "f_compression": "keep"},
              "f-squash": {**_PAPER, "f_attention": True, "f_compression": "undo"},
              "fill": {**_PAPER, "f_fill": True}, "f-fill": {**_PAPER, "f_attention": True, "f_fill": True},
-             "fold": {**_PAPER, "fold_radius": 4.0}, "fill-fold": {**_PAPER, "f_fill": True, "fold_radius": 4.0},
-             "f-fold": {**_PAPER, "f_attention": True, "fold_radius": 4.0},
-             "f-fill-fold": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 4.0}}
+             "fold": {**_PAPER, "fold_radius": 2.0}, "fill-fold": {**_PAPER, "f_fill": True, "fold_radius": 2.0},
+             "f-fold": {**_PAPER, "f_attention": True, "fold_radius": 2.0},
+             "f-fill-fold": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 

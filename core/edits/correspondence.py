@@ -11,9 +11,9 @@ a_ij are the deformed-space attention weights over the K neighbours (background 
 Fold rejection (beyond the paper, `fold_radius`): a ray's neighbours can come from two parts of the surface that
 the pose brought together on screen (the two sides of a joint's fold, a part swung behind another). Their
 displacements p_can − p_def differ by about their canonical distance, so even a small attention weight on the
-other part drags the lookup far across the texture. With fold_radius, only neighbours whose canonical point lies
+other part drags the lookup far across the texture. With fold_radius, only neighbours whose displacement lies
 within fold_radius of that of the ray's most-attended neighbour are kept (weights renormalised over them, and x̂
-recomputed from them); at rest and for a single smooth layer they are all kept.
+recomputed from them). At rest and under a rigid translation every displacement is the same: nothing is dropped.
 """
 from __future__ import annotations
 
@@ -34,8 +34,8 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
     (-1 = empty slot), x_hat [R, 3] deformed surface points Σ a p_def, origins/dirs [R, 3] (unit dirs),
     p_def [M, 3] deformed positions, p_can [M, 3] canonical positions of the same points (row j of both is the
     same point; with ids: p_can = canonical_xyz[ids]); inv_f [M, 3, 3] inverse deformation gradients of the
-    points (needed by mode "deform-gradient"); fold_radius: keep only the neighbours within this canonical
-    distance (world units) of the most-attended neighbour's canonical point (None or inf: all of them).
+    points (needed by mode "deform-gradient"); fold_radius: keep only the neighbours whose displacement
+    p_can − p_def lies within this distance (world units) of the most-attended neighbour's (None or inf: all).
     """
     if mode not in MODES:
         raise ValueError(f"correspondence must be one of {MODES}, got {mode!r}")
@@ -59,11 +59,13 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
 
 def _fold_reject(w: torch.Tensor, idx: torch.Tensor, safe: torch.Tensor, x_hat: torch.Tensor, p_def: torch.Tensor,
                  p_can: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Weights [R, K] over the neighbours within `radius` (canonical) of each ray's most-attended one,
-    renormalised to the row's old sum, and x̂ [R, 3] recomputed from them (rows the rule left whole unchanged)."""
+    """Weights [R, K] over the neighbours whose displacement lies within `radius` of that of each ray's
+    most-attended one, renormalised to the row's old sum, and x̂ [R, 3] recomputed from them (rows the rule left
+    whole unchanged)."""
     anchor = safe.gather(1, w.argmax(1, keepdim=True))                          # [R, 1]
-    dist = (p_can[safe] - p_can[anchor]).norm(dim=-1)                           # [R, K]
-    keep = (idx >= 0) & ~(dist > radius)  # NaN canonical points: kept, as without the rule
+    disp = p_can - p_def                                                        # [M, 3]
+    dist = (disp[safe] - disp[anchor]).norm(dim=-1)                             # [R, K]
+    keep = (idx >= 0) & ~(dist > radius)  # NaN positions: kept, as without the rule
     kept = w * keep
     total, left = w.sum(1, keepdim=True), kept.sum(1, keepdim=True)
     ok = left > 0

@@ -47,10 +47,10 @@ class EditConfig:
                              choices=COMPRESSION)
     f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
                                 "stretch (90th percentile of the largest local stretch, at least 1)")
-    fold_radius: float = opt(4.0, "moved points: the correspondence keeps only a ray's neighbours whose canonical "
-                                  "point lies within this many point spacings of its most-attended neighbour's "
-                                  "(drops the other side of a fold, a part behind); 0 = keep all (the paper's)",
-                             min=0.0, max=1e6)
+    fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
+                                  "displacement (canonical − deformed position) lies within this many point spacings "
+                                  "of its most-attended neighbour's (drops the other side of a fold, a part swung "
+                                  "behind); 0 = keep all (the paper's)", min=0.0, max=1e6)
     f_fill: bool = opt(True, "moved points: add points along canonical neighbour pairs the pose pulled apart "
                               "(stretched surfaces, a joint's blend band), taking features and F from the nearer "
                               "end; rest frames are unchanged")

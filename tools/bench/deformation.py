@@ -28,9 +28,9 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
                                 "correspondence": "deform-gradient"},
     "f-squash, deform-gradient": {**_OFF, "f_attention": True, "f_compression": "undo",
                                   "correspondence": "deform-gradient"},
-    "f-attention + fold rule, deform-aware": {**_OFF, "f_attention": True, "fold_radius": 4.0},
+    "f-attention + fold rule, deform-aware": {**_OFF, "f_attention": True, "fold_radius": 2.0},
     "f-attention + fill, deform-aware": {**_OFF, "f_attention": True, "f_fill": True},
-    "f-attention + fill + fold rule, deform-aware": {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 4.0},
+    "f-attention + fill + fold rule, deform-aware": {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0},
 }
 
 

@@ -55,8 +55,9 @@ def add_arguments(p):
     p.add_argument("--f-fill-budget", type=float, default=EditConfig.f_fill_budget,
                    help="--f-fill: at most this many added points per point (>= 0)")
     p.add_argument("--fold-radius", type=float, default=EditConfig.fold_radius,
-                   help="moved points: the correspondence keeps a ray's neighbours within this many point spacings "
-                        "(canonical) of its most-attended one, dropping the other side of a fold (0 = keep all)")
+                   help="moved points: the correspondence keeps a ray's neighbours whose displacement lies within "
+                        "this many point spacings of its most-attended one's, dropping the other side of a fold "
+                        "(0 = keep all)")
     add_to_parser(p, DeformationConfig, prefix="deformation")
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")

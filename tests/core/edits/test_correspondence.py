@@ -145,6 +145,16 @@ def test_fold_rule_changes_nothing_on_one_smooth_layer():
             assert torch.equal(canonical_points(*case, mode=mode, fold_radius=None), ref)
 
 
+def test_fold_rule_changes_nothing_under_a_rigid_translation():
+    """Every point moved by the same vector: one displacement (up to rounding), nothing dropped at any radius."""
+    w, idx, _, o, d, _, p_can = _case(6)
+    p_def = p_can + torch.tensor([0.4, -1.0, 2.0])
+    x_hat = (w[..., None] * p_def[idx.clamp_min(0)]).sum(1)
+    for mode in ("naive", "deform-aware"):
+        ref = canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode=mode)
+        assert torch.equal(canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode=mode, fold_radius=1e-5), ref)
+
+
 def test_fold_rule_is_finite_on_hostile_rows():
     """Rays without neighbours, all weight underflowed, radius 0 (the anchor alone): finite, and a row whose
     weight is all on one neighbour is that neighbour's lookup."""

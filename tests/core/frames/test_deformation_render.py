@@ -10,9 +10,8 @@ from core.points.render import render_frame, trace_frame
 from core.images.rays import project_on_ray
 from tests.helpers.tiny import tiny_bundle
 
-# every F part on; the fold rule off: it drops far-apart neighbours from the correspondence of moved points, so a
-# forced "moved" frame at F = I is no longer today's (real rest frames never use it: the rest test below)
-ALL_ON = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_fill=True, fold_radius=0.0)
+# every part on (at rest the fold rule sees one displacement, 0, and drops nothing)
+ALL_ON = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_fill=True, fold_radius=2.0)
 
 
 @pytest.fixture(scope="module")
@@ -55,8 +54,9 @@ def test_canonical_frame_attention_undoes_a_uniform_scale(tiny):
     c2w[:3, 3] *= 3.0
     ref = render_frame(bundle.model, test.c2w[0], test.height, test.width, test.focal)["rgb"]
     exact = DeformationConfig(sheet_ratio=0.0)  # the card is thin: fit all three directions (affine: exact)
-    on = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=True), deformation=exact)
-    off = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=False), deformation=exact)
+    # the keys alone: no points added (a fill would make the scaled cloud denser than the canonical one)
+    on = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=True, f_fill=False), deformation=exact)
+    off = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=False, f_fill=False), deformation=exact)
     assert torch.allclose(on.inv_f, torch.eye(3).expand_as(on.inv_f) / 3.0, atol=1e-4)
     got = render_edited(on, c2w, test.height, test.width, test.focal)["rgb"]
     plain = render_edited(off, c2w, test.height, test.width, test.focal)["rgb"]
@@ -78,7 +78,7 @@ def test_deform_gradient_correspondence_undoes_a_stretch(tiny):
     for mode in ("naive", "deform-aware", "deform-gradient"):
         # the fold rule off: it would take x̂ from a subset of the neighbours, not the trace's x̂ used below
         st = EditState(bundle, points=xyz * s, atlas=atlas,
-                       cfg=EditConfig(correspondence=mode, f_attention=True, fold_radius=0.0))
+                       cfg=EditConfig(correspondence=mode, f_attention=True, fold_radius=0.0, f_fill=False))
         out = render_edited(st, c2w, test.height, test.width, test.focal)
         tr = out["trace"]
         hit = torch.isfinite(out["x_can"].reshape(-1, 3)).all(1) & (out["alpha"].reshape(-1) > 0.5)
@@ -115,7 +115,7 @@ def test_rest_frames_unchanged_with_fill_and_fold_rule(tiny):
     atlas = bake(bundle.atlas, _half_split)
     paper = EditConfig(f_attention=False, f_fill=False, fold_radius=0.0)
     every = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_fill=True,
-                       fold_radius=4.0)
+                       fold_radius=2.0)
     a = EditState(bundle, atlas=atlas, cfg=paper)
     for b in (EditState(bundle, atlas=atlas, cfg=every),
               EditState(bundle, points=bundle.model.xyz.detach().clone(), atlas=atlas, cfg=every)):
