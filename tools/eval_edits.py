@@ -33,18 +33,23 @@ from core.util.atomic import atomic_write_text
 from core.util.errors import DataError, InputError
 
 EDITS = ("geometry", "retexture", "decal")
-# renderer variants: EditConfig's (f_attention, f_radius, f_compression); "paper" = today's renderer. f_compression
-# also changes the deform-gradient correspondence.
-RENDERERS = {"paper": (False, False, "tangent"), "f-attention": (True, False, "tangent"),
-             "f-radius": (False, True, "tangent"), "f-both": (True, True, "tangent"),
-             "f-keep": (True, False, "keep"), "f-squash": (True, False, "undo")}
+# renderer variants: the EditConfig fields each sets (every F switch named: the defaults may change); "paper" =
+# the paper's renderer and correspondence. f_compression also changes the deform-gradient correspondence.
+_PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0}
+RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
+             "f-radius": {**_PAPER, "f_radius": True}, "f-both": {**_PAPER, "f_attention": True, "f_radius": True},
+             "f-keep": {**_PAPER, "f_attention": True, "f_compression": "keep"},
+             "f-squash": {**_PAPER, "f_attention": True, "f_compression": "undo"},
+             "fill": {**_PAPER, "f_fill": True}, "f-fill": {**_PAPER, "f_attention": True, "f_fill": True},
+             "fold": {**_PAPER, "fold_radius": 2.0}, "fill-fold": {**_PAPER, "f_fill": True, "fold_radius": 2.0},
+             "f-fold": {**_PAPER, "f_attention": True, "fold_radius": 2.0},
+             "f-fill-fold": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
 def default_renderer() -> str:
-    """The RENDERERS key of EditConfig's default f_attention / f_radius (what `pointgt render` does by default)."""
-    want = (EditConfig.f_attention, EditConfig.f_radius, EditConfig.f_compression)
-    return next(k for k, v in RENDERERS.items() if v == want)
+    """The RENDERERS key whose fields are all EditConfig's defaults (what `pointgt render` does by default)."""
+    return next(k for k, v in RENDERERS.items() if all(getattr(EditConfig, f) == x for f, x in v.items()))
 GT_TEXTURE = {"geometry": None, "retexture": "retexture", "decal": "decal"}  # "retexture" = the chosen texture
 REST = ("rest", 0.0)
 
@@ -219,8 +224,10 @@ def oracle_retexture(state: EditState, view: tuple, trace: Trace, texture: str, 
     atlas is — same correspondence, pixel filter and coverage: what the correspondence alone would give with a
     perfect atlas. view = (c2w, height, width, focal); trace: the edited frame's. rgb [H, W, 3]."""
     box, params = spec["bbox"], spec["texture"]["params"].get(texture)
+    # state's points already hold any filled ones: take them, their canonical points and F as they are
     perfect = EditState(state.bundle, points=state.points if state.moved else None, ids=state.ids,
-                        cfg=replace(state.cfg, colour="atlas"))
+                        cfg=replace(state.cfg, colour="atlas", f_fill=False))
+    perfect.p_can, perfect._f = state.p_can, state._f
     out = render_edited(perfect, *view, background, trace=trace,
                         texture_fn=lambda x: evaluate(texture, x, box["center"], box["half_size"], params)[0])
     return out["rgb"]
@@ -234,7 +241,7 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
     once; the reported seconds still include the time that trace took, so every row is a whole frame's cost."""
     # F is fitted once per state (these views share one pose); an animation fits it once per frame, so every
     # frame is charged the fit's time
-    f_used = state.moved and (state.cfg.f_attention or state.cfg.f_radius or
+    f_used = state.moved and (state.cfg.f_attention or state.cfg.f_radius or state.cfg.f_fill or
                               state.cfg.correspondence == "deform-gradient")
     f_seconds = 0.0
     if f_used:  # what the frame needs of F, before the timed frames
@@ -245,8 +252,9 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
         f_seconds = state.deformation_seconds
 
     def render(i):
-        key = (i, state.cfg.temperature, state.cfg.f_attention, state.cfg.f_radius,
-               state.cfg.f_compression if state.cfg.f_attention else "-")
+        c = state.cfg  # what the trace depends on (the correspondence and fold rule do not change it)
+        key = (i, c.temperature, c.f_attention, c.f_radius, c.f_compression if c.f_attention else "-",
+               (c.f_fill_ratio, c.f_fill_budget) if c.f_fill else None)
         cached = traces.get(key) if traces is not None else None
         view = (gt.c2w[i], gt.height, gt.width, gt.focal)
         out = render_edited(state, *view, background, trace=cached[0] if cached else None)
@@ -324,10 +332,9 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
         traces: dict = {}  # neighbours + attention per (view, temperature, renderer), shared by this pose's methods
         f_time: dict = {}  # one F fit per pose: its time is charged to every frame that uses F
         for mt in meths:
-            f_att, f_rad, f_sq = RENDERERS[mt.renderer]
             cfg = EditConfig(correspondence=mt.correspondence if mt.correspondence != "-" else "deform-aware",
                              blend=mt.blend, temperature=mt.temperature, antialias=antialias,
-                             f_attention=f_att, f_radius=f_rad, f_compression=f_sq)
+                             **RENDERERS[mt.renderer])
             state = EditState(bundle, points=points, atlas=atlases[mt.edit], cfg=cfg)
             if "state" in f_time:  # reuse this pose's fit (same points): F and its measured time
                 state.share_deformation(f_time["state"])
@@ -434,8 +441,10 @@ def markdown(result: dict) -> str:
     lines += ["**Ablation** (object PSNR, dB; renderer: paper = today's, f-attention = attention keys in each "
               "point's canonical frame (rotation, stretch and compression along the surface undone), f-radius = "
               "neighbour radius cap scaled by the stretch, f-both = both, f-keep / f-squash = f-attention undoing no "
-              "compression / all compression (and so does their deform-gradient correspondence); first temperature, soft blend; s/frame = mean over the row's "
-              "renders)", "",
+              "compression / all compression (and so does their deform-gradient correspondence), fill / f-fill = paper / "
+              "f-attention with points added where the pose pulled neighbours apart, fold / fill-fold / f-fold / f-fill-fold = "
+              "paper / fill / f-attention / f-fill with the correspondence's fold rule; first temperature, soft blend; "
+              "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]
     # summary: mean over poses per magnitude, per method
     mags = sorted({r["magnitude"] for r in rows if r["pose"] != "rest"})

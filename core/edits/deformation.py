@@ -133,9 +133,10 @@ class DeformationField:
     def num_points(self) -> int:
         return self.canonical.shape[0]
 
-    def _gather_deformed(self, points: torch.Tensor, ids: torch.Tensor | None):
+    def _gather_deformed(self, points: torch.Tensor, ids: torch.Tensor | None, with_rows: bool = False):
         """Neighbour offsets of each deformed point: (dc [M, k, 3] canonical, dd [M, k, 3] deformed, w [M, k],
-        cid [M] canonical index, own_ok [M] finite own position)."""
+        cid [M] canonical index, own_ok [M] finite own position); with_rows: also the row of `points` each
+        neighbour was taken from [M, k] (meaningful where w > 0)."""
         n, k = self.num_points, self.nbr.shape[1]
         m = points.shape[0]
         own_ok = torch.isfinite(points).all(1)
@@ -185,6 +186,8 @@ class DeformationField:
             ok = ok & ~(ratio > OUTLIER_FACTOR * med.nan_to_num(math.inf))
         w = self.weights[cid] * ok
         dd = torch.where(ok[..., None], dd, torch.zeros_like(dd))
+        if with_rows:
+            return dc, dd, w, cid, own_ok, (nbr if ids is None else pick).clamp_min(0)
         return dc, dd, w, cid, own_ok
 
     def _canonical_terms(self, w: torch.Tensor, dc: torch.Tensor) -> dict:
@@ -229,7 +232,23 @@ class DeformationField:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         if pts.shape[0] == 0:
             return torch.zeros(0, 3, 3, device=self.device)
-        dc, dd, w, cid, own_ok = self._gather_deformed(pts, ids)
+        return self._fit(pts, *self._gather_deformed(pts, ids), ids)
+
+    @torch.no_grad()
+    def gradients_and_fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
+                           max_per_pair: int = 8, budget: float = 1.0):
+        """`gradients` and `fill` of the same points, sharing their neighbour gathering: (F [M, 3, 3], (new [P, 3],
+        canonical [P, 3], source [P]))."""
+        pts = points.detach().to(self.device, torch.float32)
+        if pts.dim() != 2 or pts.shape[1] != 3:
+            raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
+        if pts.shape[0] == 0:
+            return torch.zeros(0, 3, 3, device=self.device), self.fill(pts, ids, ratio, max_per_pair, budget)
+        gathered = self._gather_deformed(pts, ids, with_rows=True)
+        return self._fit(pts, *gathered[:5], ids), self._fill(pts, gathered, ratio, max_per_pair, budget)
+
+    def _fit(self, pts, dc, dd, w, cid, own_ok, ids):
+        """The fit of `gradients` from gathered neighbour offsets (see _gather_deformed)."""
         # Work in float64 and in units of each point's neighbourhood size: scale-free and well conditioned.
         s = self.scale[cid].double().clamp_min(1e-30)[:, None, None]
         # a deformation sent to 1e18 must not overflow the squares: bound offsets (F is clamped anyway)
@@ -282,6 +301,82 @@ class DeformationField:
         f = torch.where((t["empty"] | ~own_ok)[:, None, None] | ~torch.isfinite(f).all(-1).all(-1)[:, None, None],
                         eye, f)
         return bound(f, self.cfg.max_stretch).float()
+
+
+    @torch.no_grad()
+    def fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
+             max_per_pair: int = 8, budget: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Extra points where the deformation pulled canonical neighbours apart (a stretched surface: a joint's
+        blend band, a scaled part), so the deformed cloud keeps about its canonical density.
+
+        Every canonical neighbour pair (j, l) (each pair once) whose deformed distance grew by g = |d_l − d_j| /
+        |c_l − c_j| > ratio gets n = ceil(g / ratio) − 1 points (at most max_per_pair) evenly spaced on the
+        segment between them: deformed d_j + t (d_l − d_j), canonical c_j + t (c_l − c_j), t = i / (n + 1). Pairs
+        that grew beyond max_stretch (a tear: parts moved apart) are left open. At most budget × M points are
+        added: past that the ratio is raised (a binary search) until they fit.
+
+        points [M, 3] deformed (non-finite = absent), ids [M] as in `gradients`. Returns (new [P, 3] deformed
+        positions, canonical [P, 3] their canonical positions, source [P] int64 the row of `points` each takes
+        its features and F from: the nearer end of its segment). P = 0 where nothing stretched."""
+        pts = points.detach().to(self.device, torch.float32)
+        if pts.dim() != 2 or pts.shape[1] != 3:
+            raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
+        gathered = self._gather_deformed(pts, ids, with_rows=True) if pts.shape[0] else None
+        return self._fill(pts, gathered, ratio, max_per_pair, budget)
+
+    def _fill(self, pts, gathered, ratio, max_per_pair, budget):
+        """The work of `fill` from gathered neighbour offsets (_gather_deformed with rows; None: no points)."""
+        empty = (pts.new_zeros(0, 3), pts.new_zeros(0, 3), torch.zeros(0, dtype=torch.long, device=self.device))
+        if not (ratio > 1.0 and math.isfinite(ratio)):
+            raise InputError(f"fill ratio must be a finite number > 1, got {ratio}")
+        if not (budget >= 0 and math.isfinite(budget)):
+            raise InputError(f"fill budget must be a finite number >= 0, got {budget}")
+        if gathered is None or int(max_per_pair) < 1 or budget == 0:
+            return empty
+        dc, dd, w, cid, own_ok, rows = gathered
+        m = pts.shape[0]
+        lc, ld = dc.norm(dim=-1), dd.norm(dim=-1)                                   # [M, k]
+        grow = ld / lc.clamp_min(1e-30)
+        sel = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow > ratio) & (grow <= self.cfg.max_stretch)
+        j, slot = torch.nonzero(sel, as_tuple=True)
+        if j.numel() == 0:
+            return empty
+        # each pair once: keep j -> l when j < l, or when l does not list j (one-sided neighbourhoods)
+        other = rows[j, slot]
+        back = ((rows[other] == j[:, None]) & (w[other] > 0)).any(1)
+        once = (j < other) | ~back
+        j, slot = j[once], slot[once]
+        g = grow[j, slot].double()
+        cap = int(max_per_pair)
+
+        def count(r: float) -> torch.Tensor:  # points per pair at ratio r (g / r = i exactly gives i − 1)
+            return (torch.ceil(g / r * (1.0 - 1e-12)) - 1.0).clamp(0, cap).long()
+
+        n = count(ratio)
+        limit = int(budget * m)
+        if int(n.sum()) > limit:
+            # raise the ratio to the smallest that keeps the budget: the count only changes where the ratio
+            # crosses some g / i (i = 1 .. cap) and falls as the ratio grows, so bisect over those values
+            steps = g[:, None] / torch.arange(1, cap + 1, dtype=g.dtype, device=g.device)
+            cands = torch.unique(steps[steps >= ratio])                          # ascending; count(max) = 0
+            lo, hi = 0, cands.numel() - 1
+            while lo < hi:
+                mid = (lo + hi) // 2
+                lo, hi = (lo, mid) if int(count(float(cands[mid])).sum()) <= limit else (mid + 1, hi)
+            n = count(float(cands[lo]))
+        keep = n > 0
+        j, slot, n = j[keep], slot[keep], n[keep]
+        if j.numel() == 0:
+            return empty
+        rep = torch.repeat_interleave(torch.arange(j.numel(), device=self.device), n)
+        first = torch.cumsum(n, 0) - n
+        i = torch.arange(rep.numel(), device=self.device) - first[rep] + 1
+        t = (i.to(torch.float32) / (n[rep] + 1).to(torch.float32))[:, None]           # [P, 1] in (0, 1)
+        jr, sr = j[rep], slot[rep]
+        new = pts[jr] + t * dd[jr, sr]
+        canonical = self.canonical[cid[jr]] + t * dc[jr, sr]
+        source = torch.where(t[:, 0] <= 0.5, jr, rows[jr, sr])
+        return new, canonical, source
 
 
 def _moments(w: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

@@ -47,6 +47,17 @@ class EditConfig:
                              choices=COMPRESSION)
     f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
                                 "stretch (90th percentile of the largest local stretch, at least 1)")
+    fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
+                                  "displacement (canonical − deformed position) lies within this many point spacings "
+                                  "of its most-attended neighbour's (drops the other side of a fold, a part swung "
+                                  "behind); 0 = keep all (the paper's)", min=0.0, max=1e6)
+    f_fill: bool = opt(True, "moved points: add points along canonical neighbour pairs the pose pulled apart "
+                              "(stretched surfaces, a joint's blend band), taking features and F from the nearer "
+                              "end; rest frames are unchanged")
+    f_fill_ratio: float = opt(1.5, "f_fill: a pair whose distance grew by more than this gets points, spaced at most "
+                                   "this many times their canonical distance apart", min=1.01, max=100.0)
+    f_fill_budget: float = opt(1.0, "f_fill: at most this many added points per point (the ratio is raised past "
+                                    "it)", min=0.0, max=64.0)
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
                      choices=BLENDS)
     mask_threshold: float = opt(0.01, "a texel counts as painted when its colour changed by more than this (L2)",
@@ -64,7 +75,8 @@ class EditState:
 
     points [M, 3] deformed positions (None = canonical), ids [M] canonical index of each point (None = identity,
     requires M == N), atlas [H, W, 3] painted atlas (None = unedited). Non-finite positions (a broken rig) are
-    counted and treated as absent points.
+    counted and treated as absent points. With f_fill, points and ids (and F) grow by the added points
+    (`filled_points`, appended after the given ones).
     """
 
     def __init__(self, bundle, points=None, ids=None, atlas=None, cfg: EditConfig | None = None,
@@ -111,11 +123,17 @@ class EditState:
                 self.ids = idt
             self.points = pts
         self.non_finite_points = int((~torch.isfinite(self.points).all(1)).sum())
-        self.p_can = model.xyz.detach() if self.ids is None else model.xyz.detach()[self.ids]
-        self.features = None if self.ids is None else model.features.detach()[self.ids]
-        self.influence = model.influence.detach() if self.ids is None else model.influence.detach()[self.ids]
         if self.moved and self.ids is None and torch.equal(self.points, model.xyz.detach()):
             self.moved = False  # same positions as canonical: nothing to correspond
+        self.filled_points = 0  # points f_fill added (after the given ones)
+        fill_can = None
+        if self.moved and self.cfg.f_fill and self.cfg.f_fill_budget > 0:
+            fill_can = self._fill()
+        self.p_can = model.xyz.detach() if self.ids is None else model.xyz.detach()[self.ids]
+        if fill_can is not None:  # added points sit between their pair's canonical points, not on their source
+            self.p_can = torch.cat([self.p_can[:self.p_can.shape[0] - fill_can.shape[0]], fill_can])
+        self.features = None if self.ids is None else model.features.detach()[self.ids]
+        self.influence = model.influence.detach() if self.ids is None else model.influence.detach()[self.ids]
         self.atlas_image = None
         self.mask_image = None
         self._edit_textures = None
@@ -136,6 +154,26 @@ class EditState:
                 self.atlas_image = atl.packed_image().to(dev)
             self.mask_image = torch.ones_like(self.atlas_image)
 
+    def _fill(self) -> torch.Tensor | None:
+        """f_fill: fit F on the given points, add points where neighbour pairs were pulled apart
+        (DeformationField.fill) and extend points, ids and F with them. Returns their canonical positions [P, 3]
+        (None when nothing was added)."""
+        fld = field_for(self.bundle.model, self.deformation_cfg)
+        f, (new, can, src) = self._timed(lambda: fld.gradients_and_fill(
+            self.points, self.ids, ratio=self.cfg.f_fill_ratio, budget=self.cfg.f_fill_budget))
+        self._f = f
+        self.fit_seconds = self.deformation_seconds
+        if new.shape[0] == 0:
+            return None
+        m = self.points.shape[0]
+        ids = torch.arange(m, device=self.points.device) if self.ids is None else self.ids
+        self.points = torch.cat([self.points, new.to(self.points.dtype)])
+        self.ids = torch.cat([ids, ids[src]])
+        self._f = torch.cat([f, f[src]])
+        self.filled_points = int(new.shape[0])
+        return can
+
+    @torch.no_grad()
     def _timed(self, fn):
         t0 = time.perf_counter()
         out = fn()
@@ -204,19 +242,23 @@ class EditState:
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
         fit took; what this state derives from F is computed (and timed) here."""
-        if other.moved and self.moved and other._f is not None and self._f is None:
+        if (other.moved and self.moved and other._f is not None and self._f is None and other.filled_points == 0
+                and self.filled_points == 0):
             self._f = other._f
             self.fit_seconds = self.deformation_seconds = other.fit_seconds
 
     def canonical_surface(self, trace: Trace, sel: torch.Tensor) -> torch.Tensor:
         """Canonical surface points [S, 3] of the rays sel [S] of a trace of these points, by the configured
-        correspondence (core.edits.correspondence.ray_canonical_points; F is fitted only when the mode needs it).
+        correspondence (core.edits.correspondence.ray_canonical_points, with the fold rule of cfg.fold_radius; F is
+        fitted only when the mode needs it).
         Can be non-finite where the correspondence breaks down."""
         if not self.moved:  # the ray's surface point on its ray, as the atlas saw it
             return ray_canonical_points(trace, sel)
-        mode = self.cfg.correspondence
+        cfg = self.cfg
+        mode = cfg.correspondence
+        fold = cfg.fold_radius * float(self.bundle.model.spacing) if cfg.fold_radius > 0 else None
         return ray_canonical_points(trace, sel, self.points, self.p_can, mode,
-                                    inv_f=self.inv_f_keys if mode == "deform-gradient" else None)
+                                    inv_f=self.inv_f_keys if mode == "deform-gradient" else None, fold_radius=fold)
 
     @property
     def textured(self) -> bool:
@@ -310,7 +352,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     hit = tr.active & (fg > 1e-4)
     x_can = torch.full_like(tr.x, float("nan"))
     stats = {"rays": int(tr.idx.shape[0]), "rays_shaded": int(tr.active.sum()),
-             "non_finite_points": state.non_finite_points, "texture_rays": 0, "correspondence": "skipped",
+             "non_finite_points": state.non_finite_points, "filled_points": state.filled_points,
+             "texture_rays": 0, "correspondence": "skipped",
              "trace_seconds": trace_seconds}
     if state.textured and bool(hit.any()):
         sel = torch.nonzero(hit).squeeze(1)

@@ -130,3 +130,25 @@ def test_decoder_layer_composites_like_the_render_over_white():
     assert empty.mean() > 0.3 and black[empty].max() < 0.03
     _, alpha_t = composite([layer], transparent=True)
     np.testing.assert_allclose(alpha_t, layer["alpha"], atol=1e-6)
+
+
+def test_posed_layer_traces_like_render_edited():
+    """Moved points: the add-on's layer trace uses the same F-aware keys (and filled points) as core's render, so
+    the layer is the frame `render_edited` draws."""
+    import torch
+
+    from core.frames.edited import EditConfig, EditState, render_edited
+    from pointgt_blender.bridge.frame_renderer import render_layer, trace_layer
+    from tests.helpers.tiny import tiny_bundle
+
+    bundle, _, test = tiny_bundle("card")
+    pts = bundle.model.xyz.detach() * torch.tensor([2.5, 1.0, 1.0])
+    state = EditState(bundle, points=pts, cfg=EditConfig(antialias=1))
+    assert state.moved and state.cfg.f_attention
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.0
+    tr = trace_layer(state, c2w.numpy(), test.height, test.width, test.focal)
+    ref = render_edited(state, c2w, test.height, test.width, test.focal)
+    assert torch.equal(tr["weights"], ref["trace"]["weights"]) and torch.equal(tr["idx"], ref["trace"]["idx"])
+    layer = render_layer(state, c2w.numpy(), test.height, test.width, test.focal, trace=tr)
+    np.testing.assert_allclose(layer["alpha"], ref["alpha"].numpy(), atol=1e-6)

@@ -16,7 +16,8 @@ import statistics
 import time
 from pathlib import Path
 
-_OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware"}
+_OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware",
+        "f_fill": False, "fold_radius": 0.0}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -27,11 +28,15 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
                                 "correspondence": "deform-gradient"},
     "f-squash, deform-gradient": {**_OFF, "f_attention": True, "f_compression": "undo",
                                   "correspondence": "deform-gradient"},
+    "f-attention + fold rule, deform-aware": {**_OFF, "f_attention": True, "fold_radius": 2.0},
+    "f-attention + fill, deform-aware": {**_OFF, "f_attention": True, "f_fill": True},
+    "f-attention + fill + fold rule, deform-aware": {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0},
 }
 
 
 def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats: int, size: int | None = None,
-        log=print) -> dict:
+        log=print, variants: list[str] | None = None) -> dict:
+    """variants: names of VARIANTS to time (default: all); today's renderer is always the first."""
     import torch
 
     from core.bundle import load_bundle
@@ -55,12 +60,17 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
     cams = [round(i * (len(test) - 1) / max(views - 1, 1)) for i in range(views)]
     hw = size or test.width
     focal = test.focal * hw / test.width  # the same field of view at another resolution
+    names = list(VARIANTS)[:1] + [v for v in (variants or list(VARIANTS)[1:]) if v != list(VARIANTS)[0]]
+    for v in names:
+        if v not in VARIANTS:
+            raise SystemExit(f"--variants: unknown variant {v!r}; choose from {'; '.join(VARIANTS)}")
+    chosen = {v: VARIANTS[v] for v in names}
     wall = {v: [] for v in VARIANTS}
     cpu = {v: [] for v in VARIANTS}
     fit = {v: [] for v in VARIANTS}
     for rep in range(repeats + 1):  # the first round warms up (caches the canonical neighbourhoods)
         for i in cams:
-            for name, over in VARIANTS.items():
+            for name, over in chosen.items():
                 t, tc = time.perf_counter(), time.process_time()
                 state = EditState(bundle, points=points, atlas=atlas, cfg=EditConfig(**over))
                 render_edited(state, test.c2w[i], hw, hw, focal)
@@ -71,7 +81,7 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
     base = statistics.median(cpu[next(iter(VARIANTS))])
     rows = [{"variant": v, "wall": statistics.median(wall[v]), "cpu": statistics.median(cpu[v]),
              "cpu_ratio": statistics.median(cpu[v]) / base, "f_seconds": statistics.median(fit[v])}
-            for v in VARIANTS]
+            for v in chosen]
     return {"model": str(model_path), "scene": spec.get("name"), "pose": pose, "magnitude": magnitude,
             "size": f"{hw}x{hw}", "points": bundle.model.num_points, "frames": len(cams) * repeats,
             "machine": machine_info(), "rows": rows}
@@ -98,8 +108,12 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=4, help="test cameras")
     ap.add_argument("--size", type=int, default=None, help="frame size in pixels (default: the scene's)")
     ap.add_argument("--repeats", type=int, default=3, help="timed rounds over the cameras (after one warm-up)")
+    ap.add_argument("--variants", default=None,
+                    help="semicolon-separated variant names to time (default: all; today's is always timed first)")
     args = ap.parse_args(argv)
-    res = run(args.model, args.scene, args.pose, args.magnitude, args.views, args.repeats, args.size)
+    variants = [v.strip() for v in args.variants.split(";") if v.strip()] if args.variants else None
+    res = run(args.model, args.scene, args.pose, args.magnitude, args.views, args.repeats, args.size,
+              variants=variants)
     print(markdown(res))
     return 0
 

@@ -24,7 +24,9 @@ def add_arguments(p):
                    help="comma-separated renderer variants: paper (today's) | f-attention (attention keys in each "
                         "point's canonical frame, stretch undone) | f-radius (neighbour radius cap scaled by the stretch) | "
                         "f-both | f-keep / f-squash (as f-attention, undoing no / all compression, also in the deform-gradient "
-                        "correspondence)")
+                        "correspondence) | fill / f-fill (paper / f-attention with points added where the pose pulled neighbours "
+                        "apart) | fold / fill-fold / f-fold / f-fill-fold (paper / fill / f-attention / f-fill with the "
+                        "correspondence's fold rule)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

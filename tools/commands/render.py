@@ -47,6 +47,17 @@ def add_arguments(p):
                         "tangent (along the surface) | keep (none) | undo (all)")
     p.add_argument("--f-radius", action=argparse.BooleanOptionalAction, default=EditConfig.f_radius,
                    help="moved points: neighbour search radius cap scaled by the points' stretch")
+    p.add_argument("--f-fill", action=argparse.BooleanOptionalAction, default=EditConfig.f_fill,
+                   help="moved points: add points where the pose pulled canonical neighbours apart (a stretched "
+                        "surface, a joint's blend band)")
+    p.add_argument("--f-fill-ratio", type=float, default=EditConfig.f_fill_ratio,
+                   help="--f-fill: a neighbour pair whose distance grew by more than this gets points (> 1)")
+    p.add_argument("--f-fill-budget", type=float, default=EditConfig.f_fill_budget,
+                   help="--f-fill: at most this many added points per point (>= 0)")
+    p.add_argument("--fold-radius", type=float, default=EditConfig.fold_radius,
+                   help="moved points: the correspondence keeps a ray's neighbours whose displacement lies within "
+                        "this many point spacings of its most-attended one's, dropping the other side of a fold "
+                        "(0 = keep all)")
     add_to_parser(p, DeformationConfig, prefix="deformation")
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
@@ -138,6 +149,8 @@ def run(args) -> int:
     check_flag(args.size, "--size", min=1, max=MAX_RENDER_SIZE)
     cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
                               f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
+                              f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
+                              fold_radius=args.fold_radius,
                               **({} if args.temperature is None else {"temperature": args.temperature})))
     check_device(args.device, "--device")
     bundle = load_bundle(args.model, device=args.device)

@@ -134,3 +134,71 @@ def test_ray_canonical_points_matches_the_loop_on_selected_rays():
     inv_f = torch.eye(3).expand(p_def.shape[0], 3, 3)
     grad = ray_canonical_points(tr, sel, p_def, p_can, "deform-gradient", inv_f=inv_f)
     assert torch.allclose(grad, ray_canonical_points(tr, sel, p_def, p_can, "deform-aware"), atol=1e-5)
+
+
+def _two_layers(seed=0, r=12, k=6):
+    """Rays whose neighbours come from two parts: a front part near canonical (0, 0, 0) and a part the pose swung
+    behind it, whose canonical points lie far away (around (10, 0, 0)) and which moved by (−10, 0, 1)."""
+    g = torch.Generator().manual_seed(seed)
+    front = 0.05 * torch.randn(r * k, 3, generator=g)
+    back_can = torch.tensor([10.0, 0.0, 0.0]) + 0.05 * torch.randn(r * k, 3, generator=g)
+    p_can = torch.cat([front, back_can])
+    p_def = torch.cat([front, back_can + torch.tensor([-10.0, 0.0, 1.0])])
+    n = r * k
+    idx = torch.cat([torch.arange(n).view(r, k)[:, : k - 2], n + torch.arange(2 * r).view(r, 2)], 1)  # 2 behind
+    w = torch.cat([torch.full((r, k - 2), 0.9 / (k - 2)), torch.full((r, 2), 0.05)], 1)
+    o = torch.tensor([0.0, 0.0, -5.0]).expand(r, 3).clone()
+    d = torch.tensor([0.0, 0.0, 1.0]).expand(r, 3).clone()
+    x_hat = (w[..., None] * p_def[idx]).sum(1)
+    return w, idx, x_hat, o, d, p_def, p_can
+
+
+def test_fold_rule_drops_the_part_behind():
+    """10 % of the attention on a part that moved 10 units drags the paper's lookup ≈ 1 unit across the texture;
+    the fold rule keeps the front part only and lands on it."""
+    case = _two_layers()
+    front_can = (case[0][:, :-2, None] * case[6][case[1][:, :-2]]).sum(1) / 0.9
+    for mode in ("naive", "deform-aware"):
+        plain = canonical_points(*case, mode=mode)
+        folded = canonical_points(*case, mode=mode, fold_radius=1.0)
+        assert float((plain - front_can)[:, 0].abs().min()) > 0.5
+        assert float((folded[:, :2] - front_can[:, :2]).abs().max()) < 0.2
+    inv_f = torch.eye(3).expand(case[5].shape[0], 3, 3)
+    got = canonical_points(*case, mode="deform-gradient", inv_f=inv_f, fold_radius=1.0)
+    assert float((got[:, :2] - front_can[:, :2]).abs().max()) < 0.2
+
+
+def test_fold_rule_changes_nothing_on_one_smooth_layer():
+    """All neighbours within the radius (or no radius): bit-identical to the paper's correspondence."""
+    for seed in range(3):
+        case = _case(seed)
+        for mode in ("naive", "deform-aware"):
+            ref = canonical_points(*case, mode=mode)
+            assert torch.equal(canonical_points(*case, mode=mode, fold_radius=1e6), ref)
+            assert torch.equal(canonical_points(*case, mode=mode, fold_radius=float("inf")), ref)
+            assert torch.equal(canonical_points(*case, mode=mode, fold_radius=None), ref)
+
+
+def test_fold_rule_changes_nothing_under_a_rigid_translation():
+    """Every point moved by the same vector: one displacement (up to rounding), nothing dropped at any radius."""
+    w, idx, _, o, d, _, p_can = _case(6)
+    p_def = p_can + torch.tensor([0.4, -1.0, 2.0])
+    x_hat = (w[..., None] * p_def[idx.clamp_min(0)]).sum(1)
+    for mode in ("naive", "deform-aware"):
+        ref = canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode=mode)
+        assert torch.equal(canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode=mode, fold_radius=1e-5), ref)
+
+
+def test_fold_rule_is_finite_on_hostile_rows():
+    """Rays without neighbours, all weight underflowed, radius 0 (the anchor alone): finite, and a row whose
+    weight is all on one neighbour is that neighbour's lookup."""
+    w, idx, x_hat, o, d, p_def, p_can = _case(3)
+    idx[1] = -1
+    w[1] = 0.0
+    w[2] = 0.0
+    for mode in ("naive", "deform-aware"):
+        out = canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode=mode, fold_radius=0.0)
+        assert torch.isfinite(out).all()
+    naive = canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode="naive", fold_radius=0.0)
+    top = idx[3, w[3].argmax()]
+    assert torch.allclose(naive[3], p_can[top] * w[3].sum(), atol=1e-6)

@@ -10,7 +10,8 @@ from core.points.render import render_frame, trace_frame
 from core.images.rays import project_on_ray
 from tests.helpers.tiny import tiny_bundle
 
-ALL_ON = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True)
+# every part on (at rest the fold rule sees one displacement, 0, and drops nothing)
+ALL_ON = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_fill=True, fold_radius=2.0)
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +32,7 @@ def test_rest_frames_equal_todays_with_every_part_on(tiny):
     today = EditState(bundle, atlas=atlas)
     # ids force the "moved" path: F is fitted (≈ I), attention keys, radius and correspondence all use it
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), atlas=atlas, cfg=ALL_ON)
-    assert forced.moved and forced.radius_scale == 1.0
+    assert forced.moved and forced.radius_scale == 1.0 and forced.filled_points == 0
     assert torch.allclose(forced.inv_f, torch.eye(3).expand(n, 3, 3), atol=1e-5)
     for i in range(len(test)):
         a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
@@ -53,8 +54,9 @@ def test_canonical_frame_attention_undoes_a_uniform_scale(tiny):
     c2w[:3, 3] *= 3.0
     ref = render_frame(bundle.model, test.c2w[0], test.height, test.width, test.focal)["rgb"]
     exact = DeformationConfig(sheet_ratio=0.0)  # the card is thin: fit all three directions (affine: exact)
-    on = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=True), deformation=exact)
-    off = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=False), deformation=exact)
+    # the keys alone: no points added (a fill would make the scaled cloud denser than the canonical one)
+    on = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=True, f_fill=False), deformation=exact)
+    off = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=False, f_fill=False), deformation=exact)
     assert torch.allclose(on.inv_f, torch.eye(3).expand_as(on.inv_f) / 3.0, atol=1e-4)
     got = render_edited(on, c2w, test.height, test.width, test.focal)["rgb"]
     plain = render_edited(off, c2w, test.height, test.width, test.focal)["rgb"]
@@ -74,7 +76,9 @@ def test_deform_gradient_correspondence_undoes_a_stretch(tiny):
     c2w[:3, 3] *= 2.0  # step back: the stretched card stays in the frame
     err = {}
     for mode in ("naive", "deform-aware", "deform-gradient"):
-        st = EditState(bundle, points=xyz * s, atlas=atlas, cfg=EditConfig(correspondence=mode, f_attention=True))
+        # the fold rule off: it would take x̂ from a subset of the neighbours, not the trace's x̂ used below
+        st = EditState(bundle, points=xyz * s, atlas=atlas,
+                       cfg=EditConfig(correspondence=mode, f_attention=True, fold_radius=0.0, f_fill=False))
         out = render_edited(st, c2w, test.height, test.width, test.focal)
         tr = out["trace"]
         hit = torch.isfinite(out["x_can"].reshape(-1, 3)).all(1) & (out["alpha"].reshape(-1) > 0.5)
@@ -102,3 +106,46 @@ def test_extreme_poses_render_finite_with_every_part_on(tiny):
             assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
             x = out["x_can"][torch.isfinite(out["x_can"]).all(-1)]
             assert out["stats"]["texture_rays"] == 0 or x.numel() > 0
+
+
+def test_rest_frames_unchanged_with_fill_and_fold_rule(tiny):
+    """Points not moved (none given, or the canonical ones): every part, the fill and the fold rule included,
+    leaves the frame as the paper's renderer draws it."""
+    bundle, _, test = tiny
+    atlas = bake(bundle.atlas, _half_split)
+    paper = EditConfig(f_attention=False, f_fill=False, fold_radius=0.0)
+    every = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_fill=True,
+                       fold_radius=2.0)
+    a = EditState(bundle, atlas=atlas, cfg=paper)
+    for b in (EditState(bundle, atlas=atlas, cfg=every),
+              EditState(bundle, points=bundle.model.xyz.detach().clone(), atlas=atlas, cfg=every)):
+        assert not b.moved and b.filled_points == 0
+        for i in range(len(test)):
+            ra = render_edited(a, test.c2w[i], test.height, test.width, test.focal)
+            rb = render_edited(b, test.c2w[i], test.height, test.width, test.focal)
+            assert torch.equal(ra["rgb"], rb["rgb"]) and torch.equal(ra["alpha"], rb["alpha"])
+
+
+def test_fill_closes_a_stretch_and_keeps_ids_features_and_canonical_points(tiny):
+    """The card stretched 4× along x with today's keys: its points pull apart and rays fall through between them;
+    filled, the frame covers more of the stretched card. Added points carry their source's features and F and
+    sit between their pair's canonical points."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    s = torch.tensor([4.0, 1.0, 1.0])
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.5
+    cover = {}
+    for fill in (False, True):
+        st = EditState(bundle, points=xyz * s, cfg=EditConfig(f_attention=False, f_fill=fill, f_fill_budget=4.0))
+        out = render_edited(st, c2w, test.height, test.width, test.focal)
+        assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+        cover[fill] = int((out["alpha"] > 0.5).sum())
+        if fill:
+            n, p = bundle.model.num_points, st.filled_points
+            assert p > 0 and st.points.shape[0] == n + p and st.ids.shape[0] == n + p
+            assert torch.equal(st.features, bundle.model.features.detach()[st.ids])
+            assert torch.allclose(st.points[n:], st.p_can[n:] * s, atol=1e-4)  # the stretch is affine
+            assert st.f.shape[0] == n + p and torch.equal(st.f[n:], st.f[st.ids[n:]])
+            assert out["stats"]["filled_points"] == p
+    assert cover[True] > cover[False]

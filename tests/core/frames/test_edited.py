@@ -93,12 +93,14 @@ def test_edit_order_is_interchangeable(tiny):
     pts = bundle.model.xyz.detach() * torch.tensor([1.0, 1.3, 1.0]) + 0.02 * torch.randn(bundle.model.num_points, 3,
                                                                                           generator=g)
     paint = bake(bundle.atlas, _half_split)
+    # no fill: a filled state's points hold the added points too (they are not the posed input any more)
+    cfg = EditConfig(f_fill=False)
     # paint, then pose
-    s1 = EditState(bundle, atlas=paint)
-    s1 = EditState(bundle, points=pts, atlas=s1.atlas_image)
+    s1 = EditState(bundle, atlas=paint, cfg=cfg)
+    s1 = EditState(bundle, points=pts, atlas=s1.atlas_image, cfg=cfg)
     # pose, then paint
-    s2 = EditState(bundle, points=pts)
-    s2 = EditState(bundle, points=s2.points, atlas=paint)
+    s2 = EditState(bundle, points=pts, cfg=cfg)
+    s2 = EditState(bundle, points=s2.points, atlas=paint, cfg=cfg)
     a, b = _render(s1, test), _render(s2, test)
     assert torch.equal(a["rgb"], b["rgb"])
 

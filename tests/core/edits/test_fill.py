@@ -1,0 +1,129 @@
+"""Filling stretched regions (DeformationField.fill): nothing at rest, points on the stretched pairs' segments with
+their canonical counterparts, each pair once, the budget kept, tears left open, finite on hostile input."""
+import math
+
+import pytest
+import torch
+
+from core.edits.deformation import DeformationConfig, DeformationField
+from core.util.errors import InputError
+
+
+def _sheet(n=16):
+    u, v = torch.meshgrid(torch.linspace(-1, 1, n), torch.linspace(-1, 1, n), indexing="ij")
+    return torch.stack([u.reshape(-1), v.reshape(-1), torch.zeros(n * n)], 1)
+
+
+def _volume(n=400, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, 3, generator=g) * 2 - 1
+
+
+@pytest.mark.parametrize("make", [_sheet, _volume])
+def test_nothing_added_at_rest_or_under_a_rigid_motion(make):
+    p = make()
+    fld = DeformationField(p)
+    new, can, src = fld.fill(p)
+    assert new.shape == (0, 3) and can.shape == (0, 3) and src.shape == (0,)
+    c, s = math.cos(0.8), math.sin(0.8)
+    rot = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    assert fld.fill(p @ rot.T + 5.0)[0].shape[0] == 0
+    # a uniform compression pulls nothing apart either
+    assert fld.fill(p * 0.3)[0].shape[0] == 0
+
+
+@pytest.mark.parametrize("make", [_sheet, _volume])
+def test_added_points_follow_an_affine_stretch_exactly(make):
+    """Under d = A c + b the added points are A (their canonical points) + b, on the segment of their pair,
+    spaced at most `ratio` times the canonical distance apart."""
+    p = make()
+    a = torch.tensor([[3.5, 0.4, 0.0], [0.0, 1.0, 0.2], [0.1, 0.0, 1.0]])
+    b = torch.tensor([1.0, -2.0, 0.5])
+    q = p @ a.T + b
+    fld = DeformationField(p)
+    new, can, src = fld.fill(q, ratio=1.5, budget=10.0)
+    assert new.shape[0] > 0 and torch.isfinite(new).all() and torch.isfinite(can).all()
+    assert torch.allclose(new, can @ a.T + b, atol=1e-4)
+    # the source is the nearer end: its canonical point is within half the pair's canonical distance
+    half = 0.5 * float(fld.scale.max()) + 1e-6
+    assert bool(((can - p[src]).norm(dim=1) <= half).all())
+    # each pair once: no point added twice from the same source (a grid's crossing diagonals may share a midpoint)
+    d = torch.cdist(new, new) + torch.eye(new.shape[0]) * 1e9
+    same = (d < 1e-6) & (src[:, None] == src[None, :])
+    assert not bool(same.any())
+
+
+def test_pair_counts_follow_the_growth_and_the_budget_holds():
+    p = _sheet(12)
+    fld = DeformationField(p)
+    q = p * torch.tensor([4.0, 1.0, 1.0])  # x offsets grow 4×: ceil(4 / 1.5) - 1 = 2 points on an x pair
+    new, can, _ = fld.fill(q, ratio=1.5, budget=100.0)
+    n_x = new.shape[0]
+    new2, _, _ = fld.fill(q, ratio=2.1, budget=100.0)  # ceil(4 / 2.1) - 1 = 1 on an x pair
+    assert n_x > new2.shape[0] > 0
+    m = p.shape[0]
+    # one point short of the full fill: the ratio is raised, no further than needed (2.1 would do)
+    budget = (n_x - 1) / m
+    got = fld.fill(q, ratio=1.5, budget=budget)[0].shape[0]
+    assert new2.shape[0] <= got <= budget * m
+    for budget in (0.01, 0.05, 0.5):  # a uniform stretch fills all of a level or none of it
+        assert fld.fill(q, ratio=1.5, budget=budget)[0].shape[0] <= budget * m
+    assert fld.fill(q, ratio=1.5, budget=0.0)[0].shape[0] == 0
+    # a pair along y only (offset (0, dy)) did not grow: every added point lies between x-separated points
+    assert torch.isfinite(can).all()
+
+
+def test_tears_are_left_open():
+    """Half the sheet sent far away (a part detached, grown beyond max_stretch): no bridge across the gap."""
+    p = _sheet(16)
+    q = p.clone()
+    right = p[:, 0] > 0
+    q[right] += torch.tensor([1e3, 0.0, 0.0])
+    new, _, _ = DeformationField(p).fill(q, ratio=1.5, budget=10.0)
+    assert new.shape[0] == 0
+
+
+def test_hostile_inputs_give_finite_points():
+    p = _volume(300)
+    fld = DeformationField(p)
+    q = p * torch.tensor([5.0, 1.0, 1.0])
+    q[::7] = float("nan")
+    q[3::11] = 1e30
+    q[5::13] = 0.0  # collapsed onto one point
+    new, can, src = fld.fill(q, ratio=1.5, budget=4.0)
+    assert new.shape[0] > 0
+    assert torch.isfinite(new).all() and torch.isfinite(can).all()
+    assert bool(torch.isfinite(q[src]).all())  # sources are present points
+    assert float(new.abs().max()) < 1e3
+    # every point absent: nothing to fill
+    assert fld.fill(torch.full_like(p, float("nan")))[0].shape[0] == 0
+
+
+def test_with_ids_duplicated_and_removed_points():
+    p = _sheet(12)
+    n = p.shape[0]
+    ids = torch.cat([torch.arange(0, n, 2), torch.arange(n), torch.arange(5)])  # some twice, some thrice
+    q = p[ids] * torch.tensor([3.0, 1.0, 1.0])
+    fld = DeformationField(p)
+    new, can, src = fld.fill(q, ids, ratio=1.5, budget=2.0)
+    assert new.shape[0] > 0 and torch.isfinite(new).all()
+    assert int(src.min()) >= 0 and int(src.max()) < q.shape[0]
+    assert torch.allclose(new, can * torch.tensor([3.0, 1.0, 1.0]), atol=1e-4)
+
+
+def test_gradients_and_fill_match_the_separate_calls():
+    p = _volume(300)
+    q = p * torch.tensor([3.0, 0.5, 1.0])
+    fld = DeformationField(p, DeformationConfig(k=10))
+    f, (new, can, src) = fld.gradients_and_fill(q, ratio=1.5, budget=3.0)
+    assert torch.equal(f, fld.gradients(q))
+    sep = fld.fill(q, ratio=1.5, budget=3.0)
+    assert torch.equal(new, sep[0]) and torch.equal(can, sep[1]) and torch.equal(src, sep[2])
+
+
+def test_bad_ratio_and_budget_are_refused():
+    p = _sheet(6)
+    fld = DeformationField(p)
+    for kw in ({"ratio": 1.0}, {"ratio": float("nan")}, {"budget": -1.0}, {"budget": float("inf")}):
+        with pytest.raises(InputError):
+            fld.fill(p, **kw)
