@@ -149,6 +149,6 @@ def test_posed_layer_traces_like_render_edited():
     c2w[:3, 3] *= 2.0
     tr = trace_layer(state, c2w.numpy(), test.height, test.width, test.focal)
     ref = render_edited(state, c2w, test.height, test.width, test.focal)
-    assert torch.equal(tr["weights"], ref["trace"]["weights"]) and torch.equal(tr["idx"], ref["trace"]["idx"])
+    assert torch.equal(tr.weights, ref["trace"].weights) and torch.equal(tr.idx, ref["trace"].idx)
     layer = render_layer(state, c2w.numpy(), test.height, test.width, test.focal, trace=tr)
     np.testing.assert_allclose(layer["alpha"], ref["alpha"].numpy(), atol=1e-6)
