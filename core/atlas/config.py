@@ -79,6 +79,8 @@ class AtlasConfig:
     island_fill: float = opt(1.0, "islands: a texel belongs to an island when a sample lands within this many "
                                   "texels of it (closes gaps between samples; in sample spacings when coarser)",
                              above=0.0, max=64.0)
+    island_transpose: bool = opt(True, "islands: the packer may transpose an island (turns by 90 degrees and mirrors, "
+                                       "exact on the texel grid): curved islands pack much tighter")
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
                                  min=1, max=1_000_000)
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings",
