@@ -14,8 +14,11 @@ from core.atlas.packing import GridLayout, pack, sample_charts, texel_uv, unpack
 from core.atlas.texture import kernel_texture, local_linear_points
 from core.util.errors import InputError, ModelFileError
 
-FORMAT_VERSION = 2  # 2: island layout ("layout": "islands"); version 1 (grid layout) files still load
-READ_VERSIONS = (1, 2)
+# 1: grid layout; 2: island layout ("layout": "islands"); 3: islands some of which are transposed
+# (atlas/islands/orient, which a version-2 reader would ignore and misplace). Files are written at the lowest
+# version that describes them, so older readers load every file they can read correctly.
+FORMAT_VERSION = 3
+READ_VERSIONS = (1, 2, 3)
 _CHUNK = 65536
 MAX_BAKE_SAMPLES = 200_000  # stored surface samples for baking (2.4 MB); more are subsampled
 
@@ -326,7 +329,8 @@ class Atlas(nn.Module):
     def meta(self) -> dict:
         """JSON-able description needed to rebuild the atlas from its arrays."""
         L = self.layout
-        return dict(version=FORMAT_VERSION if self.islands else 1, n=L.n, R=L.R, pad=L.pad, half=self.half,
+        version = 1 if not self.islands else (3 if bool((L.orient != 0).any()) else 2)
+        return dict(version=version, n=L.n, R=L.R, pad=L.pad, half=self.half,
                     height=L.shape[0], width=L.shape[1], layout=getattr(L, "kind", "grid"),
                     uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch)
 

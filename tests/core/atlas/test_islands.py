@@ -187,4 +187,7 @@ def test_texel_map_round_trips_on_reoriented_islands():
         a.set_layout(_reoriented(lay, q))
         a.compute_texel_points(x, 3 * spacing, 2.0, "splat", 1.0)
         shares.append(a.texel_stats["round_trip_1"])
+        assert a.meta()["version"] == (2 if q == 0 else 3)  # a version-2 reader would ignore the orientations
+        back = IslandLayout.from_arrays(a.to_arrays(), 2, a.layout.size, a.layout.pad)
+        assert torch.equal(back.orient, a.layout.orient)
     assert min(shares) > 0.93 and max(shares) - min(shares) < 0.01, shares  # without turning back: 0.83-0.91
