@@ -311,7 +311,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     with torch.no_grad():
         atlas.textures.copy_(dilate_unused(atlas.textures.clamp(0, 1), used))
         atlas.canonicalise_textures()
-        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle,
+        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.max_cycle(atlas.islands),
                                    "splat" if atlas.islands else cfg.texel_map, cfg.texture_sigma)
     if atlas.islands:
         hist["texel_stats"] = dict(atlas.texel_stats)
