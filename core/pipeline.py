@@ -88,8 +88,9 @@ def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True,
 
 def refresh_texel_map(bundle, split, cfg: AtlasConfig) -> dict:
     """Recompute the texel->surface map of a fitted atlas with the current rules (cfg.texel_map, texel_max_dist,
-    texel_max_cycle), keeping charts, maps and texture: surface samples from `split`, no refit. Models made before
-    the forward-splat map (whose map came from the surface-coordinate net) gain the accurate map this way."""
+    texel_max_cycle or, for island atlases, island_texel_max_cycle), keeping charts, maps and texture: surface
+    samples from `split`, no refit. Models made before the forward-splat map (whose map came from the
+    surface-coordinate net) gain the accurate map this way."""
     from core.util.errors import InputError
 
     if bundle.atlas is None:
@@ -101,8 +102,8 @@ def refresh_texel_map(bundle, split, cfg: AtlasConfig) -> dict:
         from core.atlas.fit import sample_spacing
 
         spacing = sample_spacing(xyz.cpu().double().numpy())[0]
-    tp = bundle.atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle, cfg.texel_map,
-                                           cfg.texture_sigma)
+    tp = bundle.atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.max_cycle(bundle.atlas.islands),
+                                           cfg.texel_map, cfg.texture_sigma)
     ok = torch.isfinite(tp).all(-1)
     _, pix = bundle.atlas.atlas_pixel_coords(tp[ok])
     rows, cols = torch.nonzero(ok, as_tuple=True)

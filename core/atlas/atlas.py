@@ -14,8 +14,11 @@ from core.atlas.packing import GridLayout, pack, sample_charts, texel_uv, unpack
 from core.atlas.texture import kernel_texture, local_linear_points
 from core.util.errors import InputError, ModelFileError
 
-FORMAT_VERSION = 2  # 2: island layout ("layout": "islands"); version 1 (grid layout) files still load
-READ_VERSIONS = (1, 2)
+# 1: grid layout; 2: island layout ("layout": "islands"); 3: islands some of which are transposed
+# (atlas/islands/orient, which a version-2 reader would ignore and misplace). Files are written at the lowest
+# version that describes them, so older readers load every file they can read correctly.
+FORMAT_VERSION = 3
+READ_VERSIONS = (1, 2, 3)
 _CHUNK = 65536
 MAX_BAKE_SAMPLES = 200_000  # stored surface samples for baking (2.4 MB); more are subsampled
 
@@ -221,11 +224,13 @@ class Atlas(nn.Module):
 
     @torch.no_grad()
     def _newton_to_texels(self, x: torch.Tensor, slope: torch.Tensor, chart: torch.Tensor, target: torch.Tensor,
-                          iters: int = 6, max_move: float = 8.0, chunk: int = 32768, h: float = 0.25) -> torch.Tensor:
+                          iters: int = 6, max_move: float = 8.0, chunk: int = 32768, h: float = 0.25,
+                          orient: torch.Tensor | None = None) -> torch.Tensor:
         """Move points x [K, 3] within their surface's tangent plane (slope [K, 2, 3]: dx per texel) until their
         chart's forward map (chart [K]) sends them to target [K, 2] pixel (col, row): Gauss-Newton on
         q -> pixel(x + q slope) with derivatives by finite differences of h texels along the slope, at most
         max_move typical texel sizes from the local-linear point (and kept only if it still lies near a sample).
+        orient [K, 2, 2]: the target island's orientation (chart texel offsets -> image offsets; None: identity).
         Ill-conditioned steps are skipped."""
         L, A = self.layout, self.layout.size
         aff = L.affine.to(self.device)
@@ -240,6 +245,7 @@ class Atlas(nn.Module):
 
         for s in range(0, len(x), chunk):
             x0, B, ch, tg = x[s:s + chunk], slope[s:s + chunk], chart[s:s + chunk], target[s:s + chunk]
+            rot = None if orient is None else orient[s:s + chunk].to(x0.dtype)
             ar = torch.arange(len(x0), device=self.device)
             q = torch.zeros(len(x0), 2, device=self.device)
             xs = x0.clone()
@@ -248,6 +254,8 @@ class Atlas(nn.Module):
                 pix = self.layout.place(raw[:, None].expand(-1, self.n, -1).contiguous())[:, 0] * A \
                     if self.n == 1 else self._place_one(raw, ch) * A
                 r = pix - tg
+                if rot is not None:  # the miss in chart texels: image offsets turned back (orthogonal matrices)
+                    r = (rot.transpose(1, 2) @ r[..., None])[..., 0]
                 t0 = chart_texels(xs, ch, ar)
                 Mq = torch.stack([(chart_texels(xs + h * B[:, k], ch, ar) - t0) / h for k in range(2)], -1)
                 det = torch.linalg.det(Mq)
@@ -296,7 +304,8 @@ class Atlas(nn.Module):
         cov &= L.island_pixels.to(self.device) & torch.isfinite(cand).all(-1)
         rows, cols = torch.nonzero(cov, as_tuple=True)
         pts = self._newton_to_texels(cand[rows, cols], slope[rows, cols], owner[rows, cols],
-                                     torch.stack([cols + 0.5, rows + 0.5], -1).float())
+                                     torch.stack([cols + 0.5, rows + 0.5], -1).float(),
+                                     orient=L.orient_of_pixels(rows, cols).to(self.device))
         keep = torch.zeros(len(rows), dtype=torch.bool, device=self.device)
         miss = torch.full((len(rows),), float("inf"), device=self.device)
         if len(rows):
@@ -320,7 +329,8 @@ class Atlas(nn.Module):
     def meta(self) -> dict:
         """JSON-able description needed to rebuild the atlas from its arrays."""
         L = self.layout
-        return dict(version=FORMAT_VERSION if self.islands else 1, n=L.n, R=L.R, pad=L.pad, half=self.half,
+        version = 1 if not self.islands else (3 if bool((L.orient != 0).any()) else 2)
+        return dict(version=version, n=L.n, R=L.R, pad=L.pad, half=self.half,
                     height=L.shape[0], width=L.shape[1], layout=getattr(L, "kind", "grid"),
                     uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch)
 

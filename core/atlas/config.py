@@ -79,6 +79,8 @@ class AtlasConfig:
     island_fill: float = opt(1.0, "islands: a texel belongs to an island when a sample lands within this many "
                                   "texels of it (closes gaps between samples; in sample spacings when coarser)",
                              above=0.0, max=64.0)
+    island_transpose: bool = opt(True, "islands: the packer may transpose an island (turns by 90 degrees and mirrors, "
+                                       "exact on the texel grid): curved islands pack much tighter")
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
                                  min=1, max=1_000_000)
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings",
@@ -88,6 +90,9 @@ class AtlasConfig:
                          choices=("splat", "inverse"))
     texel_max_cycle: float = opt(2.0, "texel map: NaN where t_c of the texel's point misses the texel centre by more than "
                                       "this many texels (folds, outside the used region)", above=0.0)
+    island_texel_max_cycle: float = opt(1.0, "islands: the texel map keeps a texel's point only where t_c sends it back "
+                                             "within this many texels of the texel centre (the grid uses "
+                                             "texel_max_cycle)", above=0.0)
     eval_samples: int = opt(8192, "samples used for the fitting-PSNR history", min=1, max=1 << 22)
     log_every: int = opt(50, "steps between history entries", min=1)
     threads: int = opt(1, "torch CPU threads while fitting (0 = keep torch's setting); small matrices: 2 threads "
@@ -107,3 +112,7 @@ class AtlasConfig:
     def resolution(self, n: int) -> int:
         """Chart texture side R (paper: 256*sqrt(2/n), so the atlas memory is fixed)."""
         return int(self.texture_res) if self.texture_res > 0 else int(round(256 * math.sqrt(2.0 / n)))
+
+    def max_cycle(self, islands: bool) -> float:
+        """Texel map: the largest miss (texels) of a texel's point mapped back, for an island or a grid atlas."""
+        return float(self.island_texel_max_cycle if islands else self.texel_max_cycle)

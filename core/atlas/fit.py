@@ -98,7 +98,8 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
             scale[c] = s0 * float(np.clip(math.sqrt(area_c[c] / (h * h) / max(cells, 1)), 0.25, 4.0))
             sp = texel_spacing(uv[torch.from_numpy(m).to(uv.device), c] * float(scale[c]))
             fill[c] = cfg.island_fill * max(1.0, sp)
-        layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.image_size, fill, cfg.island_min_texels)
+        layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.image_size, fill, cfg.island_min_texels,
+                               transpose=cfg.island_transpose)
         if layout is not None and (cfg.image_size > 0 or layout.size <= cfg.max_image_size):
             info = {"texel_size": h, "chart_scale": scale.tolist(), "islands": layout.islands,
                     "atlas_size": layout.size, "island_seconds": time.perf_counter() - t0}
@@ -311,7 +312,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
 
     with torch.no_grad():
         atlas.canonicalise_textures()
-        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.texel_max_cycle,
+        atlas.compute_texel_points(xyz, cfg.texel_max_dist * spacing, cfg.max_cycle(atlas.islands),
                                    "splat" if atlas.islands else cfg.texel_map, cfg.texture_sigma)
     if atlas.islands:
         hist["texel_stats"] = dict(atlas.texel_stats)

@@ -12,8 +12,10 @@ views of one image with R = size: chart c's coordinates, divided by size, are al
 Islands are built on a grid of one cell per texel: a cell is occupied when a sample whose most probable chart is c
 lands in it, or in a cell within `fill` cells (closing the gaps between samples); 4-connected components are the
 islands, components below `min_cells` are dropped (their points clamp to the nearest island). xatlas packs the
-islands' cell meshes with `pad` texels of padding around each, without rotations (a painter sees every island
-upright, and an island's texels stay aligned with image pixels).
+islands' cell meshes with `pad` texels of padding around each; it may transpose an island (`orient`: one of the
+eight symmetries of the texel grid, which keep its texels aligned with image pixels; a learned chart has no
+preferred handedness anyway): curved islands pack much tighter (`transpose=False` keeps every island as its
+chart lays it out).
 """
 from __future__ import annotations
 
@@ -23,10 +25,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from core.atlas.outlines import ORIENT_NP, cell_pixels
 from core.util.errors import InputError, ModelFileError
 
 BRUTE_FORCE_SIDE = 1024  # xatlas tries every position up to this atlas side
 CLAMP_MARGIN = 0.5  # texels a lookup may reach past its nearest occupied cell (bilinear reads one more: pad >= 2)
+ORIENT = torch.from_numpy(ORIENT_NP).float()
 
 
 @dataclass(eq=False)
@@ -34,8 +38,9 @@ class IslandLayout:
     """n charts packed as islands into one size x size image.
 
     affine [n, 2, 3] float: chart texel coordinates (col, row) = affine[c] @ (u, v, 1); cells [n, G, G] int:
-    island id of each texel cell of chart c, -1 where unused; offset [I, 2] int: (col, row) pixel offset of
-    island i.
+    island id of each texel cell of chart c, -1 where unused; offset [I, 2] int and orient [I] int in 0..7 (None: 0):
+    island i's chart texel coordinates t go to pixel (col, row) = ORIENT[orient[i]] @ t + offset[i] (a symmetry of
+    the texel grid: turns by 90° and mirrors, exact on the grid).
     Derived on construction: nearest [n, G, G, 2] (row, col) of each cell's nearest occupied cell, island_pixels
     [size, size] bool, owner [size, size] chart of the nearest island pixel, region [size, size] bool (islands and
     their padding), label [size, size] the nearest island's id within pad + 1 (-1 beyond; texture kernels stay
@@ -47,6 +52,7 @@ class IslandLayout:
     affine: torch.Tensor
     cells: torch.Tensor
     offset: torch.Tensor
+    orient: torch.Tensor | None = None
     nearest: torch.Tensor = field(init=False)
     island_pixels: torch.Tensor = field(init=False)
     owner: torch.Tensor = field(init=False)
@@ -63,6 +69,11 @@ class IslandLayout:
         self.cells = torch.as_tensor(self.cells).long().cpu()
         self.offset = torch.as_tensor(self.offset).long().reshape(-1, 2).cpu()
         n, size, I = self.n, self.size, self.offset.shape[0]
+        self.orient = torch.zeros(I, dtype=torch.long) if self.orient is None else \
+            torch.as_tensor(self.orient).long().reshape(-1).cpu()
+        if self.orient.shape[0] != I or (I and (int(self.orient.min()) < 0 or int(self.orient.max()) > 7)):
+            raise InputError(f"island layout: orient must hold one value in 0..7 per island ({I}), got "
+                             f"{tuple(self.orient.shape)}")
         if self.affine.shape[0] != n or self.cells.dim() != 3 or self.cells.shape[0] != n or size < 2 or self.pad < 0:
             raise InputError(f"island layout: inconsistent shapes (n={n}, affine {tuple(self.affine.shape)}, cells "
                              f"{tuple(self.cells.shape)}, size {size}, pad {self.pad})")
@@ -83,12 +94,12 @@ class IslandLayout:
         island_chart = np.full(I, -1, np.int64)
         pix = np.full((size, size), -1, np.int64)
         ids = np.full((size, size), -1, np.int64)
-        off = self.offset.numpy()
+        off, orient = self.offset.numpy(), self.orient.numpy()
         for c in range(n):
             rr, kk = np.nonzero(cells[c] >= 0)
             isl = cells[c][rr, kk]
             island_chart[isl] = c
-            pr, pc = rr + off[isl, 1], kk + off[isl, 0]
+            pc, pr = cell_pixels(kk, rr, off[isl], orient[isl])
             if len(pr) and (pr.min() < 0 or pc.min() < 0 or pr.max() >= size or pc.max() >= size):
                 raise InputError(f"island layout: an island of chart {c} lies outside the {size}x{size} image")
             if (pix[pr, pc] >= 0).any():
@@ -141,6 +152,7 @@ class IslandLayout:
         G = self.cells.shape[1]
         aff, nearest = self.affine.to(dev).to(uv.dtype), self.nearest.to(dev)
         cells, offset = self.cells.to(dev), self.offset.to(dev).to(uv.dtype)
+        orient, orients = self.orient.to(dev), ORIENT.to(dev).to(uv.dtype)
         for c in range(self.n):
             u = torch.nan_to_num(uv[:, c], nan=0.0, posinf=1.0, neginf=0.0).clamp(-1.0, 2.0)
             t = u @ aff[c, :, :2].T + aff[c, :, 2]
@@ -149,8 +161,14 @@ class IslandLayout:
             lo = nb.flip(-1).to(uv.dtype) - CLAMP_MARGIN  # (col, row)
             t = torch.maximum(torch.minimum(t, lo + 1 + 2 * CLAMP_MARGIN), lo)
             isl = cells[c, nb[:, 0], nb[:, 1]].clamp_min(0)
-            out[:, c] = (t + offset[isl]) / self.size
+            out[:, c] = ((orients[orient[isl]] @ t[..., None])[..., 0] + offset[isl]) / self.size
         return out
+
+    def orient_of_pixels(self, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+        """The orientation matrix [K, 2, 2] of the island nearest each pixel (rows, cols [K] long): chart texel
+        offsets -> image offsets; its transpose maps image offsets back (the matrices are orthogonal)."""
+        isl = self.label.to(rows.device)[rows, cols].clamp_min(0)
+        return ORIENT.to(rows.device)[self.orient.to(rows.device)[isl]]
 
     def hard_probs(self, logits_or_probs: torch.Tensor) -> torch.Tensor:
         """One chart per point: one-hot [M, n] of the most probable chart that has islands."""
@@ -183,17 +201,20 @@ class IslandLayout:
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {"atlas/islands/affine": self.affine.numpy().astype(np.float32),
                 "atlas/islands/cells": self.cells.numpy().astype(np.int32),
-                "atlas/islands/offset": self.offset.numpy().astype(np.int32)}
+                "atlas/islands/offset": self.offset.numpy().astype(np.int32),
+                "atlas/islands/orient": self.orient.numpy().astype(np.int32)}
 
     @classmethod
     def from_arrays(cls, arrays: dict, n: int, size: int, pad: int) -> "IslandLayout":
         for key in ("atlas/islands/affine", "atlas/islands/cells", "atlas/islands/offset"):
             if key not in arrays:
                 raise ModelFileError(f"atlas: missing array '{key}' (island layout) in the model file")
+        orient = arrays.get("atlas/islands/orient")  # files written before islands could be transposed have none
         try:
             return cls(n, size, pad, torch.from_numpy(np.asarray(arrays["atlas/islands/affine"], np.float32).copy()),
                        torch.from_numpy(np.asarray(arrays["atlas/islands/cells"]).astype(np.int64)),
-                       torch.from_numpy(np.asarray(arrays["atlas/islands/offset"]).astype(np.int64)))
+                       torch.from_numpy(np.asarray(arrays["atlas/islands/offset"]).astype(np.int64)),
+                       None if orient is None else torch.from_numpy(np.asarray(orient).astype(np.int64)))
         except (InputError, ValueError, IndexError) as e:
             raise ModelFileError(f"atlas: {e}") from e
 
@@ -258,27 +279,30 @@ def _cell_mesh(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return verts, inv.reshape(-1, 3).astype(np.uint32)
 
 
-def pack_islands(masks: list[np.ndarray], pad: int, size: int = 0):
-    """Pack island cell masks (each [h, w] bool, cropped) with xatlas, no rotation, `pad` texels of padding, each
-    island whole (xatlas cuts an island that does not fit into slivers: that counts as not fitting).
+def pack_islands(masks: list[np.ndarray], pad: int, size: int = 0, transpose: bool = False):
+    """Pack island cell masks (each [h, w] bool, cropped) with xatlas, `pad` texels of padding, each island whole
+    (xatlas cuts an island that does not fit into slivers: that counts as not fitting). transpose: xatlas may
+    transpose islands (a symmetry of the texel grid, recorded per island); else every island keeps its layout.
     size > 0: into one size x size image (None when they do not fit); 0: the smallest square found, from the
-    islands' area with their padding and the longest island, growing 2 % at a time. Returns (offsets [I, 2] int (col, row) of each
-    mask's cell (0, 0), side)."""
+    islands' area with their padding and the longest island, growing 2 % at a time. Returns (offsets [I, 2] int
+    (col, row), orient [I] int (ORIENT): mask cell (col, row) t goes to pixel ORIENT[orient] @ t + offset, side)."""
     if size > 0:
-        got = _xatlas_pack(masks, pad, size)
-        return None if got is None else (got[0], size)
+        got = _xatlas_pack(masks, pad, size, transpose)
+        return None if got is None else (got[0], got[1], size)
     longest = max(max(m.shape) for m in masks) + 2 * pad + 4
     area = sum(int(m.sum()) + pad * (m.shape[0] + m.shape[1]) * 2 for m in masks)  # cells and their padding
     side = max(int(math.ceil(math.sqrt(area / 0.9))), longest)
     for _ in range(200):
-        got = _xatlas_pack(masks, pad, side)
+        got = _xatlas_pack(masks, pad, side, transpose)
         if got is not None:
-            return got[0], side
+            return got[0], got[1], side
         side = int(math.ceil(side * 1.02))
     raise InputError("island layout: xatlas found no packing")
 
 
-def _xatlas_pack(masks, pad, size):
+def _xatlas_pack(masks, pad, size, transpose=False):
+    """One xatlas packing of the masks into a size x size image (size 0: xatlas's own size): (offsets [I, 2],
+    orient [I], W, H), or None when an island does not fit whole."""
     import xatlas
 
     atlas = xatlas.Atlas()
@@ -290,7 +314,7 @@ def _xatlas_pack(masks, pad, size):
     opts = xatlas.PackOptions()
     opts.padding = max(int(pad) - 1, 0)  # xatlas rasterises one texel more: islands end up >= 2 * pad apart
     opts.texels_per_unit = 1.0
-    opts.rotate_charts = False
+    opts.rotate_charts = bool(transpose)  # xatlas's "rotation" transposes a chart: exact on the texel grid
     opts.rotate_charts_to_axis = False
     opts.bilinear = True
     opts.bruteForce = bool(size > 0 and size <= BRUTE_FORCE_SIDE)  # tighter, slower: small atlases only
@@ -301,16 +325,24 @@ def _xatlas_pack(masks, pad, size):
     W, H = int(atlas.width), int(atlas.height)
     side = max(W, H) if size <= 0 else size
     offsets = np.zeros((len(masks), 2), np.int64)
+    orient = np.zeros(len(masks), np.int64)
     for i, m in enumerate(masks):
         vmap, _, uv = atlas[i]
-        d = uv * np.array([W, H], np.float64) - verts[i][vmap].astype(np.float64)
-        if np.ptp(d, axis=0).max() > 0.01:  # cut
+        placed = uv * np.array([W, H], np.float64)
+        v = verts[i][vmap].astype(np.float64)
+        for q in (range(len(ORIENT_NP)) if transpose else (0,)):
+            d = placed - v @ ORIENT_NP[q].T
+            if np.ptp(d, axis=0).max() <= 0.01:
+                break
+        else:  # no symmetry of the grid maps the island onto its place: xatlas cut it
             return None
+        orient[i] = q
         offsets[i] = np.floor(np.median(d, axis=0) + 0.5).astype(np.int64)  # xatlas places at half-texels
-        hi = offsets[i] + np.array([m.shape[1], m.shape[0]])
-        offsets[i] -= np.maximum(hi - side, 0)  # the rounding may reach one texel past the image
-        offsets[i] = np.maximum(offsets[i], 0)
-    return offsets, W, H
+        corners = np.array([[0, 0], [m.shape[1], 0], [0, m.shape[0]], [m.shape[1], m.shape[0]]]) @ ORIENT_NP[q].T
+        lo, hi = corners.min(0) + offsets[i], corners.max(0) + offsets[i]
+        shift = np.maximum(hi - side, 0)  # the rounding may reach one texel past the image
+        offsets[i] += np.maximum(shift - lo, 0) - shift
+    return offsets, orient, W, H
 
 
 def min_area_angle(t: np.ndarray, steps: int = 90) -> float:
@@ -334,10 +366,11 @@ def min_area_angle(t: np.ndarray, steps: int = 90) -> float:
 
 
 def build_islands(probs: torch.Tensor, uv: torch.Tensor, scale: np.ndarray, pad: int, size: int = 0,
-                  fill=1.0, min_cells: int = 8, rotate: bool = True) -> IslandLayout | None:
+                  fill=1.0, min_cells: int = 8, rotate: bool = True, transpose: bool = True) -> IslandLayout | None:
     """The island layout of samples with chart probabilities probs [S, n] and chart coordinates uv [S, n, 2], each
     chart at scale[c] texels per uv unit (rotated to its smallest bounding box when rotate); fill: occupancy
-    radius in texels (one, or [n] per chart). size > 0: fixed image side (None when the islands do not fit)."""
+    radius in texels (one, or [n] per chart). transpose: the packer may transpose islands (pack_islands).
+    size > 0: fixed image side (None when the islands do not fit)."""
     n = probs.shape[1]
     fill = np.broadcast_to(np.asarray(fill, np.float64), (n,))
     owner = probs.argmax(-1).cpu().numpy()
@@ -376,12 +409,14 @@ def build_islands(probs: torch.Tensor, uv: torch.Tensor, scale: np.ndarray, pad:
             crops.append((k0, r0))
     if not masks:
         raise InputError("island layout: no sample falls in any chart")
-    packed = pack_islands(masks, pad, size)
+    packed = pack_islands(masks, pad, size, transpose=transpose)
     if packed is None:
         return None
-    offsets, side = packed
+    offsets, orient, side = packed
     for i, (c, sel) in enumerate(mask_chart):
         cells[c][sel] = i
-    offsets = offsets - np.asarray(crops, np.int64)  # mask (0, 0) is chart cell (r0, k0)
+    # mask cell (0, 0) is chart cell (col k0, row r0): pixel = M (t - crop) + offset = M t + (offset - M crop)
+    crop = np.asarray(crops, np.int64)
+    offsets = offsets - np.einsum("iab,ib->ia", ORIENT_NP[orient], crop)
     return IslandLayout(n, side, pad, torch.from_numpy(affine).float(), torch.from_numpy(cells),
-                        torch.from_numpy(offsets))
+                        torch.from_numpy(offsets), torch.from_numpy(orient))

@@ -4,10 +4,28 @@ from __future__ import annotations
 
 import numpy as np
 
+# the eight symmetries of the texel grid (four turns by 90°, then the same after a mirror): an island with
+# orientation q maps its chart texel coordinates t = (col, row) to ORIENT_NP[q] @ t (+ its offset)
+ORIENT_NP = np.array([[[1, 0], [0, 1]], [[0, -1], [1, 0]], [[-1, 0], [0, -1]], [[0, 1], [-1, 0]],
+                      [[1, 0], [0, -1]], [[-1, 0], [0, 1]], [[0, 1], [1, 0]], [[0, -1], [-1, 0]]], np.int64)
+
+
+def cell_pixels(cols: np.ndarray, rows: np.ndarray, offset: np.ndarray, orient: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Image pixels (col [K], row [K]) of chart cells (cols, rows [K] int) of islands with offset [K, 2] (col, row)
+    and orientation orient [K] (0..7, ORIENT_NP): the pixel holding the cell's centre once placed."""
+    m = ORIENT_NP[np.asarray(orient, np.int64)]                                   # [K, 2, 2]
+    cx, cy = 2 * np.asarray(cols, np.int64) + 1, 2 * np.asarray(rows, np.int64) + 1  # centres, doubled: exact
+    off = np.asarray(offset, np.int64).reshape(-1, 2)
+    px = m[:, 0, 0] * cx + m[:, 0, 1] * cy + 2 * off[:, 0]
+    py = m[:, 1, 0] * cx + m[:, 1, 1] * cy + 2 * off[:, 1]
+    return (px - 1) // 2, (py - 1) // 2
+
 
 def island_mask(arrays: dict, shape: tuple[int, int]) -> np.ndarray:
     """Pixels [H, W] bool inside an island: from the island arrays of an island atlas (cells [n, G, G] island id or
-    -1, offset [I, 2] (col, row)), else (grid atlases) the texels with a surface point ('atlas/texel_points')."""
+    -1, offset [I, 2] (col, row), orient [I] when present), else (grid atlases) the texels with a surface point
+    ('atlas/texel_points')."""
     return chart_labels(arrays, shape) >= 0
 
 
@@ -39,7 +57,8 @@ def chart_labels(arrays: dict, shape: tuple[int, int], cell: int | None = None) 
         lab = np.full((H, W), -1, np.int64)
         n, rr, kk = np.nonzero(cells >= 0)
         isl = cells[n, rr, kk]
-        r, c = rr + off[isl, 1], kk + off[isl, 0]
+        orient = np.asarray(arrays.get("atlas/islands/orient", np.zeros(len(off)))).astype(np.int64).reshape(-1)
+        c, r = cell_pixels(kk, rr, off[isl], orient[isl])
         ok = (r >= 0) & (r < H) & (c >= 0) & (c < W)
         lab[r[ok], c[ok]] = isl[ok]
         return lab

@@ -143,6 +143,30 @@ def test_correspondence_gap_equals_distance_of_surface_point_to_its_ray(tiny):
         assert math.isclose(d["ray_dist_spacings"] * float(bundle.model.spacing), d["ray_dist"], rel_tol=1e-5)
 
 
+def test_retexture_against_the_perfect_atlas_measures_the_atlas_alone(tiny):
+    """psnr_object_vs_oracle compares the frame with the perfect-atlas frame (same geometry and coverage), so it
+    does not move with the ground truth, whose geometry and coverage error sets the floor of the dB gap
+    psnr_object_oracle - psnr_object, and it drops when the atlas holds the wrong texture."""
+    from types import SimpleNamespace
+
+    from core.edits.procedural import evaluate
+    from tools.eval_edits import score_frames
+
+    bundle, _, test = tiny
+    spec = {"bbox": {"center": [0.0, 0.0, 0.0], "half_size": [1.0, 1.0, 1.0]}, "texture": {"params": {}}}
+    baked = {t: bake(bundle.atlas, lambda x, t=t: (evaluate(t, x, [0.0] * 3, [1.0] * 3, None)[0], None))
+             for t in ("stripes", "checker")}
+    views = SimpleNamespace(c2w=test.c2w[:2], height=test.height, width=test.width, focal=test.focal,
+                            images=test.images[:2], alphas=test.alphas[:2])
+    other = SimpleNamespace(**{**vars(views), "images": 1.0 - views.images})  # another ground truth, same alphas
+    right = score_frames(EditState(bundle, atlas=baked["stripes"]), views, oracle=("stripes", spec))
+    noisy = score_frames(EditState(bundle, atlas=baked["stripes"]), other, oracle=("stripes", spec))
+    wrong = score_frames(EditState(bundle, atlas=baked["checker"]), views, oracle=("stripes", spec))
+    assert right["psnr_object_vs_oracle"] == noisy["psnr_object_vs_oracle"]
+    assert abs(right["psnr_object"] - noisy["psnr_object"]) > 0.2
+    assert right["psnr_object_vs_oracle"] > wrong["psnr_object_vs_oracle"] + 3.0
+
+
 def test_markdown_lists_every_method_and_case():
     meths = methods((1.0, 0.5))
     assert len(meths) == 12 and sum(m.blend == "threshold" for m in meths) == 2
