@@ -66,6 +66,64 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     return res
 
 
+DECODER_HALO = 16  # pixels: more than the UNet decoder's receptive radius (12), even (its pooling grid)
+
+
+def _span(lo: int, hi: int, halo: int, n: int) -> tuple[int, int]:
+    """[lo, hi) widened by halo, clipped to [0, n), ends on even pixels unless clipped (the UNet's pooling grid)."""
+    a = max(lo - halo, 0) // 2 * 2
+    b = hi + halo
+    b = n if b >= n else b + (b % 2)
+    return a, min(b, n)
+
+
+@torch.no_grad()
+def decode_where_active(model: PointModel, feat: torch.Tensor, active: torch.Tensor):
+    """The decoder over a frame's feature image feat [1, C, H, W], run only around the rays that saw points
+    (active [H, W] bool): model.decode_with_alpha's (rgb [1, 3, H, W], alpha [1, H, W] or None), equal to the whole
+    frame's to float rounding. Rays with no neighbour all hold one background feature; the decoder's output for a
+    frame made only of it is cached per model, size and weights, and the decoder runs on the active rays'
+    bounding box widened by 2 · DECODER_HALO, of which the box widened by DECODER_HALO (beyond the receptive
+    radius) is pasted into that cached frame. Falls back to the whole frame when the box covers most of it or the
+    inactive rays' features are not all equal."""
+    _, c, h, w = feat.shape
+    inactive = ~active
+    if not bool(inactive.any()):
+        return model.decode_with_alpha(feat)
+    rows = torch.nonzero(active.any(1)).squeeze(1)
+    cols = torch.nonzero(active.any(0)).squeeze(1)
+    if rows.numel() == 0:
+        r0 = r1 = c0 = c1 = 0
+    else:
+        r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    ir, ic = _span(r0, r1, 2 * DECODER_HALO, h), _span(c0, c1, 2 * DECODER_HALO, w)
+    if (ir[1] - ir[0]) * (ic[1] - ic[0]) > 0.7 * h * w:
+        return model.decode_with_alpha(feat)
+    first = int(torch.nonzero(inactive.reshape(-1))[0])
+    bg_feat = feat[0, :, first // w, first % w]                                           # [C]
+    if not bool((feat[0][:, inactive] == bg_feat[:, None]).all()):
+        return model.decode_with_alpha(feat)
+    key = (h, w, feat.dtype, str(feat.device), bg_feat.cpu().numpy().tobytes(),
+           tuple((p.data_ptr(), p._version) for p in model.decoder.parameters()))
+    cache = model.__dict__.setdefault("_decoded_background", {})
+    if key not in cache:
+        cache.clear()  # one size at a time: the live preview and a render at another size alternate rarely
+        rgb_bg, alpha_bg = model.decode_with_alpha(bg_feat.view(1, c, 1, 1).expand(1, c, h, w).contiguous())
+        cache[key] = (rgb_bg, alpha_bg)
+    rgb_bg, alpha_bg = cache[key]
+    rgb_c, alpha_c = model.decode_with_alpha(feat[:, :, ir[0]:ir[1], ic[0]:ic[1]])
+    orow, ocol = _span(r0, r1, DECODER_HALO, h), _span(c0, c1, DECODER_HALO, w)
+    src = (slice(orow[0] - ir[0], orow[1] - ir[0]), slice(ocol[0] - ic[0], ocol[1] - ic[0]))
+    dst = (slice(*orow), slice(*ocol))
+    rgb = rgb_bg.clone()
+    rgb[:, :, dst[0], dst[1]] = rgb_c[:, :, src[0], src[1]]
+    alpha = None
+    if alpha_bg is not None:
+        alpha = alpha_bg.clone()
+        alpha[:, dst[0], dst[1]] = alpha_c[:, src[0], src[1]]
+    return rgb, alpha
+
+
 @torch.no_grad()
 def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chunk: int = 16384,
                 features: torch.Tensor | None = None, with_alpha: bool = False):
@@ -75,16 +133,17 @@ def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chun
     h, w = trace["shape"]
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
+    table = model.point_table(features)  # per-point values, shared by the chunks (None: view-dependent)
     for s in range(0, trace["idx"].shape[0], chunk):
         sl = slice(s, s + chunk)
         att = {"weights": trace["weights"][sl], "bg": trace["bg"][sl]}
-        parts.append(model.shade(att, trace["dirs"][sl], trace["idx"][sl], bg, features=features))
+        parts.append(model.shade(att, trace["dirs"][sl], trace["idx"][sl], bg, features=features, table=table))
     alpha = None
     if model.decoder is None:
         rgb = torch.cat([p["rgb"] for p in parts]).reshape(h, w, 3)
     else:
         feat = torch.cat([p["feature"] for p in parts]).reshape(h, w, -1).permute(2, 0, 1)[None]
-        rgb, alpha = model.decode_with_alpha(feat)
+        rgb, alpha = decode_where_active(model, feat, trace["active"].reshape(h, w))
         rgb = rgb[0].permute(1, 2, 0)
         alpha = None if alpha is None else alpha[0]
         # The decoder paints the background it was trained on: its frame is a·c + (1 − a)·white, a the mask head
