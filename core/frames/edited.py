@@ -55,6 +55,9 @@ class EditConfig:
                              min=1e-3, max=1e3)
     colour: str = opt("points", "object colour: points (point render, painted texels from the atlas) | atlas "
                       "(every ray coloured from the atlas texture)", choices=("points", "atlas"))
+    attention: str = opt("auto", "attention kernel: auto (compiled on a CPU when numba is installed, else torch) "
+                                 "| torch | compiled (the same numbers to float rounding)",
+                         choices=("auto", "torch", "compiled"))
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
 
@@ -287,7 +290,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     if trace is None:
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
-                         radius_scale=state.radius_scale if cfg.f_radius else 1.0)
+                         radius_scale=state.radius_scale if cfg.f_radius else 1.0, attention=cfg.attention)
     else:
         tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0

@@ -9,7 +9,10 @@ import torch
 
 from core.images.cameras import pixel_rays
 from core.points.model import TRAIN_BACKGROUND, PointModel
+from core.points.attention_compiled import BACKENDS as ATTENTION_BACKENDS
+from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import select_neighbors
+from core.util.errors import InputError
 
 
 def pixel_grid(height: int, width: int, device) -> torch.Tensor:
@@ -23,7 +26,7 @@ def pixel_grid(height: int, width: int, device) -> torch.Tensor:
 def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
-                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0) -> dict:
+                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto") -> dict:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -31,7 +34,9 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     `python -m tools.bench.render`);
     influence [M] (default: the model's, which requires M == N);
     inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
-    `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this.
+    `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this;
+    attention: "torch" (PointModel.attend, chunk by chunk) | "compiled" (core/points/attention_compiled.py, CPU
+    with numba; the same numbers to float rounding, all rays in one call) | "auto" (compiled where supported).
     Returns dict of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], plus 'shape' (H, W).
     """
@@ -56,7 +61,19 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     res = {"weights": torch.zeros(r, k, device=dev), "fg_weights": torch.zeros(r, k, device=dev),
            "bg": torch.ones(r, device=dev), "x": o.clone()}
     act = torch.nonzero(active).squeeze(1)
-    for s in range(0, act.shape[0], chunk):
+    if attention not in ATTENTION_BACKENDS:
+        raise InputError(f"attention must be one of {ATTENTION_BACKENDS}, got {attention!r}")
+    compiled = supported(model, torch.device(dev))
+    if attention == "compiled" and not compiled:
+        raise InputError("attention 'compiled' needs numba, a CPU device and the standard key MLP; use 'auto' or "
+                         "'torch'")
+    use_compiled = attention != "torch" and compiled
+    if use_compiled and act.numel():
+        att = attend_compiled(model, pts_math, infl, o[act], d[act], idx[act], temperature=temperature, inv_f=fi,
+                              chunk=chunk)
+        for key in res:
+            res[key][act] = att[key]
+    for s in range(0, 0 if use_compiled else act.shape[0], chunk):
         sl = act[s:s + chunk]
         att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi)
         for key in res:

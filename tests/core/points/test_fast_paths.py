@@ -93,3 +93,67 @@ def test_decoder_on_the_active_box_equals_the_whole_frame(residual, hw, box):
         m.decoder.out.bias.add_(0.5)
     rgb, _ = decode_where_active(m, feat, active)
     assert float((rgb - m.decode_with_alpha(feat)[0]).abs().max()) <= 1e-5
+
+
+def _attention_case(seed, inv_f: bool, n=300, r=500, k=8, far=False):
+    m = _model(seed=seed)
+    g = torch.Generator().manual_seed(seed + 100)
+    with torch.no_grad():
+        m.influence.normal_(0.0, 1.0, generator=g)
+        m.bg_logit.fill_(0.3)
+    pts = m.xyz.detach() * (40.0 if far else 1.0)  # far: features beyond the ±64 spacing clamp
+    o = torch.tensor([0.1, -0.2, 3.0]) + 0.05 * torch.randn(r, 3, generator=g)
+    d = torch.nn.functional.normalize(torch.randn(r, 3, generator=g) * 0.15 + torch.tensor([0.0, 0.0, -1.0]), dim=1)
+    idx = torch.randint(0, n, (r, k), generator=g)
+    idx[:50, 3:] = -1
+    idx[50:60] = -1  # rays with no neighbour
+    fi = None
+    if inv_f:
+        a = torch.eye(3) + 0.4 * torch.randn(n, 3, 3, generator=g)
+        fi = torch.linalg.inv(a)
+    return m, pts, o, d, idx, fi
+
+
+@pytest.mark.parametrize("inv_f", [False, True])
+@pytest.mark.parametrize("seed,far,temperature", [(0, False, None), (1, True, None), (2, False, 0.5)])
+def test_compiled_attention_equals_attend(inv_f, seed, far, temperature):
+    from core.points import attention_compiled
+
+    if not attention_compiled.available():
+        pytest.skip("numba is not installed")
+    m, pts, o, d, idx, fi = _attention_case(seed, inv_f, far=far)
+    with torch.no_grad():
+        ref = m.attend(pts, m.influence, o, d, idx, temperature=temperature, inv_f=fi)
+    got = attention_compiled.attend_compiled(m, pts, m.influence, o, d, idx, temperature=temperature, inv_f=fi)
+    for key in ("weights", "fg_weights", "bg"):
+        assert float((got[key] - ref[key]).abs().max()) <= 1e-5, key
+    scale = float(pts.abs().max())
+    assert float((got["x"] - ref["x"]).abs().max()) <= 1e-5 * max(scale, 1.0)
+    assert float(ref["weights"][:50, 3:].abs().max()) == 0.0 == float(got["weights"][:50, 3:].abs().max())
+
+
+def test_compiled_attention_frames_equal_torch_frames():
+    """Whole frames (deformed, painted, with the decoder) by trace_frame's compiled attention equal the torch
+    path's (≤ 1e-5), and the torch path is what `attention='torch'` runs."""
+    from core.frames.edited import EditConfig, EditState, render_edited
+    from core.points import attention_compiled
+    from tests.helpers.tiny import tiny_bundle
+
+    if not attention_compiled.available():
+        pytest.skip("numba is not installed")
+    bundle = tiny_bundle("fast", decoder="unet")[0]
+    xyz = bundle.model.xyz.detach()
+    bent = xyz + 0.05 * torch.sin(3 * xyz.flip(1))
+    painted = bundle.atlas.packed_image().clone()
+    painted[::3] = 1.0 - painted[::3]
+    from core.images.cameras import focal_from_fov, look_at
+
+    c2w = look_at((1.2, -2.0, 1.5)).float()
+    focal = focal_from_fov(48, 0.69)
+    outs = {}
+    for mode in ("torch", "compiled"):
+        st = EditState(bundle, points=bent, atlas=painted, cfg=EditConfig(attention=mode))
+        outs[mode] = render_edited(st, c2w, 48, 48, focal)
+    assert outs["torch"]["stats"]["texture_rays"] > 100
+    for key in ("rgb", "alpha"):
+        assert float((outs["torch"][key] - outs["compiled"][key]).abs().max()) <= 1e-5, key
