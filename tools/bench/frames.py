@@ -47,7 +47,7 @@ def stage_parts(bundle) -> list:
     import core.points.render as render_mod
 
     return [(render_mod, "select_neighbors", "neighbour search"), (bundle.model, "attend", "attention"),
-            (bundle.model, "shade", "point colours"), (bundle.model, "decode_with_alpha", "decoder"),
+            (render_mod, "attend_compiled", "attention"), (bundle.model, "shade", "point colours"), (bundle.model, "decode_with_alpha", "decoder"),
             (edited_mod, "canonical_points", "correspondence"), (edited_mod, "_filtered_lookup", "texture lookup"),
             (edited_mod, "_lookup", "texture lookup")]
 
