@@ -58,6 +58,8 @@ def main(argv=None) -> int:
     ap.add_argument("--atlas-steps", type=int, default=20, help="stage-2 steps of the built model's atlas")
     ap.add_argument("--size", type=int, default=256, help="frame size (size × size pixels)")
     ap.add_argument("--reps", type=int, default=5, help="timed runs of each form (median reported)")
+    ap.add_argument("--distance", type=float, default=3.3, help="camera distance (the sphere has radius 0.8; at "
+                    "3.3 it fills most of the frame, farther it covers less)")
     args = parse(ap, argv, threads=1)
 
     import torch
@@ -78,7 +80,7 @@ def main(argv=None) -> int:
     model = bundle.model
     bent = bend(model.xyz.detach(), float(model.spacing))
     case = Case("deformed + painted", bundle, True, bent, retexture(bundle.atlas))
-    cams, focal = orbit_cameras(2, args.size)
+    cams, focal = orbit_cameras(2, args.size, args.distance)
     state = case.state()
     out = render_edited(state, cams[1], args.size, args.size, focal)
     tr = out["trace"]
@@ -89,7 +91,8 @@ def main(argv=None) -> int:
     rows = []
 
     print(machine_line())
-    print(f"model: {source}; frame {args.size}², deformed + painted, {act.numel()} active rays of "
+    print(f"model: {source}; frame {args.size}² at distance {args.distance:g}, deformed + painted, {act.numel()} "
+          f"active rays of "
           f"{tr['idx'].shape[0]}, K = {model.cfg.k}; median of {args.reps} interleaved runs each")
 
     if attention_compiled.supported(model, torch.device("cpu")):

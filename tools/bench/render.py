@@ -74,14 +74,14 @@ def with_decoder(bundle, decoder: str, seed: int = 0):
     return dataclasses.replace(bundle, model=model)
 
 
-def orbit_cameras(frames: int, size: int):
-    """frames c2w [4, 4] on a tilted orbit at distance 3.3 looking at the origin, and the focal length."""
+def orbit_cameras(frames: int, size: int, distance: float = 3.3):
+    """frames c2w [4, 4] on a tilted orbit at `distance` (3.3) looking at the origin, and the focal length."""
     from core.images.cameras import focal_from_fov, look_at
 
     mats = []
     for i in range(frames):
         a = 2 * math.pi * i / frames + 0.3
-        eye = (3.3 * math.cos(a) * 0.85, 3.3 * math.sin(a) * 0.85, 3.3 * 0.527)
+        eye = (distance * math.cos(a) * 0.85, distance * math.sin(a) * 0.85, distance * 0.527)
         mats.append(look_at(eye).float())
     return mats, focal_from_fov(size, 0.6911)
 
