@@ -12,6 +12,8 @@ and the largest difference of their outputs:
   embedding_bag (PointModel.shade);
 - decoder: the UNet over the whole frame vs over the active rays' box pasted into the cached background frame
   (core/points/render.py decode_where_active);
+- texture lookup: the anti-aliased lookup (core/frames/edited.py) over the whole frame vs over the textured rays'
+  bounding box;
 - pixel filter: the separable strided conv2d vs strided per-tap sums (core/images/filter.py filter_down), on the
   frame's 2 × 2 sub-pixel grid.
 """
@@ -131,6 +133,21 @@ def main(argv=None) -> int:
         with torch.no_grad():
             rows.append(("decoder", *_pair(lambda: model.decode_with_alpha(fimg),
                                            lambda: decode_where_active(model, fimg, active), args.reps)))
+
+    import core.frames.edited as edited_mod
+    from core.edits.correspondence import canonical_points
+
+    hit = tr["active"] & ((1.0 - tr["bg"]) > 1e-4)
+    sel = torch.nonzero(hit).squeeze(1)
+    xc = canonical_points(tr["fg_weights"][sel], tr["idx"][sel], tr["x"][sel], tr["origins"][sel], tr["dirs"][sel],
+                          pts, state.p_can, state.cfg.correspondence)
+
+    def lookup(crop):
+        with torch.no_grad():
+            return edited_mod._filtered_lookup(state, tr, sel, xc, args.size, args.size, focal, state.cfg.antialias,
+                                               crop=crop)
+
+    rows.append(("texture lookup (anti-aliased)", *_pair(lambda: lookup(False), lambda: lookup(True), args.reps)))
 
     sub = 2
     on = tr["active"].reshape(args.size, args.size).repeat_interleave(sub, 0).repeat_interleave(sub, 1)
