@@ -30,3 +30,16 @@ def test_frames_bench_tiny(tmp_path, capsys):
         assert math.isfinite(st["total"]) and 0 < staged <= st["total"] * 1.05
         assert st["attention"] > 0 and st["neighbour search"] > 0 and st["texture lookup"] > 0
         assert (st.get("decoder", 0.0) > 0) == p["case"].startswith("UNet")
+
+
+def test_fast_paths_bench_tiny(tmp_path):
+    """Every fast path it times agrees with its torch form on a real frame (the table's last column)."""
+    from tools.bench import fast_paths
+
+    out = tmp_path / "fast.json"
+    assert fast_paths.main(["--points", "400", "--atlas-steps", "2", "--size", "40", "--reps", "1",
+                            "--distance", "5", "--json", str(out)]) == 0
+    rows = {r["path"]: r for r in json.loads(out.read_text())["rows"]}
+    assert {"point colours", "decoder", "texture lookup (anti-aliased)", "pixel filter"} <= set(rows)
+    for r in rows.values():
+        assert r["torch_s"] > 0 and r["fast_s"] > 0 and r["max_abs_diff"] <= 1e-5, r
