@@ -66,6 +66,9 @@ class EditConfig:
                              min=1e-3, max=1e3)
     colour: str = opt("points", "object colour: points (point render, painted texels from the atlas) | atlas "
                       "(every ray coloured from the atlas texture)", choices=("points", "atlas"))
+    attention: str = opt("auto", "attention kernel: auto (compiled on a CPU when numba is installed, else torch) "
+                                 "| torch | compiled (the same numbers to float rounding)",
+                         choices=("auto", "torch", "compiled"))
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
 
@@ -288,20 +291,28 @@ def _painted(state: EditState, probs: torch.Tensor, uv: torch.Tensor) -> torch.T
 
 
 def _filtered_lookup(state: EditState, tr: Trace, sel: torch.Tensor, xc: torch.Tensor, height: int, width: int,
-                     focal: float, sub: int, texture_fn=None, threshold: bool = False) -> tuple[torch.Tensor,
-                                                                                               torch.Tensor]:
+                     focal: float, sub: int, texture_fn=None, threshold: bool = False,
+                     crop: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
     """Painted colour and mask of the rays `sel` [S] from sub x sub lookups per pixel, Blackman-Harris filtered in
     linear light (core/images/filter.py). xc [S, 3] canonical points. Returns (rgb [S, 3], mask [S]).
     threshold: apply the threshold blend's rule to each sub-pixel lookup before filtering (the mask becomes the
-    filtered share of sub-pixels that pass it, the colour their filtered mean): blend the result softly."""
+    filtered share of sub-pixels that pass it, the colour their filtered mean): blend the result softly.
+    crop: work on the bounding box of the rays `sel` only (the same numbers: every pixel outside it is off the
+    object, which the interpolation and the filter leave out anyway)."""
     dev = xc.device
+    ray_depth = tr.depth[sel]
+    if crop and sel.numel():
+        rows, cols = sel // width, sel % width
+        r0, c0 = int(rows.min()), int(cols.min())
+        height, width = int(rows.max()) - r0 + 1, int(cols.max()) - c0 + 1
+        sel = (rows - r0) * width + (cols - c0)  # the rays' pixels in the box
     n = height * width
     valid = torch.zeros(n, dtype=torch.bool, device=dev)
     valid[sel] = True
     canon = torch.zeros(n, 3, dtype=xc.dtype, device=dev)
     canon[sel] = xc
     depth = torch.zeros(n, dtype=xc.dtype, device=dev)
-    depth[sel] = tr.depth[sel]
+    depth[sel] = ray_depth
     # neighbours on the same surface: depth within 3 pixel footprints (an occlusion edge jumps much further)
     step = 3.0 * depth.abs() / focal_scale(focal)
     if texture_fn is None:  # the atlas: chart nets once per pixel, their outputs interpolated to the sub-pixels
@@ -339,7 +350,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     if trace is None:
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
-                         radius_scale=state.radius_scale if cfg.f_radius else 1.0)
+                         radius_scale=state.radius_scale if cfg.f_radius else 1.0, attention=cfg.attention)
     else:
         tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0

@@ -84,6 +84,19 @@ def subpixel_points(points: torch.Tensor, valid: torch.Tensor, depth: torch.Tens
     return out
 
 
+def _taps(x: torch.Tensor, k: torch.Tensor, sub: int, n: int, dim: int) -> torch.Tensor:
+    """Strided 1-D filter along dim (-1 or -2) of x [..., A, B]: out_j = Σ_t k[t] x[j * sub + t], j < n, as one
+    scaled strided view added per tap (the same sums as a strided conv2d with a 1 x M kernel, several times
+    faster on a CPU, where a one-channel convolution is a poor fit)."""
+    out = None
+    span = (n - 1) * sub + 1
+    for t in range(k.numel()):
+        s = x.narrow(dim, t, span)
+        s = s[..., ::sub] if dim == -1 else s[..., ::sub, :]
+        out = s * k[t] if out is None else out.add_(s * k[t])
+    return out
+
+
 def filter_down(values: torch.Tensor, on: torch.Tensor, sub: int, width: float = FILTER_WIDTH) -> torch.Tensor:
     """Pixel values from sub-pixel values with the Blackman-Harris footprint, renormalised over `on`.
 
@@ -99,8 +112,7 @@ def filter_down(values: torch.Tensor, on: torch.Tensor, sub: int, width: float =
     pad = (m - sub) // 2  # the footprint is centred on the pixel: taps from S*r - pad
     w = on.to(values.dtype)[None]
     stack = torch.cat([torch.where(on[None], values, torch.zeros_like(values)) * w, w], 0)[:, None]  # [C+1,1,SH,SW]
-    stack = F.pad(stack, (pad, pad, pad, pad))
-    y = F.conv2d(stack, k.view(1, 1, 1, -1), stride=(1, sub))
-    y = F.conv2d(y, k.view(1, 1, -1, 1), stride=(sub, 1))[:, 0]  # [C+1, H, W]
+    stack = F.pad(stack, (pad, pad, pad, pad))[:, 0]
+    y = _taps(_taps(stack, k, sub, SW // sub, -1), k, sub, SH // sub, -2)  # [C+1, H, W]
     den = y[-1]
     return torch.where(den > 1e-8, y[:-1] / den.clamp_min(1e-12), torch.full_like(y[:-1], float("nan")))

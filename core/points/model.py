@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from core.config import opt
 from core.points.decoders import UNetDecoder
@@ -178,15 +179,34 @@ class PointModel(nn.Module):
             return torch.cat([torch.sigmoid(v[..., :3]), v[..., 3:]], dim=-1)
         return v
 
+    def point_table(self, features: torch.Tensor | None = None) -> torch.Tensor | None:
+        """Values of each point [M, C] (what point_values gathers per neighbour; features [M, h] as there), or
+        None when values depend on the view direction. Computed once per frame, it serves every chunk of rays."""
+        if self.cfg.view_dependent:
+            return None
+        v = self.value_mlp(self.features if features is None else features)
+        if self.decoder is None:
+            return torch.sigmoid(v)
+        if self.cfg.decoder_residual:
+            return torch.cat([torch.sigmoid(v[:, :3]), v[:, 3:]], dim=-1)
+        return v
+
     def shade(self, att: dict, dirs: torch.Tensor, idx: torch.Tensor, background: torch.Tensor,
-              features: torch.Tensor | None = None) -> dict:
+              features: torch.Tensor | None = None, table: torch.Tensor | None = None) -> dict:
         """Ray colours (no decoder) or ray features (decoder) from attention. background [3] display colour.
+        table [M, C]: point_table(features), when the caller computed it already.
         Returns dict(rgb [R, 3] or None, feature [R, C] or None). With the residual decoder the feature's first
         three channels are the decoder-free colour over the training background and the fourth the attention's
         coverage 1 − bg (the decoder's bases; frames over another background are recomposited by
         core/points/render.py like any decoder output)."""
-        v = self.point_values(dirs, idx, features)
-        fv = (att["weights"][..., None] * v).sum(1)
+        if table is None:
+            table = self.point_table(features)
+        if table is None:  # view-dependent values: one per neighbour slot
+            v = self.point_values(dirs, idx, features)
+            fv = (att["weights"][..., None] * v).sum(1)
+        else:  # Σ_j w_ij v[idx_ij] without the [R, K, C] gather (empty slots carry weight 0)
+            fv = F.embedding_bag(idx.clamp_min(0), table, per_sample_weights=att["weights"].to(table.dtype),
+                                 mode="sum")
         bg = att["bg"][:, None]
         if self.decoder is None:
             rgb = fv + bg * background

@@ -9,8 +9,11 @@ import torch
 
 from core.images.cameras import pixel_rays
 from core.points.model import TRAIN_BACKGROUND, PointModel
+from core.points.attention_compiled import BACKENDS as ATTENTION_BACKENDS
+from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import select_neighbors
 from core.points.trace import Trace
+from core.util.errors import InputError
 
 
 def pixel_grid(height: int, width: int, device) -> torch.Tensor:
@@ -24,7 +27,7 @@ def pixel_grid(height: int, width: int, device) -> torch.Tensor:
 def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
-                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0) -> Trace:
+                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto") -> Trace:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -32,7 +35,9 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     `python -m tools.bench.render`);
     influence [M] (default: the model's, which requires M == N);
     inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
-    `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this.
+    `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this;
+    attention: "torch" (PointModel.attend, chunk by chunk) | "compiled" (core/points/attention_compiled.py, CPU
+    with numba; the same numbers to float rounding, all rays in one call) | "auto" (compiled where supported).
     Returns a Trace of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], active [R], plus shape (H, W) and depth [R] on demand.
     """
@@ -57,13 +62,83 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     res = {"weights": torch.zeros(r, k, device=dev), "fg_weights": torch.zeros(r, k, device=dev),
            "bg": torch.ones(r, device=dev), "x": o.clone()}
     act = torch.nonzero(active).squeeze(1)
-    for s in range(0, act.shape[0], chunk):
+    if attention not in ATTENTION_BACKENDS:
+        raise InputError(f"attention must be one of {ATTENTION_BACKENDS}, got {attention!r}")
+    compiled = supported(model, torch.device(dev))
+    if attention == "compiled" and not compiled:
+        raise InputError("attention 'compiled' needs numba, a CPU device and the standard key MLP; use 'auto' or "
+                         "'torch'")
+    use_compiled = attention != "torch" and compiled
+    if use_compiled and act.numel():
+        att = attend_compiled(model, pts_math, infl, o[act], d[act], idx[act], temperature=temperature, inv_f=fi,
+                              chunk=chunk)
+        for key in res:
+            res[key][act] = att[key]
+    for s in range(0, 0 if use_compiled else act.shape[0], chunk):
         sl = act[s:s + chunk]
         att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi)
         for key in res:
             res[key][sl] = att[key]
     return Trace(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),
                  non_finite_points=int((~finite).sum()), **res)
+
+
+DECODER_HALO = 16  # pixels: more than the UNet decoder's receptive radius (12), even (its pooling grid)
+
+
+def _span(lo: int, hi: int, halo: int, n: int) -> tuple[int, int]:
+    """[lo, hi) widened by halo, clipped to [0, n), ends on even pixels unless clipped (the UNet's pooling grid)."""
+    a = max(lo - halo, 0) // 2 * 2
+    b = hi + halo
+    b = n if b >= n else b + (b % 2)
+    return a, min(b, n)
+
+
+@torch.no_grad()
+def decode_where_active(model: PointModel, feat: torch.Tensor, active: torch.Tensor):
+    """The decoder over a frame's feature image feat [1, C, H, W], run only around the rays that saw points
+    (active [H, W] bool): model.decode_with_alpha's (rgb [1, 3, H, W], alpha [1, H, W] or None), equal to the whole
+    frame's to float rounding. Rays with no neighbour all hold one background feature; the decoder's output for a
+    frame made only of it is cached per model, size and weights, and the decoder runs on the active rays'
+    bounding box widened by 2 · DECODER_HALO, of which the box widened by DECODER_HALO (beyond the receptive
+    radius) is pasted into that cached frame. Falls back to the whole frame when the box covers most of it or the
+    inactive rays' features are not all equal."""
+    _, c, h, w = feat.shape
+    inactive = ~active
+    if not bool(inactive.any()):
+        return model.decode_with_alpha(feat)
+    rows = torch.nonzero(active.any(1)).squeeze(1)
+    cols = torch.nonzero(active.any(0)).squeeze(1)
+    if rows.numel() == 0:
+        r0 = r1 = c0 = c1 = 0
+    else:
+        r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    ir, ic = _span(r0, r1, 2 * DECODER_HALO, h), _span(c0, c1, 2 * DECODER_HALO, w)
+    if (ir[1] - ir[0]) * (ic[1] - ic[0]) > 0.7 * h * w:
+        return model.decode_with_alpha(feat)
+    first = int(torch.nonzero(inactive.reshape(-1))[0])
+    bg_feat = feat[0, :, first // w, first % w]                                           # [C]
+    if not bool((feat[0][:, inactive] == bg_feat[:, None]).all()):
+        return model.decode_with_alpha(feat)
+    key = (h, w, feat.dtype, str(feat.device), bg_feat.cpu().numpy().tobytes(),
+           tuple((p.data_ptr(), p._version) for p in model.decoder.parameters()))
+    cache = model.__dict__.setdefault("_decoded_background", {})
+    if key not in cache:
+        cache.clear()  # one size at a time: the live preview and a render at another size alternate rarely
+        rgb_bg, alpha_bg = model.decode_with_alpha(bg_feat.view(1, c, 1, 1).expand(1, c, h, w).contiguous())
+        cache[key] = (rgb_bg, alpha_bg)
+    rgb_bg, alpha_bg = cache[key]
+    rgb_c, alpha_c = model.decode_with_alpha(feat[:, :, ir[0]:ir[1], ic[0]:ic[1]])
+    orow, ocol = _span(r0, r1, DECODER_HALO, h), _span(c0, c1, DECODER_HALO, w)
+    src = (slice(orow[0] - ir[0], orow[1] - ir[0]), slice(ocol[0] - ic[0], ocol[1] - ic[0]))
+    dst = (slice(*orow), slice(*ocol))
+    rgb = rgb_bg.clone()
+    rgb[:, :, dst[0], dst[1]] = rgb_c[:, :, src[0], src[1]]
+    alpha = None
+    if alpha_bg is not None:
+        alpha = alpha_bg.clone()
+        alpha[:, dst[0], dst[1]] = alpha_c[:, src[0], src[1]]
+    return rgb, alpha
 
 
 @torch.no_grad()
@@ -75,16 +150,17 @@ def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chu
     h, w = trace.shape
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
+    table = model.point_table(features)  # per-point values, shared by the chunks (None: view-dependent)
     for s in range(0, trace.idx.shape[0], chunk):
         sl = slice(s, s + chunk)
         att = {"weights": trace.weights[sl], "bg": trace.bg[sl]}
-        parts.append(model.shade(att, trace.dirs[sl], trace.idx[sl], bg, features=features))
+        parts.append(model.shade(att, trace.dirs[sl], trace.idx[sl], bg, features=features, table=table))
     alpha = None
     if model.decoder is None:
         rgb = torch.cat([p["rgb"] for p in parts]).reshape(h, w, 3)
     else:
         feat = torch.cat([p["feature"] for p in parts]).reshape(h, w, -1).permute(2, 0, 1)[None]
-        rgb, alpha = model.decode_with_alpha(feat)
+        rgb, alpha = decode_where_active(model, feat, trace.active.reshape(h, w))
         rgb = rgb[0].permute(1, 2, 0)
         alpha = None if alpha is None else alpha[0]
         # The decoder paints the background it was trained on: its frame is a·c + (1 − a)·white, a the mask head

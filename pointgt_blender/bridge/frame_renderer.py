@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,8 +46,13 @@ class ModelCache:
 
     def __init__(self):
         self._items: dict = {}
+        self._lock = threading.Lock()  # the warm-up thread (bridge/warmup.py) and the frame load models alike
 
     def get(self, path: str, device: str):
+        with self._lock:
+            return self._get(path, device)
+
+    def _get(self, path: str, device: str):
         try:
             st = os.stat(path)
         except OSError:

@@ -9,6 +9,7 @@ slices. Each handler call's duration is kept in `SESSION.handler_ms` (tests hold
 """
 from __future__ import annotations
 
+import os
 import time
 
 import bpy
@@ -71,6 +72,23 @@ def on_depsgraph_update(scene, depsgraph=None):
 @_timed
 def on_load(*_args):
     SESSION.clear()
+    _start_warmup()
+
+
+def _start_warmup():
+    """The opened .blend's PointGT objects with a model file on disk: import torch, load their models and run the
+    compiled kernels once in the background (bridge/warmup.py), so the first frame does not pay for it. Packed
+    models are left to the first frame (extracting them is not a handler's cheap step)."""
+    from ..bridge import warmup
+    from ..ui.properties import is_pointgt_object
+
+    models = []
+    for obj in bpy.data.objects:
+        if is_pointgt_object(obj) and obj.pointgt.packed_model is None and obj.pointgt.model_path:
+            path = os.path.normpath(bpy.path.abspath(obj.pointgt.model_path, library=obj.library))
+            if os.path.isfile(path):
+                models.append((path, obj.pointgt.device.lower()))
+    warmup.start(models)
 
 
 @_timed

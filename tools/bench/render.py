@@ -33,13 +33,15 @@ import json
 import math
 import statistics
 import time
+import types
 
 from tools.bench import parse, parser
 from tools.machine import machine_line
 
 
-def build_model(n: int, atlas_steps: int, seed: int = 0):
-    """A Bundle with n points on a noisy sphere (radius 0.8), a fresh PointModel and a short-fit atlas."""
+def build_model(n: int, atlas_steps: int, seed: int = 0, decoder: str = "none"):
+    """A Bundle with n points on a noisy sphere (radius 0.8), a fresh PointModel (decoder "none" | "unet") and a
+    short-fit atlas."""
     import torch
 
     from core.atlas.config import AtlasConfig
@@ -52,21 +54,34 @@ def build_model(n: int, atlas_steps: int, seed: int = 0):
     torch.manual_seed(seed)
     v = torch.randn(n, 3, generator=g)
     xyz = 0.8 * v / v.norm(dim=1, keepdim=True) * (1 + 0.01 * torch.randn(n, 1, generator=g))
-    model = PointModel(ModelConfig(num_points=n), xyz, mean_spacing(xyz)).eval()
+    model = PointModel(ModelConfig(num_points=n, decoder=decoder), xyz, mean_spacing(xyz)).eval()
     atlas, _ = fit_atlas(xyz, surface_colour(xyz),
                          AtlasConfig(steps=atlas_steps, texture_steps=max(atlas_steps // 5, 1), charts="4",
                                      device="cpu"), quiet=True)
     return Bundle(model=model, atlas=atlas, meta={"scene": {"name": f"bench sphere, {n} points"}})
 
 
-def orbit_cameras(frames: int, size: int):
-    """frames c2w [4, 4] on a tilted orbit at distance 3.3 looking at the origin, and the focal length."""
+def with_decoder(bundle, decoder: str, seed: int = 0):
+    """The bundle's points and atlas with a fresh PointModel of the same config but `decoder` ("none" | "unet")."""
+    import torch
+
+    from core.bundle import Bundle
+    from core.points.model import PointModel
+
+    torch.manual_seed(seed)
+    m = bundle.model
+    model = PointModel(dataclasses.replace(m.cfg, decoder=decoder), m.xyz.detach(), float(m.spacing)).eval()
+    return dataclasses.replace(bundle, model=model)
+
+
+def orbit_cameras(frames: int, size: int, distance: float = 3.3):
+    """frames c2w [4, 4] on a tilted orbit at `distance` (3.3) looking at the origin, and the focal length."""
     from core.images.cameras import focal_from_fov, look_at
 
     mats = []
     for i in range(frames):
         a = 2 * math.pi * i / frames + 0.3
-        eye = (3.3 * math.cos(a) * 0.85, 3.3 * math.sin(a) * 0.85, 3.3 * 0.527)
+        eye = (distance * math.cos(a) * 0.85, distance * math.sin(a) * 0.85, distance * 0.527)
         mats.append(look_at(eye).float())
     return mats, focal_from_fov(size, 0.6911)
 
@@ -136,12 +151,22 @@ def time_frames(states, cams, size, focal, warmup: int = 1) -> list[dict]:
              "stats": st} for t, c, st in zip(times, cpu, stats)]
 
 
-@contextlib.contextmanager
-def timed_parts(bundle, acc: dict):
-    """Wrap the parts of render_edited to accumulate their wall time in acc[name]."""
+def default_parts(bundle) -> list:
+    """What timed_parts wraps by default: (object, attribute, label) of render_edited's parts."""
     import core.frames.edited as edited_mod
     import core.points.render as render_mod
 
+    return [(render_mod, "select_neighbors", "neighbour search"), (bundle.model, "attend", "attention"),
+            (render_mod, "attend_compiled", "attention"), (edited_mod, "shade_frame", "point colours (shade)"),
+            (edited_mod, "ray_canonical_points", "correspondence"),
+            (edited_mod, "_filtered_lookup", "texture lookup (anti-aliased)"), (edited_mod, "_lookup", "texture lookup")]
+
+
+@contextlib.contextmanager
+def timed_parts(bundle, acc: dict, parts: list | None = None):
+    """Wrap the parts of render_edited (`parts`: (object, attribute, label) triples, default `default_parts`) to
+    accumulate their wall time in acc[label]. Module functions are patched in the module; methods of an instance
+    (the model, the atlas) by an instance attribute, removed afterwards."""
     patches = []
 
     def wrap(obj, name, label):
@@ -158,16 +183,13 @@ def timed_parts(bundle, acc: dict):
         setattr(obj, name, timed)
         patches.append((obj, name, fn))
 
-    wrap(render_mod, "select_neighbors", "neighbour search")
-    wrap(bundle.model, "attend", "attention")
-    wrap(edited_mod, "shade_frame", "point colours (shade)")
-    wrap(edited_mod, "ray_canonical_points", "correspondence")
-    wrap(bundle.atlas, "lookup", "atlas lookups (texture + mask)")
+    for obj, name, label in (default_parts(bundle) if parts is None else parts):
+        wrap(obj, name, label)
     try:
         yield
     finally:
         for obj, name, fn in reversed(patches):
-            if obj is bundle.model or obj is bundle.atlas:
+            if not isinstance(obj, types.ModuleType):
                 delattr(obj, name)  # drop the instance attribute: the class method shows again
             else:
                 setattr(obj, name, fn)

@@ -172,3 +172,26 @@ def test_subpixel_points_match_the_loop_reference(sub, channels):
     want = _subpixel_loop_reference(pts, valid, depth, sub, 0.7)
     assert torch.equal(torch.isnan(got), torch.isnan(want))
     assert torch.allclose(got.nan_to_num(0), want.nan_to_num(0), atol=1e-12)
+
+
+@pytest.mark.parametrize("sub", [1, 2, 3])
+def test_filter_down_equals_the_strided_conv2d_form(sub):
+    """The per-tap strided sums give the separable strided conv2d's numbers (≤ 1e-5) on a frame-sized input."""
+    import torch.nn.functional as F
+
+    from core.images.filter import FILTER_WIDTH, blackman_harris_taps
+
+    g = torch.Generator().manual_seed(10 + sub)
+    H, W = 37, 52
+    vals = torch.rand(4, sub * H, sub * W, generator=g)
+    on = torch.rand(sub * H, sub * W, generator=g) > 0.4
+    k = blackman_harris_taps(sub)
+    pad = (k.numel() - sub) // 2
+    w = on.float()[None]
+    stack = F.pad(torch.cat([vals * w, w], 0)[:, None], (pad, pad, pad, pad))
+    y = F.conv2d(F.conv2d(stack, k.view(1, 1, 1, -1), stride=(1, sub)), k.view(1, 1, -1, 1), stride=(sub, 1))[:, 0]
+    ref = torch.where(y[-1] > 1e-8, y[:-1] / y[-1].clamp_min(1e-12), torch.full_like(y[:-1], float("nan")))
+    got = filter_down(vals, on, sub, FILTER_WIDTH)
+    assert torch.equal(torch.isnan(got), torch.isnan(ref))
+    ok = ~torch.isnan(ref)
+    assert float((got[ok] - ref[ok]).abs().max()) <= 1e-5
