@@ -95,7 +95,7 @@ def main(argv=None) -> int:
     print(machine_line())
     print(f"model: {source}; frame {args.size}² at distance {args.distance:g}, deformed + painted, {act.numel()} "
           f"active rays of "
-          f"{tr['idx'].shape[0]}, K = {model.cfg.k}; median of {args.reps} interleaved runs each")
+          f"{tr.idx.shape[0]}, K = {model.cfg.k}; median of {args.reps} interleaved runs each")
 
     if attention_compiled.supported(model, torch.device("cpu")):
         def attn_torch():
