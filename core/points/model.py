@@ -86,6 +86,9 @@ class PointModel(nn.Module):
         self.influence = nn.Parameter(torch.zeros(n))                                # [N]
         # Length unit of the key features: the typical spacing between neighbouring points.
         self.register_buffer("spacing", torch.tensor(float(spacing)))
+        # World size of one training pixel at the object (core/points/resolution.py; 0 = unknown, older files):
+        # frames with finer pixels than this are rendered by the resolution mode of core/points/render.py.
+        self.register_buffer("train_footprint", torch.tensor(0.0))
         key_in = 2 * (1 + 2 * cfg.key_freqs)
         self.key_mlp = _mlp(key_in, cfg.key_width, 1)
         self.bg_logit = nn.Parameter(torch.tensor(0.0))

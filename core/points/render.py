@@ -10,6 +10,10 @@ import torch
 from core.images.cameras import pixel_rays
 from core.points.model import TRAIN_BACKGROUND, PointModel
 from core.points.neighbors.select import select_neighbors
+from core.points.resolution import (RENDER_MODES, check_mode, decode_at_scale, filter_sigma, gaussian_blur,
+                                    scale_factor)
+
+__all__ = ["RENDER_MODES", "pixel_grid", "trace_frame", "shade_frame", "render_frame", "straight_colour"]
 
 
 def pixel_grid(height: int, width: int, device) -> torch.Tensor:
@@ -68,10 +72,12 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
 
 @torch.no_grad()
 def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chunk: int = 16384,
-                features: torch.Tensor | None = None, with_alpha: bool = False):
+                features: torch.Tensor | None = None, with_alpha: bool = False, decoder_scale: float = 1.0):
     """Colours of a traced frame from the point values: rgb [H, W, 3] in [0, 1].
     features [M, h]: per-point features of the traced points when they are not the model's own (ids).
-    with_alpha: return (rgb, alpha [H, W] from the decoder's mask head, or None without one)."""
+    with_alpha: return (rgb, alpha [H, W] from the decoder's mask head, or None without one).
+    decoder_scale: the frame's scale factor F for a UNet decoder run at the training scale
+    (core/points/resolution.py `decode_at_scale`; 1 = decode the frame as it is)."""
     h, w = trace["shape"]
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
@@ -84,7 +90,8 @@ def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chun
         rgb = torch.cat([p["rgb"] for p in parts]).reshape(h, w, 3)
     else:
         feat = torch.cat([p["feature"] for p in parts]).reshape(h, w, -1).permute(2, 0, 1)[None]
-        rgb, alpha = model.decode_with_alpha(feat)
+        rgb, alpha = decode_at_scale(model, feat, decoder_scale) if decoder_scale > 1.0 \
+            else model.decode_with_alpha(feat)
         rgb = rgb[0].permute(1, 2, 0)
         alpha = None if alpha is None else alpha[0]
         # The decoder paints the background it was trained on: its frame is a·c + (1 − a)·white, a the mask head
@@ -102,16 +109,28 @@ def shade_frame(model: PointModel, trace: dict, background=(1.0, 1.0, 1.0), chun
 
 @torch.no_grad()
 def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
-                 background=(1.0, 1.0, 1.0), **kw) -> dict:
-    """Canonical (or re-posed, via points=) render: dict(rgb [H, W, 3], alpha [H, W], x [H, W, 3]).
+                 background=(1.0, 1.0, 1.0), mode: str = "auto", scale: float | None = None, **kw) -> dict:
+    """Canonical (or re-posed, via points=) render: dict(rgb [H, W, 3], alpha [H, W], x [H, W, 3], scale).
     alpha: the decoder's mask head when the model has one (the coverage its colours were composited with), else
-    the attention's foreground weight 1 − bg."""
+    the attention's foreground weight 1 − bg.
+    mode: how frames finer than the training pixels are rendered, one of RENDER_MODES or "auto" (the default
+    mode), see core/points/resolution.py; scale: the frame's scale factor F (default: from the model's training
+    footprint and this camera; 1 for models without one). F <= 1 renders the same in every mode."""
+    mode = check_mode(mode)
     tr = trace_frame(model, c2w, height, width, focal, **kw)
-    rgb, alpha = shade_frame(model, tr, background, with_alpha=True)
+    pts = model.xyz if kw.get("points") is None else kw["points"]
+    f = scale_factor(float(model.train_footprint), c2w, focal, pts.detach()) if scale is None else float(scale)
+    f = f if f == f and f > 1.0 else 1.0  # NaN or F <= 1: the training scale
+    dec_scale = f if mode in ("decoder", "decoder+filtered") else 1.0
+    rgb, alpha = shade_frame(model, tr, background, with_alpha=True, decoder_scale=dec_scale)
     h, w = tr["shape"]
     if alpha is None:
         alpha = (1.0 - tr["bg"]).reshape(h, w)
-    return {"rgb": rgb, "alpha": alpha.clamp(0, 1), "x": tr["x"].reshape(h, w, 3), "trace": tr}
+    alpha = alpha.clamp(0, 1)
+    if mode in ("filtered", "decoder+filtered") and f > 1.0:
+        sigma = filter_sigma(f)
+        rgb, alpha = gaussian_blur(rgb, sigma).clamp(0, 1), gaussian_blur(alpha, sigma).clamp(0, 1)
+    return {"rgb": rgb, "alpha": alpha, "x": tr["x"].reshape(h, w, 3), "trace": tr, "scale": f}
 
 
 def straight_colour(premul: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 1.0 / 510) -> torch.Tensor:

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from core.config import opt
 from core.images.metrics import blank_floor, mean_scores, score_views, ssim
 from core.points.render import render_frame
+from core.points.resolution import training_footprint
 from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
 from core.points.model import ModelConfig, PointModel, mean_spacing
@@ -285,6 +286,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
 
     def start(mcfg):
         m = PointModel(mcfg, xyz, mean_spacing(xyz)).to(dev)
+        m.train_footprint.fill_(training_footprint(train.c2w, train.focal, xyz))
         o = build_optimizer(m, cfg)
         return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev)
 
@@ -411,6 +413,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 bar.set_fraction(max(step / cfg.steps, train_s / budget_s), **info)
             else:
                 bar.update(1, **info)
+    # the training pixel's world size at the final points (what renders at other sizes are scaled against)
+    model.train_footprint.fill_(training_footprint(train.c2w, train.focal, model.xyz.detach()))
     scores = evaluate(model, test, eval_ids, background)
     reason = collapse_reason(scores, guard.floor, cfg.guard_margin)
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,
