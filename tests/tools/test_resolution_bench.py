@@ -41,8 +41,8 @@ def test_evaluate_scores_native_and_both_upsamplings_on_the_same_views():
     assert 0 < two["up_gt_psnr_object"] < 99
     row = {"scene": "card", "factor": 2, "size": 64, "mode": "filtered", **two}
     table = resolution.markdown([row], "head")
-    assert "| card | 64² (2x) | filtered |" in table
-    assert "2x filtered: native − upsampled mean" in resolution.summary([row], 2)
+    assert "| card | default | 64² (2x) | filtered |" in table
+    assert "2x default fit, filtered: native − upsampled mean" in resolution.summary([row], 2)
 
 
 @pytest.mark.blender
@@ -51,9 +51,11 @@ def test_bench_end_to_end_on_a_tiny_library_scene(tmp_path):
     md = tmp_path / "res.md"
     assert resolution.main(["--work", str(tmp_path / "w"), "--scenes", "tube", "--size", "16", "--factors", "2",
                             "--views-train", "4", "--views-test", "2", "--steps", "3", "--render-mode",
-                            "pixels,filtered", "--json", str(out), "--markdown", str(md)]) == 0
+                            "pixels,filtered", "--fit-args", "--zoom-frac 0.5", "--tag", "zoom", "--json", str(out),
+                            "--markdown", str(md)]) == 0
     rows = json.loads(out.read_text())["rows"]
     assert [(r["factor"], r["mode"]) for r in rows] == [(1, "pixels"), (1, "filtered"), (2, "pixels"),
                                                         (2, "filtered")]
     assert rows[0]["psnr_object"] == pytest.approx(rows[1]["psnr_object"])  # 1x: every mode the same
-    assert (tmp_path / "w" / "tube" / "x2" / "scene.json").exists() and "| tube | 32² (2x) |" in md.read_text()
+    assert (tmp_path / "w" / "tube" / "x2" / "scene.json").exists() and "| tube | zoom | 32² (2x) |" in md.read_text()
+    assert (tmp_path / "w" / "tube" / "model_3_zoom.pgt").exists() and all(r["fit"] == "zoom" for r in rows)

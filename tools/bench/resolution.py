@@ -2,7 +2,8 @@
 those sizes.
 
     python -m tools.bench.resolution --work DIR [--scenes tube,crate,suzanne] [--size 64] [--factors 2,4]
-        [--steps 300] [--model M.pgt] [--views-test 8] [--threads 1] [--json OUT] [--markdown OUT]
+        [--steps 300] [--fit-args "--zoom-frac 0.5" --tag zoom] [--model M.pgt] [--views-test 8] [--threads 1]
+        [--render-mode auto,pixels,...] [--json OUT] [--markdown OUT]
 
 Per library scene (`pointgt make-scene --list`): the Cycles ground truth at 1x (`make-scene --size S`, train and
 test views) and at each factor F (`--size F*S`, the same test cameras: a scene's cameras depend on the seed, not
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shlex
 import subprocess
 import sys
 import time
@@ -88,11 +90,11 @@ def evaluate(model, low, high, factor: int, mode: str, cache: dict | None = None
 
 def markdown(rows: list[dict], header: str) -> str:
     out = [header, "",
-           "| scene | size | mode | native object (full) | render 1x + bicubic | ground truth 1x + bicubic | "
+           "| scene | fit | size | mode | native object (full) | render 1x + bicubic | ground truth 1x + bicubic | "
            "native − upsampled | s/frame native | s/frame 1x + up |",
-           "|---|---|---|---|---|---|---|---|---|"]
+           "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        out.append(f"| {r['scene']} | {r['size']}² ({r['factor']}x) | {r['mode']} | {r['psnr_object']:.2f} "
+        out.append(f"| {r['scene']} | {r.get('fit', 'default')} | {r['size']}² ({r['factor']}x) | {r['mode']} | {r['psnr_object']:.2f} "
                    f"({r['psnr']:.2f}) | {r['up_render_psnr_object']:.2f} | {r['up_gt_psnr_object']:.2f} | "
                    f"{r['psnr_object'] - r['up_render_psnr_object']:+.2f} | {r['seconds']:.2f} | "
                    f"{r['seconds_up']:.2f} |")
@@ -100,13 +102,15 @@ def markdown(rows: list[dict], header: str) -> str:
 
 
 def summary(rows: list[dict], factor: int) -> str:
-    """One line per mode: the mean and the worst native − upsampled gap over the scenes at `factor`."""
+    """One line per fit setting and mode: the mean and the worst native − upsampled gap over the scenes at
+    `factor`."""
     out = []
-    for mode in dict.fromkeys(r["mode"] for r in rows):
+    for fit, mode in dict.fromkeys((r.get("fit", "default"), r["mode"]) for r in rows):
         gaps = [r["psnr_object"] - r["up_render_psnr_object"] for r in rows
-                if r["mode"] == mode and r["factor"] == factor and math.isfinite(r["psnr_object"])]
+                if r["mode"] == mode and r.get("fit", "default") == fit and r["factor"] == factor
+                and math.isfinite(r["psnr_object"])]
         if gaps:
-            out.append(f"{factor}x {mode}: native − upsampled mean {sum(gaps) / len(gaps):+.2f} dB, "
+            out.append(f"{factor}x {fit} fit, {mode}: native − upsampled mean {sum(gaps) / len(gaps):+.2f} dB, "
                        f"worst {min(gaps):+.2f} dB over {len(gaps)} scene(s)")
     return "\n".join(out)
 
@@ -129,6 +133,9 @@ def main(argv=None) -> int:
     ap.add_argument("--views-train", type=int, default=40)
     ap.add_argument("--views-test", type=int, default=8)
     ap.add_argument("--steps", type=int, default=300, help="stage-1 steps of the 1x fit")
+    ap.add_argument("--fit-args", default="", help="more `pointgt fit` flags for the 1x fit (one string)")
+    ap.add_argument("--tag", default="", help="name of this fit setting: the model file is model_<steps>_<tag>.pgt "
+                                             "(needed with --fit-args, so settings do not share a file)")
     ap.add_argument("--model", default=None, help="a model fitted at --size on the one scene of --scenes "
                                                   "(instead of fitting)")
     ap.add_argument("--render-mode", default="auto",
@@ -149,6 +156,8 @@ def main(argv=None) -> int:
         ap.error(f"--factors: comma-separated integers, got {args.factors!r}")
     if factors[0] < 1:
         ap.error("--factors: integers >= 1")
+    if args.fit_args and not args.tag:
+        ap.error("--fit-args: name the setting with --tag (the model file's name)")
     if args.model and len(scenes) != 1:
         ap.error("--model: give exactly one scene in --scenes (the scene the model was fitted on)")
     if args.threads > 0:
@@ -156,7 +165,10 @@ def main(argv=None) -> int:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m", "tools.cli"]
-    head = (f"{machine_line()}\n1x = {args.size}², fit: {args.steps} steps, {args.threads} thread(s), "
+    fit_desc = f"{args.steps} steps{(' ' + args.fit_args) if args.fit_args else ''}"
+    if args.model:
+        fit_desc = f"the model {args.model}"
+    head = (f"{machine_line()}\n1x = {args.size}², fit: {fit_desc}, {args.threads} thread(s), "
             f"{args.views_train} train / {args.views_test} test views, seed {args.seed}")
     print(head, flush=True)
     rows = []
@@ -168,11 +180,12 @@ def main(argv=None) -> int:
                 _run(py + ["make-scene", name, "--out", str(folder), "--size", str(args.size * f), "--views-train",
                            str(train), "--views-val", "0", "--views-test", str(args.views_test), "--seed",
                            str(args.seed)], print)
-        model_path = Path(args.model) if args.model else work / name / f"model_{args.steps}.pgt"
+        suffix = f"_{args.tag}" if args.tag else ""
+        model_path = Path(args.model) if args.model else work / name / f"model_{args.steps}{suffix}.pgt"
         if not model_path.exists():
             _run(py + ["fit", str(work / name / "x1"), "--stage", "papr", "--steps", str(args.steps), "--minutes",
                        "0", "--threads", str(args.threads), "--no-progress", "--seed", str(args.seed),
-                       "--allow-blank", "--out", str(model_path)], print)
+                       "--allow-blank", *shlex.split(args.fit_args), "--out", str(model_path)], print)
         model = load_bundle(model_path, device="cpu").model.eval()
         low = load_split(work / name / "x1", "test")
         if not float(model.train_footprint) > 0:  # a model file from before the footprint: the 1x test cameras'
@@ -182,7 +195,8 @@ def main(argv=None) -> int:
             high = low if f == 1 else load_split(work / name / f"x{f}", "test")
             for mode in modes:
                 res = evaluate(model, low, high, f, mode, cache)
-                row = {"scene": name, "factor": f, "size": high.width, "mode": mode, **res}
+                row = {"scene": name, "factor": f, "size": high.width, "mode": mode, "fit": args.tag or "default",
+                       **res}
                 rows.append(row)
                 print(markdown([row], "").strip().splitlines()[-1], flush=True)
         if args.json:
