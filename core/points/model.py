@@ -112,7 +112,8 @@ class PointModel(nn.Module):
 
     # ---- attention -------------------------------------------------------------------------------------------
     def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
-               idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None) -> dict:
+               idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None,
+               log_window: torch.Tensor | None = None) -> dict:
         """Attention over each ray's neighbours plus the background slot.
 
         Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
@@ -121,6 +122,8 @@ class PointModel(nn.Module):
         key features are then measured in each neighbour's canonical frame: with δ = p − (o + t_min d) the offset
         from the ray's reference point, u = F⁻¹ δ and the ray direction d' = F⁻¹ d / |F⁻¹ d| mapped the same way,
         depth = u·d' and distance = |u − (u·d') d'| (the same numbers as without inv_f when F = I).
+        log_window [R, K]: added to the neighbours' logits (finite; core/points/neighbors/select.py
+        `select_neighbors_soft`: a neighbour's share faded out towards the edges of its footprint).
         Returns dict: weights [R, K] (0 on empty slots), bg [R] background weight, x [R, 3] surface point
         (NaN-free: rays with no neighbour get the ray point at the mean depth 0), t [R, K] depth along the ray.
         """
@@ -147,6 +150,8 @@ class PointModel(nn.Module):
         feats = torch.stack([(rho / s).clamp(max=64.0), (depth / s).clamp(-64.0, 64.0)], dim=-1)
         # Influence clamped: ±1e30 softmaxes fine (max subtracted), an infinite one (diverged fit) would give inf − inf.
         logits = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1) + influence[safe_idx].clamp(-1e30, 1e30)
+        if log_window is not None:
+            logits = logits + log_window.to(logits.dtype).clamp(-1e30, 0.0)
         temp = self.cfg.temperature if temperature is None else temperature
         all_logits = torch.cat([logits, self.bg_logit.expand(logits.shape[0], 1)], dim=1) / max(temp, 1e-3)
         all_logits = all_logits.masked_fill(torch.cat([~valid, torch.zeros_like(valid[:, :1])], 1), float("-inf"))

@@ -9,9 +9,9 @@ import torch
 
 from core.images.cameras import pixel_rays
 from core.points.model import TRAIN_BACKGROUND, PointModel
-from core.points.neighbors.select import select_neighbors
-from core.points.resolution import (RENDER_MODES, check_mode, decode_at_scale, filter_sigma, gaussian_blur,
-                                    scale_factor)
+from core.points.neighbors.select import select_neighbors, select_neighbors_soft
+from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_at_scale, filter_sigma,
+                                    gaussian_blur, scale_factor)
 
 __all__ = ["RENDER_MODES", "pixel_grid", "trace_frame", "shade_frame", "render_frame", "straight_colour"]
 
@@ -27,7 +27,7 @@ def pixel_grid(height: int, width: int, device) -> torch.Tensor:
 def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
-                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0) -> dict:
+                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, soft_scale: float = 1.0) -> dict:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -35,7 +35,9 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     `python -m tools.bench.render`);
     influence [M] (default: the model's, which requires M == N);
     inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
-    `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this.
+    `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this;
+    soft_scale: the frame's scale factor F for anti-aliased neighbour footprints (> 1: the K-nearest rule and the
+    radius cap fade over F − 1 pixels, core/points/resolution.py mode "footprint"; then K' = 2K slots).
     Returns dict of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], plus 'shape' (H, W).
     """
@@ -51,8 +53,15 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     finite = torch.isfinite(pts).all(dim=1)
     pts_search = torch.where(finite[:, None], pts, torch.full_like(pts, float("nan")))
     pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
-    idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
-                           model.cfg.neighbor_radius_px, radius_scale=radius_scale)
+    log_w = None
+    if soft_scale > 1.0:
+        idx, log_w = select_neighbors_soft(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
+                                           model.cfg.neighbor_radius_px, width_px=soft_scale - 1.0,
+                                           radius_scale=radius_scale)
+        k = idx.shape[1]
+    else:
+        idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
+                               model.cfg.neighbor_radius_px, radius_scale=radius_scale)
     fi = None if inv_f is None else inv_f.to(dev, torch.float32)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.
@@ -62,7 +71,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     act = torch.nonzero(active).squeeze(1)
     for s in range(0, act.shape[0], chunk):
         sl = act[s:s + chunk]
-        att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi)
+        att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi,
+                           log_window=None if log_w is None else log_w[sl])
         for key in res:
             res[key][sl] = att[key]
     res.update(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),
@@ -116,18 +126,18 @@ def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, 
     mode: how frames finer than the training pixels are rendered, one of RENDER_MODES or "auto" (the default
     mode), see core/points/resolution.py; scale: the frame's scale factor F (default: from the model's training
     footprint and this camera; 1 for models without one). F <= 1 renders the same in every mode."""
-    mode = check_mode(mode)
-    tr = trace_frame(model, c2w, height, width, focal, **kw)
+    parts = set(check_mode(mode).split("+"))
     pts = model.xyz if kw.get("points") is None else kw["points"]
     f = scale_factor(float(model.train_footprint), c2w, focal, pts.detach()) if scale is None else float(scale)
-    f = f if f == f and f > 1.0 else 1.0  # NaN or F <= 1: the training scale
-    dec_scale = f if mode in ("decoder", "decoder+filtered") else 1.0
+    f = min(f, MAX_SCALE) if f == f and f > 1.0 else 1.0  # NaN or F <= 1: the training scale
+    tr = trace_frame(model, c2w, height, width, focal, soft_scale=f if "footprint" in parts else 1.0, **kw)
+    dec_scale = f if "decoder" in parts else 1.0
     rgb, alpha = shade_frame(model, tr, background, with_alpha=True, decoder_scale=dec_scale)
     h, w = tr["shape"]
     if alpha is None:
         alpha = (1.0 - tr["bg"]).reshape(h, w)
     alpha = alpha.clamp(0, 1)
-    if mode in ("filtered", "decoder+filtered") and f > 1.0:
+    if "filtered" in parts and f > 1.0:
         sigma = filter_sigma(f)
         rgb, alpha = gaussian_blur(rgb, sigma).clamp(0, 1), gaussian_blur(alpha, sigma).clamp(0, 1)
     return {"rgb": rgb, "alpha": alpha, "x": tr["x"].reshape(h, w, 3), "trace": tr, "scale": f}

@@ -13,10 +13,13 @@ pixel-identical in every mode); above 1 the modes of `RENDER_MODES` apply:
 - pixels: nothing changes (every size rendered as if it were the training size);
 - filtered: the frame (colour and coverage) is low-passed by a Gaussian of FILTER_PER_SCALE·(F − 1) output pixels —
   zero at F = 1 and growing towards a fixed fraction of a training pixel — which anti-aliases the disc rims;
+- footprint: anti-aliased neighbour footprints: a point's share of a ray fades out over F − 1 output pixels (one
+  training pixel at large F) where it leaves the ray's K nearest or the pixel-radius cap, instead of stopping at a
+  hard edge (`core.points.neighbors.select.select_neighbors_soft`; 2K neighbour slots);
 - decoder: a UNet decoder runs at the training scale: the feature image is area-averaged down by F, decoded, and
   the decoder's correction (colour and coverage logit) is upsampled bicubically onto the full-size base (the
   points' own colours and coverage, rendered at the full size); models without a decoder render as `pixels`;
-- decoder+filtered: both.
+- decoder+filtered, footprint+decoder: both.
 `python -m tools.bench.resolution` measures them against Cycles at 2x and 4x; DEFAULT_RENDER_MODE is what measured
 best across its scenes (docs/results.md, "Resolution").
 """
@@ -30,7 +33,7 @@ import torch.nn.functional as F
 from core.images.cameras import focal_scale
 from core.util.errors import InputError
 
-RENDER_MODES = ("pixels", "filtered", "decoder", "decoder+filtered")
+RENDER_MODES = ("pixels", "filtered", "footprint", "decoder", "decoder+filtered", "footprint+decoder")
 DEFAULT_RENDER_MODE = "filtered"
 FILTER_PER_SCALE = 0.25  # Gaussian sigma in output pixels per (F − 1): ~ a box of one training pixel at large F
 _SCALE_TOL = 0.05  # F within this of 1 is the training scale (cameras a few % closer than the training median)

@@ -52,6 +52,13 @@ def add_arguments(p):
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
     p.add_argument("--temperature", type=float, default=None,
                    help="attention temperature (< 1 sharpens attention; default: 1, plain renders: the model's)")
+    from core.points.resolution import DEFAULT_RENDER_MODE, RENDER_MODES
+
+    p.add_argument("--render-mode", default="auto", choices=("auto", *RENDER_MODES),
+                   help="frames finer than the training pixels (a larger --size, a closer camera): pixels (as at "
+                        "the training size) | filtered (low-passed by a fraction of a training pixel: no point "
+                        "discs) | decoder (UNet decoder at the training scale) | decoder+filtered; "
+                        f"auto = {DEFAULT_RENDER_MODE}. Plain renders only (no --points/--atlas)")
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side, pixel-filtered (1 = one per ray, no filter)")
 
@@ -168,7 +175,8 @@ def run(args) -> int:
                 from core.points.render import render_frame
 
                 res = render_frame(bundle.model, cams.c2w[i], cams.height, cams.width, cams.focal,
-                                   background=(0.0, 0.0, 0.0), temperature=args.temperature)
+                                   background=(0.0, 0.0, 0.0), temperature=args.temperature,
+                                   mode=args.render_mode)
             else:
                 from core.frames.edited import render_edited
 

@@ -139,3 +139,28 @@ def test_model_files_without_a_footprint_still_load(scene):
     legacy = model_from_arrays(old, meta)
     assert float(legacy.train_footprint) == 0.0  # unknown: every size renders as the training size
     assert np.array_equal(legacy.xyz.detach().numpy(), model.xyz.detach().numpy())
+
+
+@pytest.mark.parametrize("method", ["screen", "screen_depth", "perpendicular"])
+def test_soft_selection_without_width_keeps_the_k_nearest_and_fades_with_it(scene, method):
+    from core.points.neighbors.select import select_neighbors, select_neighbors_soft
+    from core.points.render import pixel_grid
+    from core.images.cameras import pixel_rays
+
+    model, _, test = scene
+    c2w, h, w, f = test.c2w[0], test.height, test.width, test.focal
+    o, d = pixel_rays(c2w, h, w, f)
+    o, d, px = o.reshape(-1, 3), d.reshape(-1, 3), pixel_grid(h, w, "cpu")
+    k = model.cfg.k
+    hard = select_neighbors(model.xyz.detach(), method, k, c2w, h, w, f, px, o, d)
+    idx, log_w = select_neighbors_soft(model.xyz.detach(), method, k, c2w, h, w, f, px, o, d, width_px=0.0)
+    kept = [set(r[r >= 0].tolist()) for r in idx]
+    assert kept == [set(r[r >= 0].tolist()) for r in hard]
+    assert bool((log_w == 0).all())
+    idx, log_w = select_neighbors_soft(model.xyz.detach(), method, k, c2w, h, w, f, px, o, d, width_px=3.0)
+    assert bool(torch.isfinite(log_w).all()) and float(log_w.max()) <= 0
+    if method != "perpendicular":
+        assert idx.shape[1] == 2 * k and float(log_w.min()) < 0  # some neighbours fade
+        # every hard neighbour is still there
+        soft = [set(r[r >= 0].tolist()) for r in idx]
+        assert all(a <= b for a, b in zip([set(r[r >= 0].tolist()) for r in hard], soft))
