@@ -58,7 +58,7 @@ def add_arguments(p):
                    help="frames finer than the training pixels (a larger --size, a closer camera): pixels (as at "
                         "the training size) | filtered (low-passed by a fraction of a training pixel: no point "
                         "discs) | decoder (UNet decoder at the training scale) | decoder+filtered; "
-                        f"auto = {DEFAULT_RENDER_MODE}. Plain renders only (no --points/--atlas)")
+                        f"auto = {DEFAULT_RENDER_MODE}")
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side, pixel-filtered (1 = one per ray, no filter)")
 
@@ -145,6 +145,7 @@ def run(args) -> int:
     check_flag(args.size, "--size", min=1, max=MAX_RENDER_SIZE)
     cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
                               f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
+                              render_mode=args.render_mode,
                               **({} if args.temperature is None else {"temperature": args.temperature})))
     check_device(args.device, "--device")
     bundle = load_bundle(args.model, device=args.device)
@@ -183,7 +184,7 @@ def run(args) -> int:
                 res = render_edited(state, cams.c2w[i], cams.height, cams.width, cams.focal,
                                     background=(0.0, 0.0, 0.0))
                 for k, v in res["stats"].items():
-                    if isinstance(v, (int, float)) and k != "seconds":
+                    if isinstance(v, (int, float)) and k not in ("seconds", "scale"):
                         totals[k] = totals.get(k, 0) + v
             times.append(time.perf_counter() - t0)
             # Rendered over black, stored straight: viewers composite the PNG over any background themselves.

@@ -164,3 +164,22 @@ def test_soft_selection_without_width_keeps_the_k_nearest_and_fades_with_it(scen
         # every hard neighbour is still there
         soft = [set(r[r >= 0].tolist()) for r in idx]
         assert all(a <= b for a, b in zip([set(r[r >= 0].tolist()) for r in hard], soft))
+
+
+def test_edited_frames_follow_the_render_mode():
+    from core.frames.edited import EditConfig, EditState, render_edited
+
+    bundle, _, test = tiny_bundle("card")
+    c2w, h, w, f = test.c2w[0], test.height, test.width, test.focal
+    frames = {}
+    for mode in ("pixels", "filtered"):
+        state = EditState(bundle, atlas=bundle.atlas.packed_image(), cfg=EditConfig(render_mode=mode))
+        one = render_edited(state, c2w, h, w, f)
+        assert one["stats"]["scale"] == 1.0
+        frames[mode, 1] = one["rgb"]
+        four = render_edited(state, c2w, 3 * h, 3 * w, 3 * f)
+        assert four["stats"]["scale"] == pytest.approx(3.0, rel=0.06)
+        assert bool(torch.isfinite(four["rgb"]).all()) and bool(torch.isfinite(four["alpha"]).all())
+        frames[mode, 3] = four["rgb"]
+    assert torch.equal(frames["pixels", 1], frames["filtered", 1])  # the training size: the same in every mode
+    assert not torch.equal(frames["pixels", 3], frames["filtered", 3])
