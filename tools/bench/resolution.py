@@ -16,7 +16,8 @@ render's coverage):
 - render 1x + bicubic: the 1x render bicubic-upsampled to F*S (the bar native rendering must beat);
 - ground truth 1x + bicubic: the 1x Cycles frame upsampled (what 1x data can hold, the ceiling of 1x training).
 Seconds per frame: the native render, and the 1x render plus its upsampling. Factor 1 is scored too (native = the
-training size: a check that a mode leaves it unchanged).
+training size: a check that a mode leaves it unchanged). The scale factor of each frame comes from the model's
+training footprint (a --model file from before it gets the 1x test cameras').
 """
 from __future__ import annotations
 
@@ -139,7 +140,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default=None, help="a model fitted at --size on the one scene of --scenes "
                                                   "(instead of fitting)")
     ap.add_argument("--render-mode", default="auto",
-                    help=f"comma-separated rendering modes to score: {', '.join(RENDER_MODES)}")
+                    help=f"comma-separated rendering modes to score: auto (the default mode), "
+                         f"{', '.join(RENDER_MODES)}")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (fits and renders)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", default=None, help="write all figures here")
@@ -147,9 +149,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     scenes = [s for s in args.scenes.split(",") if s]
     modes = [m for m in args.render_mode.split(",") if m]
-    bad = [m for m in modes if m not in RENDER_MODES]
+    bad = [m for m in modes if m not in ("auto", *RENDER_MODES)]
     if bad:
-        ap.error(f"--render-mode: unknown {bad}; choose from {', '.join(RENDER_MODES)}")
+        ap.error(f"--render-mode: unknown {bad}; choose from auto, {', '.join(RENDER_MODES)}")
     try:
         factors = sorted({1, *(int(f) for f in args.factors.split(",") if f)})
     except ValueError:
