@@ -24,7 +24,8 @@ from core.images.filter import filter_down, subpixel_points
 from core.images.cameras import focal_scale
 from core.images.rays import project_on_ray
 from core.points.render import shade_frame, trace_frame
-from core.points.resolution import RENDER_MODES, check_mode, filter_sigma, gaussian_blur, scale_factor
+from core.points.resolution import (RENDER_MODES, check_mode, filter_sigma, gaussian_blur, scale_factor,
+                                    size_ratio)
 from core.util.errors import InputError
 
 
@@ -289,8 +290,11 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     bundle, cfg = state.bundle, state.cfg
     model = bundle.model
     parts = set(check_mode(cfg.render_mode).split("+"))
-    scale = scale_factor(float(model.train_footprint), c2w, focal,
-                         (model.xyz if state.points is None else state.points).detach())
+    if state.points is None:
+        scale = scale_factor(float(model.train_footprint), c2w, focal, model.xyz.detach())
+    else:  # moved points: the training pixel in their own size (an object scaled by s has s times larger pixels)
+        pts = state.points.detach()
+        scale = scale_factor(float(model.train_footprint) * size_ratio(pts, state.p_can), c2w, focal, pts)
     if trace is None:
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
