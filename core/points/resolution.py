@@ -9,8 +9,9 @@ applies the corrections it learned for one training pixel to a patch F times sma
 The scale factor F of a frame = the world size of one training pixel at the object / that of one output pixel
 (`PointModel.train_footprint`, set by training: the median over the training views of the camera's distance to
 the points' centre over its focal length; points moved and scaled, e.g. an object scaled in Blender, count in
-their own size: `size_ratio`). F <= 1 renders exactly as the model was trained (the training size is
-pixel-identical in every mode); above 1 the modes of `RENDER_MODES` apply:
+their own size: `size_ratio`). F <= 1 (and F within 5 % of 1, cameras a little closer than the training median)
+renders exactly as the model was trained (the training size is pixel-identical in every mode); above, the modes
+of `RENDER_MODES` apply:
 - pixels: nothing changes (every size rendered as if it were the training size);
 - filtered: the frame (colour and coverage) is low-passed by a Gaussian of FILTER_PER_SCALE·(F − 1) output pixels —
   zero at F = 1 and growing towards a fixed fraction of a training pixel — which anti-aliases the disc rims;
@@ -114,22 +115,11 @@ def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
     t = torch.arange(-r, r + 1, dtype=torch.float64, device=x.device)
     g = torch.exp(-0.5 * (t / sigma) ** 2)
     g = (g / g.sum()).to(x.dtype)
-    # replicate padding is limited to the frame's size: pad in steps for kernels wider than the frame
-    x = _pad_replicate(x, r)
+    x = F.pad(x, (r, r, r, r), mode="replicate")
     x = F.conv2d(x, g.view(1, 1, 1, -1))
     x = F.conv2d(x, g.view(1, 1, -1, 1))
     out = x[:, 0].permute(1, 2, 0)
     return out[..., 0] if squeeze else out
-
-
-def _pad_replicate(x: torch.Tensor, r: int) -> torch.Tensor:
-    while r > 0:
-        step = min(r, x.shape[-1] - 1, x.shape[-2] - 1) if min(x.shape[-2:]) > 1 else r
-        if step <= 0:
-            step = r
-        x = F.pad(x, (step, step, step, step), mode="replicate")
-        r -= step
-    return x
 
 
 def filter_sigma(scale: float) -> float:
