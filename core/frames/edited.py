@@ -8,6 +8,8 @@ with no neighbour (they cannot reach the object).
 """
 from __future__ import annotations
 
+import math
+
 import time
 from dataclasses import dataclass
 
@@ -24,8 +26,7 @@ from core.images.filter import filter_down, subpixel_points
 from core.images.cameras import focal_scale
 from core.images.rays import project_on_ray
 from core.points.render import shade_frame, trace_frame
-from core.points.resolution import (RENDER_MODES, check_mode, filter_sigma, gaussian_blur, scale_factor,
-                                    size_ratio)
+from core.points.resolution import RENDER_MODES, check_mode, filter_sigma, gaussian_blur, scale_factor
 from core.util.errors import InputError
 
 
@@ -193,6 +194,17 @@ class EditState:
         return self._inv_f_keys
 
     @property
+    def local_scale(self) -> float:
+        """How much larger the moved points are than their canonical neighbourhoods: the median over the finite
+        points of |det F|^(1/3) (an object scaled by s: s; a bend: about 1); 1 when nothing moved or undefined."""
+        if self.f is None:
+            return 1.0
+        det = torch.linalg.det(self._f.double()).abs()[torch.isfinite(self.points).all(1)]
+        det = det[torch.isfinite(det) & (det > 0)]
+        s = float(det.median() ** (1.0 / 3.0)) if det.numel() else 1.0
+        return s if math.isfinite(s) and s > 0 else 1.0
+
+    @property
     def radius_scale(self) -> float:
         """Factor on the neighbour search's pixel radius cap for these points: the 90th percentile of the largest
         local stretch, 1 when nothing moved or it is below RADIUS_SCALE_MIN."""
@@ -293,8 +305,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     if state.points is None:
         scale = scale_factor(float(model.train_footprint), c2w, focal, model.xyz.detach())
     else:  # moved points: the training pixel in their own size (an object scaled by s has s times larger pixels)
-        pts = state.points.detach()
-        scale = scale_factor(float(model.train_footprint) * size_ratio(pts, state.p_can), c2w, focal, pts)
+        scale = scale_factor(float(model.train_footprint) * state.local_scale, c2w, focal, state.points.detach())
     if trace is None:
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,

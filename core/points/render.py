@@ -11,7 +11,7 @@ from core.images.cameras import pixel_rays
 from core.points.model import TRAIN_BACKGROUND, PointModel
 from core.points.neighbors.select import select_neighbors, select_neighbors_soft
 from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_at_scale, filter_sigma,
-                                    gaussian_blur, scale_factor, size_ratio)
+                                    gaussian_blur, scale_factor)
 
 __all__ = ["RENDER_MODES", "pixel_grid", "trace_frame", "shade_frame", "render_frame", "straight_colour"]
 
@@ -125,13 +125,11 @@ def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, 
     the attention's foreground weight 1 − bg.
     mode: how frames finer than the training pixels are rendered, one of RENDER_MODES or "auto" (the default
     mode), see core/points/resolution.py; scale: the frame's scale factor F (default: from the model's training
-    footprint and this camera; 1 for models without one). F <= 1 renders the same in every mode."""
+    footprint and this camera, points= taken at their world size — `core.frames.edited.render_edited` corrects
+    for scaled points; 1 for models without a footprint). F <= 1 renders the same in every mode."""
     parts = set(check_mode(mode).split("+"))
-    pts = model.xyz.detach() if kw.get("points") is None else kw["points"].detach()
-    fp = float(model.train_footprint)
-    if kw.get("points") is not None and pts.shape == model.xyz.shape:  # moved points count in their own size
-        fp *= size_ratio(pts.to(model.xyz.device, torch.float32), model.xyz.detach())
-    f = scale_factor(fp, c2w, focal, pts) if scale is None else float(scale)
+    pts = model.xyz if kw.get("points") is None else kw["points"]
+    f = scale_factor(float(model.train_footprint), c2w, focal, pts.detach()) if scale is None else float(scale)
     f = min(f, MAX_SCALE) if f == f and f > 1.0 else 1.0  # NaN or F <= 1: the training scale
     tr = trace_frame(model, c2w, height, width, focal, soft_scale=f if "footprint" in parts else 1.0, **kw)
     dec_scale = f if "decoder" in parts else 1.0

@@ -8,8 +8,8 @@ applies the corrections it learned for one training pixel to a patch F times sma
 
 The scale factor F of a frame = the world size of one training pixel at the object / that of one output pixel
 (`PointModel.train_footprint`, set by training: the median over the training views of the camera's distance to
-the points' centre over its focal length; points moved and scaled, e.g. an object scaled in Blender, count in
-their own size: `size_ratio`). F <= 1 (and F within 5 % of 1, cameras a little closer than the training median)
+the points' centre over its focal length; moved points of an edited frame count in their own size, the median
+local scale of their deformation gradients: an object scaled in Blender is not a magnified one). F <= 1 (and F within 5 % of 1, cameras a little closer than the training median)
 renders exactly as the model was trained (the training size is pixel-identical in every mode); above, the modes
 of `RENDER_MODES` apply:
 - pixels: nothing changes (every size rendered as if it were the training size);
@@ -73,20 +73,6 @@ def training_footprint(c2ws: torch.Tensor, focal, points: torch.Tensor) -> float
     fps = [pixel_footprint(c2ws[i], focal, c) for i in range(c2ws.shape[0])]
     fps = [f for f in fps if f > 0]
     return float(torch.tensor(fps, dtype=torch.float64).median()) if fps else 0.0
-
-
-def size_ratio(points: torch.Tensor, canonical: torch.Tensor) -> float:
-    """How much larger moved points are than their canonical positions: points [M, 3] and canonical [M, 3] (row i
-    = the same point) -> the median distance to the centre of the finite rows, moved over canonical (1 when
-    undefined). An object scaled in Blender by s gives s; a bent pose about 1."""
-    ok = torch.isfinite(points).all(dim=1) & torch.isfinite(canonical).all(dim=1)
-    if int(ok.sum()) < 2:
-        return 1.0
-    p, c = points[ok].double(), canonical[ok].double()
-    a = float((p - p.mean(0)).norm(dim=1).median())
-    b = float((c - c.mean(0)).norm(dim=1).median())
-    r = a / b if b > 0 else 1.0
-    return r if math.isfinite(r) and r > 0 else 1.0
 
 
 def scale_factor(train_footprint: float, c2w: torch.Tensor, focal, points: torch.Tensor) -> float:
