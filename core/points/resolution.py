@@ -9,9 +9,9 @@ applies the corrections it learned for one training pixel to a patch F times sma
 The scale factor F of a frame = the world size of one training pixel at the object / that of one output pixel
 (`PointModel.train_footprint`, set by training: the median over the training views of the camera's distance to
 the points' centre over its focal length; moved points of an edited frame count in their own size, the median
-local scale of their deformation gradients: an object scaled in Blender is not a magnified one). F <= 1 (and F within 5 % of 1, cameras a little closer than the training median)
-renders exactly as the model was trained (the training size is pixel-identical in every mode); above, the modes
-of `RENDER_MODES` apply:
+local scale of their deformation gradients: an object scaled in Blender is not a magnified one). F <= 1 (and F
+within 5 % of 1: cameras a little closer than the training median) renders exactly as the model was trained (the
+training size is pixel-identical in every mode); above, the modes of `RENDER_MODES` apply:
 - pixels: nothing changes (every size rendered as if it were the training size);
 - filtered: the frame (colour and coverage) is low-passed by a Gaussian of FILTER_PER_SCALE·(F − 1) output pixels —
   zero at F = 1 and growing towards a fixed fraction of a training pixel — which anti-aliases the disc rims;
