@@ -8,6 +8,8 @@ with no neighbour (they cannot reach the object).
 """
 from __future__ import annotations
 
+import math
+
 import time
 from dataclasses import dataclass
 
@@ -23,6 +25,7 @@ from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
 from core.images.cameras import focal_scale
 from core.points.render import shade_frame, trace_frame
+from core.points.resolution import RENDER_MODES, check_mode, filter_sigma, gaussian_blur, scale_factor
 from core.points.trace import Trace
 from core.util.errors import InputError
 
@@ -71,6 +74,9 @@ class EditConfig:
                          choices=("auto", "torch", "compiled"))
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
+    render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
+                                   "filtered | footprint | decoder | their '+' pairs; auto = the default mode",
+                           choices=("auto", *RENDER_MODES))
 
 
 class EditState:
@@ -229,6 +235,17 @@ class EditState:
         return self._inv_f_keys
 
     @property
+    def local_scale(self) -> float:
+        """How much larger the moved points are than their canonical neighbourhoods: the median over the finite
+        points of |det F|^(1/3) (an object scaled by s: s; a bend: about 1); 1 when nothing moved or undefined."""
+        if self.f is None:
+            return 1.0
+        det = torch.linalg.det(self._f.double()).abs()[torch.isfinite(self.points).all(1)]
+        det = det[torch.isfinite(det) & (det > 0)]
+        s = float(det.median() ** (1.0 / 3.0)) if det.numel() else 1.0
+        return s if math.isfinite(s) and s > 0 else 1.0
+
+    @property
     def radius_scale(self) -> float:
         """Factor on the neighbour search's pixel radius cap for these points: the 90th percentile of the largest
         local stretch, 1 when nothing moved or it is below RADIUS_SCALE_MIN."""
@@ -347,14 +364,21 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     t0 = time.perf_counter()
     bundle, cfg = state.bundle, state.cfg
     model = bundle.model
+    parts = set(check_mode(cfg.render_mode).split("+"))
+    if state.points is None:
+        scale = scale_factor(float(model.train_footprint), c2w, focal, model.xyz.detach())
+    else:  # moved points: the training pixel in their own size (an object scaled by s has s times larger pixels)
+        scale = scale_factor(float(model.train_footprint) * state.local_scale, c2w, focal, state.points.detach())
     if trace is None:
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
-                         radius_scale=state.radius_scale if cfg.f_radius else 1.0, attention=cfg.attention)
+                         radius_scale=state.radius_scale if cfg.f_radius else 1.0, attention=cfg.attention,
+                         soft_scale=scale if "footprint" in parts else 1.0)
     else:
         tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
-    rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True)
+    rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,
+                                 decoder_scale=scale if "decoder" in parts else 1.0)
     rgb = rgb.reshape(-1, 3)
     fg = tr.fg
     # Coverage of painted rays: the decoder's mask head when it has one (sharp silhouettes, opaque interior),
@@ -390,7 +414,12 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         rgb[sel] = f * blend(c, tex, m, mode) + (1 - f) * bgc
         x_can[sel] = xc
         stats["texture_rays"] = int(sel.numel())
+    rgb = torch.nan_to_num(rgb, nan=1.0).clamp(0, 1).reshape(height, width, 3)
+    cover = cover.clamp(0, 1).reshape(height, width)
+    if "filtered" in parts and scale > 1.0:  # no point discs beyond the training resolution
+        sigma = filter_sigma(scale)
+        rgb, cover = gaussian_blur(rgb, sigma).clamp(0, 1), gaussian_blur(cover, sigma).clamp(0, 1)
     stats["seconds"] = time.perf_counter() - t0
-    rgb = torch.nan_to_num(rgb, nan=1.0).clamp(0, 1)
-    return {"rgb": rgb.reshape(height, width, 3), "alpha": cover.clamp(0, 1).reshape(height, width),
+    stats["scale"] = scale
+    return {"rgb": rgb, "alpha": cover,
             "x_can": x_can.reshape(height, width, 3), "stats": stats, "trace": tr}

@@ -13,6 +13,7 @@ from core.points.model import ModelConfig, PointModel
 from core.util.errors import ModelFileError
 
 _POINT_ARRAYS = {"xyz": "points/xyz", "features": "points/features", "influence": "points/influence"}
+_OPTIONAL = {"train_footprint"}  # buffers files from before them lack: the model's default value stays
 
 
 def model_to_arrays(model: PointModel) -> tuple[dict[str, np.ndarray], dict]:
@@ -48,6 +49,9 @@ def model_from_arrays(arrays: dict[str, np.ndarray], meta: dict, device="cpu", p
     for key, ref in state.items():
         name = _POINT_ARRAYS.get(key, f"net/{key}")
         if name not in arrays:
+            if key in _OPTIONAL:
+                new_state[key] = ref
+                continue
             raise ModelFileError(f"{path}: missing array '{name}'")
         arr = torch.from_numpy(np.array(arrays[name]))
         if tuple(arr.shape) != tuple(ref.shape):

@@ -87,6 +87,9 @@ class PointModel(nn.Module):
         self.influence = nn.Parameter(torch.zeros(n))                                # [N]
         # Length unit of the key features: the typical spacing between neighbouring points.
         self.register_buffer("spacing", torch.tensor(float(spacing)))
+        # World size of one training pixel at the object (core/points/resolution.py; 0 = unknown, older files):
+        # frames with finer pixels than this are rendered by the resolution mode of core/points/render.py.
+        self.register_buffer("train_footprint", torch.tensor(0.0))
         key_in = 2 * (1 + 2 * cfg.key_freqs)
         self.key_mlp = _mlp(key_in, cfg.key_width, 1)
         self.bg_logit = nn.Parameter(torch.tensor(0.0))
@@ -110,7 +113,8 @@ class PointModel(nn.Module):
 
     # ---- attention -------------------------------------------------------------------------------------------
     def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
-               idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None) -> dict:
+               idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None,
+               log_window: torch.Tensor | None = None) -> dict:
         """Attention over each ray's neighbours plus the background slot.
 
         Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
@@ -119,6 +123,8 @@ class PointModel(nn.Module):
         key features are then measured in each neighbour's canonical frame: with δ = p − (o + t_min d) the offset
         from the ray's reference point, u = F⁻¹ δ and the ray direction d' = F⁻¹ d / |F⁻¹ d| mapped the same way,
         depth = u·d' and distance = |u − (u·d') d'| (the same numbers as without inv_f when F = I).
+        log_window [R, K]: added to the neighbours' logits (finite; core/points/neighbors/select.py
+        `select_neighbors_soft`: a neighbour's share faded out towards the edges of its footprint).
         Returns dict: weights [R, K] (0 on empty slots), bg [R] background weight, x [R, 3] surface point
         (NaN-free: rays with no neighbour get the ray point at the mean depth 0), t [R, K] depth along the ray.
         """
@@ -145,6 +151,8 @@ class PointModel(nn.Module):
         feats = torch.stack([(rho / s).clamp(max=64.0), (depth / s).clamp(-64.0, 64.0)], dim=-1)
         # Influence clamped: ±1e30 softmaxes fine (max subtracted), an infinite one (diverged fit) would give inf − inf.
         logits = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1) + influence[safe_idx].clamp(-1e30, 1e30)
+        if log_window is not None:
+            logits = logits + log_window.to(logits.dtype).clamp(-1e30, 0.0)
         temp = self.cfg.temperature if temperature is None else temperature
         all_logits = torch.cat([logits, self.bg_logit.expand(logits.shape[0], 1)], dim=1) / max(temp, 1e-3)
         all_logits = all_logits.masked_fill(torch.cat([~valid, torch.zeros_like(valid[:, :1])], 1), float("-inf"))

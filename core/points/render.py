@@ -11,9 +11,13 @@ from core.images.cameras import pixel_rays
 from core.points.model import TRAIN_BACKGROUND, PointModel
 from core.points.attention_compiled import BACKENDS as ATTENTION_BACKENDS
 from core.points.attention_compiled import attend_compiled, supported
-from core.points.neighbors.select import select_neighbors
+from core.points.neighbors.select import select_neighbors, select_neighbors_soft
+from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_at_scale, filter_sigma,
+                                    gaussian_blur, scale_factor)
 from core.points.trace import Trace
 from core.util.errors import InputError
+
+__all__ = ["RENDER_MODES", "pixel_grid", "trace_frame", "shade_frame", "render_frame", "straight_colour"]
 
 
 def pixel_grid(height: int, width: int, device) -> torch.Tensor:
@@ -27,7 +31,8 @@ def pixel_grid(height: int, width: int, device) -> torch.Tensor:
 def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
-                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto") -> Trace:
+                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto",
+                soft_scale: float = 1.0) -> Trace:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -37,7 +42,10 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
     `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this;
     attention: "torch" (PointModel.attend, chunk by chunk) | "compiled" (core/points/attention_compiled.py, CPU
-    with numba; the same numbers to float rounding, all rays in one call) | "auto" (compiled where supported).
+    with numba; the same numbers to float rounding, all rays in one call) | "auto" (compiled where supported);
+    soft_scale: the frame's scale factor F for anti-aliased neighbour footprints (> 1: the K-nearest rule and the
+    radius cap fade over F − 1 pixels, core/points/resolution.py mode "footprint"; then K' = 2K slots, and the
+    attention runs in torch, which takes the footprint's log-window).
     Returns a Trace of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], active [R], plus shape (H, W) and depth [R] on demand.
     """
@@ -53,8 +61,15 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     finite = torch.isfinite(pts).all(dim=1)
     pts_search = torch.where(finite[:, None], pts, torch.full_like(pts, float("nan")))
     pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
-    idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
-                           model.cfg.neighbor_radius_px, radius_scale=radius_scale)
+    log_w = None
+    if soft_scale > 1.0:
+        idx, log_w = select_neighbors_soft(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
+                                           model.cfg.neighbor_radius_px, width_px=soft_scale - 1.0,
+                                           radius_scale=radius_scale)
+        k = idx.shape[1]
+    else:
+        idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
+                               model.cfg.neighbor_radius_px, radius_scale=radius_scale)
     fi = None if inv_f is None else inv_f.to(dev, torch.float32)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.
@@ -65,10 +80,10 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     if attention not in ATTENTION_BACKENDS:
         raise InputError(f"attention must be one of {ATTENTION_BACKENDS}, got {attention!r}")
     compiled = supported(model, torch.device(dev))
-    if attention == "compiled" and not compiled:
-        raise InputError("attention 'compiled' needs numba, a CPU device and the standard key MLP; use 'auto' or "
-                         "'torch'")
-    use_compiled = attention != "torch" and compiled
+    if attention == "compiled" and (not compiled or log_w is not None):
+        raise InputError("attention 'compiled' needs numba, a CPU device, the standard key MLP and no footprint "
+                         "mode; use 'auto' or 'torch'")
+    use_compiled = attention != "torch" and compiled and log_w is None
     if use_compiled and act.numel():
         att = attend_compiled(model, pts_math, infl, o[act], d[act], idx[act], temperature=temperature, inv_f=fi,
                               chunk=chunk)
@@ -76,7 +91,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
             res[key][act] = att[key]
     for s in range(0, 0 if use_compiled else act.shape[0], chunk):
         sl = act[s:s + chunk]
-        att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi)
+        att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi,
+                           log_window=None if log_w is None else log_w[sl])
         for key in res:
             res[key][sl] = att[key]
     return Trace(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),
@@ -143,10 +159,12 @@ def decode_where_active(model: PointModel, feat: torch.Tensor, active: torch.Ten
 
 @torch.no_grad()
 def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chunk: int = 16384,
-                features: torch.Tensor | None = None, with_alpha: bool = False):
+                features: torch.Tensor | None = None, with_alpha: bool = False, decoder_scale: float = 1.0):
     """Colours of a traced frame from the point values: rgb [H, W, 3] in [0, 1].
     features [M, h]: per-point features of the traced points when they are not the model's own (ids).
-    with_alpha: return (rgb, alpha [H, W] from the decoder's mask head, or None without one)."""
+    with_alpha: return (rgb, alpha [H, W] from the decoder's mask head, or None without one).
+    decoder_scale: the frame's scale factor F for a UNet decoder run at the training scale
+    (core/points/resolution.py `decode_at_scale`; 1 = decode the frame as it is, only around the object)."""
     h, w = trace.shape
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
@@ -160,7 +178,8 @@ def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chu
         rgb = torch.cat([p["rgb"] for p in parts]).reshape(h, w, 3)
     else:
         feat = torch.cat([p["feature"] for p in parts]).reshape(h, w, -1).permute(2, 0, 1)[None]
-        rgb, alpha = decode_where_active(model, feat, trace.active.reshape(h, w))
+        rgb, alpha = decode_at_scale(model, feat, decoder_scale) if decoder_scale > 1.0 \
+            else decode_where_active(model, feat, trace.active.reshape(h, w))
         rgb = rgb[0].permute(1, 2, 0)
         alpha = None if alpha is None else alpha[0]
         # The decoder paints the background it was trained on: its frame is a·c + (1 − a)·white, a the mask head
@@ -178,16 +197,29 @@ def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chu
 
 @torch.no_grad()
 def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
-                 background=(1.0, 1.0, 1.0), **kw) -> dict:
-    """Canonical (or re-posed, via points=) render: dict(rgb [H, W, 3], alpha [H, W], x [H, W, 3]).
+                 background=(1.0, 1.0, 1.0), mode: str = "auto", scale: float | None = None, **kw) -> dict:
+    """Canonical (or re-posed, via points=) render: dict(rgb [H, W, 3], alpha [H, W], x [H, W, 3], scale).
     alpha: the decoder's mask head when the model has one (the coverage its colours were composited with), else
-    the attention's foreground weight 1 − bg."""
-    tr = trace_frame(model, c2w, height, width, focal, **kw)
-    rgb, alpha = shade_frame(model, tr, background, with_alpha=True)
+    the attention's foreground weight 1 − bg.
+    mode: how frames finer than the training pixels are rendered, one of RENDER_MODES or "auto" (the default
+    mode), see core/points/resolution.py; scale: the frame's scale factor F (default: from the model's training
+    footprint and this camera, points= taken at their world size — `core.frames.edited.render_edited` corrects
+    for scaled points; 1 for models without a footprint). F <= 1 renders the same in every mode."""
+    parts = set(check_mode(mode).split("+"))
+    pts = model.xyz if kw.get("points") is None else kw["points"]
+    f = scale_factor(float(model.train_footprint), c2w, focal, pts.detach()) if scale is None else float(scale)
+    f = min(f, MAX_SCALE) if f == f and f > 1.0 else 1.0  # NaN or F <= 1: the training scale
+    tr = trace_frame(model, c2w, height, width, focal, soft_scale=f if "footprint" in parts else 1.0, **kw)
+    dec_scale = f if "decoder" in parts else 1.0
+    rgb, alpha = shade_frame(model, tr, background, with_alpha=True, decoder_scale=dec_scale)
     h, w = tr.shape
     if alpha is None:
         alpha = (1.0 - tr.bg).reshape(h, w)
-    return {"rgb": rgb, "alpha": alpha.clamp(0, 1), "x": tr.x.reshape(h, w, 3), "trace": tr}
+    alpha = alpha.clamp(0, 1)
+    if "filtered" in parts and f > 1.0:
+        sigma = filter_sigma(f)
+        rgb, alpha = gaussian_blur(rgb, sigma).clamp(0, 1), gaussian_blur(alpha, sigma).clamp(0, 1)
+    return {"rgb": rgb, "alpha": alpha, "x": tr.x.reshape(h, w, 3), "trace": tr, "scale": f}
 
 
 def straight_colour(premul: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 1.0 / 510) -> torch.Tensor:

@@ -16,8 +16,10 @@ import torch
 import torch.nn.functional as F
 
 from core.config import opt
+from core.images.intrinsics import Intrinsics
 from core.images.metrics import blank_floor, mean_scores, score_views, ssim
 from core.points.render import render_frame
+from core.points.resolution import training_footprint
 from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
 from core.points.model import ModelConfig, PointModel, mean_spacing
@@ -54,6 +56,13 @@ class TrainConfig:
     clone_every: int = opt(1000, "clone the points with the largest position gradient every N steps (0 = never)", min=0)
     clone_frac: float = opt(0.1, "fraction of points cloned each time", min=0.0, max=1.0)
     max_points: int = opt(12000, "densification stops at this many points", min=1, max=10_000_000)
+    zoom_frac: float = opt(0.0, "fraction of steps that render their patches on a finer pixel grid (zoom x zoom "
+                                "sub-pixel rays per pixel, searched and decoded like a frame at zoom x the size) "
+                                "and average them down to the training pixels, so the model is fitted between "
+                                "pixel centres too (renders beyond the training size, core/points/resolution.py)",
+                         min=0.0, max=1.0)
+    zoom_max: int = opt(2, "largest zoom of those steps (each picks 2..zoom_max; patches / zoom² of them, so a "
+                           "step costs about the same)", min=2, max=8)
     dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)",
                          min=0.0, max=0.95)
     eval_every: float = opt(30.0, "seconds of training between test-PSNR measurements", above=0.0)
@@ -71,6 +80,40 @@ class TrainConfig:
 
 def _cosine(frac: float) -> float:
     return 0.5 * (1 + math.cos(math.pi * min(max(frac, 0.0), 1.0)))
+
+
+def zoom_pixels(px: torch.Tensor, size: int, zoom: int) -> torch.Tensor:
+    """Sub-pixel centres of patches: px [P*size*size, 2] pixel centres (col, row) of P square patches in raster
+    order (`sample_patches`) -> [P*(zoom*size)², 2], each patch's zoom x zoom finer grid in raster order (the
+    patch as a frame zoom times larger would see it, in the original pixel coordinates)."""
+    p = px.shape[0] // (size * size)
+    corner = px.reshape(p, size * size, 2)[:, 0] - 0.5                       # [P, 2] top-left (col, row)
+    t = (torch.arange(size * zoom, dtype=px.dtype, device=px.device) + 0.5) / zoom
+    r, c = torch.meshgrid(t, t, indexing="ij")
+    grid = torch.stack([c.reshape(-1), r.reshape(-1)], dim=-1)              # [(zoom*size)², 2]
+    return (corner[:, None, :] + grid[None]).reshape(-1, 2)
+
+
+def pool_zoomed(values: torch.Tensor, p: int, size: int, zoom: int) -> torch.Tensor:
+    """Average zoomed patch values [P*(zoom*size)², C] down to the patch pixels [P*size*size, C]."""
+    c = values.shape[-1]
+    img = values.reshape(p, size * zoom, size * zoom, c).permute(0, 3, 1, 2)
+    return F.avg_pool2d(img, zoom).permute(0, 2, 3, 1).reshape(-1, c)
+
+
+def _zoom_focal(focal, zoom: int):
+    """The camera of a frame zoom times larger: a focal in pixels or Intrinsics, scaled."""
+    if zoom == 1:
+        return focal
+    return focal.scaled(zoom) if isinstance(focal, Intrinsics) else focal * zoom
+
+
+def pool_index(p: int, size: int, zoom: int) -> torch.Tensor:
+    """For each ray of `zoom_pixels`' order [P*(zoom*size)²], the index of its patch pixel in [P*size*size]."""
+    t = torch.arange(size * zoom) // zoom
+    r, c = torch.meshgrid(t, t, indexing="ij")
+    local = (r * size + c).reshape(-1)
+    return (torch.arange(p)[:, None] * size * size + local[None]).reshape(-1)
 
 
 def sample_patches(alpha: torch.Tensor, n: int, size: int, fg_frac: float, gen: torch.Generator):
@@ -285,6 +328,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
 
     def start(mcfg):
         m = PointModel(mcfg, xyz, mean_spacing(xyz)).to(dev)
+        m.train_footprint.fill_(training_footprint(train.c2w, train.focal, xyz))
         o = build_optimizer(m, cfg)
         return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev)
 
@@ -334,39 +378,53 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             for g, lr in zip(opt.param_groups, base_lrs):
                 g["lr"] = lr * decay
             v = int(torch.randint(images.shape[0], (1,), generator=gen))
-            px, rows, cols, size = sample_patches(alphas[v], cfg.patches, cfg.patch_size, cfg.fg_patch_frac, gen)
+            zoom = 1
+            if cfg.zoom_frac > 0 and float(torch.rand(1, generator=gen)) < cfg.zoom_frac:
+                zoom = int(torch.randint(2, cfg.zoom_max + 1, (1,), generator=gen))
+            n_patches = max(1, cfg.patches // (zoom * zoom))
+            px, rows, cols, size = sample_patches(alphas[v], n_patches, cfg.patch_size, cfg.fg_patch_frac, gen)
             gt = images[v][rows, cols].to(dev)
             gt_a = alphas[v][rows, cols].to(dev)
             c2w = c2ws[v].to(dev)
             px = px.to(dev)
+            if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
+                px = zoom_pixels(px, size, zoom)
+                pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
             o, d = rays_for_pixels(c2w, px, train.height, train.width, train.focal)
             search = model.xyz.detach()
             p_drop = cfg.dropout * _cosine(min(frac * 2, 1.0))
             if p_drop > 0:
                 drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
                 search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
-            idx = select_neighbors(search, model_cfg.neighbors, model_cfg.k, c2w, train.height, train.width,
-                                   train.focal, px, o, d, model_cfg.neighbor_radius_px)
+            idx = select_neighbors(search, model_cfg.neighbors, model_cfg.k, c2w, train.height * zoom,
+                                   train.width * zoom, _zoom_focal(train.focal, zoom), px * zoom,
+                                   o, d, model_cfg.neighbor_radius_px)
             att = model.attend(model.xyz, model.influence, o, d, idx)
             sh = model.shade(att, d, idx, bg)
+            zs = size * zoom
             if model.decoder is None:
                 rgb = sh["rgb"]
             else:
-                p = cfg.patches
-                feat = sh["feature"].reshape(p, size, size, -1).permute(0, 3, 1, 2)
+                feat = sh["feature"].reshape(n_patches, zs, zs, -1).permute(0, 3, 1, 2)
                 rgb, dec_alpha = model.decode_with_alpha(feat)
                 rgb = rgb.permute(0, 2, 3, 1).reshape(-1, 3)
+                if dec_alpha is not None and zoom > 1:
+                    dec_alpha = pool_zoomed(dec_alpha.reshape(-1, 1), n_patches, size, zoom)
+            cover = 1.0 - att["bg"]
+            if zoom > 1:
+                rgb = pool_zoomed(rgb, n_patches, size, zoom)
+                cover = pool_zoomed(cover[:, None], n_patches, size, zoom)[:, 0]
             loss = F.mse_loss(rgb, gt)
             if model.decoder is not None and dec_alpha is not None and cfg.decoder_alpha_weight > 0:
                 loss = loss + cfg.decoder_alpha_weight * F.mse_loss(dec_alpha.reshape(-1), gt_a)
             if cfg.alpha_weight > 0:
-                loss = loss + cfg.alpha_weight * F.mse_loss(1.0 - att["bg"], gt_a)
+                loss = loss + cfg.alpha_weight * F.mse_loss(cover, gt_a)
             if cfg.ssim_weight > 0:
-                pr = rgb.reshape(cfg.patches, size, size, 3)
-                loss = loss + cfg.ssim_weight * (1 - ssim(pr, gt.reshape(cfg.patches, size, size, 3)))
+                pr = rgb.reshape(n_patches, size, size, 3)
+                loss = loss + cfg.ssim_weight * (1 - ssim(pr, gt.reshape(n_patches, size, size, 3)))
             c2r = c2s = torch.zeros((), device=dev)
             if frac >= cfg.reg_start:
-                fg_mask = gt_a > 0.5
+                fg_mask = (gt_a[pix_of_ray] if zoom > 1 else gt_a) > 0.5
                 if cfg.close2ray:
                     c2r = close_to_ray(att, o, d, fg_mask)
                     loss = loss + cfg.close2ray_weight * c2r
@@ -411,6 +469,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 bar.set_fraction(max(step / cfg.steps, train_s / budget_s), **info)
             else:
                 bar.update(1, **info)
+    # the training pixel's world size at the final points (what renders at other sizes are scaled against)
+    model.train_footprint.fill_(training_footprint(train.c2w, train.focal, model.xyz.detach()))
     scores = evaluate(model, test, eval_ids, background)
     reason = collapse_reason(scores, guard.floor, cfg.guard_margin)
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,

@@ -14,11 +14,13 @@ pytestmark = pytest.mark.stability
 
 
 def scaled_bundle(bundle, s: float):
-    """A copy of bundle with every length multiplied by s: points, spacing, atlas centre/half and texel map."""
+    """A copy of bundle with every length multiplied by s: points, spacing, training pixel footprint, atlas
+    centre/half and texel map."""
     b = copy.deepcopy(bundle)
     with torch.no_grad():
         b.model.xyz.mul_(s)
         b.model.spacing.mul_(s)
+        b.model.train_footprint.mul_(s)
         b.atlas.centre.mul_(s)
         b.atlas.texel_xyz.mul_(s)
     b.atlas.half *= s

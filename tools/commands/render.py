@@ -63,6 +63,13 @@ def add_arguments(p):
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
     p.add_argument("--temperature", type=float, default=None,
                    help="attention temperature (< 1 sharpens attention; default: 1, plain renders: the model's)")
+    from core.points.resolution import DEFAULT_RENDER_MODE, RENDER_MODES
+
+    p.add_argument("--render-mode", default="auto", choices=("auto", *RENDER_MODES),
+                   help="frames finer than the training pixels (a larger --size, a closer camera): pixels (as at "
+                        "the training size) | filtered (low-passed by a fraction of a training pixel: no point "
+                        "discs) | decoder (UNet decoder at the training scale) | decoder+filtered; "
+                        f"auto = {DEFAULT_RENDER_MODE}")
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side, pixel-filtered (1 = one per ray, no filter)")
 
@@ -151,6 +158,7 @@ def run(args) -> int:
                               f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
                               f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
                               fold_radius=args.fold_radius,
+                              render_mode=args.render_mode,
                               **({} if args.temperature is None else {"temperature": args.temperature})))
     check_device(args.device, "--device")
     bundle = load_bundle(args.model, device=args.device)
@@ -181,14 +189,15 @@ def run(args) -> int:
                 from core.points.render import render_frame
 
                 res = render_frame(bundle.model, cams.c2w[i], cams.height, cams.width, cams.focal,
-                                   background=(0.0, 0.0, 0.0), temperature=args.temperature)
+                                   background=(0.0, 0.0, 0.0), temperature=args.temperature,
+                                   mode=args.render_mode)
             else:
                 from core.frames.edited import render_edited
 
                 res = render_edited(state, cams.c2w[i], cams.height, cams.width, cams.focal,
                                     background=(0.0, 0.0, 0.0))
                 for k, v in res["stats"].items():
-                    if isinstance(v, (int, float)) and k != "seconds":
+                    if isinstance(v, (int, float)) and k not in ("seconds", "scale"):
                         totals[k] = totals.get(k, 0) + v
             times.append(time.perf_counter() - t0)
             # Rendered over black, stored straight: viewers composite the PNG over any background themselves.

@@ -58,3 +58,29 @@ def test_model_file_round_trip(tmp_path):
     b = render_frame(loaded.model, test.c2w[0], 32, 32, test.focal)["rgb"]
     assert torch.equal(a, b)
     assert loaded.meta["scene"]["name"] == "sphere"
+
+
+def test_zoom_pixels_tile_each_pixel_and_pool_back():
+    from core.points.train import pool_index, pool_zoomed, sample_patches, zoom_pixels
+
+    g = torch.Generator().manual_seed(0)
+    px, _, _, size = sample_patches(torch.ones(20, 24), 3, 4, 0.5, g)
+    for zoom in (2, 3):
+        sub = zoom_pixels(px, size, zoom)
+        assert sub.shape == (3 * (4 * zoom) ** 2, 2)
+        owner = pool_index(3, size, zoom)
+        assert bool(((sub - px[owner]).abs() < 0.5).all())  # every sub-pixel ray lies in its own pixel
+        assert torch.allclose(pool_zoomed(sub, 3, size, zoom), px, atol=1e-5)  # ... and they average to its centre
+        assert torch.bincount(owner).eq(zoom * zoom).all()
+
+
+def test_zoomed_steps_train_both_decoders_and_stay_finite():
+    train, test = _two_views()
+    for decoder in ("none", "unet"):
+        cfg = _tiny_cfg(steps=100, zoom_frac=1.0, zoom_max=3, reg_start=0.0)
+        model, hist = fit_points(train, test, model_config("card", num_points=600, decoder=decoder), cfg,
+                                 show_progress=False)
+        for p in model.parameters():
+            assert torch.isfinite(p).all()
+        assert hist[-1]["psnr"] > hist[0]["psnr"] + 5, (decoder, hist[0]["psnr"], hist[-1]["psnr"])
+        assert float(model.train_footprint) > 0

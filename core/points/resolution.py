@@ -1,0 +1,143 @@
+"""Rendering beyond the training resolution: the scale factor of a frame and what the renderer does with it.
+
+A model is fitted on rays through the pixel centres of its training images; nothing constrains its colour field
+between them. Rendered with finer pixels (a larger frame, or a camera closer than the training cameras), the
+field shows what it is between those samples: every point whose attention stays high until it leaves a ray's K
+nearest neighbours (or the pixel-radius cap) is a hard-edged disc about one training pixel wide, and a UNet decoder
+applies the corrections it learned for one training pixel to a patch F times smaller.
+
+The scale factor F of a frame = the world size of one training pixel at the object / that of one output pixel
+(`PointModel.train_footprint`, set by training: the median over the training views of the camera's distance to
+the points' centre over its focal length; moved points of an edited frame count in their own size, the median
+local scale of their deformation gradients: an object scaled in Blender is not a magnified one). F <= 1 (and F
+within 5 % of 1: cameras a little closer than the training median) renders exactly as the model was trained (the
+training size is pixel-identical in every mode); above, the modes of `RENDER_MODES` apply:
+- pixels: nothing changes (every size rendered as if it were the training size);
+- filtered: the frame (colour and coverage) is low-passed by a Gaussian of FILTER_PER_SCALE·(F − 1) output pixels —
+  zero at F = 1 and growing towards a fixed fraction of a training pixel — which anti-aliases the disc rims;
+- footprint: anti-aliased neighbour footprints: a point's share of a ray fades out over F − 1 output pixels (one
+  training pixel at large F) where it leaves the ray's K nearest or the pixel-radius cap, instead of stopping at a
+  hard edge (`core.points.neighbors.select.select_neighbors_soft`; 2K neighbour slots);
+- decoder: a UNet decoder runs at the training scale: the feature image is area-averaged down by F, decoded, and
+  the decoder's correction (colour and coverage logit) is upsampled bicubically onto the full-size base (the
+  points' own colours and coverage, rendered at the full size); models without a decoder render as `pixels`;
+- decoder+filtered, footprint+decoder: both.
+`python -m tools.bench.resolution` measures them against Cycles at 2x and 4x; DEFAULT_RENDER_MODE is what measured
+best across its scenes (docs/results.md, "Resolution").
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from core.images.cameras import focal_scale
+from core.util.errors import InputError
+
+RENDER_MODES = ("pixels", "filtered", "footprint", "decoder", "decoder+filtered", "footprint+decoder")
+DEFAULT_RENDER_MODE = "filtered"
+FILTER_PER_SCALE = 0.25  # Gaussian sigma in output pixels per (F − 1): ~ a box of one training pixel at large F
+_SCALE_TOL = 0.05  # F within this of 1 is the training scale (cameras a few % closer than the training median)
+MAX_SCALE = 1e6  # larger scale factors are clamped (a camera inside the object): the filter covers the frame anyway
+
+
+def check_mode(mode: str) -> str:
+    """"auto" -> DEFAULT_RENDER_MODE; an unknown mode raises InputError naming the choices."""
+    if mode == "auto":
+        return DEFAULT_RENDER_MODE
+    if mode not in RENDER_MODES:
+        raise InputError(f"render mode must be 'auto' or one of {', '.join(RENDER_MODES)}, got {mode!r}")
+    return mode
+
+
+def pixel_footprint(c2w: torch.Tensor, focal, centre: torch.Tensor) -> float:
+    """World size of one pixel at `centre` [3] seen by the camera c2w [4, 4] with `focal` (pixels or Intrinsics):
+    distance / focal. 0 when it is not finite and positive."""
+    d = float((c2w[:3, 3].double() - centre.double().to(c2w.device)).norm())
+    fp = d / float(focal_scale(focal))
+    return fp if math.isfinite(fp) and fp > 0 else 0.0
+
+
+def points_centre(points: torch.Tensor) -> torch.Tensor:
+    """Mean of the finite rows of points [N, 3] -> [3] (zeros when none is finite)."""
+    ok = torch.isfinite(points).all(dim=1)
+    if not bool(ok.any()):
+        return torch.zeros(3, dtype=points.dtype, device=points.device)
+    return points[ok].double().mean(0).to(points.dtype)
+
+
+def training_footprint(c2ws: torch.Tensor, focal, points: torch.Tensor) -> float:
+    """The median over the training cameras c2ws [V, 4, 4] of `pixel_footprint` at the centre of points [N, 3]."""
+    c = points_centre(points.detach())
+    fps = [pixel_footprint(c2ws[i], focal, c) for i in range(c2ws.shape[0])]
+    fps = [f for f in fps if f > 0]
+    return float(torch.tensor(fps, dtype=torch.float64).median()) if fps else 0.0
+
+
+def scale_factor(train_footprint: float, c2w: torch.Tensor, focal, points: torch.Tensor) -> float:
+    """F of a frame: train_footprint / the frame's pixel footprint at the centre of points [N, 3]; 1 when either
+    is unknown, exactly 1 within _SCALE_TOL of it, at most MAX_SCALE."""
+    if not (math.isfinite(train_footprint) and train_footprint > 0):
+        return 1.0
+    fp = pixel_footprint(c2w, focal, points_centre(points))
+    if fp <= 0:
+        return 1.0
+    f = train_footprint / fp
+    if not math.isfinite(f):
+        return MAX_SCALE
+    return 1.0 if abs(f - 1.0) <= _SCALE_TOL else min(f, MAX_SCALE)
+
+
+def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian low-pass of img [H, W] or [H, W, C] with `sigma` pixels (edges replicated); the kernel
+    radius is 3 sigma, at most the frame's size. sigma <= 0 returns img itself."""
+    if not (sigma > 0) or img.numel() == 0:
+        return img
+    squeeze = img.dim() == 2
+    x = (img[..., None] if squeeze else img).permute(2, 0, 1)[:, None].float()  # [C, 1, H, W]
+    h, w = x.shape[-2:]
+    r = int(min(math.ceil(3.0 * min(sigma, 1e6)), max(h, w)))
+    t = torch.arange(-r, r + 1, dtype=torch.float64, device=x.device)
+    g = torch.exp(-0.5 * (t / sigma) ** 2)
+    g = (g / g.sum()).to(x.dtype)
+    x = F.pad(x, (r, r, r, r), mode="replicate")
+    x = F.conv2d(x, g.view(1, 1, 1, -1))
+    x = F.conv2d(x, g.view(1, 1, -1, 1))
+    out = x[:, 0].permute(1, 2, 0)
+    return out[..., 0] if squeeze else out
+
+
+def filter_sigma(scale: float) -> float:
+    """The `filtered` mode's Gaussian sigma in output pixels at scale factor F (0 for F <= 1)."""
+    return FILTER_PER_SCALE * max(float(scale) - 1.0, 0.0)
+
+
+def decode_at_scale(model, feature: torch.Tensor, scale: float):
+    """A residual UNet decoder run at the training scale. feature [1, C, H, W] (channels 0-2 the base colour, 3 the
+    coverage) -> (rgb [1, 3, H, W], alpha [1, H, W] or None), like `PointModel.decode_with_alpha`: the feature image
+    is area-averaged to H/F x W/F (at least 1 pixel), decoded, and the decoder's corrections (output − its base)
+    are upsampled bicubically and added to the full-size base. Older (non-residual) decoders and F <= 1 decode the
+    full-size image as it is."""
+    if scale <= 1.0 or not model.cfg.decoder_residual:
+        return model.decode_with_alpha(feature)
+    h, w = feature.shape[-2:]
+    lh, lw = max(1, int(round(h / scale))), max(1, int(round(w / scale)))
+    low = F.interpolate(feature, size=(lh, lw), mode="area")
+    y = model.decoder(low)
+    corr = y[:, :3] - low[:, :3]
+    rgb = feature[:, :3] + _upsample(corr, h, w)
+    alpha = None
+    if y.shape[1] > 3:
+        logit = lambda c: torch.logit(c.clamp(1e-6, 1.0 - 1e-6))  # noqa: E731
+        a_corr = y[:, 3:4] - logit(low[:, 3:4])
+        alpha = torch.sigmoid(logit(feature[:, 3:4]) + _upsample(a_corr, h, w))[:, 0]
+    return rgb, alpha
+
+
+def _upsample(x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    if x.shape[-2:] == (h, w):
+        return x
+    if min(x.shape[-2:]) < 2:  # bicubic needs 2 pixels; a 1-pixel image is constant anyway
+        return F.interpolate(x, size=(h, w), mode="nearest")
+    return F.interpolate(x, size=(h, w), mode="bicubic", align_corners=False)

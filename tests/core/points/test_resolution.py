@@ -1,0 +1,205 @@
+"""Rendering beyond the training resolution (core/points/resolution.py): the scale factor, the training size left
+pixel-identical by every mode, and finite frames at extreme scale factors."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from core.images.cameras import look_at
+from core.points.checkpoint import model_from_arrays, model_to_arrays
+from core.points.render import RENDER_MODES, render_frame, shade_frame, trace_frame
+from core.points.resolution import (MAX_SCALE, check_mode, decode_at_scale, filter_sigma, gaussian_blur,
+                                    pixel_footprint, scale_factor, training_footprint)
+from core.util.errors import InputError
+from tests.helpers.tiny import tiny_bundle
+
+
+@pytest.fixture(scope="module")
+def scene():
+    bundle, train, test = tiny_bundle("fast")
+    return bundle.model, train, test
+
+
+@pytest.fixture(scope="module")
+def unet_scene():
+    bundle, train, test = tiny_bundle("fast", decoder="unet")
+    return bundle.model, train, test
+
+
+def test_training_sets_the_footprint_of_its_cameras(scene):
+    model, train, _ = scene
+    fp = float(model.train_footprint)
+    assert fp > 0
+    assert fp == pytest.approx(training_footprint(train.c2w, train.focal, model.xyz.detach()), rel=1e-6)
+    # one pixel at the object: distance / focal
+    d = float((train.c2w[0, :3, 3] - model.xyz.detach().mean(0)).norm())
+    assert fp == pytest.approx(d / train.focal, rel=0.05)
+
+
+def test_scale_factor_follows_the_focal_and_the_distance(scene):
+    model, _, test = scene
+    fp, pts, c2w, f = float(model.train_footprint), model.xyz.detach(), test.c2w[0], test.focal
+    assert scale_factor(fp, c2w, f, pts) == 1.0
+    assert scale_factor(fp, c2w, 4 * f, pts) == pytest.approx(4.0, rel=0.06)
+    closer = c2w.clone()
+    centre = pts.mean(0)
+    closer[:3, 3] = centre + 0.5 * (c2w[:3, 3] - centre)
+    assert scale_factor(fp, closer, f, pts) == pytest.approx(2.0, rel=0.06)
+    assert scale_factor(fp, c2w, 0.5 * f, pts) == pytest.approx(0.5, rel=0.06)  # coarser: no change (F < 1)
+    assert scale_factor(0.0, c2w, 4 * f, pts) == 1.0  # unknown footprint (older files)
+    assert scale_factor(float("nan"), c2w, 4 * f, pts) == 1.0
+    # extremes: a camera at the object's centre, an enormous focal length
+    at_centre = c2w.clone()
+    at_centre[:3, 3] = pts.mean(0)
+    assert pixel_footprint(at_centre, f, pts.double().mean(0)) == pytest.approx(0.0, abs=1e-6)
+    assert math.isfinite(scale_factor(fp, at_centre, f, pts)) and scale_factor(fp, at_centre, f, pts) <= MAX_SCALE
+    assert scale_factor(fp, c2w, 1e30, pts) == MAX_SCALE
+
+
+@pytest.mark.parametrize("decoder", ["none", "unet"])
+def test_training_size_is_pixel_identical_in_every_mode(scene, unet_scene, decoder):
+    model, _, test = scene if decoder == "none" else unet_scene
+    c2w, h, w, f = test.c2w[0], test.height, test.width, test.focal
+    tr = trace_frame(model, c2w, h, w, f)
+    legacy = shade_frame(model, tr)  # the renderer before resolution modes: one ray per pixel, decoder as is
+    for mode in ("auto", *RENDER_MODES):
+        out = render_frame(model, c2w, h, w, f, mode=mode)
+        assert out["scale"] == 1.0
+        assert torch.equal(out["rgb"], legacy), mode
+    # above the training scale the modes differ from `pixels` (the filter is on)
+    big = {m: render_frame(model, c2w, 4 * h, 4 * w, 4 * f, mode=m) for m in ("pixels", "filtered")}
+    assert big["pixels"]["scale"] == pytest.approx(4.0, rel=0.06)
+    assert not torch.equal(big["pixels"]["rgb"], big["filtered"]["rgb"])
+
+
+def test_check_mode():
+    assert check_mode("auto") in RENDER_MODES
+    with pytest.raises(InputError, match="render mode"):
+        check_mode("sharp")
+
+
+def test_gaussian_blur_keeps_constants_and_is_finite_at_any_sigma():
+    img = torch.rand(9, 7, 3)
+    assert gaussian_blur(img, 0.0) is img
+    const = torch.full((9, 7, 3), 0.3)
+    for sigma in (0.3, 2.0, 50.0, 1e9, float("inf")):
+        out = gaussian_blur(const, sigma)
+        assert out.shape == const.shape and torch.allclose(out, const, atol=1e-6), sigma
+        out = gaussian_blur(img, sigma)
+        assert bool(torch.isfinite(out).all()) and float(out.min()) >= -1e-6 and float(out.max()) <= 1 + 1e-6
+    assert gaussian_blur(torch.full((1, 1), 0.5), 10.0).item() == pytest.approx(0.5)
+    assert gaussian_blur(img[..., 0], 1.0).shape == (9, 7)
+    # a blur of an impulse spreads it with unit sum (away from the edges)
+    imp = torch.zeros(31, 31)
+    imp[15, 15] = 1.0
+    out = gaussian_blur(imp, 2.0)
+    assert float(out.sum()) == pytest.approx(1.0, abs=1e-4) and float(out[15, 15]) < 0.1
+    assert filter_sigma(1.0) == 0.0 and filter_sigma(0.5) == 0.0 and filter_sigma(5.0) > filter_sigma(2.0) > 0
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.5, 4.0, 1e3, 1e9])
+def test_decoder_at_the_training_scale_is_finite(unet_scene, scale):
+    model, _, test = unet_scene
+    tr = trace_frame(model, test.c2w[0], test.height, test.width, test.focal)
+    parts = model.shade({"weights": tr["weights"], "bg": tr["bg"]}, tr["dirs"], tr["idx"], torch.ones(3))
+    feat = parts["feature"].reshape(test.height, test.width, -1).permute(2, 0, 1)[None]
+    with torch.no_grad():
+        rgb, alpha = decode_at_scale(model, feat, scale)
+        ref_rgb, ref_alpha = model.decode_with_alpha(feat)
+    assert rgb.shape == ref_rgb.shape and bool(torch.isfinite(rgb).all())
+    if alpha is not None:
+        assert alpha.shape == ref_alpha.shape and bool(torch.isfinite(alpha).all())
+        assert float(alpha.min()) >= 0 and float(alpha.max()) <= 1
+    if scale == 1.0:
+        assert torch.equal(rgb, ref_rgb)
+
+
+@pytest.mark.parametrize("mode", RENDER_MODES)
+@pytest.mark.parametrize("focal_times", [3.0, 1e4, 1e12])
+def test_extreme_scale_factors_render_finite_frames(unet_scene, mode, focal_times):
+    model, _, test = unet_scene
+    out = render_frame(model, test.c2w[0], 12, 12, test.focal * focal_times, mode=mode)
+    assert out["scale"] > 1 and out["scale"] <= MAX_SCALE
+    for k in ("rgb", "alpha"):
+        assert bool(torch.isfinite(out[k]).all()) and float(out[k].min()) >= 0 and float(out[k].max()) <= 1, k
+    # a camera inside the point cloud (distance ~ 0: the largest scale factors)
+    inside = look_at(model.xyz.detach().mean(0) + torch.tensor([0.0, 0.0, 1e-7]), model.xyz.detach().mean(0))
+    out = render_frame(model, inside, 12, 12, test.focal, mode=mode)
+    assert bool(torch.isfinite(out["rgb"]).all()) and bool(torch.isfinite(out["alpha"]).all())
+
+
+def test_model_files_without_a_footprint_still_load(scene):
+    model, _, _ = scene
+    arrays, meta = model_to_arrays(model)
+    assert float(arrays["net/train_footprint"]) == pytest.approx(float(model.train_footprint))
+    back = model_from_arrays(arrays, meta)
+    assert float(back.train_footprint) == pytest.approx(float(model.train_footprint))
+    old = {k: v for k, v in arrays.items() if k != "net/train_footprint"}
+    legacy = model_from_arrays(old, meta)
+    assert float(legacy.train_footprint) == 0.0  # unknown: every size renders as the training size
+    assert np.array_equal(legacy.xyz.detach().numpy(), model.xyz.detach().numpy())
+
+
+@pytest.mark.parametrize("method", ["screen", "screen_depth", "perpendicular"])
+def test_soft_selection_without_width_keeps_the_k_nearest_and_fades_with_it(scene, method):
+    from core.points.neighbors.select import select_neighbors, select_neighbors_soft
+    from core.points.render import pixel_grid
+    from core.images.cameras import pixel_rays
+
+    model, _, test = scene
+    c2w, h, w, f = test.c2w[0], test.height, test.width, test.focal
+    o, d = pixel_rays(c2w, h, w, f)
+    o, d, px = o.reshape(-1, 3), d.reshape(-1, 3), pixel_grid(h, w, "cpu")
+    k = model.cfg.k
+    hard = select_neighbors(model.xyz.detach(), method, k, c2w, h, w, f, px, o, d)
+    idx, log_w = select_neighbors_soft(model.xyz.detach(), method, k, c2w, h, w, f, px, o, d, width_px=0.0)
+    kept = [set(r[r >= 0].tolist()) for r in idx]
+    assert kept == [set(r[r >= 0].tolist()) for r in hard]
+    assert bool((log_w == 0).all())
+    idx, log_w = select_neighbors_soft(model.xyz.detach(), method, k, c2w, h, w, f, px, o, d, width_px=3.0)
+    assert bool(torch.isfinite(log_w).all()) and float(log_w.max()) <= 0
+    if method != "perpendicular":
+        assert idx.shape[1] == 2 * k and float(log_w.min()) < 0  # some neighbours fade
+        # every hard neighbour is still there
+        soft = [set(r[r >= 0].tolist()) for r in idx]
+        assert all(a <= b for a, b in zip([set(r[r >= 0].tolist()) for r in hard], soft))
+
+
+def test_edited_frames_follow_the_render_mode():
+    from core.frames.edited import EditConfig, EditState, render_edited
+
+    bundle, _, test = tiny_bundle("card")
+    c2w, h, w, f = test.c2w[0], test.height, test.width, test.focal
+    frames = {}
+    for mode in ("pixels", "filtered"):
+        state = EditState(bundle, atlas=bundle.atlas.packed_image(), cfg=EditConfig(render_mode=mode))
+        one = render_edited(state, c2w, h, w, f)
+        assert one["stats"]["scale"] == 1.0
+        frames[mode, 1] = one["rgb"]
+        four = render_edited(state, c2w, 3 * h, 3 * w, 3 * f)
+        assert four["stats"]["scale"] == pytest.approx(3.0, rel=0.06)
+        assert bool(torch.isfinite(four["rgb"]).all()) and bool(torch.isfinite(four["alpha"]).all())
+        frames[mode, 3] = four["rgb"]
+    assert torch.equal(frames["pixels", 1], frames["filtered", 1])  # the training size: the same in every mode
+    assert not torch.equal(frames["pixels", 3], frames["filtered", 3])
+
+
+@pytest.mark.parametrize("s", [0.1, 10.0])
+def test_a_scaled_object_keeps_its_scale_factor(scene, s):
+    """Points scaled by s (an object scaled in Blender) seen from s times the distance: the same picture, so the
+    same scale factor — the training pixel counts in the points' own size."""
+    from core.frames.edited import EditState, render_edited
+
+    model, _, test = scene
+    bundle, _, _ = tiny_bundle("fast")
+    xyz = model.xyz.detach()
+    cam = test.c2w[0].clone()
+    cam[:3, 3] *= s
+    state = EditState(bundle, points=xyz * s)
+    assert state.local_scale == pytest.approx(s, rel=1e-3)
+    for size, want in ((test.width, 1.0), (3 * test.width, 3.0)):
+        f = test.focal * size / test.width
+        edited = render_edited(state, cam, size, size, f)
+        assert edited["stats"]["scale"] == pytest.approx(want, rel=0.06)
+    assert EditState(bundle).local_scale == 1.0

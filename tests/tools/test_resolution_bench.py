@@ -1,0 +1,61 @@
+"""The resolution benchmark (tools/bench/resolution.py): its evaluation on a tiny analytic scene, and end to end
+on a tiny library scene (Blender)."""
+import json
+import math
+
+import pytest
+import torch
+
+from tests.helpers.synthetic import fibonacci_cameras, render_split
+from tests.helpers.tiny import tiny_bundle
+from tools.bench import resolution
+
+
+def test_upsample_keeps_constants_and_pixel_centres():
+    img = torch.full((4, 5, 3), 0.25)
+    assert resolution.upsample(img, 1) is img
+    up = resolution.upsample(img, 3)
+    assert up.shape == (12, 15, 3) and torch.allclose(up, img[:1, :1].expand(12, 15, 3))
+    ramp = torch.linspace(0, 1, 8)[None, :, None].expand(8, 8, 3).contiguous()
+    up = resolution.upsample(ramp, 2)
+    # fine pixels 2c and 2c + 1 sit a quarter coarse pixel either side of coarse pixel c's centre
+    assert torch.allclose((up[:, 2:14:2] + up[:, 3:15:2]) / 2, ramp[:1, 1:7].expand(16, 6, 3), atol=5e-3)
+    assert bool((up[0, 3:14, 0] > up[0, 2:13, 0]).all())  # and the ramp stays increasing
+
+
+def test_evaluate_scores_native_and_both_upsamplings_on_the_same_views():
+    bundle, _, _ = tiny_bundle("fast")
+    model = bundle.model
+    cams = fibonacci_cameras(2, seed=5)
+    low = render_split("card", cams, 32, split="test")  # the preset's training size
+    high = render_split("card", cams, 64, split="test")
+    cache = {}
+    one = resolution.evaluate(model, low, low, 1, "pixels", cache)
+    # at 1x the native render is the 1x render and the ground truth upsampled is the ground truth itself
+    assert one["psnr_object"] == pytest.approx(one["up_render_psnr_object"])
+    assert one["up_gt_psnr"] == 99.0 and len(one["per_view"]) == 2 and one["scale"] == 1.0
+    two = resolution.evaluate(model, low, high, 2, "filtered", cache)
+    for k in ("psnr", "psnr_object", "up_render_psnr_object", "up_gt_psnr_object", "seconds", "seconds_up"):
+        assert math.isfinite(two[k]), k
+    assert two["scale"] == pytest.approx(2.0, rel=0.06)
+    assert 0 < two["up_gt_psnr_object"] < 99
+    row = {"scene": "card", "factor": 2, "size": 64, "mode": "filtered", **two}
+    table = resolution.markdown([row], "head")
+    assert "| card | default | 64² (2x) | filtered |" in table
+    assert "2x default fit, filtered: native − upsampled mean" in resolution.summary([row], 2)
+
+
+@pytest.mark.blender
+def test_bench_end_to_end_on_a_tiny_library_scene(tmp_path):
+    out = tmp_path / "res.json"
+    md = tmp_path / "res.md"
+    assert resolution.main(["--work", str(tmp_path / "w"), "--scenes", "tube", "--size", "16", "--factors", "2",
+                            "--views-train", "4", "--views-test", "2", "--steps", "3", "--render-mode",
+                            "pixels,filtered", "--fit-args", "--zoom-frac 0.5", "--tag", "zoom", "--json", str(out),
+                            "--markdown", str(md)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["factor"], r["mode"]) for r in rows] == [(1, "pixels"), (1, "filtered"), (2, "pixels"),
+                                                        (2, "filtered")]
+    assert rows[0]["psnr_object"] == pytest.approx(rows[1]["psnr_object"])  # 1x: every mode the same
+    assert (tmp_path / "w" / "tube" / "x2" / "scene.json").exists() and "| tube | zoom | 32² (2x) |" in md.read_text()
+    assert (tmp_path / "w" / "tube" / "model_3_zoom.pgt").exists() and all(r["fit"] == "zoom" for r in rows)

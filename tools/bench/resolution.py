@@ -1,0 +1,216 @@
+"""The resolution benchmark: a model fitted at the training size, rendered at 2x and 4x it, against Cycles at
+those sizes.
+
+    python -m tools.bench.resolution --work DIR [--scenes tube,crate,suzanne] [--size 64] [--factors 2,4]
+        [--steps 300] [--fit-args "--zoom-frac 0.5" --tag zoom] [--model M.pgt] [--views-test 8] [--threads 1]
+        [--render-mode auto,pixels,...] [--json OUT] [--markdown OUT]
+
+Per library scene (`pointgt make-scene --list`): the Cycles ground truth at 1x (`make-scene --size S`, train and
+test views) and at each factor F (`--size F*S`, the same test cameras: a scene's cameras depend on the seed, not
+on the size), then `pointgt fit --stage papr` at 1x with a step budget (or --model, one scene), each a separate
+process as a user runs it; everything is reused when it exists in --work. Then, per factor and test view, one
+evaluation loop (`core.images.metrics.score_views`) scores on the object's pixels (ground truth ∪ the native
+render's coverage):
+- native: `render_frame` at F*S (the rendering mode of --render-mode; several comma-separated modes give one row
+  each: every mode of `core.points.render.RENDER_MODES`);
+- render 1x + bicubic: the 1x render bicubic-upsampled to F*S (the bar native rendering must beat);
+- ground truth 1x + bicubic: the 1x Cycles frame upsampled (what 1x data can hold, the ceiling of 1x training).
+Seconds per frame: the native render, and the 1x render plus its upsampling. Factor 1 is scored too (native = the
+training size: a check that a mode leaves it unchanged). The scale factor of each frame comes from the model's
+training footprint (a --model file from before it gets the 1x test cameras').
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from tools.machine import machine_line
+
+DEFAULT_SCENES = "tube,crate,suzanne"
+
+
+def _run(cmd: list[str], log) -> None:
+    log("$ " + " ".join(cmd))
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-5:])
+        raise SystemExit(f"command failed (exit {proc.returncode}): {' '.join(cmd)}\n{tail}")
+    log(f"  done in {time.perf_counter() - t0:.0f} s")
+
+
+def upsample(img, factor: int):
+    """Bicubic upsampling of an image [H, W, C] in [0, 1] by an integer factor -> [F*H, F*W, C] in [0, 1]
+    (pixel centres aligned: align_corners=False)."""
+    import torch.nn.functional as F
+
+    if factor == 1:
+        return img
+    x = img.permute(2, 0, 1)[None]
+    y = F.interpolate(x, scale_factor=factor, mode="bicubic", align_corners=False)
+    return y[0].permute(1, 2, 0).clamp(0.0, 1.0)
+
+
+def evaluate(model, low, high, factor: int, mode: str, cache: dict | None = None) -> dict:
+    """Scores of one model at one factor: low/high the test splits at 1x and factor x (same cameras).
+    cache: {view: (1x rgb [H, W, 3], seconds)} shared between modes (the 1x render does not depend on the mode).
+    Returns the mean {psnr, psnr_object, up_render_psnr(_object), up_gt_psnr(_object), seconds, seconds_up} and
+    per_view rows."""
+    from core.images.metrics import mean_scores, score_views
+    from core.points.render import render_frame
+
+    cache = {} if cache is None else cache
+
+    def render(i):
+        if i not in cache:
+            t0 = time.perf_counter()
+            rgb = render_frame(model, low.c2w[i], low.height, low.width, low.focal)["rgb"]
+            cache[i] = (rgb, time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        out = render_frame(model, high.c2w[i], high.height, high.width, high.focal, mode=mode)
+        seconds = time.perf_counter() - t0
+        low_rgb, low_s = cache[i]
+        t0 = time.perf_counter()
+        up = upsample(low_rgb, factor)
+        up_s = low_s + time.perf_counter() - t0
+        return {"rgb": out["rgb"], "alpha": out["alpha"],
+                "also": {"up_render_{}": up, "up_gt_{}": upsample(low.images[i], factor)},
+                "extra": {"seconds": seconds, "seconds_up": up_s, "scale": out["scale"]}}
+
+    rows = score_views(render, high.images, high.alphas)
+    keys = ("psnr", "psnr_object", "up_render_psnr", "up_render_psnr_object", "up_gt_psnr", "up_gt_psnr_object",
+            "seconds", "seconds_up", "scale")
+    return {**mean_scores(rows, keys), "per_view": rows}
+
+
+def markdown(rows: list[dict], header: str) -> str:
+    out = [header, "",
+           "| scene | fit | size | mode | native object (full) | render 1x + bicubic | ground truth 1x + bicubic | "
+           "native − upsampled | s/frame native | s/frame 1x + up |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['scene']} | {r.get('fit', 'default')} | {r['size']}² ({r['factor']}x) | {r['mode']} | {r['psnr_object']:.2f} "
+                   f"({r['psnr']:.2f}) | {r['up_render_psnr_object']:.2f} | {r['up_gt_psnr_object']:.2f} | "
+                   f"{r['psnr_object'] - r['up_render_psnr_object']:+.2f} | {r['seconds']:.2f} | "
+                   f"{r['seconds_up']:.2f} |")
+    return "\n".join(out) + "\n"
+
+
+def summary(rows: list[dict], factor: int) -> str:
+    """One line per fit setting and mode: the mean and the worst native − upsampled gap over the scenes at
+    `factor`."""
+    out = []
+    for fit, mode in dict.fromkeys((r.get("fit", "default"), r["mode"]) for r in rows):
+        gaps = [r["psnr_object"] - r["up_render_psnr_object"] for r in rows
+                if r["mode"] == mode and r.get("fit", "default") == fit and r["factor"] == factor
+                and math.isfinite(r["psnr_object"])]
+        if gaps:
+            out.append(f"{factor}x {fit} fit, {mode}: native − upsampled mean {sum(gaps) / len(gaps):+.2f} dB, "
+                       f"worst {min(gaps):+.2f} dB over {len(gaps)} scene(s)")
+    return "\n".join(out)
+
+
+def main(argv=None) -> int:
+    import torch
+
+    from core.bundle import load_bundle
+    from core.images.dataset import load_split
+    from core.points.render import RENDER_MODES
+    from core.points.resolution import training_footprint
+    from tools.scenes.library import scene_names
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", required=True, help="folder for the scenes and models (reused between runs)")
+    ap.add_argument("--scenes", default=DEFAULT_SCENES,
+                    help=f"comma-separated library scenes (default {DEFAULT_SCENES}; all: {','.join(scene_names())})")
+    ap.add_argument("--size", type=int, default=64, help="training image size (1x)")
+    ap.add_argument("--factors", default="2,4", help="comma-separated render size factors (1 is always scored)")
+    ap.add_argument("--views-train", type=int, default=40)
+    ap.add_argument("--views-test", type=int, default=8)
+    ap.add_argument("--steps", type=int, default=300, help="stage-1 steps of the 1x fit")
+    ap.add_argument("--fit-args", default="", help="more `pointgt fit` flags for the 1x fit (one string)")
+    ap.add_argument("--tag", default="", help="name of this fit setting: the model file is model_<steps>_<tag>.pgt "
+                                             "(needed with --fit-args, so settings do not share a file)")
+    ap.add_argument("--model", default=None, help="a model fitted at --size on the one scene of --scenes "
+                                                  "(instead of fitting)")
+    ap.add_argument("--render-mode", default="auto",
+                    help=f"comma-separated rendering modes to score: auto (the default mode), "
+                         f"{', '.join(RENDER_MODES)}")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads (fits and renders)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", default=None, help="write all figures here")
+    ap.add_argument("--markdown", default=None, help="write the table here")
+    args = ap.parse_args(argv)
+    scenes = [s for s in args.scenes.split(",") if s]
+    modes = [m for m in args.render_mode.split(",") if m]
+    bad = [m for m in modes if m not in ("auto", *RENDER_MODES)]
+    if bad:
+        ap.error(f"--render-mode: unknown {bad}; choose from auto, {', '.join(RENDER_MODES)}")
+    try:
+        factors = sorted({1, *(int(f) for f in args.factors.split(",") if f)})
+    except ValueError:
+        ap.error(f"--factors: comma-separated integers, got {args.factors!r}")
+    if factors[0] < 1:
+        ap.error("--factors: integers >= 1")
+    if args.fit_args and not args.tag:
+        ap.error("--fit-args: name the setting with --tag (the model file's name)")
+    if args.model and len(scenes) != 1:
+        ap.error("--model: give exactly one scene in --scenes (the scene the model was fitted on)")
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    py = [sys.executable, "-m", "tools.cli"]
+    fit_desc = f"{args.steps} steps{(' ' + args.fit_args) if args.fit_args else ''}"
+    if args.model:
+        fit_desc = f"the model {args.model}"
+    head = (f"{machine_line()}\n1x = {args.size}², fit: {fit_desc}, {args.threads} thread(s), "
+            f"{args.views_train} train / {args.views_test} test views, seed {args.seed}")
+    print(head, flush=True)
+    rows = []
+    for name in scenes:
+        for f in factors:
+            folder = work / name / f"x{f}"
+            if not (folder / "scene.json").exists():
+                train = args.views_train if f == 1 else 1  # only the 1x training views are used
+                _run(py + ["make-scene", name, "--out", str(folder), "--size", str(args.size * f), "--views-train",
+                           str(train), "--views-val", "0", "--views-test", str(args.views_test), "--seed",
+                           str(args.seed)], print)
+        suffix = f"_{args.tag}" if args.tag else ""
+        model_path = Path(args.model) if args.model else work / name / f"model_{args.steps}{suffix}.pgt"
+        if not model_path.exists():
+            _run(py + ["fit", str(work / name / "x1"), "--stage", "papr", "--steps", str(args.steps), "--minutes",
+                       "0", "--threads", str(args.threads), "--no-progress", "--seed", str(args.seed),
+                       "--allow-blank", *shlex.split(args.fit_args), "--out", str(model_path)], print)
+        model = load_bundle(model_path, device="cpu").model.eval()
+        low = load_split(work / name / "x1", "test")
+        if not float(model.train_footprint) > 0:  # a model file from before the footprint: the 1x test cameras'
+            model.train_footprint.fill_(training_footprint(low.c2w, low.focal, model.xyz.detach()))
+        cache: dict = {}
+        for f in factors:
+            high = low if f == 1 else load_split(work / name / f"x{f}", "test")
+            for mode in modes:
+                res = evaluate(model, low, high, f, mode, cache)
+                row = {"scene": name, "factor": f, "size": high.width, "mode": mode, "fit": args.tag or "default",
+                       **res}
+                rows.append(row)
+                print(markdown([row], "").strip().splitlines()[-1], flush=True)
+        if args.json:
+            Path(args.json).write_text(json.dumps({"machine": head, "rows": rows}, indent=1))
+    table = markdown(rows, "```\n" + head + "\n```")
+    print(table)
+    for f in factors[1:]:
+        print(summary(rows, f))
+    if args.markdown:
+        Path(args.markdown).write_text(table + "\n" + "\n".join(summary(rows, f) for f in factors[1:]) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
