@@ -102,7 +102,7 @@ def test_gaussian_blur_keeps_constants_and_is_finite_at_any_sigma():
 def test_decoder_at_the_training_scale_is_finite(unet_scene, scale):
     model, _, test = unet_scene
     tr = trace_frame(model, test.c2w[0], test.height, test.width, test.focal)
-    parts = model.shade({"weights": tr["weights"], "bg": tr["bg"]}, tr["dirs"], tr["idx"], torch.ones(3))
+    parts = model.shade({"weights": tr.weights, "bg": tr.bg}, tr.dirs, tr.idx, torch.ones(3))
     feat = parts["feature"].reshape(test.height, test.width, -1).permute(2, 0, 1)[None]
     with torch.no_grad():
         rgb, alpha = decode_at_scale(model, feat, scale)
