@@ -235,7 +235,37 @@ def render_animation(bundle, scene_dir: Path, out: Path, frames: int, pose: str,
         print(f"  frame {f + 1}/{frames}: {pose} magnitude {m:.2f}, {secs[-1]:.3f} s", flush=True)
     gif = out / "animation.gif"
     images[0].save(gif, save_all=True, append_images=images[1:], duration=120, loop=0)
-    return {"frames": frames, "pose": pose, "seconds_per_frame": float(np.mean(secs)), "gif": str(gif)}
+    # the last (fully posed, painted) frame again at 4x the training size, beside the training-size frame
+    big = render_scaled(state, cam, test, 4)
+    write_png(out / f"frame_last_{big['width']}.png", big["rgb"].cpu().numpy())
+    small = images[-1].resize((big["width"], big["height"]), Image.NEAREST)
+    side = Image.new("RGB", (2 * big["width"] + 8, big["height"]), "white")
+    side.paste(small, (0, 0))
+    side.paste(Image.fromarray((np.clip(big["rgb"].cpu().numpy(), 0, 1) * 255 + 0.5).astype(np.uint8)),
+               (big["width"] + 8, 0))
+    side.save(out / "last_frame_1x_4x.png")
+    print(f"  last frame at {big['width']}x{big['height']}: {big['seconds']:.2f} s -> {out / 'last_frame_1x_4x.png'}",
+          flush=True)
+    return {"frames": frames, "pose": pose, "seconds_per_frame": float(np.mean(secs)), "gif": str(gif),
+            "hires": {"size": [big["height"], big["width"]], "seconds": big["seconds"],
+                      "image": str(out / "last_frame_1x_4x.png")}}
+
+
+@torch.no_grad()
+def render_scaled(state, c2w, split, factor: int) -> dict:
+    """One edited frame of `state` from camera c2w [4, 4] at `factor` times the split's image size (focal scaled
+    with it, the same view): dict(rgb [factor·H, factor·W, 3], height, width, seconds). factor 1 is the split's own
+    frame."""
+    import time as _time
+
+    from core.frames.edited import render_edited
+    from core.images.intrinsics import Intrinsics
+
+    h, w = split.height * factor, split.width * factor
+    focal = split.focal.scaled(factor) if isinstance(split.focal, Intrinsics) else split.focal * factor
+    t0 = _time.perf_counter()
+    r = render_edited(state, c2w, h, w, focal)
+    return {"rgb": r["rgb"], "height": h, "width": w, "seconds": _time.perf_counter() - t0}
 
 
 def write_report_image(path: Path, history: list[dict], report: dict) -> None:
