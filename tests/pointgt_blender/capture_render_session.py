@@ -14,7 +14,7 @@ import sys
 import numpy as np
 
 import bpy  # noqa: E402
-from session_common import recorder  # noqa: E402
+from session_common import install_addon, recorder  # noqa: E402
 
 zip_path, model, camera_json, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -30,8 +30,7 @@ def mod(name):
 
 @step("install")
 def _():
-    res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
-    return {"result": sorted(res)}
+    return install_addon(zip_path)
 
 
 @step("scene")

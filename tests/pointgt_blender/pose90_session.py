@@ -15,7 +15,8 @@ import sys
 
 import numpy as np
 import bpy
-from session_common import make_active, paint_through_uvs, read_png, recorder  # noqa: E402
+from session_common import (install_addon, paint_through_uvs, read_png, recorder,  # noqa: E402
+                            two_bone_rig)
 
 zip_path, model, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -86,8 +87,7 @@ def closest_on_triangles(p, tri):
 
 @step("install")
 def _():
-    res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
-    return {"result": sorted(res)}
+    return install_addon(zip_path)
 
 
 @step("setup")
@@ -108,16 +108,7 @@ def _():
     proxy = obj().pointgt.proxy
     for name, (centre, radius, colour) in SPOTS.items():
         out[name] = paint_through_uvs(proxy, obj().pointgt.atlas, centre, radius, colour)
-    bpy.ops.object.armature_add(location=(0.0, 0.0, 0.0))
-    arm = bpy.context.active_object
-    bpy.ops.object.mode_set(mode='EDIT')
-    left = arm.data.edit_bones[0]
-    left.head, left.tail, left.name = (-0.9, 0.0, 0.0), (0.0, 0.0, 0.0), "left"
-    right = arm.data.edit_bones.new("right")
-    right.head, right.tail, right.parent, right.use_connect = (0.0, 0.0, 0.0), (0.9, 0.0, 0.0), left, True
-    bpy.ops.object.mode_set(mode='OBJECT')
-    make_active(arm, proxy)
-    out["parent"] = sorted(bpy.ops.object.parent_set(type='ARMATURE_AUTO'))
+    arm, out["parent"] = two_bone_rig(proxy)
     out["units_per_px"] = units_per_px()
     return out
 

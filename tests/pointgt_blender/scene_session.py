@@ -13,7 +13,8 @@ import time
 
 import numpy as np
 import bpy
-from session_common import camera_only_scene, centroid, make_active, paint_through_uvs, read_png, recorder  # noqa: E402
+from session_common import (camera_only_scene, centroid, install_addon, make_active, paint_through_uvs,  # noqa: E402
+                            read_png, recorder, two_bone_rig)
 
 zip_path, model, blank_model, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
@@ -49,8 +50,7 @@ def obj():
 
 @step("install")
 def _():
-    res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
-    return {"result": sorted(res)}
+    return install_addon(zip_path)
 
 
 @step("scene")
@@ -373,16 +373,7 @@ def _():
     out["rest"] = centroid(rgb, (1.0, 0.0, 0.0))
     out["rest_expect"] = project(centre[None])[0].tolist()
     # rig the proxy with Automatic Weights; a 90 degree turn of the right bone poses the neural render
-    bpy.ops.object.armature_add(location=(0.0, 0.0, 0.0))
-    arm = bpy.context.active_object
-    bpy.ops.object.mode_set(mode='EDIT')
-    left = arm.data.edit_bones[0]
-    left.head, left.tail, left.name = (-0.9, 0.0, 0.0), (0.0, 0.0, 0.0), "left"
-    right = arm.data.edit_bones.new("right")
-    right.head, right.tail, right.parent, right.use_connect = (0.0, 0.0, 0.0), (0.9, 0.0, 0.0), left, True
-    bpy.ops.object.mode_set(mode='OBJECT')
-    make_active(arm, proxy)
-    out["parent"] = sorted(bpy.ops.object.parent_set(type='ARMATURE_AUTO'))
+    arm, out["parent"] = two_bone_rig(proxy)
     pb = arm.pose.bones["right"]
     pb.rotation_mode = 'XYZ'
 

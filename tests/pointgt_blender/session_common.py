@@ -138,3 +138,28 @@ def centroid(rgb, colour):
     if not len(rows):
         return [float("nan"), float("nan")], 0
     return [float(cols.mean() + 0.5), float(rows.mean() + 0.5)], int(near.sum())
+
+
+def two_bone_rig(proxy):
+    """An armature along the card's x axis — bone "left" from x = −0.9 to the origin, "right" from the origin to
+    x = 0.9, connected — parented to `proxy` with Automatic Weights. Returns (armature, parent_set's result)."""
+    import bpy
+
+    bpy.ops.object.armature_add(location=(0.0, 0.0, 0.0))
+    arm = bpy.context.active_object
+    bpy.ops.object.mode_set(mode='EDIT')
+    left = arm.data.edit_bones[0]
+    left.head, left.tail, left.name = (-0.9, 0.0, 0.0), (0.0, 0.0, 0.0), "left"
+    right = arm.data.edit_bones.new("right")
+    right.head, right.tail, right.parent, right.use_connect = (0.0, 0.0, 0.0), (0.9, 0.0, 0.0), left, True
+    bpy.ops.object.mode_set(mode='OBJECT')
+    make_active(arm, proxy)
+    return arm, sorted(bpy.ops.object.parent_set(type='ARMATURE_AUTO'))
+
+
+def install_addon(zip_path: str) -> dict:
+    """Install and enable the packaged add-on from its zip (the user_default repository)."""
+    import bpy
+
+    res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
+    return {"result": sorted(res)}
