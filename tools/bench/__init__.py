@@ -1,10 +1,12 @@
 """Benchmark scripts (`python -m tools.bench.<name> --help`); results.md quotes their output.
 
-What the scripts share: the parser from the script's docstring, the --threads / --json flags, and a config's
-flags (core.config) with its `threads` field applied."""
+What the scripts share: the parser from the script's docstring, the --threads / --json flags, a config's
+flags (core.config) with its `threads` field applied, and running one `pointgt` command as a user would."""
 from __future__ import annotations
 
 import argparse
+import subprocess
+import time
 
 
 def parser(doc: str) -> argparse.ArgumentParser:
@@ -44,3 +46,22 @@ def _set_threads(threads: int) -> None:
         import torch
 
         torch.set_num_threads(threads)
+
+
+def run_command(cmd: list[str], log, check: bool = False) -> int:
+    """Run `cmd` in its own process, logging it (`log`: a print-like function) and its wall time. check: a
+    failure stops the script with the command and the end of its output; otherwise the last lines of its output
+    are logged and its exit code returned."""
+    log("$ " + " ".join(cmd))
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    lines = (proc.stdout + proc.stderr).strip().splitlines()
+    if check:
+        if proc.returncode != 0:
+            raise SystemExit(f"command failed (exit {proc.returncode}): {' '.join(cmd)}\n" + "\n".join(lines[-5:]))
+        log(f"  done in {time.perf_counter() - t0:.0f} s")
+        return 0
+    for line in lines[-3:]:
+        log("  " + line)
+    log(f"  exit {proc.returncode} after {time.perf_counter() - t0:.0f} s")
+    return proc.returncode

@@ -25,24 +25,14 @@ import argparse
 import json
 import math
 import shlex
-import subprocess
 import sys
 import time
 from pathlib import Path
 
+from tools.bench import run_command
 from tools.machine import machine_line
 
 DEFAULT_SCENES = "tube,crate,suzanne"
-
-
-def _run(cmd: list[str], log) -> None:
-    log("$ " + " ".join(cmd))
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-5:])
-        raise SystemExit(f"command failed (exit {proc.returncode}): {' '.join(cmd)}\n{tail}")
-    log(f"  done in {time.perf_counter() - t0:.0f} s")
 
 
 def upsample(img, factor: int):
@@ -179,15 +169,16 @@ def main(argv=None) -> int:
             folder = work / name / f"x{f}"
             if not (folder / "scene.json").exists():
                 train = args.views_train if f == 1 else 1  # only the 1x training views are used
-                _run(py + ["make-scene", name, "--out", str(folder), "--size", str(args.size * f), "--views-train",
-                           str(train), "--views-val", "0", "--views-test", str(args.views_test), "--seed",
-                           str(args.seed)], print)
+                run_command(py + ["make-scene", name, "--out", str(folder), "--size", str(args.size * f),
+                                  "--views-train", str(train), "--views-val", "0", "--views-test", str(args.views_test),
+                                  "--seed", str(args.seed)], print, check=True)
         suffix = f"_{args.tag}" if args.tag else ""
         model_path = Path(args.model) if args.model else work / name / f"model_{args.steps}{suffix}.pgt"
         if not model_path.exists():
-            _run(py + ["fit", str(work / name / "x1"), "--stage", "papr", "--steps", str(args.steps), "--minutes",
-                       "0", "--threads", str(args.threads), "--no-progress", "--seed", str(args.seed),
-                       "--allow-blank", *shlex.split(args.fit_args), "--out", str(model_path)], print)
+            run_command(py + ["fit", str(work / name / "x1"), "--stage", "papr", "--steps", str(args.steps),
+                              "--minutes", "0", "--threads", str(args.threads), "--no-progress", "--seed",
+                              str(args.seed), "--allow-blank", *shlex.split(args.fit_args), "--out", str(model_path)],
+                        print, check=True)
         model = load_bundle(model_path, device="cpu").model.eval()
         low = load_split(work / name / "x1", "test")
         if not float(model.train_footprint) > 0:  # a model file from before the footprint: the 1x test cameras'

@@ -15,23 +15,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import time
 from pathlib import Path
 
+from tools.bench import run_command
 from tools.machine import machine_line
-
-
-def _run(cmd: list[str], log) -> int:
-    log("$ " + " ".join(cmd))
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
-    for line in tail:
-        log("  " + line)
-    log(f"  exit {proc.returncode} after {time.perf_counter() - t0:.0f} s")
-    return proc.returncode
 
 
 def fit_result(model: Path) -> dict:
@@ -101,20 +89,20 @@ def main(argv=None) -> int:
     for name in [s for s in args.scenes.split(",") if s]:
         scene = work / name
         if not (scene / "scene.json").exists():
-            _run(py + ["make-scene", name, "--out", str(scene), "--size", str(args.size), "--views-train",
-                       str(args.views_train), "--views-test", str(args.views_test), "--views-val", "0"], print)
+            run_command(py + ["make-scene", name, "--out", str(scene), "--size", str(args.size), "--views-train",
+                              str(args.views_train), "--views-test", str(args.views_test), "--views-val", "0"], print)
         row = {"scene": name, "other": []}
         common = ["fit", str(scene), "--stage", "papr", "--threads", str(args.threads), "--no-progress",
                   "--seed", str(args.seed), "--allow-blank", *budget]
         default = work / f"{name}.default.pgt"
         if not default.exists():
-            _run(py + common + ["--out", str(default)], print)
+            run_command(py + common + ["--out", str(default)], print)
         row["default"] = fit_result(default)
         if not args.no_pair:
             other = "none" if row["default"]["decoder"] == "unet" else "unet"
             path = work / f"{name}.{other}.pgt"
             if not path.exists():
-                _run(py + common + ["--out", str(path), "--decoder", other], print)
+                run_command(py + common + ["--out", str(path), "--decoder", other], print)
             row["other"].append(fit_result(path))
         rows.append(row)
         print(markdown([row], "").strip().splitlines()[-1], flush=True)
