@@ -196,7 +196,6 @@ class POINTGT_OT_pack_model(ModelOperator, bpy.types.Operator):
     """Pack the model file into the .blend, so the .blend renders without it"""
     bl_idname = "pointgt.pack_model"
     bl_label = "Pack Model"
-    bl_options = {'REGISTER', 'UNDO'}
 
     @staticmethod
     def poll_reason(context):
@@ -220,7 +219,6 @@ class POINTGT_OT_unpack_model(ModelOperator, bpy.types.Operator):
     """Write the packed model to a .pgt file and use that file instead of the packed copy"""
     bl_idname = "pointgt.unpack_model"
     bl_label = "Unpack Model"
-    bl_options = {'REGISTER', 'UNDO'}
 
     filepath: bpy.props.StringProperty(name="File", subtype='FILE_PATH',
                                        description="Where to write the model (default: the model path, or "

@@ -483,7 +483,6 @@ class POINTGT_OT_single_user_atlas(ModelOperator, bpy.types.Operator):
     """Give the active model its own copy of the atlas it shares with duplicates, so painting it leaves theirs"""
     bl_idname = "pointgt.single_user_atlas"
     bl_label = "Make Atlas Single-User"
-    bl_options = {'REGISTER', 'UNDO'}
 
     @staticmethod
     def poll_reason(context):

@@ -110,7 +110,6 @@ class POINTGT_OT_add_proxy(ModelOperator, bpy.types.Operator):
     (rig or simulate the proxy like any mesh)"""
     bl_idname = "pointgt.add_proxy"
     bl_label = "Add Surface Proxy"
-    bl_options = {'REGISTER', 'UNDO'}
 
     target_faces: bpy.props.IntProperty(name="Faces", default=4000, min=50, max=200000,
                                         description="At most this many triangles")

@@ -45,16 +45,17 @@ def restore_positions(obj) -> int:
     return int(ids.size)
 
 
+# What Reset does with the deform modifiers (Armature, Lattice, ...) of the points.
+DEFORMER_ACTIONS = [('DISABLE', "Disable", "Switch deform modifiers off (turn them back on in the modifier panel)"),
+                    ('REMOVE', "Remove", "Delete deform modifiers")]
+
+
 class POINTGT_OT_reset_canonical(ModelOperator, bpy.types.Operator):
     """Show the points in their canonical (unposed) positions"""
     bl_idname = "pointgt.reset_canonical"
     bl_label = "Reset to Canonical"
-    bl_options = {'REGISTER', 'UNDO'}
 
-    action: bpy.props.EnumProperty(
-        name="Deformers", default='DISABLE',
-        items=[('DISABLE', "Disable", "Switch deform modifiers off (turn them back on in the modifier panel)"),
-               ('REMOVE', "Remove", "Delete deform modifiers")])
+    action: bpy.props.EnumProperty(name="Deformers", default='DISABLE', items=DEFORMER_ACTIONS)
     restore_positions: bpy.props.BoolProperty(
         name="Restore positions from model", default=False,
         description="Also reload the point positions from the .pgt file (undo edits made in Edit Mode)")

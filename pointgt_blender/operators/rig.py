@@ -158,7 +158,6 @@ class POINTGT_OT_add_lattice(ModelOperator, bpy.types.Operator):
     """Add a Lattice around the points and deform them with it"""
     bl_idname = "pointgt.add_lattice"
     bl_label = "Add Lattice"
-    bl_options = {'REGISTER', 'UNDO'}
 
     resolution: bpy.props.IntVectorProperty(name="Resolution", size=3, default=(3, 3, 3), min=2, max=64)
     margin: bpy.props.FloatProperty(name="Margin", default=0.05, min=0.0, max=1.0,
@@ -176,7 +175,6 @@ class POINTGT_OT_bind_armature(ModelOperator, bpy.types.Operator):
     """Deform the points with a selected Armature (bone envelopes, or weights from a selected proxy mesh)"""
     bl_idname = "pointgt.bind_armature"
     bl_label = "Bind to Armature"
-    bl_options = {'REGISTER', 'UNDO'}
 
     mode: bpy.props.EnumProperty(
         name="Weights", default='ENVELOPE',

@@ -101,7 +101,10 @@ def poll_model_unless(cls, context, reason) -> bool:
 
 class ModelOperator:
     """Mixin for operators on the active PointGT model: poll() needs one, then asks `poll_reason(context)` for a
-    message when the operator cannot run now (the tooltip shows it), None when it can."""
+    message when the operator cannot run now (the tooltip shows it), None when it can. They change the scene, so by
+    default they register and can be undone; an operator that changes nothing Undo can restore sets its own."""
+
+    bl_options = {'REGISTER', 'UNDO'}
 
     @staticmethod
     def poll_reason(context) -> str | None:

@@ -46,7 +46,10 @@ def _():
     res = bpy.ops.extensions.package_install_files(filepath=zip_path, repo="user_default", enable_on_install=True)
     return {"result": sorted(res), "enabled": PKG in bpy.context.preferences.addons,
             "torch_loaded": "torch" in sys.modules,
-            "import_op": hasattr(bpy.types, "POINTGT_OT_import_model")}
+            "import_op": hasattr(bpy.types, "POINTGT_OT_import_model"),
+            "undo": {name: 'UNDO' in getattr(bpy.ops.pointgt, name).bl_options  # as registered with Blender
+                     for name in ("reset_canonical", "bind_armature", "add_lattice", "pack_model", "transfer_paint",
+                                  "export_deformed")}}
 
 
 @step("torch_missing")

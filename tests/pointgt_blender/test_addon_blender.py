@@ -69,6 +69,9 @@ def test_installs_and_registers_without_torch(session):
     r = _get(session, "install")
     assert r["result"] == ["FINISHED"] and r["enabled"] and r["import_op"]
     assert r["torch_loaded"] is False
+    # operators on the model are undoable through their shared base; those that change no scene data are not
+    assert r["undo"] == {"reset_canonical": True, "bind_armature": True, "add_lattice": True, "pack_model": True,
+                         "transfer_paint": False, "export_deformed": False}
     t = _get(session, "torch_missing")
     assert t["available"] is False and "PyTorch is missing" in t["message"]
     # the torch-only operator refuses to run on an imported model and says why

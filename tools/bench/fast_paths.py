@@ -25,7 +25,7 @@ import time
 
 from tools.bench import parse, parser
 from tools.bench.frames import Case
-from tools.bench.render import bend, build_model, orbit_cameras, retexture, with_decoder
+from tools.bench.render import add_model_args, bend, model_from_args, orbit_cameras, retexture
 from tools.machine import machine_line
 
 
@@ -55,9 +55,7 @@ def _maxdiff(a, b) -> float:
 
 def main(argv=None) -> int:
     ap = parser(__doc__)
-    ap.add_argument("--model", default=None, help="a trained .pgt with an atlas and the UNet decoder")
-    ap.add_argument("--points", type=int, default=10_000, help="points of the built model")
-    ap.add_argument("--atlas-steps", type=int, default=20, help="stage-2 steps of the built model's atlas")
+    add_model_args(ap, 20, "a trained .pgt with an atlas and the UNet decoder")
     ap.add_argument("--size", type=int, default=256, help="frame size (size × size pixels)")
     ap.add_argument("--reps", type=int, default=5, help="timed runs of each form (median reported)")
     ap.add_argument("--distance", type=float, default=3.3, help="camera distance (the sphere has radius 0.8; at "
@@ -67,18 +65,12 @@ def main(argv=None) -> int:
     import torch
     import torch.nn.functional as F
 
-    from core.bundle import load_bundle
     from core.frames.edited import render_edited
     from core.images.filter import blackman_harris_taps, filter_down
     from core.points import attention_compiled
     from core.points.render import decode_where_active
 
-    if args.model:
-        bundle = load_bundle(args.model, device="cpu")
-        source = f"{args.model} ({bundle.model.num_points} points, decoder {bundle.model.cfg.decoder})"
-    else:
-        bundle = with_decoder(build_model(args.points, args.atlas_steps), "unet")
-        source = f"built: {args.points}-point sphere, fresh PointModel with the UNet decoder"
+    bundle, source = model_from_args(args, decoder="unet")
     model = bundle.model
     bent = bend(model.xyz.detach(), float(model.spacing))
     case = Case("deformed + painted", bundle, True, bent, retexture(bundle.atlas))

@@ -61,6 +61,30 @@ def build_model(n: int, atlas_steps: int, seed: int = 0, decoder: str = "none"):
     return Bundle(model=model, atlas=atlas, meta={"scene": {"name": f"bench sphere, {n} points"}})
 
 
+def add_model_args(ap, atlas_steps: int, model_help: str) -> None:
+    """The benches' model flags: --model (a trained .pgt) or --points / --atlas-steps for a built one."""
+    ap.add_argument("--model", default=None, help=model_help)
+    ap.add_argument("--points", type=int, default=10_000, help="points of the built model")
+    ap.add_argument("--atlas-steps", type=int, default=atlas_steps, help="stage-2 steps of the built model's atlas")
+
+
+def model_from_args(args, decoder: str = "none"):
+    """(Bundle, one line saying where it came from): the --model file, which must have an atlas, or a model built
+    by `build_model` from --points / --atlas-steps with a fresh `decoder` ("none" | "unet")."""
+    from core.bundle import load_bundle
+
+    if args.model:
+        bundle = load_bundle(args.model, device="cpu")
+        if bundle.atlas is None:
+            raise SystemExit(f"{args.model}: this model has no atlas; run `pointgt atlas` on it first")
+        return bundle, f"{args.model} ({bundle.model.num_points} points, trained, decoder {bundle.model.cfg.decoder})"
+    bundle = build_model(args.points, args.atlas_steps)
+    if decoder != "none":
+        bundle = with_decoder(bundle, decoder)
+    return bundle, (f"built: {args.points} points on a noisy sphere, fresh PointModel (decoder {decoder}), atlas "
+                    f"from a {args.atlas_steps}-step stage-2 fit")
+
+
 def with_decoder(bundle, decoder: str, seed: int = 0):
     """The bundle's points and atlas with a fresh PointModel of the same config but `decoder` ("none" | "unet")."""
     import torch
@@ -227,34 +251,23 @@ def compare_chunks(bundle, points, atlas_image, cams, size, focal, chunks: str) 
 
 def main(argv=None) -> int:
     ap = parser(__doc__)
-    ap.add_argument("--model", default=None, help="a trained .pgt with an atlas (default: build one, see above)")
-    ap.add_argument("--points", type=int, default=10_000, help="points of the built model")
+    add_model_args(ap, 60, "a trained .pgt with an atlas (default: build one, see above)")
     ap.add_argument("--size", type=int, default=128, help="frames are size × size pixels")
     ap.add_argument("--frames", type=int, default=7, help="timed frames per row (median reported)")
-    ap.add_argument("--atlas-steps", type=int, default=60, help="stage-2 steps of the built model's atlas")
     ap.add_argument("--save-model", default=None, help="save the built model here (reuse it with --model)")
     ap.add_argument("--budget", type=float, default=0.25, help="target seconds for a deformed + retextured frame")
     ap.add_argument("--chunks", default="", help="comma-separated trace_frame chunk sizes (rays per attention call) "
                     "to compare on the deformed + retextured frame, e.g. 16384,1024; empty = skip")
     args = parse(ap, argv, threads=0)
 
-    from core.bundle import load_bundle
     from core.frames.edited import EditState
 
     t0 = time.perf_counter()
-    if args.model:
-        bundle = load_bundle(args.model, device="cpu")
-        if bundle.atlas is None:
-            raise SystemExit(f"{args.model}: this model has no atlas; run `pointgt atlas` on it first")
-        source = f"{args.model} ({bundle.model.num_points} points, trained)"
-    else:
-        bundle = build_model(args.points, args.atlas_steps)
-        source = (f"built: {args.points} points on a noisy sphere, fresh PointModel (default ModelConfig), atlas "
-                  f"from a {args.atlas_steps}-step stage-2 fit")
-        if args.save_model:
-            from core.bundle import save_bundle
+    bundle, source = model_from_args(args)
+    if not args.model and args.save_model:
+        from core.bundle import save_bundle
 
-            save_bundle(args.save_model, bundle)
+        save_bundle(args.save_model, bundle)
     build_s = time.perf_counter() - t0
     model, atlas = bundle.model, bundle.atlas
     spacing = float(model.spacing)
