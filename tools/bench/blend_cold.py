@@ -58,10 +58,17 @@ def setup_scene(model: str | os.PathLike, work: Path, size: int, timeout: float 
 
 def open_run(work: Path, variant: str, threads: int, wait: float = 0.0, timeout: float = 600) -> dict:
     """One fresh Blender opening work/<variant>.blend and pressing F12 twice (`wait` seconds after opening);
-    the record of blend_session.py open plus process_s, the whole process's wall seconds seen from here."""
-    res, wall = _session(["open", str(work / f"{variant}.blend"), str(work / f"open_{variant}.png"), str(wait)],
-                         blender_env(work, threads), timeout)
+    the record of blend_session.py open plus process_s, the whole process's wall seconds seen from here, and
+    image_diff: the largest difference (8-bit levels) of its first image from the setup's F12 of the same pose."""
+    import numpy as np
+    from PIL import Image
+
+    png = work / f"open_{variant}.png"
+    res, wall = _session(["open", str(work / f"{variant}.blend"), str(png), str(wait)], blender_env(work, threads),
+                         timeout)
     res["process_s"] = wall
+    a, b = (np.asarray(Image.open(p), dtype=np.int16) for p in (png, work / "setup.png"))
+    res["image_diff"] = int(np.abs(a - b).max()) if a.shape == b.shape else 255
     return res
 
 
@@ -84,10 +91,12 @@ def blend_cold(model: str | os.PathLike, work: Path, size: int, runs: int, threa
 
 
 def table(res: dict) -> list[str]:
-    """Markdown rows: median (min–max) wall seconds per variant and step, median CPU seconds beside the first
-    image's, and in how many runs the warm-up started on load / had finished by the first image."""
+    """Markdown rows: median (min–max) wall seconds per variant and step, CPU seconds beside the first image's,
+    in how many runs the warm-up started on load / had finished by the first image, and the largest difference
+    of a first image from the setup's (8-bit levels)."""
     rows = ["| model in the .blend | process wall s | import bpy s | prefs s | open s | F12 → image s | CPU s | "
-            "open → image s | CPU s | second F12 s | warm-up started / done by the image |", "|" + "---|" * 11]
+            "open → image s | CPU s | second F12 s | warm-up started / done by the image | image diff |",
+            "|" + "---|" * 12]
 
     def cell(rs, k):
         xs = [r[k] for r in rs]
@@ -97,5 +106,5 @@ def table(res: dict) -> list[str]:
         started = sum(bool(r["warmup_started_on_load"]) for r in rs)
         done = sum(bool(r["warmup_done_by_first_image"]) for r in rs)
         rows.append(f"| {v} | " + " | ".join(cell(rs, k) for k in ("process_s",) + STEPS) +
-                    f" | {started}/{len(rs)} / {done}/{len(rs)} |")
+                    f" | {started}/{len(rs)} / {done}/{len(rs)} | {max(r['image_diff'] for r in rs)} |")
     return rows

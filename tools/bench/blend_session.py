@@ -127,6 +127,7 @@ def open_and_render(blend: str, png: str, wait: float = 0.0) -> dict:
 
     warmup = importlib.import_module(f"{PKG}.bridge.warmup")
     started = warmup._thread is not None
+    handler_ms = max(importlib.import_module(f"{PKG}.scene.session").SESSION.handler_ms, default=0.0)
     if wait > 0:
         time.sleep(wait)
     c_f12 = time.process_time()
@@ -141,7 +142,7 @@ def open_and_render(blend: str, png: str, wait: float = 0.0) -> dict:
             "open_to_image_s": t_open - t_prefs + first, "open_to_image_cpu_s": c_image - c_open,
             "second_frame_s": second, "wait_s": wait,
             "warmup_started_on_load": started, "warmup_done_by_first_image": warm_done,
-            "warmup_error": warmup.last_error}
+            "warmup_error": warmup.last_error, "open_handlers_max_ms": handler_ms}
 
 
 def main() -> None:
