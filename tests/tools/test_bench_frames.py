@@ -68,3 +68,5 @@ def test_blend_cold_bench_tiny(tmp_path, capsys):
         assert r["process_s"] >= inside and r["open_to_image_s"] >= r["first_frame_s"]
         assert r["warmup_started_on_load"] and r["warmup_error"] == "", (variant, r)
         assert r["image_diff"] == 0, variant
+    assert {"import torch", "model load", "trace (neighbours, attention; numba's cache loaded)"} <= set(res["parts"])
+    assert all(math.isfinite(v) for v in res["parts"].values()) and res["parts"]["import torch"] > 0

@@ -3,6 +3,7 @@ Python module), never imported. Prints one JSON line "RESULTS: {...}".
 
     python tools/bench/blend_session.py -- setup ADDON.zip MODEL.pgt WORK SIZE
     python tools/bench/blend_session.py -- open SCENE.blend OUT.png [WAIT_S]
+    python tools/bench/blend_session.py -- parts SCENE.blend OUT.png
 
 setup: installs the packaged add-on (saved in the user preferences, so a fresh Blender starts with it enabled),
 builds an artist's scene — the model imported with its surface proxy, a disc painted into its atlas through the
@@ -15,6 +16,9 @@ open: what an artist's Blender does: starts (import bpy), reads the user prefere
 opens the .blend (the add-on's load_post handler runs: bridge/warmup.py), presses F12 (WAIT_S seconds later,
 default 0), turns the bone 5° more and presses F12 again. Each step is timed from inside; whether the background
 warm-up started on load, and whether it had finished when the first frame was done, is recorded.
+
+parts: the same first image with the warm-up switched off and CPU seconds per part (open, torch's import, the
+renderer's imports, then F12's steps), so each part is measured on its own.
 """
 import json
 import math
@@ -130,6 +134,7 @@ def open_and_render(blend: str, png: str, wait: float = 0.0) -> dict:
     handler_ms = max(importlib.import_module(f"{PKG}.scene.session").SESSION.handler_ms, default=0.0)
     if wait > 0:
         time.sleep(wait)
+    warm_before = started and not warmup._thread.is_alive()
     c_f12 = time.process_time()
     first = _render(png)
     c_image = time.process_time()
@@ -141,8 +146,47 @@ def open_and_render(blend: str, png: str, wait: float = 0.0) -> dict:
             "first_frame_s": first, "first_frame_cpu_s": c_image - c_f12,
             "open_to_image_s": t_open - t_prefs + first, "open_to_image_cpu_s": c_image - c_open,
             "second_frame_s": second, "wait_s": wait,
-            "warmup_started_on_load": started, "warmup_done_by_first_image": warm_done,
+            "warmup_started_on_load": started, "warmup_done_before_f12": warm_before,
+            "warmup_done_by_first_image": warm_done,
             "warmup_error": warmup.last_error, "open_handlers_max_ms": handler_ms}
+
+
+def parts(blend: str, png: str) -> dict:
+    """Where the first image's time goes, CPU seconds per part, one after another in the main thread: the
+    warm-up is switched off, torch and the renderer are imported first, then F12 with its steps timed."""
+    import importlib
+
+    import bpy
+
+    bpy.ops.wm.read_userpref()
+    importlib.import_module(f"{PKG}.bridge.warmup").start = lambda *args, **kwargs: False
+    cpu = {}
+
+    def timed(label, fn):
+        def wrapper(*args, **kwargs):
+            c = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                cpu[label] = cpu.get(label, 0.0) + time.process_time() - c
+        return wrapper
+
+    timed("open", bpy.ops.wm.open_mainfile)(filepath=blend)
+    timed("import torch", importlib.import_module)("torch")
+    fr = timed("renderer imports (numba included)", importlib.import_module)(f"{PKG}.bridge.frame_renderer")
+    si = importlib.import_module(f"{PKG}.scene.scene_inputs")
+    si.object_inputs = timed("object inputs (points, atlas, packed model extracted)", si.object_inputs)
+    fr.MODELS.get = timed("model load", fr.MODELS.get)
+    fr.prepare = timed("edit state (deformation gradients)", fr.prepare)  # its model load is subtracted below
+    fr.trace_layer = timed("trace (neighbours, attention; numba's cache loaded)", fr.trace_layer)
+    fr.render_layer = timed("shading (decoder, texture lookups)", fr.render_layer)
+    c = time.process_time()
+    _render(png)
+    f12 = time.process_time() - c
+    cpu["edit state (deformation gradients)"] -= cpu["model load"]
+    cpu["rest of F12"] = f12 - sum(v for k, v in cpu.items() if k not in ("open", "import torch",
+                                                                         "renderer imports (numba included)"))
+    return {"parts_cpu_s": cpu}
 
 
 def main() -> None:
@@ -152,8 +196,10 @@ def main() -> None:
     elif args[0] == "open":
         wait = float(args[3]) if len(args) > 3 else 0.0
         res = open_and_render(os.path.abspath(args[1]), os.path.abspath(args[2]), wait)
+    elif args[0] == "parts":
+        res = parts(os.path.abspath(args[1]), os.path.abspath(args[2]))
     else:
-        raise SystemExit(f"unknown mode {args[0]!r}: setup or open")
+        raise SystemExit(f"unknown mode {args[0]!r}: setup, open or parts")
     print("RESULTS: " + json.dumps(res))
 
 

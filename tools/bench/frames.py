@@ -26,7 +26,8 @@ armature on the proxy with one bone turned, the PointGT engine at `--blend-size`
 the .blend (the import's default), once read from the .pgt next to it. Each of `--blend-runs` rounds starts a fresh
 Blender per .blend that reads the user preferences, opens the .blend (the add-on's load_post handler may start its
 background warm-up), presses F12 (`--blend-wait` seconds after opening; default at once) and again in a new pose;
-wall and CPU seconds per step (tools/bench/blend_session.py, tools/bench/blend_cold.py). `--blend-work DIR` keeps
+wall and CPU seconds per step (tools/bench/blend_session.py, tools/bench/blend_cold.py). One more Blender, with the
+warm-up switched off, gives the CPU seconds of each part of the first image on its own. `--blend-work DIR` keeps
 the scene and frames.
 
 Profile: the deformed + painted frame split into stages by wrapping their functions (tools.bench.render's
@@ -178,6 +179,8 @@ def blend_main(args) -> int:
               f"F12 {args.blend_wait:g} s after opening; median (min–max) of {args.blend_runs} fresh Blenders per "
               f"row; load average {res['load'][0]:.1f} before, {res['load'][1]:.1f} after):")
         print("\n".join(table(res)))
+        print(f"where the first image's CPU time goes ({next(iter(res['runs']))} model, one run, warm-up off): " +
+              ", ".join(f"{k} {v:.2f} s" for k, v in res["parts"].items()))
         if args.json:
             from core.util.atomic import atomic_write_text
 
