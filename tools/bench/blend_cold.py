@@ -49,9 +49,8 @@ def setup_scene(model: str | os.PathLike, work: Path, size: int, timeout: float 
 
     work.mkdir(parents=True, exist_ok=True)
     zip_path = build_addon(work / "dist")
-    env = dict(blender_env(work, 1), PYTHONPATH=os.pathsep.join([str(SESSION.parents[2]),
-                                                                 os.environ.get("PYTHONPATH", "")]))
-    res, wall = _session(["setup", str(zip_path), str(Path(model).resolve()), str(work), str(size)], env, timeout)
+    res, wall = _session(["setup", str(zip_path), str(Path(model).resolve()), str(work), str(size)],
+                         blender_env(work, 1), timeout)
     res["setup_s"] = wall
     return res
 

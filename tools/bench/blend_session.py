@@ -89,7 +89,8 @@ def setup(zip_path: str, model: str, work: str, size: int) -> dict:
     obj = bpy.context.active_object
     proxy = obj.pointgt.proxy
     if proxy is None or obj.pointgt.atlas is None:
-        raise RuntimeError(f"{model}: the model needs an atlas (and so a surface proxy) for this scene")
+        raise RuntimeError(f"{model}: the scene needs the model's atlas and surface proxy, and the import made none "
+                           f"(its warning above says why); use a trained model with an atlas")
     co = np.array([v.co for v in proxy.data.vertices], np.float64)
     lo, hi = co.min(0), co.max(0)
     centre, diag = (lo + hi) / 2, float(np.linalg.norm(hi - lo))

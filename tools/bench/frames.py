@@ -3,6 +3,8 @@ edits and threads, and where a frame's time goes.
 
 Run: `python -m tools.bench.frames [--model M.pgt] [--sizes 128,256,512] [--threads-list 1,0] [--frames 3]`
 (add 1024 to --sizes for the largest frames; they take tens of seconds each on a 2-core CPU).
+Blender's first frame after opening a .blend: `python -m tools.bench.frames --blend-cold --model M.pgt
+[--blend-runs 3] [--threads 1]` (needs the bpy module; see below).
 
 Without --model the bench builds its models in seconds, like `tools.bench.render`: `--points` points on a noisy
 sphere, a fresh PointModel with the default ModelConfig and an atlas from a short stage-2 fit; the "UNet" columns
@@ -21,14 +23,14 @@ whole process from outside too (interpreter start-up included).
 
 Blender's first frame (`--blend-cold`, instead of everything above; needs the bpy module): the add-on is packaged
 from this checkout and installed into a fresh Blender user folder, and a scene is saved as an artist makes it: the
-model (`--model`, else a built one) imported with its surface proxy, a disc painted into its atlas, a two-bone
-armature on the proxy with one bone turned, the PointGT engine at `--blend-size`² — once with the model packed into
-the .blend (the import's default), once read from the .pgt next to it. Each of `--blend-runs` rounds starts a fresh
-Blender per .blend that reads the user preferences, opens the .blend (the add-on's load_post handler may start its
-background warm-up), presses F12 (`--blend-wait` seconds after opening; default at once) and again in a new pose;
-wall and CPU seconds per step (tools/bench/blend_session.py, tools/bench/blend_cold.py). One more Blender, with the
-warm-up switched off, gives the CPU seconds of each part of the first image on its own. `--blend-work DIR` keeps
-the scene and frames.
+model (`--model`, a trained one with an atlas) imported with its surface proxy, a disc painted into its atlas, a
+two-bone armature on the proxy with one bone turned, the PointGT engine at `--blend-size`² — once with the model
+packed into the .blend (the import's default), once read from the .pgt next to it. Each of `--blend-runs` rounds
+starts a fresh Blender per .blend that reads the user preferences, opens the .blend (the add-on's load_post handler
+may start its background warm-up), presses F12 (`--blend-wait` seconds after opening; default at once) and again
+in a new pose; wall and CPU seconds per step (tools/bench/blend_session.py, tools/bench/blend_cold.py). One more
+Blender, with the warm-up switched off, gives the CPU seconds of each part of the first image on its own.
+`--blend-work DIR` keeps the scene and frames.
 
 Profile: the deformed + painted frame split into stages by wrapping their functions (tools.bench.render's
 timed_parts): neighbour search, local deformation gradients, attention, point colours (values blended by the
@@ -162,17 +164,17 @@ def blend_main(args) -> int:
     """--blend-cold: set up the scene, time the fresh Blenders, print the table (and --json)."""
     from pathlib import Path
 
-    from core.bundle import save_bundle
     from tools.bench.blend_cold import blend_cold, table
 
+    if args.blend_runs < 1 or args.blend_size < 8:
+        raise SystemExit("--blend-runs must be at least 1 and --blend-size at least 8")
+    if args.model is None:
+        raise SystemExit("--blend-cold needs --model: a trained .pgt with an atlas (a built sphere's surface proxy "
+                         "does not bind its points)")
     threads = args.threads if args.threads > 0 else 0
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(args.blend_work or tmp).resolve()
         model = args.model
-        if model is None:
-            model = str(work / "built.pgt")
-            work.mkdir(parents=True, exist_ok=True)
-            save_bundle(model, build_model(args.points, args.atlas_steps), backup=False)
         print(machine_line())
         res = blend_cold(model, work, args.blend_size, args.blend_runs, threads, args.blend_wait)
         print(f"Blender's first frame after opening a .blend ({args.blend_size}², {threads or 'default'} thread(s), "
@@ -205,7 +207,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cold", action="store_true", help="skip the cold first-frame process")
     ap.add_argument("--no-profile", action="store_true", help="skip the per-stage profile")
     ap.add_argument("--blend-cold", action="store_true", help="time Blender's first frame after opening a .blend "
-                    "(see above) instead of the frames")
+                    "instead of the frames (this file's docstring says how)")
     ap.add_argument("--blend-size", type=int, default=128, help="--blend-cold: render size (size × size pixels)")
     ap.add_argument("--blend-runs", type=int, default=3, help="--blend-cold: fresh Blenders per .blend")
     ap.add_argument("--blend-wait", type=float, default=0.0, help="--blend-cold: seconds between opening and F12")
