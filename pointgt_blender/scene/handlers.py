@@ -14,6 +14,8 @@ import time
 
 import bpy
 
+from core.util.errors import PointGTError
+
 from . import atlas_image
 from ..operators import model_import, preview
 from .session import SESSION
@@ -76,19 +78,32 @@ def on_load(*_args):
 
 
 def _start_warmup():
-    """The opened .blend's PointGT objects with a model file on disk: import torch, load their models and run the
-    compiled kernels once in the background (bridge/warmup.py), so the first frame does not pay for it. Packed
-    models are left to the first frame (extracting them is not a handler's cheap step)."""
+    """The opened .blend's PointGT objects with a model (packed into the .blend, or a file on disk): import torch,
+    extract the packed models, load the models and run the compiled kernels once in the background
+    (bridge/warmup.py), so the first frame does not pay for it. Here only the packed bytes are read; checking and
+    writing them is left to the thread."""
     from ..bridge import warmup
     from ..ui.properties import is_pointgt_object
+    from .model_pack import extraction
 
-    models = []
+    models, extract = [], []
     for obj in bpy.data.objects:
-        if is_pointgt_object(obj) and obj.pointgt.packed_model is None and obj.pointgt.model_path:
+        if not is_pointgt_object(obj):
+            continue
+        device = obj.pointgt.device.lower()
+        if obj.pointgt.packed_model is not None:
+            try:
+                path, fn = extraction(obj.pointgt.packed_model)
+            except PointGTError:  # no packed bytes: the frame reports it
+                continue
+            models.append((path, device))
+            if fn is not None:
+                extract.append(fn)
+        elif obj.pointgt.model_path:
             path = os.path.normpath(bpy.path.abspath(obj.pointgt.model_path, library=obj.library))
             if os.path.isfile(path):
-                models.append((path, obj.pointgt.device.lower()))
-    warmup.start(models)
+                models.append((path, device))
+    warmup.start(models, extract)
 
 
 @_timed

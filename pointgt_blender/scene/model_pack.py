@@ -3,12 +3,14 @@
 The .pgt bytes live in a bytes custom property of a Text datablock '<file>.pgt' (visible in the Text Editor, where
 its text says what it is); each object points to it (`object.pointgt.packed_model`), so duplicates share one
 copy. Rendering extracts it once per Blender session into Blender's temporary folder, named by its SHA-256, and
-loads it from there. A packed model takes precedence over the file at the model path, as packed images do.
+loads it from there (after a .blend is opened, the add-on's warm-up extracts it in its background thread). A
+packed model takes precedence over the file at the model path, as packed images do.
 """
 from __future__ import annotations
 
 import hashlib
 import os
+import threading
 
 import bpy
 
@@ -20,6 +22,7 @@ SHA = "pointgt_sha256"      # its SHA-256 (hex)
 SOURCE = "pointgt_source"   # the file name it was packed from
 
 _EXTRACTED: dict = {}  # sha -> extracted path (this Blender session)
+_LOCK = threading.Lock()  # one extraction at a time (the warm-up thread and a frame may both ask)
 
 
 def pack_file(path: str, name: str = ""):
@@ -51,21 +54,37 @@ def packed_bytes(text) -> bytes:
 
 def extracted_path(text) -> str:
     """A file holding the packed model (written once per session, checked against its SHA-256)."""
+    path, extract = extraction(text)
+    return path if extract is None else extract()
+
+
+def extraction(text):
+    """(the file the packed model is extracted to, None when it is there already | a function that writes it
+    there and returns the path). The function touches no Blender data, so a background thread may run it
+    (bridge/warmup.py); it checks the SHA-256 and writes atomically, so running it twice is harmless."""
     data = packed_bytes(text)
     sha = text.get(SHA) or hashlib.sha256(data).hexdigest()
     path = _EXTRACTED.get(sha)
     if path is not None and os.path.isfile(path):
-        return path
-    if hashlib.sha256(data).hexdigest() != sha:
-        raise ModelFileError(f"the model packed in text '{text.name}' is damaged (checksum mismatch); unpack a "
-                             f"good copy or re-import the model")
+        return path, None
+    name = text.name
     folder = os.path.join(bpy.app.tempdir or os.path.join(os.path.expanduser("~"), ".cache"), "pointgt-packed")
-    os.makedirs(folder, exist_ok=True)
     path = os.path.join(folder, f"{sha}.pgt")
-    if not os.path.isfile(path) or os.path.getsize(path) != len(data):
-        atomic_write_bytes(path, data, backup=False)
-    _EXTRACTED[sha] = path
-    return path
+
+    def extract() -> str:
+        with _LOCK:
+            if _EXTRACTED.get(sha) == path and os.path.isfile(path):
+                return path  # the other caller was first
+            if hashlib.sha256(data).hexdigest() != sha:
+                raise ModelFileError(f"the model packed in text '{name}' is damaged (checksum mismatch); unpack a "
+                                     f"good copy or re-import the model")
+            os.makedirs(folder, exist_ok=True)
+            if not os.path.isfile(path) or os.path.getsize(path) != len(data):
+                atomic_write_bytes(path, data, backup=False)
+            _EXTRACTED[sha] = path
+            return path
+
+    return path, extract
 
 
 def unpack(obj, filepath: str) -> str:

@@ -24,3 +24,24 @@ def test_warmup_keeps_errors_and_skips_empty_lists(tmp_path):
     assert warmup.start([(str(tmp_path / "missing.pgt"), "cpu")])
     assert warmup.wait(120)
     assert "not found" in warmup.last_error
+
+
+def test_warmup_extracts_packed_models_before_loading_them(tmp_path):
+    """A packed model's path does not exist when the warm-up starts: its extraction runs first, in the thread."""
+    source = save_tiny(tmp_path / "m.pgt", "fast")
+    target = tmp_path / "extracted" / "sha.pgt"
+    calls = []
+
+    def extract():
+        calls.append(target.exists())
+        target.parent.mkdir()
+        target.write_bytes(source.read_bytes())
+        return str(target)
+
+    frame_renderer.MODELS.clear()
+    warmup.done_paths.clear()
+    warmup.last_error = ""
+    assert warmup.start([(str(target), "cpu")], extract=[extract])
+    assert warmup.wait(120)
+    assert calls == [False] and warmup.last_error == "" and warmup.done_paths == [str(target)]
+    frame_renderer.MODELS.clear()

@@ -1,8 +1,12 @@
-"""The frame benchmark runs end to end at tiny sizes and reports finite, consistent figures."""
+"""The frame benchmark runs end to end at tiny sizes and reports finite, consistent figures (Blender's first frame
+after opening a .blend too)."""
 import json
 import math
 
-from tools.bench import frames
+import pytest
+
+from tests.helpers.tiny import save_tiny
+from tools.bench import blend_cold, frames
 
 
 def test_frames_bench_tiny(tmp_path, capsys):
@@ -43,3 +47,26 @@ def test_fast_paths_bench_tiny(tmp_path):
     assert {"point colours", "decoder", "texture lookup (anti-aliased)", "pixel filter"} <= set(rows)
     for r in rows.values():
         assert r["torch_s"] > 0 and r["fast_s"] > 0 and r["max_abs_diff"] <= 1e-5, r
+
+
+@pytest.mark.blender
+def test_blend_cold_bench_tiny(tmp_path, capsys):
+    """--blend-cold builds the scene headless, opens it in fresh Blenders and times every part; the add-on's
+    load_post warm-up starts for a packed and for an unpacked model; the first image equals the setup's."""
+    model = save_tiny(tmp_path / "card.pgt", "fast")
+    out = tmp_path / "blend.json"
+    assert frames.main(["--blend-cold", "--model", str(model), "--blend-size", "32", "--blend-runs", "1",
+                        "--threads", "1", "--blend-work", str(tmp_path / "work"), "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert "| packed |" in capsys.readouterr().out
+    assert math.isfinite(res["setup"]["first_render_ever_s"]) and res["setup"]["points"] > 0
+    assert set(res["runs"]) == {"packed", "path"}
+    for variant, runs in res["runs"].items():
+        (r,) = runs
+        assert all(math.isfinite(r[k]) and r[k] > 0 for k in blend_cold.STEPS + ("process_s",)), (variant, r)
+        inside = r["import_bpy_s"] + r["prefs_s"] + r["open_s"] + r["first_frame_s"] + r["second_frame_s"]
+        assert r["process_s"] >= inside and r["open_to_image_s"] >= r["first_frame_s"]
+        assert r["warmup_started_on_load"] and r["warmup_error"] == "", (variant, r)
+        assert r["image_diff"] == 0, variant
+    assert {"import torch", "model load", "trace (neighbours, attention; numba's cache loaded)"} <= set(res["parts"])
+    assert all(math.isfinite(v) for v in res["parts"].values()) and res["parts"]["import torch"] > 0

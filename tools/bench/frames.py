@@ -3,6 +3,8 @@ edits and threads, and where a frame's time goes.
 
 Run: `python -m tools.bench.frames [--model M.pgt] [--sizes 128,256,512] [--threads-list 1,0] [--frames 3]`
 (add 1024 to --sizes for the largest frames; they take tens of seconds each on a 2-core CPU).
+Blender's first frame after opening a .blend: `python -m tools.bench.frames --blend-cold --model M.pgt
+[--blend-runs 3] [--threads 1]` (needs the bpy module; see below).
 
 Without --model the bench builds its models in seconds, like `tools.bench.render`: `--points` points on a noisy
 sphere, a fresh PointModel with the default ModelConfig and an atlas from a short stage-2 fit; the "UNet" columns
@@ -18,6 +20,17 @@ Threads: `--threads-list` (0 = all the machine's cores); the profile runs on the
 Cold first frame: a separate process (`--cold` on, the default) imports torch and the renderer, loads the model
 file, and renders one deformed + painted frame at the smallest size, then a second, warm one; the parent times the
 whole process from outside too (interpreter start-up included).
+
+Blender's first frame (`--blend-cold`, instead of everything above; needs the bpy module): the add-on is packaged
+from this checkout and installed into a fresh Blender user folder, and a scene is saved as an artist makes it: the
+model (`--model`, a trained one with an atlas) imported with its surface proxy, a disc painted into its atlas, a
+two-bone armature on the proxy with one bone turned, the PointGT engine at `--blend-size`² — once with the model
+packed into the .blend (the import's default), once read from the .pgt next to it. Each of `--blend-runs` rounds
+starts a fresh Blender per .blend that reads the user preferences, opens the .blend (the add-on's load_post handler
+may start its background warm-up), presses F12 (`--blend-wait` seconds after opening; default at once) and again
+in a new pose; wall and CPU seconds per step (tools/bench/blend_session.py, tools/bench/blend_cold.py). One more
+Blender, with the warm-up switched off, gives the CPU seconds of each part of the first image on its own.
+`--blend-work DIR` keeps the scene and frames.
 
 Profile: the deformed + painted frame split into stages by wrapping their functions (tools.bench.render's
 timed_parts): neighbour search, local deformation gradients, attention, point colours (values blended by the
@@ -147,6 +160,37 @@ def _fmt(r: dict) -> str:
     return f"{r['median_s']:.3f} ({r['min_s']:.2f}–{r['max_s']:.2f})"
 
 
+def blend_main(args) -> int:
+    """--blend-cold: set up the scene, time the fresh Blenders, print the table (and --json)."""
+    from pathlib import Path
+
+    from tools.bench.blend_cold import blend_cold, table
+
+    if args.blend_runs < 1 or args.blend_size < 8:
+        raise SystemExit("--blend-runs must be at least 1 and --blend-size at least 8")
+    if args.model is None:
+        raise SystemExit("--blend-cold needs --model: a trained .pgt with an atlas (a built sphere's surface proxy "
+                         "does not bind its points)")
+    threads = args.threads if args.threads > 0 else 0
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.blend_work or tmp).resolve()
+        model = args.model
+        print(machine_line())
+        res = blend_cold(model, work, args.blend_size, args.blend_runs, threads, args.blend_wait)
+        print(f"Blender's first frame after opening a .blend ({args.blend_size}², {threads or 'default'} thread(s), "
+              f"F12 {args.blend_wait:g} s after opening; median (min–max) of {args.blend_runs} fresh Blenders per "
+              f"row; load average {res['load'][0]:.1f} before, {res['load'][1]:.1f} after):")
+        print("\n".join(table(res)))
+        print(f"where the first image's CPU time goes ({next(iter(res['runs']))} model, one run, warm-up off): " +
+              ", ".join(f"{k} {v:.2f} s" for k, v in res["parts"].items()))
+        if args.json:
+            from core.util.atomic import atomic_write_text
+
+            atomic_write_text(args.json, json.dumps({"machine": machine_line(), "model": str(model), **res},
+                                                    indent=1, default=float))
+    return 0
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["--cold-child"]:
@@ -162,7 +206,15 @@ def main(argv=None) -> int:
     ap.add_argument("--decoders", default="none,unet", help="built models: decoders to time (none, unet)")
     ap.add_argument("--no-cold", action="store_true", help="skip the cold first-frame process")
     ap.add_argument("--no-profile", action="store_true", help="skip the per-stage profile")
+    ap.add_argument("--blend-cold", action="store_true", help="time Blender's first frame after opening a .blend "
+                    "instead of the frames (this file's docstring says how)")
+    ap.add_argument("--blend-size", type=int, default=128, help="--blend-cold: render size (size × size pixels)")
+    ap.add_argument("--blend-runs", type=int, default=3, help="--blend-cold: fresh Blenders per .blend")
+    ap.add_argument("--blend-wait", type=float, default=0.0, help="--blend-cold: seconds between opening and F12")
+    ap.add_argument("--blend-work", default=None, help="--blend-cold: folder for the scene (default: a temporary one)")
     args = parse(ap, argv, threads=0)
+    if args.blend_cold:
+        return blend_main(args)
 
     import torch
 
