@@ -20,6 +20,7 @@ from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
 from core.edits.deformation import DeformationConfig, expansion_inverse, field_for, inverse, stretch
+from core.edits.occlusion import front_layer
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
@@ -61,6 +62,9 @@ class EditConfig:
                                    "this many times their canonical distance apart", min=1.01, max=100.0)
     f_fill_budget: float = opt(1.0, "f_fill: at most this many added points per point (the ratio is raised past "
                                     "it)", min=0.0, max=64.0)
+    f_occlusion: bool = opt(False, "moved points: each ray keeps the front one of the surface layers among its "
+                                   "neighbours (layers told apart by the points' local deformation gradients: a "
+                                   "joint's fold, a part swung behind another); rest frames are unchanged")
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
                      choices=BLENDS)
     mask_threshold: float = opt(0.01, "a texel counts as painted when its colour changed by more than this (L2)",
@@ -267,6 +271,14 @@ class EditState:
             self._f = other._f
             self.fit_seconds = self.deformation_seconds = other.fit_seconds
 
+    def visible_layer(self, trace: Trace) -> Trace:
+        """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
+        (core/edits/occlusion.py); the trace itself when the points did not move or the rule is off."""
+        if not (self.moved and self.cfg.f_occlusion):
+            return trace
+        return self._timed(lambda: front_layer(trace, self.points, self.p_can, self.inv_f,
+                                               float(self.bundle.model.spacing)))
+
     def canonical_surface(self, trace: Trace, sel: torch.Tensor) -> torch.Tensor:
         """Canonical surface points [S, 3] of the rays sel [S] of a trace of these points, by the configured
         correspondence (core.edits.correspondence.ray_canonical_points, with the fold rule of cfg.fold_radius; F is
@@ -374,6 +386,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                          radius_scale=state.radius_scale if cfg.f_radius else 1.0, attention=cfg.attention,
                          soft_scale=scale if "footprint" in parts else 1.0)
+        tr = state.visible_layer(tr)
     else:
         tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
