@@ -24,79 +24,215 @@ passing beside the ray) are kept as they are.
 
 At rest, under a rigid motion or any affine map every neighbour is in every other's layer: nothing changes (rows
 the rule leaves whole stay bit-identical).
+
+Cost: a ray inside one part passes a cheap screen (each neighbour against its most-attended one) and is left
+alone; only rays with neighbours of another part walk their layers. The walk is a compiled loop on a CPU (numba,
+like core/points/attention_compiled.py), torch elsewhere; both give the same kept neighbours
+(tests/core/edits/test_occlusion.py).
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 
+import numpy as np
 import torch
 
 from core.points.trace import Trace
 
+try:  # optional: the torch path is used without it
+    import numba
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    numba = None
+
+BACKENDS = ("auto", "torch", "compiled")
+
 
 @torch.no_grad()
 def front_layer(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float,
-                alpha: float = 0.5, beta: float = 2.0, min_share: float = 0.25, chunk: int = 2048) -> Trace:
+                alpha: float = 0.5, beta: float = 2.0, min_share: float = 0.25, backend: str = "auto") -> Trace:
     """The trace with each ray's attention restricted to its front layer (module doc).
 
     trace: `trace_frame` of `points`; points [M, 3] deformed positions (non-finite rows are never neighbours),
     p_can [M, 3] their canonical positions, inv_f [M, 3, 3] the inverse local deformation gradients (finite,
     bounded: `EditState.inv_f`); spacing: the model's point spacing (world units); alpha, beta: the layer test's
     relative and absolute tolerance (beta in spacings); min_share: the share of a ray's foreground weight a layer
-    needs to count as its visible surface. Returns a Trace whose weights, fg_weights and x changed only on rays
-    where a layer was dropped (bg unchanged).
+    needs to count as its visible surface; backend: "compiled" (CPU, numba), "torch" or "auto" (compiled where
+    it can run). Returns a Trace whose weights, fg_weights and x changed only on rays where a layer was dropped
+    (bg unchanged); the trace itself when no ray changed.
     """
-    idx, w = trace.idx, trace.fg_weights
-    r_n, k = idx.shape
-    if r_n == 0 or k < 2:
+    if backend not in BACKENDS:
+        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
+    idx = trace.idx
+    if idx.shape[0] == 0 or idx.shape[1] < 2:
         return trace
-    valid = (idx >= 0) & trace.active[:, None]
-    safe = idx.clamp_min(0)
-    pts = torch.nan_to_num(points.to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    can = p_can.to(torch.float32)
-    fi = inv_f.to(torch.float32)
-    tol_abs = float(beta) * float(spacing)
-    # cheap screen: a ray needs the full test only when some attended neighbour fails the test against its
-    # most-attended one (a ray inside one part passes everywhere)
-    anchor = safe.gather(1, w.argmax(1, keepdim=True)).squeeze(1)                        # [R]
-    dp = pts[safe] - pts[anchor][:, None, :]
-    dc = can[safe] - can[anchor][:, None, :]
-    res = ((fi[anchor][:, None] @ dp[..., None]).squeeze(-1) - dc).norm(dim=-1)
-    odd = valid & (res > alpha * dc.norm(dim=-1) + tol_abs) & (w > 0)
-    rows = torch.nonzero(odd.any(1)).squeeze(1)
+    rows = torch.nonzero(trace.active & (idx >= 0).any(1)).squeeze(1)
     if rows.numel() == 0:
         return trace
+    pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    args = (idx[rows], trace.fg_weights[rows], trace.origins[rows], trace.dirs[rows], pts,
+            p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32), float(alpha),
+            float(beta) * float(spacing), float(min_share))
+    compiled = backend != "torch" and numba is not None and idx.device.type == "cpu"
+    if backend == "compiled" and not compiled:
+        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
+    keep = _keep_compiled(*args) if compiled else _keep_torch(*args)                    # [S, K] bool
+    w = trace.fg_weights[rows] * (idx[rows] >= 0)
+    kept = w * keep
+    left = kept.sum(1)
+    changed = (left > 0) & (kept != w).any(1)
+    if not bool(changed.any()):
+        return trace
+    rc, kc = rows[changed], kept[changed]
+    fg = kc / left[changed][:, None]
     new_w, new_fg, new_x = trace.weights.clone(), trace.fg_weights.clone(), trace.x.clone()
-    depth_all = ((pts[safe] - trace.origins[:, None, :]) * trace.dirs[:, None, :]).sum(-1)  # [R, K]
+    new_fg[rc] = fg
+    new_w[rc] = fg * (1.0 - trace.bg[rc])[:, None]
+    new_x[rc] = (fg[..., None] * pts[idx[rc].clamp_min(0)]).sum(1)
+    return dataclasses.replace(trace, weights=new_w, fg_weights=new_fg, x=new_x)
+
+
+def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chunk: int = 2048):
+    """Which neighbours each ray keeps (the reference form; `_keep_compiled` gives the same): idx [S, K], w [S, K]
+    fg weights, origins/dirs [S, 3], pts / can [M, 3], fi [M, 3, 3] -> keep [S, K] bool (True where unchanged)."""
+    valid = idx >= 0
+    safe = idx.clamp_min(0)
+    w = w * valid
+    keep = torch.ones_like(valid)
+    # screen: each neighbour against the most-attended one; rays where all pass keep everything
+    anchor = safe.gather(1, w.argmax(1, keepdim=True)).squeeze(1)
+    dc = can[safe] - can[anchor][:, None, :]
+    res = ((fi[anchor][:, None] @ (pts[safe] - pts[anchor][:, None, :])[..., None]).squeeze(-1) - dc).norm(dim=-1)
+    odd = (valid & (w > 0) & (res > alpha * dc.norm(dim=-1) + tol)).any(1)
+    rows = torch.nonzero(odd).squeeze(1)
+    depth = ((pts[safe] - origins[:, None, :]) * dirs[:, None, :]).sum(-1).masked_fill(~valid, math.inf)
     for s in range(0, rows.numel(), chunk):
         rr = rows[s:s + chunk]
-        ix, vv, ww = safe[rr], valid[rr], w[rr] * valid[rr]
+        ix, vv, ww = safe[rr], valid[rr], w[rr]
         p, c, g = pts[ix], can[ix], fi[ix]                                                    # [B, K, ...]
-        # layer[b, m, l]: l is in m's layer
         dpp = p[:, None, :, :] - p[:, :, None, :]                                             # [B, m, l, 3]
         dcc = c[:, None, :, :] - c[:, :, None, :]
         pred = torch.einsum("bmij,bmlj->bmli", g, dpp)
-        layer = (pred - dcc).norm(dim=-1) <= alpha * dcc.norm(dim=-1) + tol_abs
-        layer &= vv[:, None, :] & vv[:, :, None]
+        layer = ((pred - dcc).norm(dim=-1) <= alpha * dcc.norm(dim=-1) + tol) & vv[:, None, :] & vv[:, :, None]
         mass = (layer * ww[:, None, :]).sum(-1)                                               # [B, m]
-        total = ww.sum(1)
-        t = depth_all[rr].masked_fill(~vv, float("inf"))
-        order = t.argsort(1)                                                                  # front to back
-        enough = (mass.gather(1, order) >= min_share * total[:, None]) & vv.gather(1, order)
+        t = depth[rr]
+        order = t.argsort(dim=1, stable=True)                                                   # front to back
+        enough = (mass.gather(1, order) >= min_share * ww.sum(1, keepdim=True)) & vv.gather(1, order)
         has = enough.any(1)
-        first = order.gather(1, enough.to(torch.int8).argmax(1, keepdim=True)).squeeze(1)     # [B]
+        first = order.gather(1, enough.to(torch.int8).argmax(1, keepdim=True)).squeeze(1)
         b = torch.arange(rr.numel(), device=idx.device)
-        keep = layer[b, first] | (t <= t[b, first][:, None])                                  # in front: kept
-        keep = torch.where(has[:, None], keep, torch.ones_like(keep)) | ~vv
-        kept = ww * keep
-        left = kept.sum(1)
-        changed = has & (left > 0) & (kept != ww).any(1)
-        if not bool(changed.any()):
+        k = layer[b, first] | (t <= t[b, first][:, None]) | ~vv
+        keep[rr] = torch.where(has[:, None], k, torch.ones_like(k))
+    return keep
+
+
+def _keep_loop(idx, w, o, d, pts, can, fi, alpha, tol, min_share, keep, order, depth):
+    """The compiled form of `_keep_torch` (float64 arithmetic on float32 inputs; fi [M, 9] row-major). Writes keep
+    [S, K] uint8; order [K] int64 and depth [K] float64 are scratch."""
+    s_n, k = idx.shape
+    for r in range(s_n):
+        # most-attended neighbour (the first of equal weights, as argmax)
+        a = -1
+        best = -1.0
+        total = 0.0
+        for j in range(k):
+            wj = w[r, j] if idx[r, j] >= 0 else 0.0
+            if wj > best:
+                best = wj
+                a = j
+            total += wj
+        for j in range(k):
+            keep[r, j] = 1
+        qa = idx[r, a] if idx[r, a] >= 0 else 0
+        odd = False
+        for j in range(k):
+            q = idx[r, j]
+            if q < 0 or w[r, j] <= 0.0:
+                continue
+            if not _in_layer(pts, can, fi, qa, q, alpha, tol):
+                odd = True
+                break
+        if not odd:
             continue
-        rc, kc = rr[changed], kept[changed]
-        fg = kc / left[changed][:, None]
-        fg_total = 1.0 - trace.bg[rc]
-        new_fg[rc] = fg
-        new_w[rc] = fg * fg_total[:, None]
-        new_x[rc] = (fg[..., None] * pts[safe[rc]]).sum(1)
-    return dataclasses.replace(trace, weights=new_w, fg_weights=new_fg, x=new_x)
+        n = 0
+        for j in range(k):
+            q = idx[r, j]
+            if q >= 0:
+                depth[j] = (pts[q, 0] - o[r, 0]) * d[r, 0] + (pts[q, 1] - o[r, 1]) * d[r, 1] + \
+                    (pts[q, 2] - o[r, 2]) * d[r, 2]
+                # insertion sort by depth, stable
+                i = n
+                while i > 0 and depth[order[i - 1]] > depth[j]:
+                    order[i] = order[i - 1]
+                    i -= 1
+                order[i] = j
+                n += 1
+        first = -1
+        for i in range(n):
+            m = order[i]
+            qm = idx[r, m]
+            mass = 0.0
+            for l in range(k):
+                ql = idx[r, l]
+                if ql >= 0 and _in_layer(pts, can, fi, qm, ql, alpha, tol):
+                    mass += w[r, l]
+            if mass >= min_share * total:
+                first = m
+                break
+        if first < 0:
+            continue
+        qf = idx[r, first]
+        for l in range(k):
+            ql = idx[r, l]
+            if ql < 0 or depth[l] <= depth[first]:
+                continue
+            if not _in_layer(pts, can, fi, qf, ql, alpha, tol):
+                keep[r, l] = 0
+
+
+def _jit(fn):
+    """numba.njit(fn), compiled on first call (cached on disk where a cache location is writable); fn without numba."""
+    if numba is None:
+        return fn
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:  # no writable cache location (read-only install): compile per process
+        return numba.njit(cache=False, nogil=True)(fn)
+
+
+def _in_layer(pts, can, fi, m, l, alpha, tol):
+    """Point l is in point m's layer: |F_m⁻¹ (p_l − p_m) − (c_l − c_m)| <= alpha |c_l − c_m| + tol."""
+    ex = pts[l, 0] - pts[m, 0]
+    ey = pts[l, 1] - pts[m, 1]
+    ez = pts[l, 2] - pts[m, 2]
+    cx = can[l, 0] - can[m, 0]
+    cy = can[l, 1] - can[m, 1]
+    cz = can[l, 2] - can[m, 2]
+    rx = fi[m, 0] * ex + fi[m, 1] * ey + fi[m, 2] * ez - cx
+    ry = fi[m, 3] * ex + fi[m, 4] * ey + fi[m, 5] * ez - cy
+    rz = fi[m, 6] * ex + fi[m, 7] * ey + fi[m, 8] * ez - cz
+    return math.sqrt(rx * rx + ry * ry + rz * rz) <= alpha * math.sqrt(cx * cx + cy * cy + cz * cz) + tol
+
+
+_in_layer = _jit(_in_layer)  # a compiled _keep_loop calls the compiled form
+
+
+_kernel = None
+
+
+def _get_kernel():
+    global _kernel
+    if _kernel is None:
+        _kernel = _jit(_keep_loop)
+    return _kernel
+
+
+def _keep_compiled(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share):
+    """`_keep_torch` by the compiled loop: same arguments, same keep [S, K] bool."""
+    k = idx.shape[1]
+    keep = np.ones(tuple(idx.shape), dtype=np.uint8)
+    f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
+    _get_kernel()(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(w), f32(origins), f32(dirs),
+                  f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share), keep,
+                  np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
+    return torch.from_numpy(keep).to(idx.device, torch.bool)
