@@ -28,3 +28,18 @@ def test_markdown_has_a_row_per_renderer_and_every_region():
                                    "deep_joint_others_behind_spacings": 5.0}}}
     text = markdown(res)
     assert "| paper | 12.00 |" in text and text.count("0.50 / 3") == 8
+
+
+def test_variant_changes_named_fields_of_a_renderer():
+    import pytest
+
+    from tools.bench.regions import parse_variant
+    from tools.eval_edits import RENDERERS
+
+    name, fields = parse_variant("f-fill-fold:f_fill_ratio=2.5,temperature=0.5,f_occlusion=true", RENDERERS)
+    assert name == "f-fill-fold:f_fill_ratio=2.5,temperature=0.5,f_occlusion=true"
+    assert fields == {**RENDERERS["f-fill-fold"], "f_fill_ratio": 2.5, "temperature": 0.5, "f_occlusion": True}
+    with pytest.raises(SystemExit, match="unknown renderer"):
+        parse_variant("nope:f_fill_ratio=2", RENDERERS)
+    with pytest.raises(SystemExit, match="not FIELD=VALUE"):
+        parse_variant("paper:no_such_field=1", RENDERERS)

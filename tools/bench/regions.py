@@ -18,7 +18,9 @@ diagnostics: the attention share on neighbours within 0.1 units of the true cano
 of the other neighbours behind the true surface, in point spacings.
 
     python -m tools.bench.regions MODEL.pgt --scene SCENE --pose arm --views 2 \\
-        --renderers paper,f-fill-fold,f-fill-fold-occ
+        --renderers paper,f-fill-fold,f-fill-fold-occ --variant "f-fill-fold:f_fill_ratio=2.5,temperature=0.5"
+
+--variant RENDERER:FIELD=VALUE,... adds a renderer with some EditConfig fields changed (repeatable).
 """
 from __future__ import annotations
 
@@ -28,6 +30,30 @@ from pathlib import Path
 import numpy as np
 
 REGIONS = ("hole", "spill", "deep", "ok")
+
+
+def parse_variant(text: str, renderers: dict) -> tuple[str, dict]:
+    """"RENDERER:FIELD=VALUE,..." -> (its name, the EditConfig fields): the renderer's fields with these changed
+    (values read as JSON numbers / booleans, else kept as text)."""
+    import dataclasses
+    import json
+
+    from core.frames.edited import EditConfig
+
+    base, _, rest = text.partition(":")
+    if base not in renderers:
+        raise SystemExit(f"--variant {text!r}: unknown renderer {base!r}; choose from {', '.join(renderers)}")
+    fields = {f.name for f in dataclasses.fields(EditConfig)}
+    over = {}
+    for item in filter(None, rest.split(",")):
+        key, eq, value = item.partition("=")
+        if not eq or key not in fields:
+            raise SystemExit(f"--variant {text!r}: {item!r} is not FIELD=VALUE with a field of EditConfig")
+        try:
+            over[key] = json.loads(value)
+        except ValueError:
+            over[key] = value
+    return text, {**renderers[base], **over}
 
 
 def region_gains(err: np.ndarray, masks: dict) -> dict:
@@ -101,7 +127,9 @@ def true_surface(scene_dir: Path, pose: str, magnitude: float, c2w: np.ndarray, 
 
 
 def run(model_path, scene_dir, pose: str = "arm", magnitude: float = 1.0, views: int = 2,
-        renderers=("f-fill-fold",), joint: float = 0.5, tau: float = 0.15, log=print) -> dict:
+        renderers=("f-fill-fold",), joint: float = 0.5, tau: float = 0.15, variants=(), log=print) -> dict:
+    """The figures (module doc) as a JSON-able dict; renderers: names of eval-edits' RENDERERS, variants:
+    "RENDERER:FIELD=VALUE,..." strings (`parse_variant`)."""
     import torch
 
     from core.bundle import load_bundle
@@ -114,9 +142,12 @@ def run(model_path, scene_dir, pose: str = "arm", magnitude: float = 1.0, views:
     spec = load_scene_spec(scene_dir)
     along = int(pose_spec(spec, pose).get("along", 0)) if pose != "rest" else 0
     centre = float(spec["bbox"]["center"][along])
+    configs = {}
     for rd in renderers:
         if rd not in RENDERERS:
             raise SystemExit(f"--renderers: unknown renderer {rd!r}; choose from {', '.join(RENDERERS)}")
+        configs[rd] = RENDERERS[rd]
+    configs.update(parse_variant(v, RENDERERS) for v in variants)
     bundle = load_bundle(model_path)
     spacing = float(bundle.model.spacing)
     gt = ground_truth(view_subset_dir(scene_dir, views), pose, magnitude, None, log=log)
@@ -126,8 +157,8 @@ def run(model_path, scene_dir, pose: str = "arm", magnitude: float = 1.0, views:
     result = {"model": str(model_path), "scene": spec.get("name"), "pose": pose, "magnitude": magnitude,
               "views": int(gt.c2w.shape[0]), "size": gt.width, "joint": joint, "tau": tau, "spacing": spacing,
               "machine": machine_info(), "renderers": {}}
-    for rd in renderers:
-        state = EditState(bundle, points=points, cfg=EditConfig(**RENDERERS[rd]))
+    for rd, fields in configs.items():
+        state = EditState(bundle, points=points, cfg=EditConfig(**fields))
         errs, masks, psnrs = [], {}, []
         share, behind = [], []
         for i in range(gt.c2w.shape[0]):
@@ -204,9 +235,11 @@ def main(argv=None) -> int:
     ap.add_argument("--renderers", default="paper,f-fill-fold", help="comma-separated eval-edits renderer variants")
     ap.add_argument("--joint", type=float, default=0.5, help="half width of the joint band (world units)")
     ap.add_argument("--tau", type=float, default=0.15, help="surface depth error that counts as another part")
+    ap.add_argument("--variant", action="append", default=[],
+                    help="RENDERER:FIELD=VALUE,... a renderer with EditConfig fields changed (repeatable)")
     args = parse(ap, argv)
-    res = run(args.model, args.scene, args.pose, args.magnitude, args.views, args.renderers.split(","), args.joint,
-              args.tau)
+    res = run(args.model, args.scene, args.pose, args.magnitude, args.views,
+              [r for r in args.renderers.split(",") if r], args.joint, args.tau, args.variant)
     print(markdown(res))
     if args.json:
         from core.util.atomic import atomic_write_text
