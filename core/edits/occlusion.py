@@ -61,26 +61,15 @@ def front_layer(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f: 
     it can run). Returns a Trace whose weights, fg_weights and x changed only on rays where a layer was dropped
     (bg unchanged); the trace itself when no ray changed.
     """
-    if backend not in BACKENDS:
-        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
+    front = front_anchors(trace, points, p_can, inv_f, spacing, alpha, beta, min_share, backend)
+    if front is None:
+        return trace
+    rows, _, _, keep = front
     idx = trace.idx
-    if idx.shape[0] == 0 or idx.shape[1] < 2:
-        return trace
-    rows = torch.nonzero(trace.active & (idx >= 0).any(1)).squeeze(1)
-    if rows.numel() == 0:
-        return trace
     pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    args = (idx[rows], trace.fg_weights[rows], trace.origins[rows], trace.dirs[rows], pts,
-            p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32), float(alpha),
-            float(beta) * float(spacing), float(min_share))
-    compiled = backend != "torch" and numba is not None and idx.device.type == "cpu"
-    if backend == "compiled" and not compiled:
-        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
-    keep = _keep_compiled(*args) if compiled else _keep_torch(*args)                    # [S, K] bool
-    w = trace.fg_weights[rows] * (idx[rows] >= 0)
-    kept = w * keep
+    kept = trace.fg_weights[rows] * (idx[rows] >= 0) * keep
     left = kept.sum(1)
-    changed = (left > 0) & (kept != w).any(1)
+    changed = left > 0
     if not bool(changed.any()):
         return trace
     rc, kc = rows[changed], kept[changed]
@@ -92,13 +81,71 @@ def front_layer(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f: 
     return dataclasses.replace(trace, weights=new_w, fg_weights=new_fg, x=new_x)
 
 
+@torch.no_grad()
+def front_anchors(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float,
+                  alpha: float = 0.5, beta: float = 2.0, min_share: float = 0.25, backend: str = "auto"):
+    """The rays whose attention reaches behind their front layer (arguments as `front_layer`): None when there is
+    none, else (rows [S] int64 ray indices, anchor [S] int64 the point that starts each ray's front layer, depth
+    [S] its depth along the ray, keep [S, K] bool: the ray's neighbours in that layer or in front of it)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
+    idx = trace.idx
+    if idx.shape[0] == 0 or idx.shape[1] < 2:
+        return None
+    rows = torch.nonzero(trace.active & (idx >= 0).any(1)).squeeze(1)
+    if rows.numel() == 0:
+        return None
+    pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    args = (idx[rows], trace.fg_weights[rows], trace.origins[rows], trace.dirs[rows], pts,
+            p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32), float(alpha),
+            float(beta) * float(spacing), float(min_share))
+    compiled = backend != "torch" and numba is not None and idx.device.type == "cpu"
+    if backend == "compiled" and not compiled:
+        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
+    keep, first = _keep_compiled(*args) if compiled else _keep_torch(*args)     # [S, K] bool, [S] slot or -1
+    w = trace.fg_weights[rows] * (idx[rows] >= 0)
+    drops = (first >= 0) & ((w * ~keep) > 0).any(1)
+    if not bool(drops.any()):
+        return None
+    rows, keep, first = rows[drops], keep[drops], first[drops]
+    anchor = idx[rows].gather(1, first[:, None]).squeeze(1)
+    depth = ((pts[anchor] - trace.origins[rows]) * trace.dirs[rows]).sum(-1)
+    return rows, anchor, depth, keep
+
+
+@torch.no_grad()
+def unoccluded(candidates: torch.Tensor, anchor: torch.Tensor, depth: torch.Tensor, origins: torch.Tensor,
+               dirs: torch.Tensor, points: torch.Tensor, p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float,
+               k: int, alpha: float = 0.5, beta: float = 2.0) -> torch.Tensor:
+    """The first k of each ray's ranked neighbour candidates that the front layer does not hide: in the layer of the
+    ray's anchor point, or in front of it. candidates [S, C] (ranked, -1 = none), anchor [S], depth [S] and the
+    rays origins / dirs [S, 3] as from `front_anchors`; points, p_can, inv_f as there. Returns idx [S, k] (-1 pads).
+    """
+    valid = candidates >= 0
+    cs = candidates.clamp_min(0)
+    pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    can, fi = p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32)
+    dc = can[cs] - can[anchor][:, None, :]
+    res = ((fi[anchor][:, None] @ (pts[cs] - pts[anchor][:, None, :])[..., None]).squeeze(-1) - dc).norm(dim=-1)
+    t = ((pts[cs] - origins[:, None, :]) * dirs[:, None, :]).sum(-1)
+    ok = valid & ((res <= alpha * dc.norm(dim=-1) + float(beta) * float(spacing)) | (t <= depth[:, None]))
+    rank = torch.cumsum(ok.to(torch.int64), 1)
+    take = ok & (rank <= k)
+    out = torch.full((candidates.shape[0], k), -1, dtype=torch.long, device=candidates.device)
+    b, j = torch.nonzero(take, as_tuple=True)
+    out[b, rank[b, j] - 1] = candidates[b, j]
+    return out
+
+
 def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chunk: int = 2048):
     """Which neighbours each ray keeps (the reference form; `_keep_compiled` gives the same): idx [S, K], w [S, K]
-    fg weights, origins/dirs [S, 3], pts / can [M, 3], fi [M, 3, 3] -> keep [S, K] bool (True where unchanged)."""
+    fg weights, origins/dirs [S, 3], pts / can [M, 3], fi [M, 3, 3] -> (keep [S, K] bool (True where unchanged),
+    first [S] int64 the slot of the front layer's first neighbour, -1 where the ray has none or kept all)."""
     valid = idx >= 0
     safe = idx.clamp_min(0)
     w = w * valid
     keep = torch.ones_like(valid)
+    first_out = torch.full((idx.shape[0],), -1, dtype=torch.long, device=idx.device)
     # screen: each neighbour against the most-attended one; rays where all pass keep everything
     anchor = safe.gather(1, w.argmax(1, keepdim=True)).squeeze(1)
     dc = can[safe] - can[anchor][:, None, :]
@@ -123,12 +170,13 @@ def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chun
         b = torch.arange(rr.numel(), device=idx.device)
         k = layer[b, first] | (t <= t[b, first][:, None]) | ~vv
         keep[rr] = torch.where(has[:, None], k, torch.ones_like(k))
-    return keep
+        first_out[rr] = torch.where(has, first, torch.full_like(first, -1))
+    return keep, first_out
 
 
-def _keep_loop(idx, w, o, d, pts, can, fi, alpha, tol, min_share, keep, order, depth):
+def _keep_loop(idx, w, o, d, pts, can, fi, alpha, tol, min_share, keep, first_out, order, depth):
     """The compiled form of `_keep_torch` (float64 arithmetic on float32 inputs; fi [M, 9] row-major). Writes keep
-    [S, K] uint8; order [K] int64 and depth [K] float64 are scratch."""
+    [S, K] uint8 and first_out [S] int64 (-1 preset); order [K] int64 and depth [K] float64 are scratch."""
     s_n, k = idx.shape
     for r in range(s_n):
         # most-attended neighbour (the first of equal weights, as argmax)
@@ -181,6 +229,7 @@ def _keep_loop(idx, w, o, d, pts, can, fi, alpha, tol, min_share, keep, order, d
                 break
         if first < 0:
             continue
+        first_out[r] = first
         qf = idx[r, first]
         for l in range(k):
             ql = idx[r, l]
@@ -228,11 +277,12 @@ def _get_kernel():
 
 
 def _keep_compiled(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share):
-    """`_keep_torch` by the compiled loop: same arguments, same keep [S, K] bool."""
+    """`_keep_torch` by the compiled loop: same arguments, the same (keep [S, K] bool, first [S] int64)."""
     k = idx.shape[1]
     keep = np.ones(tuple(idx.shape), dtype=np.uint8)
+    first = np.full(idx.shape[0], -1, dtype=np.int64)
     f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
     _get_kernel()(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(w), f32(origins), f32(dirs),
                   f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share), keep,
-                  np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
-    return torch.from_numpy(keep).to(idx.device, torch.bool)
+                  first, np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
+    return torch.from_numpy(keep).to(idx.device, torch.bool), torch.from_numpy(first).to(idx.device)

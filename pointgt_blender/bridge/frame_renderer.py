@@ -137,7 +137,7 @@ def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, foca
                      influence=state.influence, k=None if k is None else int(k),
                      temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                      radius_scale=state.radius_scale if cfg.f_radius else 1.0)
-    return state.visible_layer(tr)  # the occlusion rule, as render_edited applies it
+    return state.visible_layer(tr, c2w_t, focal)  # the occlusion rule, as render_edited applies it
 
 
 def render_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float, k: int | None = None,

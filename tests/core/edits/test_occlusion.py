@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from core.edits.occlusion import front_layer
+from core.edits.occlusion import front_layer, unoccluded
 from core.points.trace import Trace
 
 SPACING = 0.1
@@ -127,3 +127,19 @@ def test_compiled_and_torch_keep_the_same_neighbours():
     changed = (a.fg_weights != tr.fg_weights).any(1)
     assert int(changed.sum()) > 20  # the walk ran and dropped layers on many rays
     assert torch.equal(a.fg_weights, b.fg_weights) and torch.equal(a.x, b.x) and torch.equal(a.weights, b.weights)
+
+
+def test_unoccluded_takes_the_first_k_candidates_the_front_layer_does_not_hide():
+    points, p_can, inv_f = _fold()
+    n = points.shape[0] // 2
+    # ranked candidates of one ray: back, front, back, front, front, none; anchor = the first front point
+    cand = torch.tensor([[n, 0, n + 1, 1, 2, -1]])
+    o, d = torch.tensor([[0.0, 0.0, 5.0]]), torch.tensor([[0.0, 0.0, -1.0]])
+    depth = torch.tensor([5.0])
+    got = unoccluded(cand, torch.tensor([0]), depth, o, d, points, p_can, inv_f, SPACING, k=2)
+    assert got.tolist() == [[0, 1]]
+    got = unoccluded(cand, torch.tensor([0]), depth, o, d, points, p_can, inv_f, SPACING, k=5)
+    assert got.tolist() == [[0, 1, 2, -1, -1]]
+    # a hidden-part point in front of the anchor is no longer hidden: kept in its rank
+    got = unoccluded(cand, torch.tensor([0]), torch.tensor([6.0]), o, d, points, p_can, inv_f, SPACING, k=5)
+    assert got.tolist() == [[n, 0, n + 1, 1, 2]]

@@ -154,3 +154,26 @@ def test_fill_closes_a_stretch_and_keeps_ids_features_and_canonical_points(tiny)
             assert st.f.shape[0] == n + p and torch.equal(st.f[n:], st.f[st.ids[n:]])
             assert out["stats"]["filled_points"] == p
     assert cover[True] > cover[False]
+
+
+def test_occlusion_rule_hides_a_part_swung_behind(tiny):
+    """Half of the card swung behind the other half: with the occlusion rule the frame is closer to the front half
+    rendered alone (the hidden half's points removed by ids) where that half covers the pixels (alpha > 0.5)."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    c2w = test.c2w[0]
+    half = xyz[:, 0] > float(xyz[:, 0].median())
+    shift = torch.tensor([float(xyz[:, 0].min() - xyz[half, 0].min()), 0.0, 0.0])
+    pts = xyz.clone()
+    pts[half] = xyz[half] + shift - 0.3 * c2w[:3, 2]  # over the other half, 0.3 units further from the camera
+    front = torch.nonzero(~half).squeeze(1)
+    alone = render_edited(EditState(bundle, points=xyz[front], ids=front, cfg=EditConfig(f_fill=False)), c2w,
+                          test.height, test.width, test.focal)
+    err = {}
+    for on in (False, True):
+        st = EditState(bundle, points=pts, cfg=EditConfig(f_fill=False, f_occlusion=on))
+        out = render_edited(st, c2w, test.height, test.width, test.focal)
+        covered = alone["alpha"] > 0.5
+        assert int(covered.sum()) > 20
+        err[on] = float((out["rgb"] - alone["rgb"])[covered].abs().mean())
+    assert err[True] < 0.7 * err[False], err
