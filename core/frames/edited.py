@@ -26,6 +26,7 @@ from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
 from core.images.cameras import focal_scale
+from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import select_neighbors
 from core.points.render import pixel_grid, shade_frame, trace_frame
 from core.points.resolution import RENDER_MODES, check_mode, filter_sigma, gaussian_blur, scale_factor
@@ -308,8 +309,12 @@ class EditState:
                                 model.cfg.neighbor_radius_px,
                                 radius_scale=self.radius_scale if cfg.f_radius else 1.0)
         idx = unoccluded(cand, anchor, depth, o, d, pts, self.p_can, self.inv_f, spacing, k)
-        att = model.attend(torch.where(finite[:, None], pts, torch.zeros_like(pts)), self.influence, o, d, idx,
-                           temperature=cfg.temperature, inv_f=self.inv_f_keys if cfg.f_attention else None)
+        keys = self.inv_f_keys if cfg.f_attention else None
+        pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
+        if cfg.attention != "torch" and supported(model, pts.device):  # as trace_frame chooses
+            att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
+        else:
+            att = model.attend(pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
         new = {name: getattr(trace, name).clone() for name in ("idx", "weights", "fg_weights", "bg", "x")}
         new["idx"][rows] = idx
         for name in ("weights", "fg_weights", "bg", "x"):
