@@ -20,7 +20,10 @@ unrelated to their deformed one. Walking the neighbours front to back along the 
 at least `min_share` of the ray's attention is the visible surface: neighbours behind it that are not in its
 layer get weight 0, and the weights left are scaled back to the ray's foreground weight (coverage unchanged, the
 colour and the surface point x̂ taken from the front layer). Layers with less weight in front of it (an edge
-passing beside the ray) are kept as they are.
+passing beside the ray) are kept as they are. That is `front_layer`; the edited render (`EditState.visible_layer`,
+core/frames/edited.py) goes further with `front_anchors` and `unoccluded`: such a ray's neighbours are searched
+again and the first K candidates the front layer does not hide replace them, so hidden points take no neighbour
+slot either (docs/editing.md measures both).
 
 At rest, under a rigid motion or any affine map every neighbour is in every other's layer: nothing changes (rows
 the rule leaves whole stay bit-identical).
