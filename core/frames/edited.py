@@ -8,6 +8,7 @@ with no neighbour (they cannot reach the object).
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import time
@@ -20,11 +21,14 @@ from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
 from core.edits.deformation import DeformationConfig, expansion_inverse, field_for, inverse, stretch
+from core.edits.occlusion import front_anchors, front_layer, unoccluded
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
 from core.images.cameras import focal_scale
-from core.points.render import shade_frame, trace_frame
+from core.points.attention_compiled import attend_compiled, supported
+from core.points.neighbors.select import select_neighbors
+from core.points.render import pixel_grid, shade_frame, trace_frame
 from core.points.resolution import RENDER_MODES, check_mode, filter_sigma, gaussian_blur, scale_factor
 from core.points.trace import Trace
 from core.util.errors import InputError
@@ -61,6 +65,9 @@ class EditConfig:
                                    "this many times their canonical distance apart", min=1.01, max=100.0)
     f_fill_budget: float = opt(1.0, "f_fill: at most this many added points per point (the ratio is raised past "
                                     "it)", min=0.0, max=64.0)
+    f_occlusion: bool = opt(False, "moved points: each ray keeps the front one of the surface layers among its "
+                                   "neighbours (layers told apart by the points' local deformation gradients: a "
+                                   "joint's fold, a part swung behind another); rest frames are unchanged")
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
                      choices=BLENDS)
     mask_threshold: float = opt(0.01, "a texel counts as painted when its colour changed by more than this (L2)",
@@ -267,6 +274,53 @@ class EditState:
             self._f = other._f
             self.fit_seconds = self.deformation_seconds = other.fit_seconds
 
+    def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None) -> Trace:
+        """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
+        (core/edits/occlusion.py); the trace itself when the points did not move or the rule is off.
+
+        trace: `trace_frame` of these points (their keys, influence and radius as render_edited traces them) with
+        the camera c2w [4, 4] and focal it was traced with: a ray whose neighbours reach behind its front layer
+        gets its K neighbours again from the ranked candidates the front layer does not hide (twice K searched),
+        and its attention anew over them, so hidden points neither take its neighbour slots nor its colour.
+        Without the camera (or for a trace with footprint windows) the hidden neighbours' weights are dropped
+        instead."""
+        if not (self.moved and self.cfg.f_occlusion):
+            return trace
+        return self._timed(lambda: self._visible_layer(trace, c2w, focal))
+
+    def _visible_layer(self, trace: Trace, c2w, focal) -> Trace:
+        model = self.bundle.model
+        spacing = float(model.spacing)
+        if c2w is None or focal is None:
+            return front_layer(trace, self.points, self.p_can, self.inv_f, spacing)
+        front = front_anchors(trace, self.points, self.p_can, self.inv_f, spacing)
+        if front is None:
+            return trace
+        rows, anchor, depth, _ = front
+        height, width = trace.shape
+        k = trace.idx.shape[1]
+        cfg = self.cfg
+        pts = self.points
+        finite = torch.isfinite(pts).all(dim=1)
+        search = torch.where(finite[:, None], pts, torch.full_like(pts, float("nan")))
+        o, d = trace.origins[rows], trace.dirs[rows]
+        cand = select_neighbors(search, model.cfg.neighbors, 2 * k, c2w.to(pts.device, torch.float32), height, width,
+                                focal, pixel_grid(height, width, pts.device)[rows], o, d,
+                                model.cfg.neighbor_radius_px,
+                                radius_scale=self.radius_scale if cfg.f_radius else 1.0)
+        idx = unoccluded(cand, anchor, depth, o, d, pts, self.p_can, self.inv_f, spacing, k)
+        keys = self.inv_f_keys if cfg.f_attention else None
+        pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
+        if cfg.attention != "torch" and supported(model, pts.device):  # as trace_frame chooses
+            att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
+        else:
+            att = model.attend(pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
+        new = {name: getattr(trace, name).clone() for name in ("idx", "weights", "fg_weights", "bg", "x")}
+        new["idx"][rows] = idx
+        for name in ("weights", "fg_weights", "bg", "x"):
+            new[name][rows] = att[name].to(new[name].dtype)
+        return dataclasses.replace(trace, **new)
+
     def canonical_surface(self, trace: Trace, sel: torch.Tensor) -> torch.Tensor:
         """Canonical surface points [S, 3] of the rays sel [S] of a trace of these points, by the configured
         correspondence (core.edits.correspondence.ray_canonical_points, with the fold rule of cfg.fold_radius; F is
@@ -374,6 +428,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                          radius_scale=state.radius_scale if cfg.f_radius else 1.0, attention=cfg.attention,
                          soft_scale=scale if "footprint" in parts else 1.0)
+        soft = "footprint" in parts and scale > 1.0  # footprint windows: keep them, drop hidden weights only
+        tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal)
     else:
         tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0

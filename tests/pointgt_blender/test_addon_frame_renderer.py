@@ -152,3 +152,28 @@ def test_posed_layer_traces_like_render_edited():
     assert torch.equal(tr.weights, ref["trace"].weights) and torch.equal(tr.idx, ref["trace"].idx)
     layer = render_layer(state, c2w.numpy(), test.height, test.width, test.focal, trace=tr)
     np.testing.assert_allclose(layer["alpha"], ref["alpha"].numpy(), atol=1e-6)
+
+
+def test_layer_trace_applies_the_occlusion_rule_like_render_edited():
+    """One half of the card swung behind the other (a fold): with f_occlusion the add-on's layer trace keeps each
+    ray's front layer exactly as core's render does, and the rule changes rays there."""
+    import torch
+
+    from core.frames.edited import EditConfig, EditState, render_edited
+    from pointgt_blender.bridge.frame_renderer import trace_layer
+    from tests.helpers.tiny import tiny_bundle
+
+    bundle, _, test = tiny_bundle("card")
+    xyz = bundle.model.xyz.detach()
+    c2w = test.c2w[0]
+    half = xyz[:, 0] > float(xyz[:, 0].median())
+    shift = torch.tensor([float(xyz[:, 0].min() - xyz[half, 0].min()), 0.0, 0.0])
+    pts = xyz.clone()
+    pts[half] = xyz[half] + shift - 0.3 * c2w[:3, 2]  # over the other half, 0.3 units further from the camera
+    on = EditState(bundle, points=pts, cfg=EditConfig(antialias=1, f_occlusion=True))
+    off = EditState(bundle, points=pts, cfg=EditConfig(antialias=1, f_occlusion=False))
+    tr = trace_layer(on, c2w.numpy(), test.height, test.width, test.focal)
+    ref = render_edited(on, c2w, test.height, test.width, test.focal)["trace"]
+    plain = trace_layer(off, c2w.numpy(), test.height, test.width, test.focal)
+    assert torch.equal(tr.weights, ref.weights) and torch.equal(tr.x, ref.x)
+    assert int((tr.weights != plain.weights).any(1).sum()) > 0

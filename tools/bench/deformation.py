@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware",
-        "f_fill": False, "fold_radius": 0.0}
+        "f_fill": False, "fold_radius": 0.0, "f_occlusion": False}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -31,6 +31,8 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     "f-attention + fold rule, deform-aware": {**_OFF, "f_attention": True, "fold_radius": 2.0},
     "f-attention + fill, deform-aware": {**_OFF, "f_attention": True, "f_fill": True},
     "f-attention + fill + fold rule, deform-aware": {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0},
+    "f-attention + fill + fold rule + occlusion, deform-aware": {**_OFF, "f_attention": True, "f_fill": True,
+                                                                 "fold_radius": 2.0, "f_occlusion": True},
 }
 
 

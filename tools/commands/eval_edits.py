@@ -26,7 +26,8 @@ def add_arguments(p):
                         "f-both | f-keep / f-squash (as f-attention, undoing no / all compression, also in the deform-gradient "
                         "correspondence) | fill / f-fill (paper / f-attention with points added where the pose pulled neighbours "
                         "apart) | fold / fill-fold / f-fold / f-fill-fold (paper / fill / f-attention / f-fill with the "
-                        "correspondence's fold rule)")
+                        "correspondence's fold rule) | f-fill-fold-occ (f-fill-fold with the occlusion rule: each ray "
+                        "keeps its front surface layer)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

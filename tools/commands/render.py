@@ -58,6 +58,9 @@ def add_arguments(p):
                    help="moved points: the correspondence keeps a ray's neighbours whose displacement lies within "
                         "this many point spacings of its most-attended one's, dropping the other side of a fold "
                         "(0 = keep all)")
+    p.add_argument("--f-occlusion", action=argparse.BooleanOptionalAction, default=EditConfig.f_occlusion,
+                   help="moved points: each ray keeps the front one of the surface layers among its neighbours "
+                        "(a joint's fold, a part swung behind another; told apart by the local deformation gradients)")
     add_to_parser(p, DeformationConfig, prefix="deformation")
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
@@ -157,7 +160,7 @@ def run(args) -> int:
     cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
                               f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
                               f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
-                              fold_radius=args.fold_radius,
+                              fold_radius=args.fold_radius, f_occlusion=args.f_occlusion,
                               render_mode=args.render_mode,
                               **({} if args.temperature is None else {"temperature": args.temperature})))
     check_device(args.device, "--device")

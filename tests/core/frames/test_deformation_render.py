@@ -10,8 +10,10 @@ from core.points.render import render_frame, trace_frame
 from core.images.rays import project_on_ray
 from tests.helpers.tiny import tiny_bundle
 
-# every part on (at rest the fold rule sees one displacement, 0, and drops nothing)
-ALL_ON = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_fill=True, fold_radius=2.0)
+# every part on (at rest the fold rule sees one displacement, 0, and drops nothing; the occlusion rule finds every
+# neighbour in every other's layer)
+ALL_ON = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_fill=True, fold_radius=2.0,
+                    f_occlusion=True)
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +104,8 @@ def test_extreme_poses_render_finite_with_every_part_on(tiny):
     wild[1::19] = float("nan")
     for pts in (squash, wild, xyz * torch.tensor([100.0, 1.0, 1.0])):
         for mode in ("tangent", "keep", "undo"):
-            cfg = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_compression=mode)
+            cfg = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_compression=mode,
+                             f_occlusion=True)
             out = render_edited(EditState(bundle, points=pts, atlas=atlas, cfg=cfg), test.c2w[0], test.height,
                                 test.width, test.focal)
             assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
@@ -117,7 +120,7 @@ def test_rest_frames_unchanged_with_fill_and_fold_rule(tiny):
     atlas = bake(bundle.atlas, _half_split)
     paper = EditConfig(f_attention=False, f_fill=False, fold_radius=0.0)
     every = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_fill=True,
-                       fold_radius=2.0)
+                       fold_radius=2.0, f_occlusion=True)
     a = EditState(bundle, atlas=atlas, cfg=paper)
     for b in (EditState(bundle, atlas=atlas, cfg=every),
               EditState(bundle, points=bundle.model.xyz.detach().clone(), atlas=atlas, cfg=every)):
@@ -151,3 +154,26 @@ def test_fill_closes_a_stretch_and_keeps_ids_features_and_canonical_points(tiny)
             assert st.f.shape[0] == n + p and torch.equal(st.f[n:], st.f[st.ids[n:]])
             assert out["stats"]["filled_points"] == p
     assert cover[True] > cover[False]
+
+
+def test_occlusion_rule_hides_a_part_swung_behind(tiny):
+    """Half of the card swung behind the other half: with the occlusion rule the frame is closer to the front half
+    rendered alone (the hidden half's points removed by ids) where that half covers the pixels (alpha > 0.5)."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    c2w = test.c2w[0]
+    half = xyz[:, 0] > float(xyz[:, 0].median())
+    shift = torch.tensor([float(xyz[:, 0].min() - xyz[half, 0].min()), 0.0, 0.0])
+    pts = xyz.clone()
+    pts[half] = xyz[half] + shift - 0.3 * c2w[:3, 2]  # over the other half, 0.3 units further from the camera
+    front = torch.nonzero(~half).squeeze(1)
+    alone = render_edited(EditState(bundle, points=xyz[front], ids=front, cfg=EditConfig(f_fill=False)), c2w,
+                          test.height, test.width, test.focal)
+    err = {}
+    for on in (False, True):
+        st = EditState(bundle, points=pts, cfg=EditConfig(f_fill=False, f_occlusion=on))
+        out = render_edited(st, c2w, test.height, test.width, test.focal)
+        covered = alone["alpha"] > 0.5
+        assert int(covered.sum()) > 20
+        err[on] = float((out["rgb"] - alone["rgb"])[covered].abs().mean())
+    assert err[True] < 0.7 * err[False], err

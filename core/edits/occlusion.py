@@ -1,0 +1,291 @@
+"""Occlusion between parts of a posed surface (beyond the paper): which of the layers a ray's neighbours come from
+is in front.
+
+The proximity attention orders what a ray sees by a depth feature measured from the ray's nearest neighbour. A
+model learns that ordering only for the layers its training views showed: a single sheet (the cloth) never saw
+one part of itself behind another, and its key network weighs points 5 or 20 spacings behind the nearest
+neighbour about alike. When a pose folds the sheet (an armature joint), a ray's K neighbours hold points of two or
+three parts of the surface — the one in front, the one folded behind it, an edge of a third passing beside the ray
+— and the attention mixes their colours by how many points each brings.
+
+The rule sorts a ray's neighbours into layers by the points' own local maps and keeps the front one. Neighbour l
+belongs to the layer of neighbour m when m's local deformation predicts l's position from their canonical offset:
+
+    |F_m⁻¹ (p_l − p_m) − (c_l − c_m)| ≤ alpha · |c_l − c_m| + beta · spacing
+
+(p deformed, c canonical positions, F the local deformation gradient, core/edits/deformation.py). This holds for
+any neighbours of one part however it was rotated, stretched or squashed (exactly for an affine map, up to the
+map's change over their distance otherwise) and fails for points of another part, whose canonical offset is
+unrelated to their deformed one. Walking the neighbours front to back along the ray, the first whose layer holds
+at least `min_share` of the ray's attention is the visible surface: neighbours behind it that are not in its
+layer get weight 0, and the weights left are scaled back to the ray's foreground weight (coverage unchanged, the
+colour and the surface point x̂ taken from the front layer). Layers with less weight in front of it (an edge
+passing beside the ray) are kept as they are. That is `front_layer`; the edited render (`EditState.visible_layer`,
+core/frames/edited.py) goes further with `front_anchors` and `unoccluded`: such a ray's neighbours are searched
+again and the first K candidates the front layer does not hide replace them, so hidden points take no neighbour
+slot either (docs/editing.md measures both).
+
+At rest, under a rigid motion or any affine map every neighbour is in every other's layer: nothing changes (rows
+the rule leaves whole stay bit-identical).
+
+Cost: a ray inside one part passes a cheap screen (each neighbour against its most-attended one) and is left
+alone; only rays with neighbours of another part walk their layers. The walk is a compiled loop on a CPU (numba,
+like core/points/attention_compiled.py), torch elsewhere; both give the same kept neighbours
+(tests/core/edits/test_occlusion.py).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import torch
+
+from core.points.trace import Trace
+
+try:  # optional: the torch path is used without it
+    import numba
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    numba = None
+
+BACKENDS = ("auto", "torch", "compiled")
+
+
+@torch.no_grad()
+def front_layer(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float,
+                alpha: float = 0.5, beta: float = 2.0, min_share: float = 0.25, backend: str = "auto") -> Trace:
+    """The trace with each ray's attention restricted to its front layer (module doc).
+
+    trace: `trace_frame` of `points`; points [M, 3] deformed positions (non-finite rows are never neighbours),
+    p_can [M, 3] their canonical positions, inv_f [M, 3, 3] the inverse local deformation gradients (finite,
+    bounded: `EditState.inv_f`); spacing: the model's point spacing (world units); alpha, beta: the layer test's
+    relative and absolute tolerance (beta in spacings); min_share: the share of a ray's foreground weight a layer
+    needs to count as its visible surface; backend: "compiled" (CPU, numba), "torch" or "auto" (compiled where
+    it can run). Returns a Trace whose weights, fg_weights and x changed only on rays where a layer was dropped
+    (bg unchanged); the trace itself when no ray changed.
+    """
+    front = front_anchors(trace, points, p_can, inv_f, spacing, alpha, beta, min_share, backend)
+    if front is None:
+        return trace
+    rows, _, _, keep = front
+    idx = trace.idx
+    pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    kept = trace.fg_weights[rows] * (idx[rows] >= 0) * keep
+    left = kept.sum(1)
+    changed = left > 0
+    if not bool(changed.any()):
+        return trace
+    rc, kc = rows[changed], kept[changed]
+    fg = kc / left[changed][:, None]
+    new_w, new_fg, new_x = trace.weights.clone(), trace.fg_weights.clone(), trace.x.clone()
+    new_fg[rc] = fg
+    new_w[rc] = fg * (1.0 - trace.bg[rc])[:, None]
+    new_x[rc] = (fg[..., None] * pts[idx[rc].clamp_min(0)]).sum(1)
+    return dataclasses.replace(trace, weights=new_w, fg_weights=new_fg, x=new_x)
+
+
+@torch.no_grad()
+def front_anchors(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float,
+                  alpha: float = 0.5, beta: float = 2.0, min_share: float = 0.25, backend: str = "auto"):
+    """The rays whose attention reaches behind their front layer (arguments as `front_layer`): None when there is
+    none, else (rows [S] int64 ray indices, anchor [S] int64 the point that starts each ray's front layer, depth
+    [S] its depth along the ray, keep [S, K] bool: the ray's neighbours in that layer or in front of it)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
+    idx = trace.idx
+    if idx.shape[0] == 0 or idx.shape[1] < 2:
+        return None
+    rows = torch.nonzero(trace.active & (idx >= 0).any(1)).squeeze(1)
+    if rows.numel() == 0:
+        return None
+    pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    args = (idx[rows], trace.fg_weights[rows], trace.origins[rows], trace.dirs[rows], pts,
+            p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32), float(alpha),
+            float(beta) * float(spacing), float(min_share))
+    compiled = backend != "torch" and numba is not None and idx.device.type == "cpu"
+    if backend == "compiled" and not compiled:
+        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
+    keep, first = _keep_compiled(*args) if compiled else _keep_torch(*args)     # [S, K] bool, [S] slot or -1
+    w = trace.fg_weights[rows] * (idx[rows] >= 0)
+    drops = (first >= 0) & ((w * ~keep) > 0).any(1)
+    if not bool(drops.any()):
+        return None
+    rows, keep, first = rows[drops], keep[drops], first[drops]
+    anchor = idx[rows].gather(1, first[:, None]).squeeze(1)
+    depth = ((pts[anchor] - trace.origins[rows]) * trace.dirs[rows]).sum(-1)
+    return rows, anchor, depth, keep
+
+
+@torch.no_grad()
+def unoccluded(candidates: torch.Tensor, anchor: torch.Tensor, depth: torch.Tensor, origins: torch.Tensor,
+               dirs: torch.Tensor, points: torch.Tensor, p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float,
+               k: int, alpha: float = 0.5, beta: float = 2.0) -> torch.Tensor:
+    """The first k of each ray's ranked neighbour candidates that the front layer does not hide: in the layer of the
+    ray's anchor point, or in front of it. candidates [S, C] (ranked, -1 = none), anchor [S], depth [S] and the
+    rays origins / dirs [S, 3] as from `front_anchors`; points, p_can, inv_f as there. Returns idx [S, k] (-1 pads).
+    """
+    valid = candidates >= 0
+    cs = candidates.clamp_min(0)
+    pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    can, fi = p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32)
+    dc = can[cs] - can[anchor][:, None, :]
+    res = ((fi[anchor][:, None] @ (pts[cs] - pts[anchor][:, None, :])[..., None]).squeeze(-1) - dc).norm(dim=-1)
+    t = ((pts[cs] - origins[:, None, :]) * dirs[:, None, :]).sum(-1)
+    ok = valid & ((res <= alpha * dc.norm(dim=-1) + float(beta) * float(spacing)) | (t <= depth[:, None]))
+    rank = torch.cumsum(ok.to(torch.int64), 1)
+    take = ok & (rank <= k)
+    out = torch.full((candidates.shape[0], k), -1, dtype=torch.long, device=candidates.device)
+    b, j = torch.nonzero(take, as_tuple=True)
+    out[b, rank[b, j] - 1] = candidates[b, j]
+    return out
+
+
+def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chunk: int = 2048):
+    """Which neighbours each ray keeps (the reference form; `_keep_compiled` gives the same): idx [S, K], w [S, K]
+    fg weights, origins/dirs [S, 3], pts / can [M, 3], fi [M, 3, 3] -> (keep [S, K] bool (True where unchanged),
+    first [S] int64 the slot of the front layer's first neighbour, -1 where the ray has none or kept all)."""
+    valid = idx >= 0
+    safe = idx.clamp_min(0)
+    w = w * valid
+    keep = torch.ones_like(valid)
+    first_out = torch.full((idx.shape[0],), -1, dtype=torch.long, device=idx.device)
+    # screen: each neighbour against the most-attended one; rays where all pass keep everything
+    anchor = safe.gather(1, w.argmax(1, keepdim=True)).squeeze(1)
+    dc = can[safe] - can[anchor][:, None, :]
+    res = ((fi[anchor][:, None] @ (pts[safe] - pts[anchor][:, None, :])[..., None]).squeeze(-1) - dc).norm(dim=-1)
+    odd = (valid & (w > 0) & (res > alpha * dc.norm(dim=-1) + tol)).any(1)
+    rows = torch.nonzero(odd).squeeze(1)
+    depth = ((pts[safe] - origins[:, None, :]) * dirs[:, None, :]).sum(-1).masked_fill(~valid, math.inf)
+    for s in range(0, rows.numel(), chunk):
+        rr = rows[s:s + chunk]
+        ix, vv, ww = safe[rr], valid[rr], w[rr]
+        p, c, g = pts[ix], can[ix], fi[ix]                                                    # [B, K, ...]
+        dpp = p[:, None, :, :] - p[:, :, None, :]                                             # [B, m, l, 3]
+        dcc = c[:, None, :, :] - c[:, :, None, :]
+        pred = torch.einsum("bmij,bmlj->bmli", g, dpp)
+        layer = ((pred - dcc).norm(dim=-1) <= alpha * dcc.norm(dim=-1) + tol) & vv[:, None, :] & vv[:, :, None]
+        mass = (layer * ww[:, None, :]).sum(-1)                                               # [B, m]
+        t = depth[rr]
+        order = t.argsort(dim=1, stable=True)                                                   # front to back
+        enough = (mass.gather(1, order) >= min_share * ww.sum(1, keepdim=True)) & vv.gather(1, order)
+        has = enough.any(1)
+        first = order.gather(1, enough.to(torch.int8).argmax(1, keepdim=True)).squeeze(1)
+        b = torch.arange(rr.numel(), device=idx.device)
+        k = layer[b, first] | (t <= t[b, first][:, None]) | ~vv
+        keep[rr] = torch.where(has[:, None], k, torch.ones_like(k))
+        first_out[rr] = torch.where(has, first, torch.full_like(first, -1))
+    return keep, first_out
+
+
+def _keep_loop(idx, w, o, d, pts, can, fi, alpha, tol, min_share, keep, first_out, order, depth):
+    """The compiled form of `_keep_torch` (float64 arithmetic on float32 inputs; fi [M, 9] row-major). Writes keep
+    [S, K] uint8 and first_out [S] int64 (-1 preset); order [K] int64 and depth [K] float64 are scratch."""
+    s_n, k = idx.shape
+    for r in range(s_n):
+        # most-attended neighbour (the first of equal weights, as argmax)
+        a = -1
+        best = -1.0
+        total = 0.0
+        for j in range(k):
+            wj = w[r, j] if idx[r, j] >= 0 else 0.0
+            if wj > best:
+                best = wj
+                a = j
+            total += wj
+        for j in range(k):
+            keep[r, j] = 1
+        qa = idx[r, a] if idx[r, a] >= 0 else 0
+        odd = False
+        for j in range(k):
+            q = idx[r, j]
+            if q < 0 or w[r, j] <= 0.0:
+                continue
+            if not _in_layer(pts, can, fi, qa, q, alpha, tol):
+                odd = True
+                break
+        if not odd:
+            continue
+        n = 0
+        for j in range(k):
+            q = idx[r, j]
+            if q >= 0:
+                depth[j] = (pts[q, 0] - o[r, 0]) * d[r, 0] + (pts[q, 1] - o[r, 1]) * d[r, 1] + \
+                    (pts[q, 2] - o[r, 2]) * d[r, 2]
+                # insertion sort by depth, stable
+                i = n
+                while i > 0 and depth[order[i - 1]] > depth[j]:
+                    order[i] = order[i - 1]
+                    i -= 1
+                order[i] = j
+                n += 1
+        first = -1
+        for i in range(n):
+            m = order[i]
+            qm = idx[r, m]
+            mass = 0.0
+            for l in range(k):
+                ql = idx[r, l]
+                if ql >= 0 and _in_layer(pts, can, fi, qm, ql, alpha, tol):
+                    mass += w[r, l]
+            if mass >= min_share * total:
+                first = m
+                break
+        if first < 0:
+            continue
+        first_out[r] = first
+        qf = idx[r, first]
+        for l in range(k):
+            ql = idx[r, l]
+            if ql < 0 or depth[l] <= depth[first]:
+                continue
+            if not _in_layer(pts, can, fi, qf, ql, alpha, tol):
+                keep[r, l] = 0
+
+
+def _jit(fn):
+    """numba.njit(fn), compiled on first call (cached on disk where a cache location is writable); fn without numba."""
+    if numba is None:
+        return fn
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except RuntimeError:  # no writable cache location (read-only install): compile per process
+        return numba.njit(cache=False, nogil=True)(fn)
+
+
+def _in_layer(pts, can, fi, m, l, alpha, tol):
+    """Point l is in point m's layer: |F_m⁻¹ (p_l − p_m) − (c_l − c_m)| <= alpha |c_l − c_m| + tol."""
+    ex = pts[l, 0] - pts[m, 0]
+    ey = pts[l, 1] - pts[m, 1]
+    ez = pts[l, 2] - pts[m, 2]
+    cx = can[l, 0] - can[m, 0]
+    cy = can[l, 1] - can[m, 1]
+    cz = can[l, 2] - can[m, 2]
+    rx = fi[m, 0] * ex + fi[m, 1] * ey + fi[m, 2] * ez - cx
+    ry = fi[m, 3] * ex + fi[m, 4] * ey + fi[m, 5] * ez - cy
+    rz = fi[m, 6] * ex + fi[m, 7] * ey + fi[m, 8] * ez - cz
+    return math.sqrt(rx * rx + ry * ry + rz * rz) <= alpha * math.sqrt(cx * cx + cy * cy + cz * cz) + tol
+
+
+_in_layer = _jit(_in_layer)  # a compiled _keep_loop calls the compiled form
+
+
+_kernel = None
+
+
+def _get_kernel():
+    global _kernel
+    if _kernel is None:
+        _kernel = _jit(_keep_loop)
+    return _kernel
+
+
+def _keep_compiled(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share):
+    """`_keep_torch` by the compiled loop: same arguments, the same (keep [S, K] bool, first [S] int64)."""
+    k = idx.shape[1]
+    keep = np.ones(tuple(idx.shape), dtype=np.uint8)
+    first = np.full(idx.shape[0], -1, dtype=np.int64)
+    f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
+    _get_kernel()(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(w), f32(origins), f32(dirs),
+                  f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share), keep,
+                  first, np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
+    return torch.from_numpy(keep).to(idx.device, torch.bool), torch.from_numpy(first).to(idx.device)
