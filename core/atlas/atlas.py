@@ -285,7 +285,9 @@ class Atlas(nn.Module):
                              sigma: float) -> torch.Tensor:
         """Texel map of an island layout: every island pixel gets the kernel mean position of the samples that its
         owning chart maps around it; kept where that point's own chart is the owner, it lies within max_dist of
-        a sample, and it maps back within max_cycle texels. Sets `texel_stats` (round trip of all candidates)."""
+        a sample, and it maps back within max_cycle texels; island pixels left without a point take the sample
+        that lands nearest them when it lands within max_cycle texels. Sets `texel_stats` (round trip of all
+        candidates before that fallback, `nearest_sample`: texels it filled)."""
         L, A = self.layout, self.layout.size
         probs, uv = self.chart_uv(samples)
         chart = probs.argmax(-1)
@@ -318,9 +320,24 @@ class Atlas(nn.Module):
             keep = (miss <= max_cycle) & torch.from_numpy(dist <= max_dist).to(self.device)
         out = torch.full((A, A, 3), float("nan"), device=self.device)
         out[rows[keep], cols[keep]] = pts[keep]
+        # Island texels still without a point (Newton diverged at a fold, or the kernel missed them): the sample
+        # that lands nearest the texel centre, when it lands within max_cycle texels, in the texel's own chart (a
+        # surface point that maps back within max_cycle by construction).
+        rest_r, rest_c = torch.nonzero(L.island_pixels.to(self.device) & ~torch.isfinite(out).all(-1), as_tuple=True)
+        nearest = 0
+        if len(rest_r):
+            spix = uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0] * A  # [S, 2] (col, row)
+            d, j = cKDTree(spix.cpu().numpy()).query(torch.stack([rest_c + 0.5, rest_r + 0.5], -1).cpu().numpy(),
+                                                     k=1, distance_upper_bound=max_cycle)
+            hit = np.isfinite(d) & (d <= max_cycle)
+            j = torch.from_numpy(np.where(hit, j, 0)).to(self.device)
+            hit = torch.from_numpy(hit).to(self.device) & (chart[j] == owner[rest_r, rest_c])
+            out[rest_r[hit], rest_c[hit]] = samples[j[hit]]
+            nearest = int(hit.sum())
         self.texel_xyz.copy_(out)
         n_isl = int(L.island_pixels.sum())
-        self.texel_stats = {"island_texels": n_isl, "candidates": int(len(rows)), "kept": int(keep.sum()),
+        self.texel_stats = {"island_texels": n_isl, "candidates": int(len(rows)), "kept": int(keep.sum()) + nearest,
+                            "nearest_sample": nearest,
                             "round_trip_1": float((miss <= 1.0).float().mean()) if len(rows) else float("nan"),
                             "round_trip_1_of_island": float((miss <= 1.0).sum()) / max(n_isl, 1)}
         return out
