@@ -287,3 +287,37 @@ def test_texels_newton_misses_take_the_nearest_sample_and_still_map_back():
     _, pix = a.atlas_pixel_coords(tp[ok])
     rows, cols = torch.nonzero(ok, as_tuple=True)
     assert float((pix - torch.stack([cols + 0.5, rows + 0.5], -1)).norm(dim=-1).max()) <= 1.0 + 1e-4
+
+
+class _FlatMap(torch.nn.Module):
+    """t_c [M, 2, 2]: both charts map the plane affinely, u = 0.5 + 0.45 x, v = 0.5 + 0.06 y (a long strip)."""
+    def forward(self, xn):
+        u = torch.stack([0.5 + 0.45 * xn[:, 0], 0.5 + 0.06 * xn[:, 1]], -1)
+        return torch.stack([u, u], 1)
+
+
+def test_subpixel_lookups_across_a_cut_land_on_an_island():
+    """Where a chart was cut into two islands, neighbouring pixels sit in different islands: the sub-pixels between
+    them interpolate the chart's raw coordinates and are placed after, so they land on an island (the placed
+    coordinates interpolated would land in the gap between the two)."""
+    from scipy.ndimage import distance_transform_edt
+
+    from core.atlas.subpixel import subpixel_chart_uv
+    a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
+    a.chart = torch.nn.Module()
+    a.chart.forward = lambda xn: torch.stack([torch.full_like(xn[:, 0], 5.0), torch.zeros_like(xn[:, 0])], -1)
+    a.tex = _FlatMap()
+    g = torch.Generator().manual_seed(6)
+    x = torch.cat([torch.rand(20000, 2, generator=g) * 2 - 1, torch.zeros(20000, 1)], -1)
+    probs, uv = a.chart_uv(x, placed=False)
+    a.set_layout(build_islands(probs, uv, np.array([200.0, 200.0]), pad=2, split=0.6, rotate=False))
+    assert a.layout.islands >= 2  # the 180 x 24 strip was cut
+    H, W = 6, 80
+    r, c = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    pts = torch.stack([c / W * 1.8 - 0.9, r / H * 0.5 - 0.25, torch.zeros(H, W)], -1)
+    valid = torch.ones(H, W, dtype=torch.bool)
+    p, uv_sub, on = subpixel_chart_uv(a, pts, valid, torch.ones(H, W), 4, 10.0)
+    pix = uv_sub[:, 0] * a.layout.size
+    d = distance_transform_edt(~a.layout.island_pixels.numpy())
+    k = pix.floor().long().clamp(0, a.layout.size - 1)
+    assert bool((p[:, 0] == 1).all()) and float(d[k[:, 1], k[:, 0]].max()) <= 1.0
