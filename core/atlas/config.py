@@ -85,7 +85,7 @@ class AtlasConfig:
     island_split: float = opt(0.6, "islands: an island longer than this share of the side of the square its "
                                    "islands would fill is cut across (at its narrowest) into pieces that pack into "
                                    "a square; 0 keeps every island whole", min=0.0, max=64.0)
-    island_min_fill: float = opt(0.55, "islands (island_split > 0): an island longer than a quarter of that cut "
+    island_min_fill: float = opt(0.6, "islands (island_split > 0): an island longer than a quarter of that cut "
                                        "length that fills less of its bounding box than this (curved, hollow) is cut "
                                        "too", min=0.0, max=1.0)
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
