@@ -121,14 +121,17 @@ class Atlas(nn.Module):
 
     # --- queries (no gradients, chunked) -------------------------------------------------------------
     @torch.no_grad()
-    def chart_uv(self, x) -> tuple[torch.Tensor, torch.Tensor]:
+    def chart_uv(self, x, placed: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
         """x [M, 3] world -> (probs [M, n] chart probabilities, uv [M, n, 2] per-chart texture coordinates).
-        Island layout: probs one-hot (one chart per point), uv already placed in the packed image (see place)."""
+        Island layout: probs one-hot (one chart per point), uv already placed in the packed image (see place);
+        placed False: the networks' raw outputs (softmax, t_c), to interpolate before `place`."""
         x = check_points(x).to(self.device)
         ps, uvs = [], []
         for s in range(0, len(x), _CHUNK):
             xn = self.normalise(x[s:s + _CHUNK])
-            p, uv = self.place(torch.softmax(self.chart(xn), dim=-1), self.tex(xn))
+            p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
+            if placed:
+                p, uv = self.place(p, uv)
             ps.append(p)
             uvs.append(uv)
         if not ps:
@@ -285,7 +288,10 @@ class Atlas(nn.Module):
                              sigma: float) -> torch.Tensor:
         """Texel map of an island layout: every island pixel gets the kernel mean position of the samples that its
         owning chart maps around it; kept where that point's own chart is the owner, it lies within max_dist of
-        a sample, and it maps back within max_cycle texels. Sets `texel_stats` (round trip of all candidates)."""
+        a sample, and it maps back within max_cycle texels; island pixels left without a point take the sample
+        that lands nearest them when it lands within max_cycle texels and max_dist of their local-linear point.
+        Sets `texel_stats` (round trip of all candidates before that fallback, `nearest_sample`: texels it
+        filled)."""
         L, A = self.layout, self.layout.size
         probs, uv = self.chart_uv(samples)
         chart = probs.argmax(-1)
@@ -318,9 +324,26 @@ class Atlas(nn.Module):
             keep = (miss <= max_cycle) & torch.from_numpy(dist <= max_dist).to(self.device)
         out = torch.full((A, A, 3), float("nan"), device=self.device)
         out[rows[keep], cols[keep]] = pts[keep]
+        # Island texels still without a point (Gauss-Newton did not converge): the sample that lands nearest the
+        # texel centre, when it lands within max_cycle texels, in the texel's own chart (a surface point that maps
+        # back within max_cycle by construction), and lies within max_dist of the texel's local-linear point (at a
+        # fold the kernel mixes both layers and that point lies between them: such texels keep no point).
+        rest_r, rest_c = torch.nonzero(L.island_pixels.to(self.device) & ~torch.isfinite(out).all(-1), as_tuple=True)
+        nearest = 0
+        if len(rest_r):
+            spix = uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0] * A  # [S, 2] (col, row)
+            d, j = cKDTree(spix.cpu().numpy()).query(torch.stack([rest_c + 0.5, rest_r + 0.5], -1).cpu().numpy(),
+                                                     k=1, distance_upper_bound=max_cycle)
+            hit = np.isfinite(d) & (d <= max_cycle)
+            j = torch.from_numpy(np.where(hit, j, 0)).to(self.device)
+            near = (samples[j] - cand[rest_r, rest_c]).norm(dim=-1) <= max_dist  # NaN (no kernel) -> False
+            hit = torch.from_numpy(hit).to(self.device) & (chart[j] == owner[rest_r, rest_c]) & near
+            out[rest_r[hit], rest_c[hit]] = samples[j[hit]]
+            nearest = int(hit.sum())
         self.texel_xyz.copy_(out)
         n_isl = int(L.island_pixels.sum())
-        self.texel_stats = {"island_texels": n_isl, "candidates": int(len(rows)), "kept": int(keep.sum()),
+        self.texel_stats = {"island_texels": n_isl, "candidates": int(len(rows)), "kept": int(keep.sum()) + nearest,
+                            "nearest_sample": nearest,
                             "round_trip_1": float((miss <= 1.0).float().mean()) if len(rows) else float("nan"),
                             "round_trip_1_of_island": float((miss <= 1.0).sum()) / max(n_isl, 1)}
         return out

@@ -74,13 +74,20 @@ class AtlasConfig:
                                        "than the views see)", above=0.0, max=64.0)
     max_image_size: int = opt(2048, "islands: largest automatic atlas side (a coarser texel beyond it)", min=16,
                               max=MAX_CHART_RES)
-    island_pad: int = opt(2, "islands: padding texels around each island (bilinear lookups and one mip level)",
+    island_pad: int = opt(2, "islands: padding texels around each island (islands end up 2 pad - 1 apart; 2: "
+                             "bilinear lookups at full resolution read their own island only, no mip level)",
                           min=0, max=64)
     island_fill: float = opt(1.0, "islands: a texel belongs to an island when a sample lands within this many "
                                   "texels of it (closes gaps between samples; in sample spacings when coarser)",
                              above=0.0, max=64.0)
     island_transpose: bool = opt(True, "islands: the packer may transpose an island (turns by 90 degrees and mirrors, "
                                        "exact on the texel grid): curved islands pack much tighter")
+    island_split: float = opt(0.6, "islands: an island longer than this share of the side of the square its "
+                                   "islands would fill is cut across (at its narrowest) into pieces that pack into "
+                                   "a square; 0 keeps every island whole", min=0.0, max=64.0)
+    island_min_fill: float = opt(0.6, "islands (island_split > 0): an island longer than a quarter of that cut "
+                                       "length that fills less of its bounding box than this (curved, hollow) is cut "
+                                       "too", min=0.0, max=1.0)
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
                                  min=1, max=1_000_000)
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings",

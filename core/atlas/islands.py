@@ -267,6 +267,58 @@ def chart_islands(occ: np.ndarray, min_cells: int) -> tuple[np.ndarray, int]:
     return new[lab], int(keep.sum())
 
 
+def start_side(masks: list[np.ndarray], pad: int, density: float = 0.9) -> int:
+    """Side of the square that holds the cells of the masks (each [h, w] bool) and their padding at `density`."""
+    area = sum(int(m.sum()) + pad * (m.shape[0] + m.shape[1]) * 2 for m in masks)  # cells and their padding
+    return int(math.ceil(math.sqrt(area / density)))
+
+
+def _crop(sel: np.ndarray) -> tuple[np.ndarray, tuple[int, int]]:
+    """sel [H, W] bool (not empty) -> (its bounding box [h, w] bool, (col, row) of the box's first cell)."""
+    rr, kk = np.nonzero(sel)
+    r0, k0 = int(rr.min()), int(kk.min())
+    m = np.zeros((int(rr.max()) - r0 + 1, int(kk.max()) - k0 + 1), bool)
+    m[rr - r0, kk - k0] = True
+    return m, (k0, r0)
+
+
+def split_island(mask: np.ndarray, limit: int, min_box_fill: float = 0.0,
+                 min_length: int = 16) -> list[tuple[np.ndarray, tuple[int, int]]]:
+    """Cut an island mask [h, w] bool into pieces whose bounding boxes are at most `limit` cells long and, when at
+    least min_length long, fill at least min_box_fill of their box (curved, hollow islands leave most of it empty):
+    a piece that fails is cut straight across its long side, at the row or column with the fewest cells (the
+    shortest seam) among those that leave both sides within the limit (for a hollow piece, or one more than twice
+    the limit: in its middle half); each 4-connected part is a piece. Returns [(piece [h', w'] bool, (col, row) of
+    its first cell in mask)], covering every cell of mask once. A long island forces the square image to its length
+    and a hollow one wastes its box; their pieces pack closer."""
+    from scipy.ndimage import label
+
+    out, todo = [], [(mask, (0, 0))]
+    while todo:
+        m, (k0, r0) = todo.pop()
+        h, w = m.shape
+        hollow = max(h, w) >= min_length and m.sum() < min_box_fill * h * w
+        if max(h, w) <= limit and not hollow:
+            out.append((m, (k0, r0)))
+            continue
+        across = w >= h  # cut across the columns of a wide piece, across the rows of a tall one
+        length = w if across else h
+        counts = m.sum(0 if across else 1)  # cells per column (row): the seam a cut before it leaves
+        lo, hi = max(1, length - limit), min(length - 1, limit)
+        if lo > hi or hollow:
+            lo, hi = max(1, length // 4), max(1, length - length // 4)
+        idx = np.arange(lo, hi + 1)
+        cut = int(idx[np.lexsort((np.abs(2 * idx - length), counts[idx]))[0]])
+        for part in ((m[:, :cut], (k0, r0)), (m[:, cut:], (k0 + cut, r0))) if across else \
+                ((m[:cut], (k0, r0)), (m[cut:], (k0, r0 + cut))):
+            pm, (pk, pr) = part
+            lab, k = label(pm)
+            for j in range(1, k + 1):
+                sub, (dk, dr) = _crop(lab == j)
+                todo.append((sub, (pk + dk, pr + dr)))
+    return out
+
+
 def _cell_mesh(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two triangles per True cell of mask [h, w]: (vertices [V, 2] float32 (col, row), triangles [T, 3] uint32)."""
     rr, cc = np.nonzero(mask)
@@ -279,25 +331,42 @@ def _cell_mesh(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return verts, inv.reshape(-1, 3).astype(np.uint32)
 
 
-def pack_islands(masks: list[np.ndarray], pad: int, size: int = 0, transpose: bool = False):
+def pack_islands(masks: list[np.ndarray], pad: int, size: int = 0, transpose: bool = False, search: int = 5):
     """Pack island cell masks (each [h, w] bool, cropped) with xatlas, `pad` texels of padding, each island whole
     (xatlas cuts an island that does not fit into slivers: that counts as not fitting). transpose: xatlas may
     transpose islands (a symmetry of the texel grid, recorded per island); else every island keeps its layout.
-    size > 0: into one size x size image (None when they do not fit); 0: the smallest square found, from the
-    islands' area with their padding and the longest island, growing 2 % at a time. Returns (offsets [I, 2] int
-    (col, row), orient [I] int (ORIENT): mask cell (col, row) t goes to pixel ORIENT[orient] @ t + offset, side)."""
+    size > 0: into one size x size image (None when they do not fit); 0: the smallest square found: xatlas's own
+    packing (its image grows as it packs, nearly square) gives a side that holds them, then up to `search`
+    packings into fixed squares bisect between it and the side the islands' cells with their padding fill
+    exactly (start_side at density 1). Returns (offsets [I, 2] int (col, row), orient [I] int (ORIENT): mask cell
+    (col, row) t goes to pixel ORIENT[orient] @ t + offset, side)."""
     if size > 0:
         got = _xatlas_pack(masks, pad, size, transpose)
         return None if got is None else (got[0], got[1], size)
-    longest = max(max(m.shape) for m in masks) + 2 * pad + 4
-    area = sum(int(m.sum()) + pad * (m.shape[0] + m.shape[1]) * 2 for m in masks)  # cells and their padding
-    side = max(int(math.ceil(math.sqrt(area / 0.9))), longest)
-    for _ in range(200):
-        got = _xatlas_pack(masks, pad, side, transpose)
-        if got is not None:
-            return got[0], got[1], side
-        side = int(math.ceil(side * 1.02))
-    raise InputError("island layout: xatlas found no packing")
+    longest = max(max(m.shape) for m in masks) + 2 * pad
+    lo = max(start_side(masks, pad, 1.0), longest) - 1  # no square this small holds them
+    best = _xatlas_pack(masks, pad, 0, transpose)
+    if best is not None:
+        hi = max(best[2], best[3], longest)
+        best = best[0], best[1], hi
+    else:  # xatlas cut an island to fit its own image: grow a fixed square from the lower bound until none is cut
+        hi = lo
+        while best is None:
+            if hi > 64 * (lo + 1):
+                raise InputError("island layout: xatlas found no packing")
+            hi = int(math.ceil(hi * 1.05)) + 1
+            got = _xatlas_pack(masks, pad, hi, transpose)
+            best = None if got is None else (got[0], got[1], hi)
+    for _ in range(search):
+        if hi - lo <= 1:
+            break
+        mid = (lo + hi) // 2
+        got = _xatlas_pack(masks, pad, mid, transpose)
+        if got is None:
+            lo = mid
+        else:
+            hi, best = mid, (got[0], got[1], mid)
+    return best
 
 
 def _xatlas_pack(masks, pad, size, transpose=False):
@@ -312,12 +381,15 @@ def _xatlas_pack(masks, pad, size, transpose=False):
         verts.append(v)
         atlas.add_uv_mesh(v, t)
     opts = xatlas.PackOptions()
-    opts.padding = max(int(pad) - 1, 0)  # xatlas rasterises one texel more: islands end up >= 2 * pad apart
+    # with bilinear, xatlas keeps one texel more around each island: islands end up >= 2 * pad - 1 apart (pixel
+    # centres; measured), so with pad 2 every texel a bilinear lookup reads is nearer its own island
+    opts.padding = max(int(pad) - 1, 0)
     opts.texels_per_unit = 1.0
     opts.rotate_charts = bool(transpose)  # xatlas's "rotation" transposes a chart: exact on the texel grid
     opts.rotate_charts_to_axis = False
     opts.bilinear = True
-    opts.bruteForce = bool(size > 0 and size <= BRUTE_FORCE_SIDE)  # tighter, slower: small atlases only
+    side = size if size > 0 else start_side(masks, pad, 1.0)
+    opts.bruteForce = bool(side <= BRUTE_FORCE_SIDE)  # tighter, slower: small atlases only
     opts.resolution = max(int(size), 0)
     atlas.generate(pack_options=opts)
     if size > 0 and atlas.atlas_count > 1:
@@ -366,10 +438,14 @@ def min_area_angle(t: np.ndarray, steps: int = 90) -> float:
 
 
 def build_islands(probs: torch.Tensor, uv: torch.Tensor, scale: np.ndarray, pad: int, size: int = 0,
-                  fill=1.0, min_cells: int = 8, rotate: bool = True, transpose: bool = True) -> IslandLayout | None:
+                  fill=1.0, min_cells: int = 8, rotate: bool = True, transpose: bool = True,
+                  split: float = 0.0, min_fill: float = 0.0) -> IslandLayout | None:
     """The island layout of samples with chart probabilities probs [S, n] and chart coordinates uv [S, n, 2], each
     chart at scale[c] texels per uv unit (rotated to its smallest bounding box when rotate); fill: occupancy
     radius in texels (one, or [n] per chart). transpose: the packer may transpose islands (pack_islands).
+    split > 0: islands longer than split x the side of the square they would fill at 100 % (size when fixed),
+    and those longer than a quarter of that that fill less than min_fill of their bounding box, are cut into
+    pieces (split_island), each its own island of the same chart.
     size > 0: fixed image side (None when the islands do not fit)."""
     n = probs.shape[1]
     fill = np.broadcast_to(np.asarray(fill, np.float64), (n,))
@@ -393,30 +469,30 @@ def build_islands(probs: torch.Tensor, uv: torch.Tensor, scale: np.ndarray, pad:
         per_chart.append(t + shift)
     G = int(math.ceil(max(float((t.max(0)).max()) for t in per_chart if t is not None))) + int(fill.max()) + 3
     cells = np.full((n, G, G), -1, np.int64)
-    masks, crops, mask_chart = [], [], []
+    pieces = []  # (chart, cropped mask [h, w] bool, crop (col, row) of its cell (0, 0) in the chart)
     for c in range(n):
         if per_chart[c] is None:
             continue
         occ = occupancy(per_chart[c], G, float(fill[c]))
         lab, k = chart_islands(occ, min_cells)
         for j in range(k):
-            rr, kk = np.nonzero(lab == j)
-            r0, k0 = rr.min(), kk.min()
-            m = np.zeros((rr.max() - r0 + 1, kk.max() - k0 + 1), bool)
-            m[rr - r0, kk - k0] = True
-            mask_chart.append((c, lab == j))
-            masks.append(m)
-            crops.append((k0, r0))
-    if not masks:
+            m, crop = _crop(lab == j)
+            pieces.append((c, m, crop))
+    if not pieces:
         raise InputError("island layout: no sample falls in any chart")
+    if split > 0:  # islands longer than split x the square they would pack into are cut across, where narrowest
+        limit = max(int(split * (size if size > 0 else start_side([m for _, m, _ in pieces], pad, 1.0))), 4 * pad + 8)
+        pieces = [(c, m, (k0 + dk, r0 + dr)) for c, m0, (k0, r0) in pieces
+                  for m, (dk, dr) in split_island(m0, limit, min_fill, max(limit // 4, 4 * pad + 8))]
+    masks = [m for _, m, _ in pieces]
     packed = pack_islands(masks, pad, size, transpose=transpose)
     if packed is None:
         return None
     offsets, orient, side = packed
-    for i, (c, sel) in enumerate(mask_chart):
-        cells[c][sel] = i
+    for i, (c, m, (k0, r0)) in enumerate(pieces):
+        cells[c, r0:r0 + m.shape[0], k0:k0 + m.shape[1]][m] = i
     # mask cell (0, 0) is chart cell (col k0, row r0): pixel = M (t - crop) + offset = M t + (offset - M crop)
-    crop = np.asarray(crops, np.int64)
+    crop = np.asarray([p[2] for p in pieces], np.int64)
     offsets = offsets - np.einsum("iab,ib->ia", ORIENT_NP[orient], crop)
     return IslandLayout(n, side, pad, torch.from_numpy(affine).float(), torch.from_numpy(cells),
                         torch.from_numpy(offsets), torch.from_numpy(orient))

@@ -13,16 +13,20 @@ def subpixel_chart_uv(atlas, points: torch.Tensor, valid: torch.Tensor, depth: t
 
     The atlas networks run once per pixel (points [H, W, 3] where valid) and their outputs are interpolated to
     the sub-pixels like `subpixel_points` interpolates the points: t_c and c are smooth, so this equals evaluating
-    them at the interpolated points up to second-order terms, at 1/S² of the cost. Returns (probs [K, n],
-    uv [K, n, 2] of the K sub-pixels that are on the object, on [S*H, S*W] bool marking them, row-major)."""
+    them at the interpolated points up to second-order terms, at 1/S² of the cost. The raw outputs are
+    interpolated and then placed (`Atlas.place`): an island atlas places neighbouring pixels of one chart in
+    different islands where the chart was cut, and coordinates interpolated between two islands would land in
+    neither. Returns (probs [K, n], uv [K, n, 2] of the K sub-pixels that are on the object, on [S*H, S*W] bool
+    marking them, row-major)."""
     H, W, _ = points.shape
     n = atlas.n
     feat = torch.zeros(H, W, 3 * n, dtype=points.dtype, device=points.device)
     if bool(valid.any()):
-        probs, uv = atlas.chart_uv(points[valid])
+        probs, uv = atlas.chart_uv(points[valid], placed=False)
         feat[valid] = torch.cat([probs, uv.reshape(-1, 2 * n)], 1).to(points.dtype)
     sp = subpixel_points(feat, valid, depth, sub, max_depth_step)
     on = torch.isfinite(sp).all(-1)
     v = sp[on]
-    return v[:, :n], v[:, n:].reshape(-1, n, 2), on
+    probs, uv = atlas.place(v[:, :n], v[:, n:].reshape(-1, n, 2))
+    return probs, uv, on
 

@@ -7,10 +7,12 @@ fitting PSNR against time, distortion statistics with the distortion loss on and
 Any AtlasConfig field is a flag (--steps, --batch, --width-map, --charts 8, ...).
 
 --scene-root DIR: for every scene of `pointgt make-scene --list` that DIR holds (DIR/<name>/ from make-scene and
-DIR/<name>.pgt, a stage-1 model of it), fit stage 2 in memory with each layout and report the atlas's utilisation
+DIR/<name>.pgt, a stage-1 model of it, or DIR/<name>.default.pgt, the scene-library bench's default fit), fit stage 2
+in memory with each layout and report the atlas's utilisation
 (texels with a surface point / image pixels), the texel -> surface -> texel round trip (share within 1 texel),
 stage-2 seconds, the atlas-coloured render and, at rest, the retexture (with its perfect-atlas reference: the
-texture evaluated exactly at the surface points) and the decal, object PSNR on the scene's test views.
+texture evaluated exactly at the surface points) and the decal, object PSNR on the scene's test views
+(--no-scores: the layout figures only, no renders).
 """
 from __future__ import annotations
 
@@ -110,8 +112,18 @@ def round_trip(atlas) -> float:
     return float((miss <= 1.0).float().mean())
 
 
-def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=None, log=print) -> list[dict]:
-    """The per-scene figures (module doc) for every scene of the library found under root (or those in only)."""
+def scene_model(root, name: str):
+    """DIR/<name>.pgt, else the scene-library bench's DIR/<name>.default.pgt (None when neither exists)."""
+    for model in (root / f"{name}.pgt", root / f"{name}.default.pgt"):
+        if model.exists():
+            return model
+    return None
+
+
+def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=None, log=print,
+               scores: bool = True) -> list[dict]:
+    """The per-scene figures (module doc) for every scene of the library found under root (or those in only);
+    scores False: the layout figures only (utilisation, round trip, islands, seconds), no renders."""
     import time
     from pathlib import Path
 
@@ -127,16 +139,17 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
     for name in scene_names():
         if only and name not in only:
             continue
-        scene, model = root / name, root / f"{name}.pgt"
-        if not (scene / "transforms_train.json").exists() or not model.exists():
-            log(f"[{name}] skipped: needs {scene}/ (pointgt make-scene) and {model} (pointgt fit)")
+        scene, model = root / name, scene_model(root, name)
+        if not (scene / "transforms_train.json").exists() or model is None:
+            log(f"[{name}] skipped: needs {scene}/ (pointgt make-scene) and {root / name}.pgt (pointgt fit)")
             continue
-        spec = load_scene_spec(scene)
         train = load_split(scene, "train")
-        gt_dir = view_subset_dir(scene, views)
-        gts = {e: ground_truth(gt_dir, "rest", 0.0, t, None, log) for e, t in (("retexture", retexture),
-                                                                               ("decal", "decal"))}
-        test = ground_truth(gt_dir, "rest", 0.0, None, None, log)
+        if scores:
+            spec = load_scene_spec(scene)
+            gt_dir = view_subset_dir(scene, views)
+            gts = {e: ground_truth(gt_dir, "rest", 0.0, t, None, log) for e, t in (("retexture", retexture),
+                                                                                   ("decal", "decal"))}
+            test = ground_truth(gt_dir, "rest", 0.0, None, None, log)
         for layout in layouts:
             bundle = load_bundle(model, "cpu")
             t0 = time.perf_counter()
@@ -150,11 +163,14 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                    "round_trip_all": hist.get("texel_stats", {}).get("round_trip_1", float("nan")),
                    "islands": hist.get("islands", 0),
                    "island_share": float(atlas.layout.island_pixels.float().mean()) if atlas.islands else float("nan")}
-            row["atlas_colour"] = score_frames(EditState(bundle, cfg=EditConfig(colour="atlas")), test)["psnr_object"]
-            edits = edited_atlases(bundle, spec, retexture)
-            r = score_frames(EditState(bundle, atlas=edits["retexture"]), gts["retexture"], oracle=(retexture, spec))
-            row["retexture"], row["retexture_perfect"] = r["psnr_object"], r["psnr_object_oracle"]
-            row["decal"] = score_frames(EditState(bundle, atlas=edits["decal"]), gts["decal"])["psnr_object"]
+            if scores:
+                row["atlas_colour"] = score_frames(EditState(bundle, cfg=EditConfig(colour="atlas")),
+                                                   test)["psnr_object"]
+                edits = edited_atlases(bundle, spec, retexture)
+                r = score_frames(EditState(bundle, atlas=edits["retexture"]), gts["retexture"],
+                                 oracle=(retexture, spec))
+                row["retexture"], row["retexture_perfect"] = r["psnr_object"], r["psnr_object_oracle"]
+                row["decal"] = score_frames(EditState(bundle, atlas=edits["decal"]), gts["decal"])["psnr_object"]
             rows.append(row)
             log(f"[{name}/{layout}] " + "  ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
                                                   for k, v in row.items() if k not in ("scene", "layout")))
@@ -166,9 +182,11 @@ def markdown_rows(rows: list[dict]) -> str:
             "retexture / perfect atlas | decal |")
     out = [head, "|" + "---|" * 9]
     for r in rows:
+        scored = "atlas_colour" in r
         out.append(f"| {r['scene']} | {r['layout']} | {r['size']} | {100 * r['utilisation']:.1f} % | "
-                   f"{100 * r['round_trip']:.1f} % | {r['seconds']:.0f} | {r['atlas_colour']:.2f} | "
-                   f"{r['retexture']:.2f} / {r['retexture_perfect']:.2f} | {r['decal']:.2f} |")
+                   f"{100 * r['round_trip']:.1f} % | {r['seconds']:.0f} | "
+                   + (f"{r['atlas_colour']:.2f} | {r['retexture']:.2f} / {r['retexture_perfect']:.2f} | "
+                      f"{r['decal']:.2f} |" if scored else "– | – | – |"))
     return "\n".join(out)
 
 
@@ -187,13 +205,14 @@ def main(argv=None) -> int:
     ap.add_argument("--layouts", default="islands,grid", help="per-scene mode: layouts to compare")
     ap.add_argument("--views", type=int, default=4, help="per-scene mode: test views scored")
     ap.add_argument("--scenes", default="", help="per-scene mode: only these scenes (comma-separated)")
+    ap.add_argument("--no-scores", action="store_true", help="per-scene mode: layout figures only, no renders")
     args, cfg = parse_with_config(ap, AtlasConfig, argv)  # AtlasConfig.threads: the fit and everything else
     if args.scene_root:
         from tools.machine import machine_info
 
         machine = machine_info()
         rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
-                          only=[x for x in args.scenes.split(",") if x])
+                          only=[x for x in args.scenes.split(",") if x], scores=not args.no_scores)
         print(markdown_rows(rows))
         print(f"machine: {machine}")
         rows = [dict(r, machine=machine) for r in rows]

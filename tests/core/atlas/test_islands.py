@@ -191,3 +191,133 @@ def test_texel_map_round_trips_on_reoriented_islands():
         back = IslandLayout.from_arrays(a.to_arrays(), 2, a.layout.size, a.layout.pad)
         assert torch.equal(back.orient, a.layout.orient)
     assert min(shares) > 0.93 and max(shares) - min(shares) < 0.01, shares  # without turning back: 0.83-0.91
+
+
+def test_split_island_cuts_long_and_hollow_islands_at_their_narrowest_and_keeps_every_cell():
+    from core.atlas.islands import split_island
+    bell = np.zeros((20, 100), bool)  # two 20 x 40 blocks joined by a 4-cell-high bridge
+    bell[:, :40] = bell[:, 60:] = True
+    bell[8:12, 40:60] = True
+    pieces = split_island(bell, 70)
+    assert len(pieces) == 2 and all(max(m.shape) <= 70 for m, _ in pieces)
+    back = np.zeros_like(bell, np.int64)
+    for m, (k0, r0) in pieces:
+        back[r0:r0 + m.shape[0], k0:k0 + m.shape[1]] += m
+    assert np.array_equal(back, bell.astype(np.int64))  # every cell in exactly one piece
+    assert 40 <= max(k0 for _, (k0, _) in pieces) <= 60  # the cut goes through the bridge
+    u = np.zeros((60, 60), bool)  # a U: short enough, but fills 44 % of its box
+    u[:, :10] = u[:, 50:] = u[50:] = True
+    assert len(split_island(u, 100)) == 1
+    cut = split_island(u, 100, min_box_fill=0.55, min_length=16)
+    assert len(cut) > 1 and sum(int(m.sum()) for m, _ in cut) == int(u.sum())
+    assert all(m.sum() >= 0.55 * m.size or max(m.shape) < 16 for m, _ in cut)
+
+
+def _long_and_hollow_samples(S=20000):
+    """Chart 0: a long strip (160 x 24 texels at scale 160), chart 1: a ring (hollow, 80 texels across)."""
+    g = torch.Generator().manual_seed(3)
+    uv = torch.rand(S, 2, 2, generator=g)
+    chart = torch.arange(S) % 2
+    uv[:, 0, 1] = 0.45 + 0.15 * uv[:, 0, 1]
+    ang, rad = uv[:, 1, 0] * 2 * np.pi, 0.34 + 0.16 * uv[:, 1, 1]
+    uv[:, 1] = torch.stack([0.5 + rad * torch.cos(ang), 0.5 + rad * torch.sin(ang)], -1) * 0.5 + 0.25
+    return torch.nn.functional.one_hot(chart, 2).float(), uv
+
+
+def test_cut_islands_fill_the_square_and_keep_their_padding_for_bilinear_lookups():
+    from scipy.ndimage import distance_transform_edt
+
+    from core.atlas.packing import sample_charts
+    probs, uv = _long_and_hollow_samples()
+    whole = build_islands(probs, uv, np.array([160.0, 160.0]), pad=2, fill=1.0, min_cells=4)
+    lay = build_islands(probs, uv, np.array([160.0, 160.0]), pad=2, fill=1.0, min_cells=4, split=0.6, min_fill=0.55)
+    share = lambda L: float(L.island_pixels.float().mean())  # noqa: E731
+    assert share(whole) < 0.35 and share(lay) > 0.6 and lay.islands > whole.islands, (share(whole), share(lay))
+    ids = lay.label.numpy()
+    isl = lay.island_pixels.numpy()
+    for i in range(lay.islands):  # every island, pieces of one chart too, 2 * pad - 1 from every other (xatlas)
+        mine = isl & (ids == i)
+        assert distance_transform_edt(~mine)[isl & ~mine].min() >= 2 * lay.pad - 1
+    # an image holding each pixel's island id (-100 outside the padding): a bilinear lookup anywhere, on or off
+    # the islands, mixes no two islands and never reads outside the padding
+    img = torch.from_numpy(np.where(ids >= 0, ids, -100).astype(np.float32))
+    tex = img[None, None].expand(2, 3, -1, -1)
+    g = torch.Generator().manual_seed(4)
+    probe = torch.cat([uv + torch.randn(uv.shape, generator=g) * 0.01, torch.rand(4000, 2, 2, generator=g) * 1.4 - 0.2])
+    got = sample_charts(tex, lay.place(probe))[..., 0]
+    assert float(got.min()) >= 0 and float((got - got.round()).abs().max()) < 1e-4
+
+
+def test_packing_finds_a_square_near_the_islands_area():
+    from core.atlas.islands import pack_islands, start_side
+    rng = np.random.default_rng(0)
+    masks = [np.ones((h, w), bool) for h, w in rng.integers(8, 40, (24, 2))]  # rectangles
+    offsets, orient, side = pack_islands(masks, 2, 0, transpose=True)
+    assert side >= start_side(masks, 2, 1.0) and sum(int(m.sum()) for m in masks) / side ** 2 > 0.6
+    pix = np.zeros((side, side), np.int64)
+    from core.atlas.outlines import cell_pixels
+    for i, m in enumerate(masks):
+        rr, kk = np.nonzero(m)
+        pc, pr = cell_pixels(kk, rr, np.broadcast_to(offsets[i], (len(rr), 2)), np.full(len(rr), orient[i]))
+        pix[pr, pc] += 1
+    assert pix.max() == 1 and pix.sum() == sum(int(m.sum()) for m in masks)  # inside the image, no overlap
+
+
+class _WobblyMap(torch.nn.Module):
+    """t_c [M, 2, 2]: the bent map with a fine wobble of ~1/3 texel at scale 80, whose slope folds the map locally
+    (where the texel map's Gauss-Newton steps miss)."""
+    def forward(self, xn):
+        u = _BentMap()(xn)[:, 0] + 0.004 * torch.sin(300 * xn[:, 1:2]) * torch.cos(310 * xn[:, :1])
+        return torch.stack([u, u.flip(-1)], 1)
+
+
+def test_texels_newton_misses_take_the_nearest_sample_and_still_map_back():
+    a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
+    a.chart, a.tex = _SideChart(), _WobblyMap()
+    g = torch.Generator().manual_seed(5)
+    u = torch.rand(20000, 2, generator=g) * 1.6 - 0.8
+    x = torch.stack([u[:, 0], u[:, 1], 0.2 * torch.sin(2 * u[:, 0])], -1)
+    probs, uv = a.chart_uv(x)
+    a.set_layout(build_islands(probs, uv, np.array([80.0, 80.0]), pad=2))
+    tp = a.compute_texel_points(x, 3 * 1.6 / 20000 ** 0.5, 1.0, "splat", 1.0)
+    st = a.texel_stats
+    ok = torch.isfinite(tp).all(-1)
+    assert st["nearest_sample"] > 0 and st["kept"] == int(ok.sum())
+    assert st["kept"] / st["island_texels"] > st["round_trip_1_of_island"] + 0.01, st  # the fallback adds texels
+    _, pix = a.atlas_pixel_coords(tp[ok])
+    rows, cols = torch.nonzero(ok, as_tuple=True)
+    assert float((pix - torch.stack([cols + 0.5, rows + 0.5], -1)).norm(dim=-1).max()) <= 1.0 + 1e-4
+
+
+class _FlatMap(torch.nn.Module):
+    """t_c [M, 2, 2]: both charts map the plane affinely, u = 0.5 + 0.45 x, v = 0.5 + 0.06 y (a long strip)."""
+    def forward(self, xn):
+        u = torch.stack([0.5 + 0.45 * xn[:, 0], 0.5 + 0.06 * xn[:, 1]], -1)
+        return torch.stack([u, u], 1)
+
+
+def test_subpixel_lookups_across_a_cut_land_on_an_island():
+    """Where a chart was cut into two islands, neighbouring pixels sit in different islands: the sub-pixels between
+    them interpolate the chart's raw coordinates and are placed after, so they land on an island (the placed
+    coordinates interpolated would land in the gap between the two)."""
+    from scipy.ndimage import distance_transform_edt
+
+    from core.atlas.subpixel import subpixel_chart_uv
+    a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
+    a.chart = torch.nn.Module()
+    a.chart.forward = lambda xn: torch.stack([torch.full_like(xn[:, 0], 5.0), torch.zeros_like(xn[:, 0])], -1)
+    a.tex = _FlatMap()
+    g = torch.Generator().manual_seed(6)
+    x = torch.cat([torch.rand(20000, 2, generator=g) * 2 - 1, torch.zeros(20000, 1)], -1)
+    probs, uv = a.chart_uv(x, placed=False)
+    a.set_layout(build_islands(probs, uv, np.array([200.0, 200.0]), pad=2, split=0.6, rotate=False))
+    assert a.layout.islands >= 2  # the 180 x 24 strip was cut
+    H, W = 6, 80
+    r, c = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    pts = torch.stack([c / W * 1.8 - 0.9, r / H * 0.5 - 0.25, torch.zeros(H, W)], -1)
+    valid = torch.ones(H, W, dtype=torch.bool)
+    p, uv_sub, on = subpixel_chart_uv(a, pts, valid, torch.ones(H, W), 4, 10.0)
+    pix = uv_sub[:, 0] * a.layout.size
+    d = distance_transform_edt(~a.layout.island_pixels.numpy())
+    k = pix.floor().long().clamp(0, a.layout.size - 1)
+    assert bool((p[:, 0] == 1).all()) and float(d[k[:, 1], k[:, 0]].max()) <= 1.0
