@@ -11,7 +11,7 @@ Measured from the data (all numbers are returned with the choices, JSON-able):
   so choosing it risks no collapse, and at the default 10-minute budget it is ahead of no decoder, or within
   0.2 dB of it, on every scene of the library (docs/results.md, "Scene library": `python -m tools.bench.scenes`).
   Leaving it out where there are few foreground pixels per point measured worse: the thin `stick` (0.09) lost
-  5.3 dB without it (the decoder-free fit peaks in its first minute and then declines on the test views).
+  5.5 dB without it (the decoder-free fit peaks in its first minute and then declines on the test views).
   Foreground pixels per point (per view / the number of points) is still measured and reported.
 - thin sheets: the mean out-of-plane spread of the visual hull's clusters (`flatness` of core/atlas/fit.py, on the
   hull's volume points): a sheet's hull is a thin slab (low), a solid's hull is chunky (high). Thin → K = 40

@@ -165,7 +165,7 @@ if __name__ == "__main__":  # the table in docs/stability.md: `python -m tests.c
 
 def test_few_pixels_per_point_keep_the_decoder():
     """Foreground pixels per point is measured (it scales with 1 / points) but no longer leaves the decoder out: at
-    the 10-minute budget the decoder-free fit lost 5.3 dB on the library's thin stick (docs/results.md)."""
+    the 10-minute budget the decoder-free fit lost 5.5 dB on the library's thin stick (docs/results.md)."""
     split = render_split("sphere", fibonacci_cameras(16, seed=0), SIZE)
     fg = float((split.alphas > 0.5).float().sum(dim=(1, 2)).mean())
     sparse = scene_profile(split, hull_points=2000, num_points=int(fg / 0.6))
