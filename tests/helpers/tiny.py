@@ -101,3 +101,15 @@ def tiny_bundle(preset: str = "card", shape: str = "card", steps: int | None = N
 def save_tiny(path: str | Path, preset: str = "addon") -> Path:
     """Train the preset's card model and save it (no backup); returns its path."""
     return save_bundle(path, tiny_bundle(preset)[0], backup=False)
+
+
+def card_half_swung_behind(xyz, c2w, depth: float = 0.3):
+    """Posed points of the card (xyz [N, 3]) folded for the camera c2w [4, 4]: the half with x above the median
+    moved over the other half and `depth` units further from the camera. Returns (points [N, 3], half [N] bool)."""
+    import torch
+
+    half = xyz[:, 0] > float(xyz[:, 0].median())
+    shift = torch.tensor([float(xyz[:, 0].min() - xyz[half, 0].min()), 0.0, 0.0])
+    pts = xyz.clone()
+    pts[half] = xyz[half] + shift - depth * c2w[:3, 2]
+    return pts, half

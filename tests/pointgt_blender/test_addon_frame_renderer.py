@@ -161,15 +161,12 @@ def test_layer_trace_applies_the_occlusion_rule_like_render_edited():
 
     from core.frames.edited import EditConfig, EditState, render_edited
     from pointgt_blender.bridge.frame_renderer import trace_layer
-    from tests.helpers.tiny import tiny_bundle
+    from tests.helpers.tiny import card_half_swung_behind, tiny_bundle
 
     bundle, _, test = tiny_bundle("card")
     xyz = bundle.model.xyz.detach()
     c2w = test.c2w[0]
-    half = xyz[:, 0] > float(xyz[:, 0].median())
-    shift = torch.tensor([float(xyz[:, 0].min() - xyz[half, 0].min()), 0.0, 0.0])
-    pts = xyz.clone()
-    pts[half] = xyz[half] + shift - 0.3 * c2w[:3, 2]  # over the other half, 0.3 units further from the camera
+    pts, half = card_half_swung_behind(xyz, c2w)
     on = EditState(bundle, points=pts, cfg=EditConfig(antialias=1, f_occlusion=True))
     off = EditState(bundle, points=pts, cfg=EditConfig(antialias=1, f_occlusion=False))
     tr = trace_layer(on, c2w.numpy(), test.height, test.width, test.focal)

@@ -8,7 +8,7 @@ from core.edits.deformation import DeformationConfig
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.points.render import render_frame, trace_frame
 from core.images.rays import project_on_ray
-from tests.helpers.tiny import tiny_bundle
+from tests.helpers.tiny import card_half_swung_behind, tiny_bundle
 
 # every part on (at rest the fold rule sees one displacement, 0, and drops nothing; the occlusion rule finds every
 # neighbour in every other's layer)
@@ -162,10 +162,7 @@ def test_occlusion_rule_hides_a_part_swung_behind(tiny):
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
     c2w = test.c2w[0]
-    half = xyz[:, 0] > float(xyz[:, 0].median())
-    shift = torch.tensor([float(xyz[:, 0].min() - xyz[half, 0].min()), 0.0, 0.0])
-    pts = xyz.clone()
-    pts[half] = xyz[half] + shift - 0.3 * c2w[:3, 2]  # over the other half, 0.3 units further from the camera
+    pts, half = card_half_swung_behind(xyz, c2w)
     front = torch.nonzero(~half).squeeze(1)
     alone = render_edited(EditState(bundle, points=xyz[front], ids=front, cfg=EditConfig(f_fill=False)), c2w,
                           test.height, test.width, test.focal)
