@@ -154,13 +154,13 @@ def test_apply_keeps_explicit_values():
 
 if __name__ == "__main__":  # the table in docs/stability.md: `python -m tests.core.test_profile`
     cams = fibonacci_cameras(16, seed=0)
-    print("| scene | colour | view_variation | hull flatness | decoder | K | charts |")
-    print("|---|---|---|---|---|---|---|")
+    print("| scene | colour | view_variation | hull flatness | view-dependent | decoder | K | charts |")
+    print("|---|---|---|---|---|---|---|---|")
     for shape in ("sphere", "card"):
         for kind, split in (("emission", render_split(shape, cams, SIZE)), ("glossy", render_glossy(shape, cams, SIZE))):
             p = scene_profile(split, hull_points=2000)
             print(f"| {shape} | {kind} | {p.measured['view_variation']:.3f} | {p.measured['hull_flatness']:.3f} | "
-                  f"{p.decoder} | {p.k} | {p.charts} |")
+                  f"{'yes' if p.view_dependent else 'no'} | {p.decoder} | {p.k} | {p.charts} |")
 
 
 def test_few_pixels_per_point_keep_the_decoder():
