@@ -19,7 +19,9 @@ import torch.nn.functional as F
 
 from core.config import opt
 from core.points.decoders import UNetDecoder
+from core.points.key_mlp import KEY_PATHS, key_logits, standard_key_mlp
 from core.points.neighbors.base import METHODS
+from core.util.errors import InputError
 
 # Every model trains over white (datasets are composited onto it, `load_split`'s default): a decoder learns to
 # paint this background itself, so renders over another colour must move its share (core/points/render.py).
@@ -114,7 +116,7 @@ class PointModel(nn.Module):
     # ---- attention -------------------------------------------------------------------------------------------
     def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
                idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None,
-               log_window: torch.Tensor | None = None) -> dict:
+               log_window: torch.Tensor | None = None, keys: str = "auto") -> dict:
         """Attention over each ray's neighbours plus the background slot.
 
         Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
@@ -125,6 +127,10 @@ class PointModel(nn.Module):
         depth = u·d' and distance = |u − (u·d') d'| (the same numbers as without inv_f when F = I).
         log_window [R, K]: added to the neighbours' logits (finite; core/points/neighbors/select.py
         `select_neighbors_soft`: a neighbour's share faded out towards the edges of its footprint).
+        keys: how the key MLP runs: "torch" (autograd through the module), "chunked" (core/points/key_mlp.py: only
+        the non-empty slots, in cache-sized chunks, a hand-written backward; the same numbers to float rounding,
+        about half the time of a training step's key MLP) or "auto" (chunked when gradients are on and the key MLP
+        is the standard one; without gradients the renderers chunk the rays themselves).
         Returns dict: weights [R, K] (0 on empty slots), bg [R] background weight, x [R, 3] surface point
         (NaN-free: rays with no neighbour get the ray point at the mean depth 0), t [R, K] depth along the ray.
         """
@@ -149,8 +155,18 @@ class PointModel(nn.Module):
             depth = (u * dc).sum(-1)
             rho = (u - depth[..., None] * dc).norm(dim=-1)
         feats = torch.stack([(rho / s).clamp(max=64.0), (depth / s).clamp(-64.0, 64.0)], dim=-1)
+        if keys not in KEY_PATHS:
+            raise InputError(f"attend: keys must be one of {KEY_PATHS}, got {keys!r}")
+        standard = standard_key_mlp(self.key_mlp)
+        if keys == "chunked" and not standard:
+            raise InputError("attend: keys='chunked' needs the standard key MLP (Linear, ReLU, Linear, ReLU, Linear)")
+        if keys == "chunked" or (keys == "auto" and standard and torch.is_grad_enabled()):
+            # empty slots are masked out of the softmax below: their logits are never used
+            key = key_logits(self.key_mlp, feats, self.cfg.key_freqs, valid)
+        else:
+            key = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1)
         # Influence clamped: ±1e30 softmaxes fine (max subtracted), an infinite one (diverged fit) would give inf − inf.
-        logits = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1) + influence[safe_idx].clamp(-1e30, 1e30)
+        logits = key + influence[safe_idx].clamp(-1e30, 1e30)
         if log_window is not None:
             logits = logits + log_window.to(logits.dtype).clamp(-1e30, 0.0)
         temp = self.cfg.temperature if temperature is None else temperature
