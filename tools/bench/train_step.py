@@ -1,0 +1,130 @@
+"""Stage-1 step time: seconds per training step of `pointgt fit` on a scene, per key-MLP path, split by part.
+
+    python -m tools.bench.train_step --data DIR [--steps 40] [--repeats 3] [--paths torch,chunked]
+        [--threads 1] [--json OUT]
+
+Loads the scene and applies the scene profile as `pointgt fit` does, then runs `fit_points` for --steps steps with
+each `--key-path` in turn (A B A B ..., so a drifting machine load hits both alike), --repeats times. Per fit:
+wall seconds per step from the fit's own training clock (what a `--minutes` budget counts) and CPU seconds per
+step of the training thread (the fit's thread CPU time minus its test evaluations and the visual-hull set-up,
+over the steps; on a shared machine this moves less than the wall clock). The parts of the step are timed by
+wrapping the core functions the step calls (thread CPU time): patch sampling, neighbour search, attention
+forward, shading, decoder forward, the regularizers, backward, Adam; the rest of the step is "other". Medians
+over the repeats are printed with the machine line.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import statistics
+import time
+
+PARTS = ("data", "search", "attend", "shade", "decoder", "regularizers", "backward", "adam", "other")
+
+
+@contextlib.contextmanager
+def _timed(owner, name: str, part: str, clock: dict):
+    """Replace owner.name by a wrapper adding its thread CPU time to clock[part], restored on exit."""
+    fn = getattr(owner, name)
+
+    def wrapper(*a, **kw):
+        t = time.thread_time()
+        try:
+            return fn(*a, **kw)
+        finally:
+            clock[part] = clock.get(part, 0.0) + time.thread_time() - t
+
+    setattr(owner, name, wrapper)
+    try:
+        yield
+    finally:
+        setattr(owner, name, fn)
+
+
+def time_fit(train, test, model_cfg, cfg) -> dict:
+    """One fit_points run with its parts timed: dict(wall_per_step, cpu_per_step, parts {part: CPU s per step},
+    steps, points)."""
+    import torch
+
+    import core.points.train as tr
+    from core.points.model import PointModel
+
+    clock: dict = {}
+    wraps = [(tr, "sample_patches", "data"), (tr, "select_neighbors", "search"), (PointModel, "attend", "attend"),
+             (PointModel, "shade", "shade"), (PointModel, "decode_with_alpha", "decoder"),
+             (tr, "close_to_ray", "regularizers"), (tr, "close_to_surface", "regularizers"),
+             (torch.Tensor, "backward", "backward"), (torch.optim.Adam, "step", "adam"),
+             (tr, "evaluate", "_evaluate"), (tr, "visual_hull_points", "_setup")]
+    with contextlib.ExitStack() as stack:
+        for owner, name, part in wraps:
+            stack.enter_context(_timed(owner, name, part, clock))
+        t = time.thread_time()
+        _, history = tr.fit_points(train, test, model_cfg, cfg, show_progress=False)
+        total = time.thread_time() - t
+    steps = max(history[-1]["step"], 1)
+    step_cpu = total - clock.pop("_evaluate", 0.0) - clock.pop("_setup", 0.0)
+    parts = {p: clock.get(p, 0.0) / steps for p in PARTS if p != "other"}
+    parts["other"] = max(step_cpu / steps - sum(parts.values()), 0.0)
+    return {"wall_per_step": history[-1]["seconds"] / steps, "cpu_per_step": step_cpu / steps, "parts": parts,
+            "steps": steps, "points": history[-1]["points"]}
+
+
+def main(argv=None) -> int:
+    from tools.bench import parse, parser
+
+    ap = parser(__doc__)
+    ap.add_argument("--data", required=True, help="dataset folder (e.g. made by `pointgt make-scene cloth`)")
+    ap.add_argument("--steps", type=int, default=40, help="training steps per fit")
+    ap.add_argument("--repeats", type=int, default=3, help="fits per key path (medians are reported)")
+    ap.add_argument("--paths", default="torch,chunked", help="comma-separated key paths (TrainConfig.key_path)")
+    ap.add_argument("--seed", type=int, default=0)
+    args = parse(ap, argv, threads=1)
+
+    from core.atlas.config import AtlasConfig
+    from core.images.dataset import load_dataset
+    from core.points.model import ModelConfig
+    from core.points.train import TrainConfig
+    from core.profile import apply_profile, scene_profile
+    from tools.machine import machine_info, machine_line
+
+    data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"), progress=False)
+    train, test = data["train"], data["test"]
+    model_cfg = ModelConfig()
+    profile = scene_profile(train, seed=args.seed, device="cpu", num_points=model_cfg.num_points)
+    model_cfg, _, _ = apply_profile(profile, model_cfg, AtlasConfig(), set())
+    paths = args.paths.split(",")
+    print(machine_line())
+    print(f"{args.data}: {len(train)} train views at {train.width}x{train.height}; decoder {model_cfg.decoder}, "
+          f"K {model_cfg.k}; {args.steps} steps per fit, {args.repeats} fits per key path, "
+          f"{args.threads} thread(s)")
+    runs: dict = {p: [] for p in paths}
+    for _ in range(args.repeats):
+        for p in paths:
+            cfg = TrainConfig(steps=args.steps, eval_every=1e9, threads=args.threads, seed=args.seed, key_path=p)
+            runs[p].append(time_fit(train, test, model_cfg, cfg))
+    med = {p: {"wall_per_step": statistics.median(r["wall_per_step"] for r in rs),
+               "cpu_per_step": statistics.median(r["cpu_per_step"] for r in rs),
+               "parts": {k: statistics.median(r["parts"][k] for r in rs) for k in PARTS}} for p, rs in runs.items()}
+    print("| key path | wall s/step | CPU s/step | " + " | ".join(PARTS) + " |")
+    print("|---|---|---|" + "---|" * len(PARTS))
+    for p, m in med.items():
+        share = " | ".join(f"{1000 * m['parts'][k]:.1f} ms ({100 * m['parts'][k] / m['cpu_per_step']:.0f} %)"
+                           for k in PARTS)
+        print(f"| {p} | {m['wall_per_step']:.3f} | {m['cpu_per_step']:.3f} | {share} |")
+    if len(paths) > 1:
+        ref = med[paths[0]]
+        for p in paths[1:]:
+            print(f"{p} vs {paths[0]}: CPU per step x {ref['cpu_per_step'] / med[p]['cpu_per_step']:.2f} faster, "
+                  f"wall x {ref['wall_per_step'] / med[p]['wall_per_step']:.2f}")
+    print(machine_line())
+    if args.json:
+        from core.util.atomic import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps({"machine": machine_info(), "data": args.data, "steps": args.steps,
+                                                 "threads": args.threads, "model": model_cfg.__dict__,
+                                                 "median": med, "runs": runs}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
