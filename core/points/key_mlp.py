@@ -10,7 +10,7 @@ gradient — memory traffic and first-touch page faults that cost more than the 
 slots in the weight gradients differs) with three changes: empty slots (index -1, masked out of the softmax
 anyway, so their logits and gradients are unused) are left out; the slots run in chunks small enough for the
 activations to stay in the CPU's cache; and the backward recomputes each chunk's activations instead of storing
-them, then forms the gradients of the weights, biases and key features by hand (ReLU masks applied in place).
+them, then forms the gradients of the weights, biases and key features by hand.
 Plain torch on any device. Equality with the autograd path: tests/core/points/test_key_mlp.py; speed:
 `python -m tools.bench.train_step` (docs/benchmarks.md, "Stage-1 step").
 """
@@ -30,11 +30,52 @@ def standard_key_mlp(seq) -> bool:
             and isinstance(seq[4], nn.Linear) and seq[4].out_features == 1)
 
 
-def _fourier(f: torch.Tensor, scales: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """core.points.model.fourier of f [M, D] with its octave scales [F] (F ≥ 1): (features [M, D·(1 + 2F)],
-    the scaled inputs xs [M, D·F]), column order as there: raw values, sines, cosines (d major, f minor)."""
-    xs = (f[:, :, None] * scales).flatten(1)
-    return torch.cat([f, torch.sin(xs), torch.cos(xs)], dim=1), xs
+class _Chunk:
+    """Work arrays for chunks of up to `rows` slots, allocated once per call and reused by every chunk (fresh
+    arrays per chunk cost page faults on their first write, more than the arithmetic): the Fourier features
+    transposed, xt [D·(1 + 2F), rows] (each feature a contiguous row, so the sines and cosines are written in
+    one pass), the scaled inputs xst [D·F, rows], activations h1, h2 and their gradients g1, g2 [rows, width],
+    the features' gradient gxt [D·(1 + 2F), rows]."""
+
+    def __init__(self, rows: int, dim: int, freqs: int, width1: int, width2: int, like: torch.Tensor,
+                 grads: bool):
+        kw = dict(dtype=like.dtype, device=like.device)
+        self.dim, self.freqs = dim, freqs
+        self.scales = 2.0 ** torch.arange(freqs, **kw) if freqs > 0 else None
+        d_in = dim * (1 + 2 * freqs)
+        self.xt = torch.empty(d_in, rows, **kw)
+        self.xst = torch.empty(dim * freqs, rows, **kw)
+        self.h1, self.h2 = torch.empty(rows, width1, **kw), torch.empty(rows, width2, **kw)
+        if grads:
+            self.g1, self.g2 = torch.empty(rows, width1, **kw), torch.empty(rows, width2, **kw)
+            self.gxt = torch.empty(d_in, rows, **kw)
+
+    def features(self, f: torch.Tensor) -> torch.Tensor:
+        """core.points.model.fourier of f [c, D] -> x [c, D·(1 + 2F)] (a transposed view of xt[:, :c]; raw
+        values, sines, cosines, d major and f minor); xst[:, :c] holds the scaled inputs."""
+        c, dim, freqs = f.shape[0], self.dim, self.freqs
+        xt = self.xt[:, :c]
+        xt[:dim] = f.t()
+        if freqs > 0:
+            nf = dim * freqs
+            xst = self.xst[:, :c]
+            torch.mul(xt[:dim, None, :], self.scales[:, None], out=xst.view(dim, freqs, c))
+            torch.sin(xst, out=xt[dim:dim + nf])
+            torch.cos(xst, out=xt[dim + nf:])
+        return xt.t()
+
+    def activations(self, x: torch.Tensor, w1t, b1, w2t, b2) -> tuple[torch.Tensor, torch.Tensor]:
+        """The two hidden layers of x [c, ·] into h1[:c], h2[:c] (Linear then ReLU, each)."""
+        c = x.shape[0]
+        h1 = torch.addmm(b1, x, w1t, out=self.h1[:c]).clamp_min_(0.0)
+        h2 = torch.addmm(b2, h1, w2t, out=self.h2[:c]).clamp_min_(0.0)
+        return h1, h2
+
+
+def _relu_backward_(grad: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
+    """grad [c, width] zeroed in place where the ReLU's output out [c, width] is not > 0 (autograd's own ReLU
+    backward, threshold_backward: one pass; multiplying by a bool mask converts the mask first, 6x slower)."""
+    return torch.ops.aten.threshold_backward.grad_input(grad, out, 0.0, grad_input=grad)
 
 
 class _ChunkedKeyMLP(torch.autograd.Function):
@@ -42,16 +83,14 @@ class _ChunkedKeyMLP(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, feats, freqs, chunk, w1, b1, w2, b2, w3, b3):
-        m = feats.shape[0]
+        m, dim = feats.shape
         out = torch.empty(m, dtype=feats.dtype, device=feats.device)
-        scales = 2.0 ** torch.arange(freqs, device=feats.device, dtype=feats.dtype) if freqs > 0 else None
+        buf = _Chunk(min(chunk, m), dim, freqs, w1.shape[0], w2.shape[0], feats, grads=False)
         w1t, w2t, w3t = w1.t(), w2.t(), w3.t()
         for a in range(0, m, chunk):
             f = feats[a:a + chunk]
-            x = _fourier(f, scales)[0] if freqs > 0 else f
-            h = torch.addmm(b1, x, w1t).clamp_min_(0.0)
-            h = torch.addmm(b2, h, w2t).clamp_min_(0.0)
-            out[a:a + chunk] = torch.addmm(b3, h, w3t).squeeze(1)
+            _, h2 = buf.activations(buf.features(f), w1t, b1, w2t, b2)
+            torch.addmm(b3, h2, w3t, out=out[a:a + chunk, None])
         ctx.save_for_backward(feats, w1, b1, w2, b2, w3)
         ctx.freqs, ctx.chunk = freqs, chunk
         return out
@@ -68,34 +107,32 @@ class _ChunkedKeyMLP(torch.autograd.Function):
         gw3 = torch.zeros_like(w3)
         gb3 = g.sum().reshape(1)
         gf = torch.empty_like(feats) if need_f else None
-        scales = 2.0 ** torch.arange(freqs, device=feats.device, dtype=feats.dtype) if freqs > 0 else None
+        if m == 0:
+            return gf, None, None, gw1, gb1, gw2, gb2, gw3, gb3
+        buf = _Chunk(min(chunk, m), dim, freqs, w1.shape[0], w2.shape[0], feats, grads=True)
         w1t, w2t = w1.t(), w2.t()
+        nf = dim * freqs
         for a in range(0, m, chunk):
             f = feats[a:a + chunk]
+            c = f.shape[0]
             gy = g[a:a + chunk, None]                                           # [c, 1]
-            if freqs > 0:
-                x, xs = _fourier(f, scales)
-            else:
-                x, xs = f, None
-            h1 = torch.addmm(b1, x, w1t).clamp_min_(0.0)
-            h2 = torch.addmm(b2, h1, w2t).clamp_min_(0.0)
+            x = buf.features(f)
+            h1, h2 = buf.activations(x, w1t, b1, w2t, b2)
             gw3.addmm_(gy.t(), h2)
-            gz = (gy * w3).mul_(h2 > 0)                                         # [c, width] grad of layer 2's output
-            gw2.addmm_(gz.t(), h1)
-            gb2 += gz.sum(0)
-            gz = (gz @ w2).mul_(h1 > 0)                                         # grad of layer 1's output
-            gw1.addmm_(gz.t(), x)
-            gb1 += gz.sum(0)
+            g2 = _relu_backward_(torch.mul(gy, w3, out=buf.g2[:c]), h2)         # grad of layer 2's output
+            gw2.addmm_(g2.t(), h1)
+            gb2 += g2.sum(0)
+            g1 = _relu_backward_(torch.mm(g2, w2, out=buf.g1[:c]), h1)          # grad of layer 1's output
+            gw1.addmm_(g1.t(), x)
+            gb1 += g1.sum(0)
             if need_f:
-                gx = gz @ w1                                                    # [c, D·(1 + 2F)]
+                gxt = torch.mm(w1.t(), g1.t(), out=buf.gxt[:, :c])            # [D·(1 + 2F), c]
                 if freqs > 0:
-                    c = f.shape[0]
-                    nf = dim * freqs
-                    g_sin, g_cos = gx[:, dim:dim + nf], gx[:, dim + nf:]
-                    d_xs = g_sin * torch.cos(xs) - g_cos * torch.sin(xs)        # [c, D·F]
-                    gf[a:a + chunk] = gx[:, :dim] + (d_xs.view(c, dim, freqs) * scales).sum(-1)
+                    xst = buf.xst[:, :c]
+                    d_xs = gxt[dim:dim + nf] * torch.cos(xst) - gxt[dim + nf:] * torch.sin(xst)  # [D·F, c]
+                    gf[a:a + chunk] = (gxt[:dim] + (d_xs.view(dim, freqs, c) * buf.scales[:, None]).sum(1)).t()
                 else:
-                    gf[a:a + chunk] = gx
+                    gf[a:a + chunk] = gxt.t()
         return gf, None, None, gw1, gb1, gw2, gb2, gw3, gb3
 
 
