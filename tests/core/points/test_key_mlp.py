@@ -154,3 +154,27 @@ def test_training_steps_equal_and_both_converge():
     for keys, hist in final.items():
         assert hist[-1]["psnr"] > 22.0 and hist[-1]["psnr"] > hist[0]["psnr"] + 8.0, (keys, hist[0], hist[-1])
     assert abs(final["chunked"][-1]["psnr"] - final["torch"][-1]["psnr"]) < 1.0
+
+
+@pytest.mark.stability
+def test_chunked_keys_finite_on_extreme_points():
+    """Points sent far away, coincident or squashed together, and huge influences: finite attention and
+    finite gradients through the chunked key MLP, as through the module."""
+    torch.manual_seed(1)
+    xyz = torch.rand(200, 3) - 0.5
+    m = PointModel(ModelConfig(k=8), xyz, mean_spacing(xyz))
+    pts = xyz.clone()
+    pts[:50] = 1e30
+    pts[50:100] = pts[100:101]
+    pts[100:] *= 1e-7
+    g = torch.Generator().manual_seed(2)
+    o = torch.tensor([0.0, 0.0, 3.0]).expand(16, 3).clone()
+    d = torch.nn.functional.normalize(torch.randn(16, 3, generator=g) * 0.1 + torch.tensor([0.0, 0.0, -1.0]), dim=1)
+    idx = torch.randint(0, 200, (16, 8), generator=g)
+    for infl in (m.influence.detach(), torch.full((200,), 1e30)):
+        p = pts.clone().requires_grad_()
+        att = m.attend(p, infl, o, d, idx, keys="chunked")
+        (att["weights"].sum() + att["bg"].sum()).backward()
+        assert torch.isfinite(att["weights"]).all() and torch.isfinite(att["bg"]).all()
+        assert all(torch.isfinite(q.grad).all() for q in m.key_mlp.parameters())
+        m.zero_grad()
