@@ -75,8 +75,8 @@ class TrainConfig:
                                    "render is far closer to the blank frame than the truth, counts as collapsed",
                               min=0.0, max=100.0)
     key_path: str = opt("auto", "how the attention key MLP is trained: chunked (only non-empty slots, in cache-sized "
-                                "chunks, hand-written backward: the same numbers, about 1.6x fewer seconds per step "
-                                "on a CPU) | torch (autograd through the module, the reference) | auto (chunked "
+                                "chunks, hand-written backward: the same numbers, ~1.9x less CPU time per step on "
+                                "one CPU thread) | torch (autograd through the module, the reference) | auto (chunked "
                                 "when the key MLP is the standard one)", choices=KEY_PATHS)
     seed: int = opt(0, "random seed", min=0)
     device: str = opt("auto", "cpu | cuda | auto")
