@@ -289,3 +289,144 @@ def _keep_compiled(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share):
                   f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share), keep,
                   first, np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
     return torch.from_numpy(keep).to(idx.device, torch.bool), torch.from_numpy(first).to(idx.device)
+
+
+# ---- the attention's depth reference: the ray's front surface layer (f_front_depth) ---------------------------------
+
+@torch.no_grad()
+def front_depth(idx: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor, points: torch.Tensor,
+                p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float, alpha: float = 0.5, beta: float = 2.0,
+                min_share: float = 0.25, backend: str = "auto") -> torch.Tensor:
+    """The depth the attention's depth feature is measured from, per ray: where the ray's nearest neighbour is
+    no point of a surface layer of its own, the depth of the first point of its front layer.
+
+    The attention measures depth from the nearest neighbour (`PointModel.attend`). When a pose brought a few
+    points of another part next to the ray (the edge of a folded part passing beside it), that nearest point
+    decides the depth of every neighbour, and the key network, flat past a few spacings, no longer tells the
+    visible surface from a part folded behind it. Here the layers of the module doc are counted, not weighed
+    (the attention is what is being decided): the nearest neighbour stays the reference when its layer holds at
+    least `min_share` of the ray's valid neighbours; otherwise, walking the neighbours front to back, the first
+    whose layer holds that many gives the depth. No full re-search, no second attention: one pass over each
+    ray's K neighbours (the in-layer test against the nearest), the walk only on rays that fail it.
+
+    idx [R, K] neighbour indices (-1 = empty), origins / dirs [R, 3] the rays (unit dirs), points [M, 3]
+    deformed positions (non-finite rows are never neighbours), p_can [M, 3] canonical positions, inv_f [M, 3, 3]
+    inverse local deformation gradients (finite, bounded); spacing, alpha, beta as `front_layer`; min_share: the
+    share of the ray's valid neighbours a layer needs; backend: "compiled" (CPU, numba), "torch" or "auto".
+    Returns ref [R] float32: the depth along the ray of the front layer's first point, NaN where the nearest
+    neighbour stays the reference (its layer is large enough, fewer than two neighbours, or no layer is).
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
+    r = idx.shape[0]
+    if r == 0 or idx.shape[1] < 2:
+        return torch.full((r,), math.nan, dtype=torch.float32, device=idx.device)
+    pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    args = (idx, origins.detach().to(torch.float32), dirs.detach().to(torch.float32), pts,
+            p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32), float(alpha),
+            float(beta) * float(spacing), float(min_share))
+    compiled = backend != "torch" and numba is not None and idx.device.type == "cpu"
+    if backend == "compiled" and not compiled:
+        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
+    return _front_depth_compiled(*args) if compiled else _front_depth_torch(*args)
+
+
+def _front_depth_torch(idx, origins, dirs, pts, can, fi, alpha, tol, min_share, chunk: int = 2048):
+    """The reference form of `front_depth` (same arguments after its conversions; `_front_depth_compiled` gives
+    the same rays and depths)."""
+    valid = idx >= 0
+    safe = idx.clamp_min(0)
+    n = valid.sum(1)
+    t = ((pts[safe] - origins[:, None, :]) * dirs[:, None, :]).sum(-1)                        # [R, K]
+    t_inf = t.masked_fill(~valid, math.inf)
+    near = t_inf.argmin(1)                                                                      # first of equal
+    anchor = safe.gather(1, near[:, None]).squeeze(1)
+    dc = can[safe] - can[anchor][:, None, :]
+    res = ((fi[anchor][:, None] @ (pts[safe] - pts[anchor][:, None, :])[..., None]).squeeze(-1) - dc).norm(dim=-1)
+    count = (valid & (res <= alpha * dc.norm(dim=-1) + tol)).sum(1)
+    need = min_share * n.to(torch.float32)
+    out = torch.full((idx.shape[0],), math.nan, dtype=torch.float32, device=idx.device)
+    rows = torch.nonzero((n >= 2) & (count.to(torch.float32) < need)).squeeze(1)
+    for s in range(0, rows.numel(), chunk):
+        rr = rows[s:s + chunk]
+        ix, vv = safe[rr], valid[rr]
+        p, c, g = pts[ix], can[ix], fi[ix]                                                      # [B, K, ...]
+        dpp = p[:, None, :, :] - p[:, :, None, :]                                               # [B, m, l, 3]
+        dcc = c[:, None, :, :] - c[:, :, None, :]
+        pred = torch.einsum("bmij,bmlj->bmli", g, dpp)
+        layer = ((pred - dcc).norm(dim=-1) <= alpha * dcc.norm(dim=-1) + tol) & vv[:, None, :] & vv[:, :, None]
+        cnt = layer.sum(-1).to(torch.float32)                                                   # [B, m]
+        order = t_inf[rr].argsort(dim=1, stable=True)                                           # front to back
+        enough = (cnt.gather(1, order) >= need[rr][:, None]) & vv.gather(1, order)
+        has = enough.any(1)
+        first = order.gather(1, enough.to(torch.int8).argmax(1, keepdim=True)).squeeze(1)
+        ref = t[rr].gather(1, first[:, None]).squeeze(1)
+        out[rr] = torch.where(has, ref, torch.full_like(ref, math.nan))
+    return out
+
+
+def _front_depth_loop(idx, o, d, pts, can, fi, alpha, tol, min_share, out, order, depth):
+    """The compiled form of `_front_depth_torch` (fi [M, 9] row-major). Writes out [R] float32 (NaN preset);
+    order [K] int64 and depth [K] float32 are scratch."""
+    r_n, k = idx.shape
+    for r in range(r_n):
+        n = 0
+        a = -1
+        for j in range(k):
+            q = idx[r, j]
+            if q >= 0:
+                depth[j] = (pts[q, 0] - o[r, 0]) * d[r, 0] + (pts[q, 1] - o[r, 1]) * d[r, 1] + \
+                    (pts[q, 2] - o[r, 2]) * d[r, 2]
+                if a < 0 or depth[j] < depth[a]:
+                    a = j
+                n += 1
+        if n < 2:
+            continue
+        need = min_share * n
+        qa = idx[r, a]
+        count = 0
+        for l in range(k):
+            ql = idx[r, l]
+            if ql >= 0 and _in_layer(pts, can, fi, qa, ql, alpha, tol):
+                count += 1
+        if count >= need:
+            continue
+        m_n = 0
+        for j in range(k):
+            if idx[r, j] >= 0:  # insertion sort by depth, stable
+                i = m_n
+                while i > 0 and depth[order[i - 1]] > depth[j]:
+                    order[i] = order[i - 1]
+                    i -= 1
+                order[i] = j
+                m_n += 1
+        for i in range(m_n):
+            m = order[i]
+            if m == a:
+                continue  # its layer was counted: too small
+            qm = idx[r, m]
+            count = 0
+            for l in range(k):
+                ql = idx[r, l]
+                if ql >= 0 and _in_layer(pts, can, fi, qm, ql, alpha, tol):
+                    count += 1
+            if count >= need:
+                out[r] = depth[m]
+                break
+
+
+_depth_kernel = None
+
+
+def _front_depth_compiled(idx, origins, dirs, pts, can, fi, alpha, tol, min_share):
+    """`_front_depth_torch` by the compiled loop: same arguments, the same ref [R] float32."""
+    global _depth_kernel
+    if _depth_kernel is None:
+        _depth_kernel = _jit(_front_depth_loop)
+    k = idx.shape[1]
+    out = np.full(idx.shape[0], np.nan, dtype=np.float32)
+    f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
+    _depth_kernel(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(origins), f32(dirs), f32(pts),
+                  f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share), out,
+                  np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float32))
+    return torch.from_numpy(out).to(idx.device)
