@@ -36,7 +36,7 @@ EDITS = ("geometry", "retexture", "decal")
 # renderer variants: the EditConfig fields each sets (every F switch named: the defaults may change); "paper" =
 # the paper's renderer and correspondence. f_compression also changes the deform-gradient correspondence.
 _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0,
-          "f_occlusion": False, "f_front_depth": False}
+          "f_occlusion": False}
 RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-radius": {**_PAPER, "f_radius": True}, "f-both": {**_PAPER, "f_attention": True, "f_radius": True},
              "f-keep": {**_PAPER, "f_attention": True, "f_compression": "keep"},
@@ -45,9 +45,7 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "fold": {**_PAPER, "fold_radius": 2.0}, "fill-fold": {**_PAPER, "f_fill": True, "fold_radius": 2.0},
              "f-fold": {**_PAPER, "f_attention": True, "fold_radius": 2.0},
              "f-fill-fold": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0},
-             "f-fill-fold-occ": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_occlusion": True},
-             "f-fill-fold-front": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
-                                   "f_front_depth": True}}
+             "f-fill-fold-occ": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_occlusion": True}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
@@ -260,7 +258,7 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
     def render(i):
         c = state.cfg  # what the trace depends on (the correspondence and fold rule do not change it)
         key = (i, c.temperature, c.f_attention, c.f_radius, c.f_compression if c.f_attention else "-",
-               (c.f_fill_ratio, c.f_fill_budget) if c.f_fill else None, c.f_occlusion, c.f_front_depth)
+               (c.f_fill_ratio, c.f_fill_budget) if c.f_fill else None, c.f_occlusion)
         cached = traces.get(key) if traces is not None else None
         view = (gt.c2w[i], gt.height, gt.width, gt.focal)
         out = render_edited(state, *view, background, trace=cached[0] if cached else None)

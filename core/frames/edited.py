@@ -21,7 +21,7 @@ from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
 from core.edits.deformation import DeformationConfig, expansion_inverse, field_for, inverse, stretch
-from core.edits.occlusion import front_anchors, front_depth, front_layer, unoccluded
+from core.edits.occlusion import front_anchors, front_layer, unoccluded
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
@@ -68,11 +68,6 @@ class EditConfig:
     f_occlusion: bool = opt(False, "moved points: each ray keeps the front one of the surface layers among its "
                                    "neighbours (layers told apart by the points' local deformation gradients: a "
                                    "joint's fold, a part swung behind another); rest frames are unchanged")
-    f_front_depth: bool = opt(False, "moved points: measure the attention's depth feature from each ray's front "
-                                     "surface layer (the nearest of its neighbours whose layer, told apart by the "
-                                     "local deformation gradients, holds a quarter of them) instead of its nearest "
-                                     "neighbour, so a part's edge passing beside the ray does not set the depth of "
-                                     "the surface behind it; rest frames are unchanged")
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",
                      choices=BLENDS)
     mask_threshold: float = opt(0.01, "a texel counts as painted when its colour changed by more than this (L2)",
@@ -271,20 +266,6 @@ class EditState:
             self._radius_scale = self._timed(scale)
         return self._radius_scale
 
-    @property
-    def depth_reference(self):
-        """f_front_depth: the `trace_frame` depth_reference of these points, a function (idx [A, K], origins
-        [A, 3], dirs [A, 3]) -> ref [A] (core/edits/occlusion.py `front_depth`, timed with the F work); None when
-        the points did not move or the switch is off (the nearest neighbour's depth, today's)."""
-        if not (self.moved and self.cfg.f_front_depth):
-            return None
-        spacing = float(self.bundle.model.spacing)
-        inv_f = self.inv_f
-
-        def reference(idx, origins, dirs):
-            return self._timed(lambda: front_depth(idx, origins, dirs, self.points, self.p_can, inv_f, spacing))
-        return reference
-
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
         fit took; what this state derives from F is computed (and timed) here."""
@@ -330,14 +311,10 @@ class EditState:
         idx = unoccluded(cand, anchor, depth, o, d, pts, self.p_can, self.inv_f, spacing, k)
         keys = self.inv_f_keys if cfg.f_attention else None
         pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
-        ref_fn = self.depth_reference
-        ref = None if ref_fn is None else ref_fn(idx, o, d)
         if cfg.attention != "torch" and supported(model, pts.device):  # as trace_frame chooses
-            att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys,
-                                  ref_depth=ref)
+            att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
         else:
-            att = model.attend(pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys,
-                               ref_depth=ref)
+            att = model.attend(pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
         new = {name: getattr(trace, name).clone() for name in ("idx", "weights", "fg_weights", "bg", "x")}
         new["idx"][rows] = idx
         for name in ("weights", "fg_weights", "bg", "x"):
@@ -450,7 +427,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                          radius_scale=state.radius_scale if cfg.f_radius else 1.0, attention=cfg.attention,
-                         soft_scale=scale if "footprint" in parts else 1.0, depth_reference=state.depth_reference)
+                         soft_scale=scale if "footprint" in parts else 1.0)
         soft = "footprint" in parts and scale > 1.0  # footprint windows: keep them, drop hidden weights only
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal)
     else:

@@ -38,11 +38,11 @@ def available() -> bool:
     return numba is not None
 
 
-def _features(pts, fi, use_f, o, d, idx, s, ref, use_ref, feat):
+def _features(pts, fi, use_f, o, d, idx, s, feat):
     """Key geometry of rays o, d [R, 3] over neighbours idx [R, K] (-1 = empty) of points pts [N, 3], inverse
-    gradients fi [N, 9] (row-major 3 × 3; used when use_f), reference depths ref [R] (used when use_ref; NaN =
-    the nearest neighbour's): feat [R * K, 2] float32 (distance, depth in spacings s, clamped), row r·K + j, as
-    PointModel.attend builds them (empty slots measured from point 0, like its clamped indices)."""
+    gradients fi [N, 9] (row-major 3 × 3; used when use_f): feat [R * K, 2] float32 (distance, depth in spacings
+    s, clamped), row r·K + j, as PointModel.attend builds them (empty slots measured from point 0, like its clamped
+    indices)."""
     f32 = np.float32
     r_n, k = idx.shape
     lim = f32(64.0)
@@ -63,12 +63,6 @@ def _features(pts, fi, use_f, o, d, idx, s, ref, use_ref, feat):
                     tmin = t
         if nvalid == 0:
             tmin = f32(0.0)
-        moved = False
-        if use_ref:
-            rv = ref[r]
-            if rv == rv:  # not NaN: the front layer's depth
-                tmin = rv
-                moved = True
         for j in range(k):
             q = idx[r, j]
             if q < 0:
@@ -103,8 +97,6 @@ def _features(pts, fi, use_f, o, d, idx, s, ref, use_ref, feat):
                 pz = rz - t * dz
                 depth = t - tmin
             rho = f32(math.sqrt(px * px + py * py + pz * pz))
-            if moved and depth < f32(0.0):
-                depth = f32(0.0)  # in front of the reference: at its depth
             f0 = rho / s
             if f0 > lim:
                 f0 = lim
@@ -219,12 +211,10 @@ def _np32(t: torch.Tensor) -> np.ndarray:
 @torch.no_grad()
 def attend_compiled(model, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor,
                     dirs: torch.Tensor, idx: torch.Tensor, temperature: float | None = None,
-                    inv_f: torch.Tensor | None = None, chunk: int = 1024,
-                    ref_depth: torch.Tensor | None = None) -> dict:
+                    inv_f: torch.Tensor | None = None, chunk: int = 1024) -> dict:
     """PointModel.attend's render outputs: the key features and the softmaxes by the compiled kernels, the key MLP
     by torch in between (see `supported`), `chunk` rays at a time (keeps the MLP's activations in cache). Args as
-    attend: points [N, 3], influence [N], origins/dirs [R, 3], idx [R, K] (-1 = empty), inv_f [N, 3, 3] or None,
-    ref_depth [R] or None (NaN = the nearest neighbour's depth).
+    attend: points [N, 3], influence [N], origins/dirs [R, 3], idx [R, K] (-1 = empty), inv_f [N, 3, 3] or None.
     Returns dict(weights [R, K], fg_weights [R, K], bg [R], x [R, 3]) float32 CPU tensors."""
     features, softmax = _get_kernels()
     r, k = idx.shape
@@ -237,7 +227,6 @@ def attend_compiled(model, points: torch.Tensor, influence: torch.Tensor, origin
     infl = _np32(influence)
     fi = np.zeros((1, 9), dtype=np.float32) if inv_f is None else _np32(inv_f.reshape(-1, 9))
     o, d = _np32(origins), _np32(dirs)
-    ref = np.zeros(1, dtype=np.float32) if ref_depth is None else _np32(ref_depth.reshape(-1))
     ix = np.ascontiguousarray(idx.to("cpu", torch.int64).numpy())
     s = np.float32(float(model.spacing.clamp_min(1e-12)))
     freqs = int(model.cfg.key_freqs)
@@ -246,8 +235,7 @@ def attend_compiled(model, points: torch.Tensor, influence: torch.Tensor, origin
     for a in range(0, r, chunk):
         b = min(a + chunk, r)
         f = feat[: (b - a) * k]
-        features(pts, fi, inv_f is not None, o[a:b], d[a:b], ix[a:b], s,
-                 ref[a:b] if ref_depth is not None else ref, ref_depth is not None, f)
+        features(pts, fi, inv_f is not None, o[a:b], d[a:b], ix[a:b], s, f)
         key = model.key_mlp(fourier(torch.from_numpy(f), freqs)).view(b - a, k).numpy()
         softmax(key, infl, pts, o[a:b], ix[a:b], bg_logit, temp, out_w[a:b], out_fg[a:b], out_bg[a:b], out_x[a:b])
     return {"weights": torch.from_numpy(out_w), "fg_weights": torch.from_numpy(out_fg),

@@ -114,7 +114,7 @@ class PointModel(nn.Module):
     # ---- attention -------------------------------------------------------------------------------------------
     def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
                idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None,
-               log_window: torch.Tensor | None = None, ref_depth: torch.Tensor | None = None) -> dict:
+               log_window: torch.Tensor | None = None) -> dict:
         """Attention over each ray's neighbours plus the background slot.
 
         Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
@@ -125,10 +125,6 @@ class PointModel(nn.Module):
         depth = u·d' and distance = |u − (u·d') d'| (the same numbers as without inv_f when F = I).
         log_window [R, K]: added to the neighbours' logits (finite; core/points/neighbors/select.py
         `select_neighbors_soft`: a neighbour's share faded out towards the edges of its footprint).
-        ref_depth [R]: the depth along each ray the depth feature is measured from, in place of the nearest
-        neighbour's (NaN = the nearest neighbour's; core/edits/occlusion.py `front_depth`: the front surface layer
-        of a posed surface); neighbours in front of it count as at its depth (depth feature ≥ 0, as the nearest
-        neighbour's reference always gives).
         Returns dict: weights [R, K] (0 on empty slots), bg [R] background weight, x [R, 3] surface point
         (NaN-free: rays with no neighbour get the ray point at the mean depth 0), t [R, K] depth along the ray.
         """
@@ -143,10 +139,6 @@ class PointModel(nn.Module):
         big = torch.finfo(t.dtype).max / 4
         t_min = torch.where(valid, t.detach(), torch.full_like(t, big)).min(dim=1, keepdim=True).values
         t_min = torch.where(t_min >= big, torch.zeros_like(t_min), t_min)
-        moved = None
-        if ref_depth is not None:
-            moved = torch.isfinite(ref_depth)[:, None]
-            t_min = torch.where(moved, ref_depth[:, None].to(t_min.dtype).nan_to_num(0.0), t_min)
         # Clamp the key features: points sent far away or huge scene scales must not overflow the Fourier terms.
         depth = t - t_min
         if inv_f is not None:  # key geometry in each neighbour's canonical frame
@@ -156,8 +148,6 @@ class PointModel(nn.Module):
             dc = safe_normalize((fi @ dirs[:, None, :, None].expand(-1, idx.shape[1], -1, -1)).squeeze(-1))
             depth = (u * dc).sum(-1)
             rho = (u - depth[..., None] * dc).norm(dim=-1)
-        if moved is not None:
-            depth = torch.where(moved, depth.clamp_min(0.0), depth)
         feats = torch.stack([(rho / s).clamp(max=64.0), (depth / s).clamp(-64.0, 64.0)], dim=-1)
         # Influence clamped: ±1e30 softmaxes fine (max subtracted), an infinite one (diverged fit) would give inf − inf.
         logits = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1) + influence[safe_idx].clamp(-1e30, 1e30)

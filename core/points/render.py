@@ -32,7 +32,7 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
                 inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto",
-                soft_scale: float = 1.0, depth_reference=None) -> Trace:
+                soft_scale: float = 1.0) -> Trace:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -45,10 +45,7 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     with numba; the same numbers to float rounding, all rays in one call) | "auto" (compiled where supported);
     soft_scale: the frame's scale factor F for anti-aliased neighbour footprints (> 1: the K-nearest rule and the
     radius cap fade over F − 1 pixels, core/points/resolution.py mode "footprint"; then K' = 2K slots, and the
-    attention runs in torch, which takes the footprint's log-window);
-    depth_reference: None, or a function (idx [A, K], origins [A, 3], dirs [A, 3]) -> ref [A] of the rays that
-    have neighbours, giving the depth each ray's depth feature is measured from (NaN = its nearest neighbour's;
-    `PointModel.attend` ref_depth; core/edits/occlusion.py `front_depth` for posed points).
+    attention runs in torch, which takes the footprint's log-window).
     Returns a Trace of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], active [R], plus shape (H, W) and depth [R] on demand.
     """
@@ -87,19 +84,15 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
         raise InputError("attention 'compiled' needs numba, a CPU device, the standard key MLP and no footprint "
                          "mode; use 'auto' or 'torch'")
     use_compiled = attention != "torch" and compiled and log_w is None
-    ref = None
-    if depth_reference is not None and act.numel():
-        ref = depth_reference(idx[act], o[act], d[act])
     if use_compiled and act.numel():
         att = attend_compiled(model, pts_math, infl, o[act], d[act], idx[act], temperature=temperature, inv_f=fi,
-                              chunk=chunk, ref_depth=ref)
+                              chunk=chunk)
         for key in res:
             res[key][act] = att[key]
     for s in range(0, 0 if use_compiled else act.shape[0], chunk):
         sl = act[s:s + chunk]
         att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi,
-                           log_window=None if log_w is None else log_w[sl],
-                           ref_depth=None if ref is None else ref[s:s + chunk])
+                           log_window=None if log_w is None else log_w[sl])
         for key in res:
             res[key][sl] = att[key]
     return Trace(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),

@@ -136,8 +136,7 @@ def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, foca
     tr = trace_frame(state.bundle.model, c2w_t, height, width, focal, points=state.points,
                      influence=state.influence, k=None if k is None else int(k),
                      temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
-                     radius_scale=state.radius_scale if cfg.f_radius else 1.0,
-                     depth_reference=state.depth_reference)
+                     radius_scale=state.radius_scale if cfg.f_radius else 1.0)
     return state.visible_layer(tr, c2w_t, focal)  # the occlusion rule, as render_edited applies it
 
 

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from core.edits.occlusion import front_depth, front_layer, unoccluded
+from core.edits.occlusion import front_layer, unoccluded
 from core.points.trace import Trace
 
 SPACING = 0.1
@@ -143,95 +143,3 @@ def test_unoccluded_takes_the_first_k_candidates_the_front_layer_does_not_hide()
     # a hidden-part point in front of the anchor is no longer hidden: kept in its rank
     got = unoccluded(cand, torch.tensor([0]), torch.tensor([6.0]), o, d, points, p_can, inv_f, SPACING, k=5)
     assert got.tolist() == [[n, 0, n + 1, 1, 2]]
-
-
-def _edge_over_fold():
-    """_fold with a few points of a third part's edge passing just beside the ray 4.5 spacings above the front
-    sheet (each part rigid, F = I)."""
-    points, p_can, inv_f = _fold()
-    edge = torch.tensor([[0.05, 0.0, 0.45], [0.05, 0.1, 0.45], [0.05, -0.1, 0.45]])
-    points = torch.cat([edge, points])
-    p_can = torch.cat([edge + torch.tensor([-3.0, 0.0, 0.0]), p_can])
-    return points, p_can, torch.eye(3).expand(points.shape[0], 3, 3)
-
-
-@pytest.mark.parametrize("backend", ["torch", "compiled"])
-def test_front_depth_is_the_front_sheet_not_an_edge_beside_the_ray(backend):
-    """The ray's nearest neighbour is an edge of another part (3 of 53 neighbours): the depth reference is the
-    first point of the front sheet (z = 0, depth 5 from the origin at z = 5), not the edge (depth 4.55)."""
-    if backend == "compiled":
-        pytest.importorskip("numba")
-    points, p_can, inv_f = _edge_over_fold()
-    tr = _trace(points, torch.ones(points.shape[0]))
-    ref = front_depth(tr.idx, tr.origins, tr.dirs, points, p_can, inv_f, SPACING, backend=backend)
-    assert abs(float(ref[0]) - 5.0) < 1e-5
-    # without the edge the nearest neighbour is on the front sheet already: no change (NaN)
-    pts2, can2, fi2 = _fold()
-    tr2 = _trace(pts2, torch.ones(pts2.shape[0]))
-    assert torch.isnan(front_depth(tr2.idx, tr2.origins, tr2.dirs, pts2, can2, fi2, SPACING, backend=backend)).all()
-
-
-@pytest.mark.parametrize("backend", ["torch", "compiled"])
-def test_front_depth_leaves_one_part_however_moved_alone(backend):
-    """One part (a slab) rotated, stretched 3× or not moved, with its exact F: the nearest neighbour stays the
-    reference on every ray (NaN)."""
-    if backend == "compiled":
-        pytest.importorskip("numba")
-    slab = torch.cat([_sheet(0.0), _sheet(-2 * SPACING)])
-    c, s = math.cos(0.7), math.sin(0.7)
-    for f in (torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), torch.diag(torch.tensor([3.0, 1.0, 1.0])),
-              torch.eye(3)):
-        points = slab @ f.T
-        tr = _trace(points, torch.ones(slab.shape[0]))
-        ref = front_depth(tr.idx, tr.origins, tr.dirs, points, slab, torch.linalg.inv(f).expand(slab.shape[0], 3, 3),
-                          SPACING, backend=backend)
-        assert torch.isnan(ref).all()
-
-
-def _random_rays(r=400, k=12, seed=2):
-    g = torch.Generator().manual_seed(seed)
-    points, p_can, _ = _edge_over_fold()
-    points = points + 0.02 * torch.randn(points.shape, generator=g)
-    m = points.shape[0]
-    inv_f = torch.eye(3) + 0.1 * torch.randn(m, 3, 3, generator=g)
-    idx = torch.stack([torch.randperm(m, generator=g)[:k] for _ in range(r)])
-    idx[torch.rand(r, k, generator=g) < 0.1] = -1
-    idx[:5] = -1  # rays without neighbours
-    idx[5:10, 1:] = -1  # one neighbour
-    xy = 0.2 * torch.randn(r, 2, generator=g)
-    o = torch.cat([xy, torch.full((r, 1), 5.0)], 1)
-    return idx, o, torch.tensor([[0.0, 0.0, -1.0]]).repeat(r, 1), points, p_can, inv_f
-
-
-def test_front_depth_compiled_equals_torch():
-    """Random neighbour lists over three noisy parts: the compiled walk moves the same rays' reference to the
-    same depths as the torch reference, and moves many."""
-    pytest.importorskip("numba")
-    args = _random_rays()
-    a = front_depth(*args, SPACING, backend="torch")
-    b = front_depth(*args, SPACING, backend="compiled")
-    assert torch.equal(torch.isnan(a), torch.isnan(b))
-    assert int(torch.isfinite(a).sum()) > 40
-    assert torch.allclose(a[torch.isfinite(a)], b[torch.isfinite(b)], atol=1e-5)
-    assert torch.isnan(a[:10]).all()  # fewer than two neighbours: nothing to choose
-
-
-@pytest.mark.parametrize("backend", ["torch", "compiled"])
-def test_front_depth_extreme_inputs(backend):
-    """NaN and 1e30 positions, NaN canonical points' neighbours, huge F⁻¹: the references are finite or NaN
-    (never inf), and a reference is always one of the ray's neighbours' depths."""
-    if backend == "compiled":
-        pytest.importorskip("numba")
-    idx, o, d, points, p_can, inv_f = _random_rays(seed=3)
-    points = points.clone()
-    points[0] = float("nan")
-    points[1] = 1e30
-    inv_f = inv_f.clone()
-    inv_f[2] = 1e6 * torch.eye(3)
-    ref = front_depth(idx, o, d, points, p_can, inv_f, SPACING, backend=backend)
-    assert not torch.isinf(ref).any()
-    pts = torch.nan_to_num(points, nan=0.0)
-    t = ((pts[idx.clamp_min(0)] - o[:, None]) * d[:, None]).sum(-1)
-    hit = torch.isfinite(ref)
-    assert bool(hit.any())
-    assert ((t[hit] - ref[hit][:, None]).abs() <= 1e-3 * t[hit].abs().clamp_min(1.0)).any(1).all()
