@@ -119,15 +119,24 @@ def front_anchors(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f
 @torch.no_grad()
 def unoccluded(candidates: torch.Tensor, anchor: torch.Tensor, depth: torch.Tensor, origins: torch.Tensor,
                dirs: torch.Tensor, points: torch.Tensor, p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float,
-               k: int, alpha: float = 0.5, beta: float = 2.0) -> torch.Tensor:
+               k: int, alpha: float = 0.5, beta: float = 2.0, backend: str = "auto") -> torch.Tensor:
     """The first k of each ray's ranked neighbour candidates that the front layer does not hide: in the layer of the
     ray's anchor point, or in front of it. candidates [S, C] (ranked, -1 = none), anchor [S], depth [S] and the
-    rays origins / dirs [S, 3] as from `front_anchors`; points, p_can, inv_f as there. Returns idx [S, k] (-1 pads).
+    rays origins / dirs [S, 3] as from `front_anchors`; points, p_can, inv_f as there; backend: "compiled" (CPU,
+    numba), "torch" or "auto" (compiled where it can run; both choose the same). Returns idx [S, k] (-1 pads).
     """
-    valid = candidates >= 0
-    cs = candidates.clamp_min(0)
+    if backend not in BACKENDS:
+        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
+    compiled = backend != "torch" and numba is not None and candidates.device.type == "cpu"
+    if backend == "compiled" and not compiled:
+        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
     pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
     can, fi = p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32)
+    if compiled:
+        return _unoccluded_compiled(candidates, anchor, depth, origins, dirs, pts, can, fi, float(alpha),
+                                    float(beta) * float(spacing), int(k))
+    valid = candidates >= 0
+    cs = candidates.clamp_min(0)
     dc = can[cs] - can[anchor][:, None, :]
     res = ((fi[anchor][:, None] @ (pts[cs] - pts[anchor][:, None, :])[..., None]).squeeze(-1) - dc).norm(dim=-1)
     t = ((pts[cs] - origins[:, None, :]) * dirs[:, None, :]).sum(-1)
@@ -138,6 +147,41 @@ def unoccluded(candidates: torch.Tensor, anchor: torch.Tensor, depth: torch.Tens
     b, j = torch.nonzero(take, as_tuple=True)
     out[b, rank[b, j] - 1] = candidates[b, j]
     return out
+
+
+def _unoccluded_loop(cand, anchor, depth, o, d, pts, can, fi, alpha, tol, out):
+    """The compiled form of `unoccluded`'s choice (fi [M, 9] row-major): writes out [S, k] int64 (-1 preset)."""
+    s_n, c_n = cand.shape
+    k = out.shape[1]
+    for r in range(s_n):
+        a = anchor[r]
+        n = 0
+        for j in range(c_n):
+            q = cand[r, j]
+            if q < 0:
+                continue
+            t = (pts[q, 0] - o[r, 0]) * d[r, 0] + (pts[q, 1] - o[r, 1]) * d[r, 1] + (pts[q, 2] - o[r, 2]) * d[r, 2]
+            if t <= depth[r] or _in_layer(pts, can, fi, a, q, alpha, tol):
+                out[r, n] = q
+                n += 1
+                if n == k:
+                    break
+
+
+_choice_kernel = None
+
+
+def _unoccluded_compiled(cand, anchor, depth, origins, dirs, pts, can, fi, alpha, tol, k):
+    """`unoccluded` by the compiled loop (float32 tensors in, idx [S, k] int64 out)."""
+    global _choice_kernel
+    if _choice_kernel is None:
+        _choice_kernel = _jit(_unoccluded_loop)
+    out = np.full((cand.shape[0], k), -1, dtype=np.int64)
+    f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
+    i64 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.int64).numpy())  # noqa: E731
+    _choice_kernel(i64(cand), i64(anchor), f32(depth), f32(origins), f32(dirs), f32(pts), f32(can),
+                   f32(fi.reshape(-1, 9)), alpha, tol, out)
+    return torch.from_numpy(out).to(cand.device)
 
 
 def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chunk: int = 2048):

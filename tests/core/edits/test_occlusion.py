@@ -143,3 +143,31 @@ def test_unoccluded_takes_the_first_k_candidates_the_front_layer_does_not_hide()
     # a hidden-part point in front of the anchor is no longer hidden: kept in its rank
     got = unoccluded(cand, torch.tensor([0]), torch.tensor([6.0]), o, d, points, p_can, inv_f, SPACING, k=5)
     assert got.tolist() == [[n, 0, n + 1, 1, 2]]
+
+
+def test_unoccluded_compiled_equals_torch():
+    """Random ranked candidate lists (gaps, none at all) over three noisy parts, random anchors and depths: the
+    compiled choice takes exactly the candidates the torch reference takes."""
+    pytest.importorskip("numba")
+    g = torch.Generator().manual_seed(4)
+    points, p_can, _ = _fold()
+    edge = _sheet(0.4, 3) + torch.tensor([0.3, 0.0, 0.0])
+    points = torch.cat([points, edge]) + 0.02 * torch.randn(points.shape[0] + edge.shape[0], 3, generator=g)
+    p_can = torch.cat([p_can, edge - torch.tensor([3.0, 0.0, 0.0])])
+    m = points.shape[0]
+    inv_f = torch.eye(3) + 0.1 * torch.randn(m, 3, 3, generator=g)
+    s, c = 300, 16
+    cand = torch.stack([torch.randperm(m, generator=g)[:c] for _ in range(s)])
+    cand[torch.rand(s, c, generator=g) < 0.15] = -1
+    cand[:3] = -1
+    anchor = cand.clamp_min(0)[:, 0]
+    o = torch.cat([0.2 * torch.randn(s, 2, generator=g), torch.full((s, 1), 5.0)], 1)
+    d = torch.tensor([[0.0, 0.0, -1.0]]).repeat(s, 1)
+    depth = 5.0 + 0.3 * torch.randn(s, generator=g)
+    for k in (4, 8, 20):
+        a = unoccluded(cand, anchor, depth, o, d, points, p_can, inv_f, SPACING, k, backend="torch")
+        b = unoccluded(cand, anchor, depth, o, d, points, p_can, inv_f, SPACING, k, backend="compiled")
+        assert torch.equal(a, b)
+    # k = 20 >= 16 candidates: every candidate the front layer does not hide is taken, and some were hidden
+    assert 0 < int((a >= 0).sum()) < int((cand >= 0).sum())
+    assert (a[:3] == -1).all()
