@@ -95,22 +95,29 @@ def front_anchors(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f
     idx = trace.idx
     if idx.shape[0] == 0 or idx.shape[1] < 2:
         return None
-    rows = torch.nonzero(trace.active & (idx >= 0).any(1)).squeeze(1)
-    if rows.numel() == 0:
-        return None
     pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    args = (idx[rows], trace.fg_weights[rows], trace.origins[rows], trace.dirs[rows], pts,
-            p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32), float(alpha),
-            float(beta) * float(spacing), float(min_share))
+    can, fi = p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32)
     compiled = backend != "torch" and numba is not None and idx.device.type == "cpu"
     if backend == "compiled" and not compiled:
         raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
-    keep, first = _keep_compiled(*args) if compiled else _keep_torch(*args)     # [S, K] bool, [S] slot or -1
-    w = trace.fg_weights[rows] * (idx[rows] >= 0)
-    drops = (first >= 0) & ((w * ~keep) > 0).any(1)
-    if not bool(drops.any()):
-        return None
-    rows, keep, first = rows[drops], keep[drops], first[drops]
+    if compiled:  # one pass over the whole frame's arrays (no gathers): only rays that drop something come back
+        keep, first = _keep_compiled(idx, trace.fg_weights, trace.active, trace.origins, trace.dirs, pts, can, fi,
+                                     float(alpha), float(beta) * float(spacing), float(min_share))
+        rows = torch.nonzero(first >= 0).squeeze(1)
+        if rows.numel() == 0:
+            return None
+        keep, first = keep[rows], first[rows]
+    else:
+        rows = torch.nonzero(trace.active & (idx >= 0).any(1)).squeeze(1)
+        if rows.numel() == 0:
+            return None
+        keep, first = _keep_torch(idx[rows], trace.fg_weights[rows], trace.origins[rows], trace.dirs[rows], pts, can,
+                                  fi, float(alpha), float(beta) * float(spacing), float(min_share))
+        w = trace.fg_weights[rows] * (idx[rows] >= 0)
+        drops = (first >= 0) & ((w * ~keep) > 0).any(1)
+        if not bool(drops.any()):
+            return None
+        rows, keep, first = rows[drops], keep[drops], first[drops]
     anchor = idx[rows].gather(1, first[:, None]).squeeze(1)
     depth = ((pts[anchor] - trace.origins[rows]) * trace.dirs[rows]).sum(-1)
     return rows, anchor, depth, keep
@@ -185,7 +192,7 @@ def _unoccluded_compiled(cand, anchor, depth, origins, dirs, pts, can, fi, alpha
 
 
 def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chunk: int = 2048):
-    """Which neighbours each ray keeps (the reference form; `_keep_compiled` gives the same): idx [S, K], w [S, K]
+    """Which neighbours each ray keeps (the reference form; `_keep_loop` keeps the same): idx [S, K], w [S, K]
     fg weights, origins/dirs [S, 3], pts / can [M, 3], fi [M, 3, 3] -> (keep [S, K] bool (True where unchanged),
     first [S] int64 the slot of the front layer's first neighbour, -1 where the ray has none or kept all)."""
     valid = idx >= 0
@@ -221,11 +228,15 @@ def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chun
     return keep, first_out
 
 
-def _keep_loop(idx, w, o, d, pts, can, fi, alpha, tol, min_share, keep, first_out, order, depth):
-    """The compiled form of `_keep_torch` (float64 arithmetic on float32 inputs; fi [M, 9] row-major). Writes keep
-    [S, K] uint8 and first_out [S] int64 (-1 preset); order [K] int64 and depth [K] float64 are scratch."""
+def _keep_loop(idx, w, active, o, d, pts, can, fi, alpha, tol, min_share, keep, first_out, order, depth):
+    """The compiled form of `_keep_torch` and of front_anchors' choice of rays (float64 arithmetic on float32
+    inputs; fi [M, 9] row-major), over a whole frame: rays not `active` [S] are skipped. Writes keep [S, K] uint8
+    and first_out [S] int64 (-1 preset): the front layer's first slot on the rays where a neighbour with weight
+    behind it is dropped, -1 elsewhere; order [K] int64 and depth [K] float64 are scratch."""
     s_n, k = idx.shape
     for r in range(s_n):
+        if not active[r]:
+            continue
         # most-attended neighbour (the first of equal weights, as argmax)
         a = -1
         best = -1.0
@@ -276,14 +287,18 @@ def _keep_loop(idx, w, o, d, pts, can, fi, alpha, tol, min_share, keep, first_ou
                 break
         if first < 0:
             continue
-        first_out[r] = first
         qf = idx[r, first]
+        drop = False
         for l in range(k):
             ql = idx[r, l]
             if ql < 0 or depth[l] <= depth[first]:
                 continue
             if not _in_layer(pts, can, fi, qf, ql, alpha, tol):
                 keep[r, l] = 0
+                if w[r, l] > 0.0:
+                    drop = True
+        if drop:
+            first_out[r] = first
 
 
 def _jit(fn):
@@ -323,13 +338,16 @@ def _get_kernel():
     return _kernel
 
 
-def _keep_compiled(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share):
-    """`_keep_torch` by the compiled loop: same arguments, the same (keep [S, K] bool, first [S] int64)."""
+def _keep_compiled(idx, w, active, origins, dirs, pts, can, fi, alpha, tol, min_share):
+    """front_anchors' work by the compiled loop over a whole frame: idx [R, K], w [R, K] fg weights, active [R]
+    bool, origins / dirs [R, 3], pts / can [M, 3], fi [M, 3, 3] -> (keep [R, K] bool, first [R] int64: the front
+    layer's first slot where `_keep_torch` finds one and a weighted neighbour is dropped behind it, else -1)."""
     k = idx.shape[1]
     keep = np.ones(tuple(idx.shape), dtype=np.uint8)
     first = np.full(idx.shape[0], -1, dtype=np.int64)
     f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
-    _get_kernel()(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(w), f32(origins), f32(dirs),
+    _get_kernel()(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(w),
+                  np.ascontiguousarray(active.to("cpu", torch.bool).numpy()), f32(origins), f32(dirs),
                   f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share), keep,
                   first, np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
     return torch.from_numpy(keep).to(idx.device, torch.bool), torch.from_numpy(first).to(idx.device)
