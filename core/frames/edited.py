@@ -21,7 +21,7 @@ from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
 from core.edits.deformation import DeformationConfig, expansion_inverse, field_for, inverse, stretch
-from core.edits.occlusion import front_anchors, front_layer, unoccluded
+from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, unoccluded
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
@@ -309,7 +309,7 @@ class EditState:
         spacing = float(model.spacing)
         if c2w is None or focal is None:
             return front_layer(trace, self.points, self.p_can, self.inv_f, spacing)
-        front = front_anchors(trace, self.points, self.p_can, self.inv_f, spacing)
+        front = front_anchors(trace, self.points, self.p_can, self.inv_f, spacing, min_hidden=REDO_MIN_HIDDEN)
         if front is None:
             return trace
         rows, anchor, depth, _ = front

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from core.edits.occlusion import front_layer, unoccluded
+from core.edits.occlusion import front_anchors, front_layer, unoccluded
 from core.points.trace import Trace
 
 SPACING = 0.1
@@ -171,3 +171,20 @@ def test_unoccluded_compiled_equals_torch():
     # k = 20 >= 16 candidates: every candidate the front layer does not hide is taken, and some were hidden
     assert 0 < int((a >= 0).sum()) < int((cand >= 0).sum())
     assert (a[:3] == -1).all()
+
+
+@pytest.mark.parametrize("backend", ["torch", "compiled"])
+def test_front_anchors_skip_rays_whose_hidden_share_is_below_min_hidden(backend):
+    """The back part holds 3 % of the ray's weight: with min_hidden 0.05 the ray is not worth searching again
+    (None), with 0.02 or 0 it is, and the anchor is a front-sheet point at its depth."""
+    if backend == "compiled":
+        pytest.importorskip("numba")
+    points, p_can, inv_f = _fold()
+    n = points.shape[0] // 2
+    w = torch.cat([torch.full((n,), 0.97 / n), torch.full((n,), 0.03 / n)])
+    tr = _trace(points, w)
+    assert front_anchors(tr, points, p_can, inv_f, SPACING, backend=backend, min_hidden=0.05) is None
+    for mh in (0.0, 0.02):
+        rows, anchor, depth, keep = front_anchors(tr, points, p_can, inv_f, SPACING, backend=backend, min_hidden=mh)
+        assert rows.tolist() == [0] and int(anchor[0]) < n and abs(float(depth[0]) - 5.0) < 1e-5
+        assert keep[0, :n].all() and not keep[0, n:].any()
