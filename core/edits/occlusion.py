@@ -22,16 +22,18 @@ layer get weight 0, and the weights left are scaled back to the ray's foreground
 colour and the surface point x̂ taken from the front layer). Layers with less weight in front of it (an edge
 passing beside the ray) are kept as they are. That is `front_layer`; the edited render (`EditState.visible_layer`,
 core/frames/edited.py) goes further with `front_anchors` and `unoccluded`: such a ray's neighbours are searched
-again and the first K candidates the front layer does not hide replace them, so hidden points take no neighbour
-slot either (docs/editing.md measures both).
+again (when the neighbours it hides hold more than `REDO_MIN_HIDDEN` of the ray's weight) and the first K
+candidates the front layer does not hide replace them, so hidden points take no neighbour slot either
+(docs/editing.md measures both).
 
 At rest, under a rigid motion or any affine map every neighbour is in every other's layer: nothing changes (rows
 the rule leaves whole stay bit-identical).
 
 Cost: a ray inside one part passes a cheap screen (each neighbour against its most-attended one) and is left
-alone; only rays with neighbours of another part walk their layers. The walk is a compiled loop on a CPU (numba,
-like core/points/attention_compiled.py), torch elsewhere; both give the same kept neighbours
-(tests/core/edits/test_occlusion.py).
+alone; only rays with neighbours of another part walk their layers. The walk (over the whole frame's arrays) and
+the choice of candidates are compiled loops on a CPU (numba, like core/points/attention_compiled.py), torch
+elsewhere; both give the same kept neighbours and candidates (tests/core/edits/test_occlusion.py). The second
+search reuses the frame's screen index (core/points/neighbors/select.py `screen_index`).
 """
 from __future__ import annotations
 
@@ -199,9 +201,10 @@ def _unoccluded_compiled(cand, anchor, depth, origins, dirs, pts, can, fi, alpha
 
 
 def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chunk: int = 2048):
-    """Which neighbours each ray keeps (the reference form; `_keep_loop` keeps the same): idx [S, K], w [S, K]
-    fg weights, origins/dirs [S, 3], pts / can [M, 3], fi [M, 3, 3] -> (keep [S, K] bool (True where unchanged),
-    first [S] int64 the slot of the front layer's first neighbour, -1 where the ray has none or kept all)."""
+    """Which neighbours each ray keeps (the reference form; `_keep_loop` keeps the same neighbours): idx [S, K],
+    w [S, K] fg weights, origins/dirs [S, 3], pts / can [M, 3], fi [M, 3, 3] -> (keep [S, K] bool (True where
+    unchanged), first [S] int64 the slot of the front layer's first neighbour, -1 where the ray has none or kept
+    all)."""
     valid = idx >= 0
     safe = idx.clamp_min(0)
     w = w * valid
@@ -358,6 +361,6 @@ def _keep_compiled(idx, w, active, origins, dirs, pts, can, fi, alpha, tol, min_
     f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
     _get_kernel()(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(w),
                   np.ascontiguousarray(active.to("cpu", torch.bool).numpy()), f32(origins), f32(dirs),
-                  f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share), float(min_hidden), keep,
-                  first, np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
+                  f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share),
+                  float(min_hidden), keep, first, np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
     return torch.from_numpy(keep).to(idx.device, torch.bool), torch.from_numpy(first).to(idx.device)
