@@ -22,16 +22,18 @@ layer get weight 0, and the weights left are scaled back to the ray's foreground
 colour and the surface point x̂ taken from the front layer). Layers with less weight in front of it (an edge
 passing beside the ray) are kept as they are. That is `front_layer`; the edited render (`EditState.visible_layer`,
 core/frames/edited.py) goes further with `front_anchors` and `unoccluded`: such a ray's neighbours are searched
-again and the first K candidates the front layer does not hide replace them, so hidden points take no neighbour
-slot either (docs/editing.md measures both).
+again (when the neighbours it hides hold more than `REDO_MIN_HIDDEN` of the ray's weight) and the first K
+candidates the front layer does not hide replace them, so hidden points take no neighbour slot either
+(docs/editing.md measures both).
 
 At rest, under a rigid motion or any affine map every neighbour is in every other's layer: nothing changes (rows
 the rule leaves whole stay bit-identical).
 
 Cost: a ray inside one part passes a cheap screen (each neighbour against its most-attended one) and is left
-alone; only rays with neighbours of another part walk their layers. The walk is a compiled loop on a CPU (numba,
-like core/points/attention_compiled.py), torch elsewhere; both give the same kept neighbours
-(tests/core/edits/test_occlusion.py).
+alone; only rays with neighbours of another part walk their layers. The walk (over the whole frame's arrays) and
+the choice of candidates are compiled loops on a CPU (numba, like core/points/attention_compiled.py), torch
+elsewhere; both give the same kept neighbours and candidates (tests/core/edits/test_occlusion.py). The second
+search reuses the frame's screen index (core/points/neighbors/select.py `screen_index`).
 """
 from __future__ import annotations
 
@@ -49,6 +51,10 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
 BACKENDS = ("auto", "torch", "compiled")
+# The edited render searches a ray again only when the neighbours its front layer hides hold more than this share of
+# its foreground weight: below it, redoing the ray changed the cloth's and the strip's joint by at most 0.03 dB
+# (`python -m tools.bench.regions`) and cost a fifth to a third more redone rays.
+REDO_MIN_HIDDEN = 0.05
 
 
 @torch.no_grad()
@@ -86,8 +92,10 @@ def front_layer(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f: 
 
 @torch.no_grad()
 def front_anchors(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float,
-                  alpha: float = 0.5, beta: float = 2.0, min_share: float = 0.25, backend: str = "auto"):
-    """The rays whose attention reaches behind their front layer (arguments as `front_layer`): None when there is
+                  alpha: float = 0.5, beta: float = 2.0, min_share: float = 0.25, backend: str = "auto",
+                  min_hidden: float = 0.0):
+    """The rays whose attention reaches behind their front layer (arguments as `front_layer`; min_hidden: only
+    rays whose dropped neighbours hold more than this share of their foreground weight): None when there is
     none, else (rows [S] int64 ray indices, anchor [S] int64 the point that starts each ray's front layer, depth
     [S] its depth along the ray, keep [S, K] bool: the ray's neighbours in that layer or in front of it)."""
     if backend not in BACKENDS:
@@ -95,22 +103,30 @@ def front_anchors(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f
     idx = trace.idx
     if idx.shape[0] == 0 or idx.shape[1] < 2:
         return None
-    rows = torch.nonzero(trace.active & (idx >= 0).any(1)).squeeze(1)
-    if rows.numel() == 0:
-        return None
     pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    args = (idx[rows], trace.fg_weights[rows], trace.origins[rows], trace.dirs[rows], pts,
-            p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32), float(alpha),
-            float(beta) * float(spacing), float(min_share))
+    can, fi = p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32)
     compiled = backend != "torch" and numba is not None and idx.device.type == "cpu"
     if backend == "compiled" and not compiled:
         raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
-    keep, first = _keep_compiled(*args) if compiled else _keep_torch(*args)     # [S, K] bool, [S] slot or -1
-    w = trace.fg_weights[rows] * (idx[rows] >= 0)
-    drops = (first >= 0) & ((w * ~keep) > 0).any(1)
-    if not bool(drops.any()):
-        return None
-    rows, keep, first = rows[drops], keep[drops], first[drops]
+    if compiled:  # one pass over the whole frame's arrays (no gathers): only rays that drop something come back
+        keep, first = _keep_compiled(idx, trace.fg_weights, trace.active, trace.origins, trace.dirs, pts, can, fi,
+                                     float(alpha), float(beta) * float(spacing), float(min_share), float(min_hidden))
+        rows = torch.nonzero(first >= 0).squeeze(1)
+        if rows.numel() == 0:
+            return None
+        keep, first = keep[rows], first[rows]
+    else:
+        rows = torch.nonzero(trace.active & (idx >= 0).any(1)).squeeze(1)
+        if rows.numel() == 0:
+            return None
+        keep, first = _keep_torch(idx[rows], trace.fg_weights[rows], trace.origins[rows], trace.dirs[rows], pts, can,
+                                  fi, float(alpha), float(beta) * float(spacing), float(min_share))
+        w = trace.fg_weights[rows] * (idx[rows] >= 0)
+        hidden = (w * ~keep).sum(1)
+        drops = (first >= 0) & ((w * ~keep) > 0).any(1) & (hidden > float(min_hidden) * w.sum(1))
+        if not bool(drops.any()):
+            return None
+        rows, keep, first = rows[drops], keep[drops], first[drops]
     anchor = idx[rows].gather(1, first[:, None]).squeeze(1)
     depth = ((pts[anchor] - trace.origins[rows]) * trace.dirs[rows]).sum(-1)
     return rows, anchor, depth, keep
@@ -119,15 +135,24 @@ def front_anchors(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f
 @torch.no_grad()
 def unoccluded(candidates: torch.Tensor, anchor: torch.Tensor, depth: torch.Tensor, origins: torch.Tensor,
                dirs: torch.Tensor, points: torch.Tensor, p_can: torch.Tensor, inv_f: torch.Tensor, spacing: float,
-               k: int, alpha: float = 0.5, beta: float = 2.0) -> torch.Tensor:
+               k: int, alpha: float = 0.5, beta: float = 2.0, backend: str = "auto") -> torch.Tensor:
     """The first k of each ray's ranked neighbour candidates that the front layer does not hide: in the layer of the
     ray's anchor point, or in front of it. candidates [S, C] (ranked, -1 = none), anchor [S], depth [S] and the
-    rays origins / dirs [S, 3] as from `front_anchors`; points, p_can, inv_f as there. Returns idx [S, k] (-1 pads).
+    rays origins / dirs [S, 3] as from `front_anchors`; points, p_can, inv_f as there; backend: "compiled" (CPU,
+    numba), "torch" or "auto" (compiled where it can run; both choose the same). Returns idx [S, k] (-1 pads).
     """
-    valid = candidates >= 0
-    cs = candidates.clamp_min(0)
+    if backend not in BACKENDS:
+        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
+    compiled = backend != "torch" and numba is not None and candidates.device.type == "cpu"
+    if backend == "compiled" and not compiled:
+        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
     pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
     can, fi = p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32)
+    if compiled:
+        return _unoccluded_compiled(candidates, anchor, depth, origins, dirs, pts, can, fi, float(alpha),
+                                    float(beta) * float(spacing), int(k))
+    valid = candidates >= 0
+    cs = candidates.clamp_min(0)
     dc = can[cs] - can[anchor][:, None, :]
     res = ((fi[anchor][:, None] @ (pts[cs] - pts[anchor][:, None, :])[..., None]).squeeze(-1) - dc).norm(dim=-1)
     t = ((pts[cs] - origins[:, None, :]) * dirs[:, None, :]).sum(-1)
@@ -140,10 +165,46 @@ def unoccluded(candidates: torch.Tensor, anchor: torch.Tensor, depth: torch.Tens
     return out
 
 
+def _unoccluded_loop(cand, anchor, depth, o, d, pts, can, fi, alpha, tol, out):
+    """The compiled form of `unoccluded`'s choice (fi [M, 9] row-major): writes out [S, k] int64 (-1 preset)."""
+    s_n, c_n = cand.shape
+    k = out.shape[1]
+    for r in range(s_n):
+        a = anchor[r]
+        n = 0
+        for j in range(c_n):
+            q = cand[r, j]
+            if q < 0:
+                continue
+            t = (pts[q, 0] - o[r, 0]) * d[r, 0] + (pts[q, 1] - o[r, 1]) * d[r, 1] + (pts[q, 2] - o[r, 2]) * d[r, 2]
+            if t <= depth[r] or _in_layer(pts, can, fi, a, q, alpha, tol):
+                out[r, n] = q
+                n += 1
+                if n == k:
+                    break
+
+
+_choice_kernel = None
+
+
+def _unoccluded_compiled(cand, anchor, depth, origins, dirs, pts, can, fi, alpha, tol, k):
+    """`unoccluded` by the compiled loop (float32 tensors in, idx [S, k] int64 out)."""
+    global _choice_kernel
+    if _choice_kernel is None:
+        _choice_kernel = _jit(_unoccluded_loop)
+    out = np.full((cand.shape[0], k), -1, dtype=np.int64)
+    f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
+    i64 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.int64).numpy())  # noqa: E731
+    _choice_kernel(i64(cand), i64(anchor), f32(depth), f32(origins), f32(dirs), f32(pts), f32(can),
+                   f32(fi.reshape(-1, 9)), alpha, tol, out)
+    return torch.from_numpy(out).to(cand.device)
+
+
 def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chunk: int = 2048):
-    """Which neighbours each ray keeps (the reference form; `_keep_compiled` gives the same): idx [S, K], w [S, K]
-    fg weights, origins/dirs [S, 3], pts / can [M, 3], fi [M, 3, 3] -> (keep [S, K] bool (True where unchanged),
-    first [S] int64 the slot of the front layer's first neighbour, -1 where the ray has none or kept all)."""
+    """Which neighbours each ray keeps (the reference form; `_keep_loop` keeps the same neighbours): idx [S, K],
+    w [S, K] fg weights, origins/dirs [S, 3], pts / can [M, 3], fi [M, 3, 3] -> (keep [S, K] bool (True where
+    unchanged), first [S] int64 the slot of the front layer's first neighbour, -1 where the ray has none or kept
+    all)."""
     valid = idx >= 0
     safe = idx.clamp_min(0)
     w = w * valid
@@ -177,11 +238,16 @@ def _keep_torch(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share, chun
     return keep, first_out
 
 
-def _keep_loop(idx, w, o, d, pts, can, fi, alpha, tol, min_share, keep, first_out, order, depth):
-    """The compiled form of `_keep_torch` (float64 arithmetic on float32 inputs; fi [M, 9] row-major). Writes keep
-    [S, K] uint8 and first_out [S] int64 (-1 preset); order [K] int64 and depth [K] float64 are scratch."""
+def _keep_loop(idx, w, active, o, d, pts, can, fi, alpha, tol, min_share, min_hidden, keep, first_out, order,
+               depth):
+    """The compiled form of `_keep_torch` and of front_anchors' choice of rays (float64 arithmetic on float32
+    inputs; fi [M, 9] row-major), over a whole frame: rays not `active` [S] are skipped. Writes keep [S, K] uint8
+    and first_out [S] int64 (-1 preset): the front layer's first slot on the rays where a neighbour with weight
+    behind it is dropped, -1 elsewhere; order [K] int64 and depth [K] float64 are scratch."""
     s_n, k = idx.shape
     for r in range(s_n):
+        if not active[r]:
+            continue
         # most-attended neighbour (the first of equal weights, as argmax)
         a = -1
         best = -1.0
@@ -232,14 +298,20 @@ def _keep_loop(idx, w, o, d, pts, can, fi, alpha, tol, min_share, keep, first_ou
                 break
         if first < 0:
             continue
-        first_out[r] = first
         qf = idx[r, first]
+        drop = False
+        hidden = 0.0
         for l in range(k):
             ql = idx[r, l]
             if ql < 0 or depth[l] <= depth[first]:
                 continue
             if not _in_layer(pts, can, fi, qf, ql, alpha, tol):
                 keep[r, l] = 0
+                if w[r, l] > 0.0:
+                    drop = True
+                    hidden += w[r, l]
+        if drop and hidden > min_hidden * total:
+            first_out[r] = first
 
 
 def _jit(fn):
@@ -279,13 +351,16 @@ def _get_kernel():
     return _kernel
 
 
-def _keep_compiled(idx, w, origins, dirs, pts, can, fi, alpha, tol, min_share):
-    """`_keep_torch` by the compiled loop: same arguments, the same (keep [S, K] bool, first [S] int64)."""
+def _keep_compiled(idx, w, active, origins, dirs, pts, can, fi, alpha, tol, min_share, min_hidden=0.0):
+    """front_anchors' work by the compiled loop over a whole frame: idx [R, K], w [R, K] fg weights, active [R]
+    bool, origins / dirs [R, 3], pts / can [M, 3], fi [M, 3, 3] -> (keep [R, K] bool, first [R] int64: the front
+    layer's first slot where `_keep_torch` finds one and a weighted neighbour is dropped behind it, else -1)."""
     k = idx.shape[1]
     keep = np.ones(tuple(idx.shape), dtype=np.uint8)
     first = np.full(idx.shape[0], -1, dtype=np.int64)
     f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
-    _get_kernel()(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(w), f32(origins), f32(dirs),
-                  f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share), keep,
-                  first, np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
+    _get_kernel()(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(w),
+                  np.ascontiguousarray(active.to("cpu", torch.bool).numpy()), f32(origins), f32(dirs),
+                  f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share),
+                  float(min_hidden), keep, first, np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
     return torch.from_numpy(keep).to(idx.device, torch.bool), torch.from_numpy(first).to(idx.device)

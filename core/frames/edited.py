@@ -21,13 +21,13 @@ from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
 from core.edits.deformation import DeformationConfig, expansion_inverse, field_for, inverse, stretch
-from core.edits.occlusion import front_anchors, front_layer, unoccluded
+from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, unoccluded
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
 from core.images.cameras import focal_scale
 from core.points.attention_compiled import attend_compiled, supported
-from core.points.neighbors.select import select_neighbors
+from core.points.neighbors.select import screen_index, select_neighbors
 from core.points.render import pixel_grid, shade_frame, trace_frame
 from core.points.resolution import RENDER_MODES, check_mode, filter_sigma, gaussian_blur, scale_factor
 from core.points.trace import Trace
@@ -274,26 +274,42 @@ class EditState:
             self._f = other._f
             self.fit_seconds = self.deformation_seconds = other.fit_seconds
 
-    def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None) -> Trace:
+    def search_index(self, c2w: torch.Tensor, height: int, width: int, focal, k: int | None = None):
+        """The screen neighbour index these points are traced with (core/points/neighbors/select.py
+        `screen_index`: the model's method and cap, K = k or the model's, the f_radius scale) when the occlusion
+        rule may search rays again, so `trace_frame(index=...)` and `visible_layer(index=...)` project the points
+        once; None when it will not (nothing moved, the rule off) or the search has no screen (perpendicular)."""
+        if not (self.moved and self.cfg.f_occlusion):
+            return None
+        return self._screen_index(c2w, height, width, focal, k or self.bundle.model.cfg.k)
+
+    def _screen_index(self, c2w, height, width, focal, k):
+        model, pts = self.bundle.model, self.points
+        search = torch.where(torch.isfinite(pts).all(dim=1)[:, None], pts, torch.full_like(pts, float("nan")))
+        return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
+                            model.cfg.neighbor_radius_px, radius_scale=self.radius_scale if self.cfg.f_radius else 1.0)
+
+    def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
         (core/edits/occlusion.py); the trace itself when the points did not move or the rule is off.
 
         trace: `trace_frame` of these points (their keys, influence and radius as render_edited traces them) with
         the camera c2w [4, 4] and focal it was traced with: a ray whose neighbours reach behind its front layer
-        gets its K neighbours again from the ranked candidates the front layer does not hide (twice K searched),
-        and its attention anew over them, so hidden points neither take its neighbour slots nor its colour.
+        gets its K neighbours again from the ranked candidates the front layer does not hide (twice K searched
+        within the first search's pixel radius), and its attention anew over them, so hidden points neither take
+        its neighbour slots nor its colour. index: the trace's own `search_index` (else it is built again).
         Without the camera (or for a trace with footprint windows) the hidden neighbours' weights are dropped
         instead."""
         if not (self.moved and self.cfg.f_occlusion):
             return trace
-        return self._timed(lambda: self._visible_layer(trace, c2w, focal))
+        return self._timed(lambda: self._visible_layer(trace, c2w, focal, index))
 
-    def _visible_layer(self, trace: Trace, c2w, focal) -> Trace:
+    def _visible_layer(self, trace: Trace, c2w, focal, index=None) -> Trace:
         model = self.bundle.model
         spacing = float(model.spacing)
         if c2w is None or focal is None:
             return front_layer(trace, self.points, self.p_can, self.inv_f, spacing)
-        front = front_anchors(trace, self.points, self.p_can, self.inv_f, spacing)
+        front = front_anchors(trace, self.points, self.p_can, self.inv_f, spacing, min_hidden=REDO_MIN_HIDDEN)
         if front is None:
             return trace
         rows, anchor, depth, _ = front
@@ -304,10 +320,10 @@ class EditState:
         finite = torch.isfinite(pts).all(dim=1)
         search = torch.where(finite[:, None], pts, torch.full_like(pts, float("nan")))
         o, d = trace.origins[rows], trace.dirs[rows]
+        if index is None:
+            index = self._screen_index(c2w, height, width, focal, k)
         cand = select_neighbors(search, model.cfg.neighbors, 2 * k, c2w.to(pts.device, torch.float32), height, width,
-                                focal, pixel_grid(height, width, pts.device)[rows], o, d,
-                                model.cfg.neighbor_radius_px,
-                                radius_scale=self.radius_scale if cfg.f_radius else 1.0)
+                                focal, pixel_grid(height, width, pts.device)[rows], o, d, index=index)
         idx = unoccluded(cand, anchor, depth, o, d, pts, self.p_can, self.inv_f, spacing, k)
         keys = self.inv_f_keys if cfg.f_attention else None
         pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
@@ -424,12 +440,13 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     else:  # moved points: the training pixel in their own size (an object scaled by s has s times larger pixels)
         scale = scale_factor(float(model.train_footprint) * state.local_scale, c2w, focal, state.points.detach())
     if trace is None:
+        soft = "footprint" in parts and scale > 1.0  # footprint windows: keep them, drop hidden weights only
+        index = None if soft else state.search_index(c2w, height, width, focal)  # shared with the occlusion rule
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                          radius_scale=state.radius_scale if cfg.f_radius else 1.0, attention=cfg.attention,
-                         soft_scale=scale if "footprint" in parts else 1.0)
-        soft = "footprint" in parts and scale > 1.0  # footprint windows: keep them, drop hidden weights only
-        tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal)
+                         soft_scale=scale if soft else 1.0, index=index)
+        tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
     else:
         tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0

@@ -32,7 +32,7 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
                 inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto",
-                soft_scale: float = 1.0) -> Trace:
+                soft_scale: float = 1.0, index=None) -> Trace:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -45,7 +45,10 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     with numba; the same numbers to float rounding, all rays in one call) | "auto" (compiled where supported);
     soft_scale: the frame's scale factor F for anti-aliased neighbour footprints (> 1: the K-nearest rule and the
     radius cap fade over F − 1 pixels, core/points/resolution.py mode "footprint"; then K' = 2K slots, and the
-    attention runs in torch, which takes the footprint's log-window).
+    attention runs in torch, which takes the footprint's log-window);
+    index: a ScreenIndex of these points and this camera (core/points/neighbors/select.py `screen_index` with the
+    model's method, K, cap and radius_scale) to query instead of building one, so a caller can search some rays
+    again without projecting the points twice (not used in footprint mode).
     Returns a Trace of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], active [R], plus shape (H, W) and depth [R] on demand.
     """
@@ -69,7 +72,7 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
         k = idx.shape[1]
     else:
         idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
-                               model.cfg.neighbor_radius_px, radius_scale=radius_scale)
+                               model.cfg.neighbor_radius_px, radius_scale=radius_scale, index=index)
     fi = None if inv_f is None else inv_f.to(dev, torch.float32)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.

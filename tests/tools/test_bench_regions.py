@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from tools.bench.regions import markdown, region_gains
+from tools.bench.regions import markdown, region_gains, rig_offsets
 
 
 def test_region_gains_are_the_db_won_by_zeroing_each_region():
@@ -43,3 +43,23 @@ def test_variant_changes_named_fields_of_a_renderer():
         parse_variant("nope:f_fill_ratio=2", RENDERERS)
     with pytest.raises(SystemExit, match="not FIELD=VALUE"):
         parse_variant("paper:no_such_field=1", RENDERERS)
+
+
+def test_rig_offsets_measure_how_far_the_rig_put_the_points_from_the_mesh():
+    """A rig that moves the points exactly as the mesh: 0; one that shifts the joint band's points by 3 spacings:
+    3 there, 0 elsewhere; non-finite points and pixels are left out, an empty group is NaN."""
+    g = np.random.default_rng(0)
+    can = g.uniform(-1, 1, (400, 3))
+    shift = np.where(np.abs(can[:, :1]) < 0.3, [[0.0, 0.0, 0.3]], 0.0)  # spacing 0.1: 3 spacings in the band
+    true_can = can[:100] + 1e-4
+    joint = np.abs(true_can[:, 0]) < 0.3
+    exact = rig_offsets(can, can + 1.0, true_can, true_can + 1.0, joint, 0.1)
+    assert exact["joint"][0] < 0.01 and exact["elsewhere"][1] < 0.01
+    posed = can + 1.0 + shift
+    posed[150] = np.nan
+    tp = true_can + 1.0
+    tp[5] = np.nan
+    got = rig_offsets(can, posed, true_can, tp, joint, 0.1, near=1)
+    assert abs(got["joint"][0] - 3.0) < 0.01 and got["elsewhere"][1] < 0.01
+    none = rig_offsets(can, posed, true_can, tp, np.zeros(100, bool), 0.1)
+    assert math.isnan(none["joint"][0]) and math.isfinite(none["elsewhere"][0])

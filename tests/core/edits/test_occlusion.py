@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from core.edits.occlusion import front_layer, unoccluded
+from core.edits.occlusion import front_anchors, front_layer, unoccluded
 from core.points.trace import Trace
 
 SPACING = 0.1
@@ -143,3 +143,48 @@ def test_unoccluded_takes_the_first_k_candidates_the_front_layer_does_not_hide()
     # a hidden-part point in front of the anchor is no longer hidden: kept in its rank
     got = unoccluded(cand, torch.tensor([0]), torch.tensor([6.0]), o, d, points, p_can, inv_f, SPACING, k=5)
     assert got.tolist() == [[n, 0, n + 1, 1, 2]]
+
+
+def test_unoccluded_compiled_equals_torch():
+    """Random ranked candidate lists (gaps, none at all) over three noisy parts, random anchors and depths: the
+    compiled choice takes exactly the candidates the torch reference takes."""
+    pytest.importorskip("numba")
+    g = torch.Generator().manual_seed(4)
+    points, p_can, _ = _fold()
+    edge = _sheet(0.4, 3) + torch.tensor([0.3, 0.0, 0.0])
+    points = torch.cat([points, edge]) + 0.02 * torch.randn(points.shape[0] + edge.shape[0], 3, generator=g)
+    p_can = torch.cat([p_can, edge - torch.tensor([3.0, 0.0, 0.0])])
+    m = points.shape[0]
+    inv_f = torch.eye(3) + 0.1 * torch.randn(m, 3, 3, generator=g)
+    s, c = 300, 16
+    cand = torch.stack([torch.randperm(m, generator=g)[:c] for _ in range(s)])
+    cand[torch.rand(s, c, generator=g) < 0.15] = -1
+    cand[:3] = -1
+    anchor = cand.clamp_min(0)[:, 0]
+    o = torch.cat([0.2 * torch.randn(s, 2, generator=g), torch.full((s, 1), 5.0)], 1)
+    d = torch.tensor([[0.0, 0.0, -1.0]]).repeat(s, 1)
+    depth = 5.0 + 0.3 * torch.randn(s, generator=g)
+    for k in (4, 8, 20):
+        a = unoccluded(cand, anchor, depth, o, d, points, p_can, inv_f, SPACING, k, backend="torch")
+        b = unoccluded(cand, anchor, depth, o, d, points, p_can, inv_f, SPACING, k, backend="compiled")
+        assert torch.equal(a, b)
+    # k = 20 >= 16 candidates: every candidate the front layer does not hide is taken, and some were hidden
+    assert 0 < int((a >= 0).sum()) < int((cand >= 0).sum())
+    assert (a[:3] == -1).all()
+
+
+@pytest.mark.parametrize("backend", ["torch", "compiled"])
+def test_front_anchors_skip_rays_whose_hidden_share_is_below_min_hidden(backend):
+    """The back part holds 3 % of the ray's weight: with min_hidden 0.05 the ray is not worth searching again
+    (None), with 0.02 or 0 it is, and the anchor is a front-sheet point at its depth."""
+    if backend == "compiled":
+        pytest.importorskip("numba")
+    points, p_can, inv_f = _fold()
+    n = points.shape[0] // 2
+    w = torch.cat([torch.full((n,), 0.97 / n), torch.full((n,), 0.03 / n)])
+    tr = _trace(points, w)
+    assert front_anchors(tr, points, p_can, inv_f, SPACING, backend=backend, min_hidden=0.05) is None
+    for mh in (0.0, 0.02):
+        rows, anchor, depth, keep = front_anchors(tr, points, p_can, inv_f, SPACING, backend=backend, min_hidden=mh)
+        assert rows.tolist() == [0] and int(anchor[0]) < n and abs(float(depth[0]) - 5.0) < 1e-5
+        assert keep[0, :n].all() and not keep[0, n:].any()

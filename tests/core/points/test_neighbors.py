@@ -537,3 +537,26 @@ def test_intrinsics_non_square_off_centre_match_brute_force(method):
     else:
         ref = ref_screen_k(pts, c2w, k_cam, h, w, q, 5, method == "screen_depth")
     assert_same(got, ref)
+
+
+@pytest.mark.parametrize("method", ["screen", "screen_depth"])
+@pytest.mark.parametrize("scale", [1.0, 1.7])
+def test_a_shared_screen_index_searches_as_select_neighbors_does(method, scale):
+    """screen_index (the index a second search of some rays reuses): queried with K it gives select_neighbors'
+    answer; queried with 2K for the same rays its first K are those, and all 2K lie within the K search's cap."""
+    from core.points.neighbors.select import screen_index
+
+    pts, c2w, q = scene("sphere", 700, 4), camera(4), random_px(300, 4)
+    o, d = rays_for_pixels(c2w, q, H, W, FOCAL)
+    want = nb.select_neighbors(pts, method, 6, c2w, H, W, FOCAL, q, o, d, "auto", radius_scale=scale)
+    index = screen_index(pts, method, 6, c2w, H, W, FOCAL, "auto", radius_scale=scale)
+    got = nb.select_neighbors(pts, method, 6, c2w, H, W, FOCAL, q, o, d, index=index)
+    assert torch.equal(got, want) and int((got >= 0).sum()) > 300
+    more = index.query(q, 12).idx
+    assert torch.equal(more[:, :6], want)
+    cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL).radius_px(6) * scale
+    from core.images.cameras import project_points
+    px, _ = project_points(pts.double(), c2w.double(), H, W, FOCAL)
+    far = (px[more.clamp_min(0)] - q.double()[:, None]).norm(dim=-1)
+    assert bool((far[more >= 0] <= cap + 1e-6).all())
+    assert nb.select_neighbors is not None and screen_index(pts, "perpendicular", 6, c2w, H, W, FOCAL) is None
