@@ -45,7 +45,8 @@ def uv_range(uv: torch.Tensor) -> torch.Tensor:
 
 def normal_flatness(J: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
     """How fast the texture coordinates change across the surface: mean_i sum_c w_ic |J_ic n_i|^2.
-    J [G, n, 2, 3] (du/dx, in the frame where the tangent derivatives should be 1), normals [G, 3] (unit),
+    J [G, n, 2, 3] (du/dx, in the frame where the tangent derivatives should be 1), normals [G, 3] (unit, or
+    shorter to weigh a sample less: the term scales with |n|^2),
     weights [G, n] (chart probabilities; None: mean over charts). Non-finite normals count as 0."""
     nrm = torch.nan_to_num(normals.to(J.dtype), nan=0.0, posinf=0.0, neginf=0.0)
     jn = (J * nrm[:, None, None, :]).sum(-1).pow(2).sum(-1)  # [G, n]
