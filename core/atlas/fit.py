@@ -54,7 +54,7 @@ def sample_normals(xyz: np.ndarray, neighbours: int = 256, max_points: int = 200
                    chunk: int = 2000) -> np.ndarray:
     """Unit surface normal of every sample xyz [S, 3] -> [S, 3] float32: the direction of least spread (PCA) of the
     `neighbours` nearest samples. Real samples form a slab a few spacings thick (PAPR's surface points; on the
-    tube of the scene library its spread across is 0.7 of its spread along in a 48-sample neighbourhood), so the
+    tube of the scene library its spread across is 0.8 of its spread along in a 48-sample neighbourhood), so the
     neighbourhood must be wide: with 48 neighbours the normals of adjacent tube samples disagree (10th percentile
     |cos| 0.44), with 256 they agree (0.98). The PCA runs on at most `max_points` samples (a fixed random subset)
     and every sample takes the normal of the nearest of them. Sign arbitrary (the loss that uses it is even in n);

@@ -138,6 +138,11 @@ def test_normal_flatness_measures_the_derivative_along_the_normal_only():
     loss = normal_flatness(Jg, bad, w)
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(Jg.grad).all()
+    for scale in (1e20, 1e-20, 0.0):   # absurd, tiny and zero Jacobians: finite loss and gradient
+        Jx = (J * scale).requires_grad_(True)
+        loss = normal_flatness(Jx, normals, w)
+        loss.backward()
+        assert torch.isfinite(loss) and torch.isfinite(Jx.grad).all(), scale
 
 
 def test_normal_loss_flattens_the_map_across_a_noisy_slab():
