@@ -54,6 +54,10 @@ class AtlasConfig:
     w_range: float = opt(1.0, "weight of the UV range hinge", min=0.0)
     w_distortion: float = opt(0.4, "weight of the normal-free distortion loss L_scaling + L_area", min=0.0)
     w_texture: float = opt(1.0, "weight of the colour MSE in the joint map + texture optimisation", min=0.0)
+    w_normal: float = opt(0.0, "weight of the normal-flatness loss: the texture coordinates' derivative along each "
+                               "sample's surface normal (PCA of its 256 neighbours), squared, in the frame where the "
+                               "tangent derivatives are 1, so a texel holds one place of the samples' slab "
+                               "(0 = off; 0.5 measured in docs/atlas.md)", min=0.0)
     distortion: bool = opt(True, "use the normal-free distortion loss")
     distortion_weighting: str = opt("prob", "weight each chart's distortion by P(c|x) (prob) or not (uniform, paper formula)",
                                     choices=("prob", "uniform"))

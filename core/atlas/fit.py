@@ -50,6 +50,35 @@ def sample_spacing(xyz: np.ndarray, k: int = 8, neighbours: int = 48, max_points
     return float(np.median(d1[:, 1])), float(S * math.pi * np.mean(r ** 2) / k)
 
 
+def sample_normals(xyz: np.ndarray, neighbours: int = 256, max_points: int = 20000, seed: int = 0,
+                   chunk: int = 2000) -> np.ndarray:
+    """Unit surface normal of every sample xyz [S, 3] -> [S, 3] float32: the direction of least spread (PCA) of the
+    `neighbours` nearest samples. Real samples form a slab a few spacings thick (PAPR's surface points; on the
+    tube of the scene library its spread across is 0.8 of its spread along in a 48-sample neighbourhood), so the
+    neighbourhood must be wide: with 48 neighbours the normals of adjacent tube samples disagree (10th percentile
+    |cos| 0.44), with 256 they agree (0.98). The PCA runs on at most `max_points` samples (a fixed random subset)
+    and every sample takes the normal of the nearest of them. Sign arbitrary (the loss that uses it is even in n);
+    zero where the neighbourhood spans no plane."""
+    S = len(xyz)
+    out = np.zeros((S, 3), np.float32)
+    if S < 3:
+        return out
+    K = min(neighbours, S - 1)
+    tree = cKDTree(xyz)
+    sel = np.sort(np.random.default_rng(seed).permutation(S)[:max_points])
+    normals = np.zeros((len(sel), 3))
+    for s in range(0, len(sel), chunk):
+        _, idx = tree.query(xyz[sel[s:s + chunk]], k=K + 1)
+        nb = xyz[idx]
+        c = nb - nb.mean(1, keepdims=True)
+        w, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", c, c))  # ascending eigenvalues
+        ok = np.isfinite(vec[:, :, 0]).all(-1) & (w[:, 1] > 1e-30)  # a plane is defined (two directions of spread)
+        normals[s:s + chunk][ok] = vec[ok, :, 0]
+    _, near = cKDTree(xyz[sel]).query(xyz)
+    out[:] = normals[near]
+    return out
+
+
 def pixel_footprint(xyz, centres, focal: float) -> float:
     """World size of one training-image pixel on the surface: median over views of the median camera distance of
     the samples xyz [S, 3], divided by the focal length in pixels. centres [V, 3] camera positions."""
@@ -150,8 +179,8 @@ def choose_chart_count(xyz: torch.Tensor, cfg: AtlasConfig) -> tuple[int, float]
 
 
 def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasConfig, jac_scale: float,
-                 gen: torch.Generator) -> dict[str, torch.Tensor]:
-    """All loss terms on one batch. xb [B, 3] normalised points, rgb [B, 3]."""
+                 gen: torch.Generator, normals: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """All loss terms on one batch. xb [B, 3] normalised points, rgb [B, 3], normals [B, 3] (w_normal > 0)."""
     n, dev = atlas.n, xb.device
     probs = torch.softmax(atlas.chart(xb), -1)  # [B, n]
     uv = atlas.tex(xb)  # [B, n, 2]
@@ -172,18 +201,23 @@ def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasCo
         "range": losses.uv_range(uv),
         "texture": (pred - rgb).pow(2).mean(),
     }
-    if cfg.distortion and cfg.w_distortion > 0:
+    use_distortion = cfg.distortion and cfg.w_distortion > 0
+    use_normal = cfg.w_normal > 0 and normals is not None
+    if use_distortion or use_normal:
         d = min(cfg.distortion_batch, len(xb))
         J, _ = uv_jacobian(atlas.tex, xb[:d])
         w = probs[:d] if cfg.distortion_weighting == "prob" else None
-        out["scaling"], out["area"] = distortion_terms(J * jac_scale, w)
+        if use_distortion:
+            out["scaling"], out["area"] = distortion_terms(J * jac_scale, w)
+        if use_normal:
+            out["normal"] = losses.normal_flatness(J * jac_scale, normals[:d], probs[:d])
     return out
 
 
 def _total(terms: dict[str, torch.Tensor], cfg: AtlasConfig) -> torch.Tensor:
     w = {"cycle3d": cfg.w_cycle3d, "cycle2d": cfg.w_cycle2d, "consistency": cfg.w_consistency,
          "surface": cfg.w_surface, "compact": cfg.w_compact, "range": cfg.w_range, "texture": cfg.w_texture,
-         "scaling": cfg.w_distortion, "area": cfg.w_distortion}
+         "scaling": cfg.w_distortion, "area": cfg.w_distortion, "normal": cfg.w_normal}
     return sum(w[k] * v for k, v in terms.items())
 
 
@@ -261,6 +295,8 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         hist["phase"].append(phase)
         return p
 
+    normals = torch.from_numpy(sample_normals(xyz.numpy().astype(np.float64))).float().to(dev) \
+        if cfg.w_normal > 0 else None
     nets = [p for name, p in atlas.named_parameters() if name != "textures"]
     opt = torch.optim.Adam([{"params": nets, "lr": cfg.lr}, {"params": [atlas.textures], "lr": cfg.texture_lr}])
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** (s / max(cfg.steps, 1)))
@@ -269,7 +305,8 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     p = float("nan")
     for step in range(cfg.steps):
         idx = torch.randint(len(xn), (min(cfg.batch, len(xn)),), generator=gen).to(dev)
-        terms = _step_losses(atlas, xn[idx], rgb[idx], cfg, jac_scale, gen)
+        terms = _step_losses(atlas, xn[idx], rgb[idx], cfg, jac_scale, gen,
+                             None if normals is None else normals[idx])
         opt.zero_grad(set_to_none=True)
         _total(terms, cfg).backward()
         opt.step()

@@ -41,3 +41,18 @@ def compactness(x: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
 def uv_range(uv: torch.Tensor) -> torch.Tensor:
     """Hinge keeping texture coordinates in [0, 1]^2: mean of squared excess. uv [B, n, 2]."""
     return (F.relu(-uv) + F.relu(uv - 1)).pow(2).sum(-1).mean()
+
+
+_MAX_RATE = 1e4  # normal_flatness: |J n| saturates here (its square and gradient stay within float32)
+
+
+def normal_flatness(J: torch.Tensor, normals: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """How fast the texture coordinates change across the surface: mean_i sum_c w_ic |J_ic n_i|^2.
+    J [G, n, 2, 3] (du/dx, in the frame where the tangent derivatives should be 1), normals [G, 3] (unit),
+    weights [G, n] (chart probabilities; None: mean over charts). Non-finite normals count as 0; each derivative
+    saturates at 1e4 (as the distortion's sigmas do), so absurd Jacobians give a finite loss and gradient."""
+    nrm = torch.nan_to_num(normals.to(J.dtype), nan=0.0, posinf=0.0, neginf=0.0)
+    jn = (J * nrm[:, None, None, :]).sum(-1).clamp(-_MAX_RATE, _MAX_RATE).pow(2).sum(-1)  # [G, n]
+    if weights is None:
+        return jn.mean()
+    return (weights * jn).sum(-1).mean()
