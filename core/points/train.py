@@ -125,6 +125,21 @@ def pool_index(p: int, size: int, zoom: int) -> torch.Tensor:
     return (torch.arange(p)[:, None] * size * size + local[None]).reshape(-1)
 
 
+def patch_neighbors(points: torch.Tensor, model_cfg: ModelConfig, c2w: torch.Tensor, level, px: torch.Tensor,
+                    zoom: int = 1):
+    """Rays and neighbours of a training step's pixels, found as a frame of the level's size renders them.
+
+    points [N, 3] (detached; NaN rows = dropped out), c2w [4, 4], level: the split (or pyramid level) the pixels
+    belong to (height, width, focal), px [R, 2] pixel centres (col, row) in that level's pixels (with zoom > 1,
+    sub-pixel centres of `zoom_pixels`, searched as a frame zoom times larger). Returns origins [R, 3],
+    dirs [R, 3] and idx [R, K]: `select_neighbors` with the model's method, K and pixel-radius rule over the whole
+    level frame — the neighbours `render_frame` at that size gives those pixels."""
+    o, d = rays_for_pixels(c2w, px, level.height, level.width, level.focal)
+    idx = select_neighbors(points, model_cfg.neighbors, model_cfg.k, c2w, level.height * zoom, level.width * zoom,
+                           _zoom_focal(level.focal, zoom), px * zoom, o, d, model_cfg.neighbor_radius_px)
+    return o, d, idx
+
+
 def sample_patches(alpha: torch.Tensor, n: int, size: int, fg_frac: float, gen: torch.Generator):
     """Top-left corners of n patches in an [H, W] image, a fraction centred on foreground pixels.
     Returns pixel centres px [n*size*size, 2] (col, row) and integer rows/cols [n*size*size]."""
@@ -412,15 +427,12 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
                 px = zoom_pixels(px, size, zoom)
                 pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
-            o, d = rays_for_pixels(c2w, px, lv.height, lv.width, lv.focal)
             search = model.xyz.detach()
             p_drop = cfg.dropout * _cosine(min(frac * 2, 1.0))
             if p_drop > 0:
                 drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
                 search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
-            idx = select_neighbors(search, model_cfg.neighbors, model_cfg.k, c2w, lv.height * zoom,
-                                   lv.width * zoom, _zoom_focal(lv.focal, zoom), px * zoom,
-                                   o, d, model_cfg.neighbor_radius_px)
+            o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
             att = model.attend(model.xyz, model.influence, o, d, idx)
             sh = model.shade(att, d, idx, bg)
             zs = size * zoom
