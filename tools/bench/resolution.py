@@ -21,7 +21,7 @@ training footprint (a --model file from before it gets the 1x test cameras').
 
 --train-hires H fits from the ground truth at H x the training size instead (the H x folder then holds the train
 views too: `make-scene --size H*S` renders the same training cameras) with multi-scale training,
-`pointgt fit --train-scales 1,2,...,H` (powers of two up to H, and H; a `--train-scales` or
+`pointgt fit --train-scales 1,2,...,H` (the powers of two below H that divide it, and H; a `--train-scales` or
 `--train-scale-weights` in --fit-args wins): its coarsest level is the training size S, so the 1x render, the
 bicubic rows and the evaluation are those of the 1x fit, and the fit column says `hiresH`. Such a model has seen
 the H x data: at H x its ceiling is the ground truth itself, and how far its native render rises above the
@@ -45,11 +45,13 @@ DEFAULT_SCENES = "tube,crate,suzanne"
 
 
 def hires_scales(factor: int) -> str:
-    """The --train-scales of a fit from images `factor` x the training size: the powers of two below it and
-    the factor itself, "1,2,4" for 4, "1,3" for 3."""
+    """The --train-scales of a fit from images `factor` x the training size: the powers of two below it that
+    divide it, and the factor itself (so every level divides the images): "1,2,4" for 4, "1,2,6" for 6, "1,3"
+    for 3."""
     out, s = [], 1
     while s < factor:
-        out.append(s)
+        if factor % s == 0:
+            out.append(s)
         s *= 2
     return ",".join(map(str, out + [factor]))
 
