@@ -78,3 +78,14 @@ def test_bench_end_to_end_on_a_tiny_library_scene(tmp_path):
 def test_hires_scales_are_the_powers_of_two_that_divide_the_factor_and_the_factor():
     assert [resolution.hires_scales(f) for f in (2, 3, 4, 6, 8, 12)] == ["1,2", "1,3", "1,2,4", "1,2,6", "1,2,4,8",
                                                                          "1,2,4,12"]
+
+
+def test_step_seconds_times_both_fits_alternating():
+    from tests.helpers.tiny import model_config
+
+    cams = fibonacci_cameras(3, seed=1)
+    low, high = render_split("sphere", cams, 16), render_split("sphere", cams, 32)
+    times = resolution.step_seconds(model_config("fast"), ["--train-scales", "1,2", "--patches", "1",
+                                                           "--patch-size", "8", "--threads", "1"],
+                                    low, high, low, steps=3, pairs=2)
+    assert sorted(times) == ["1x", "hires"] and all(len(v) == 2 and all(t > 0 for t in v) for v in times.values())

@@ -27,6 +27,9 @@ bicubic rows and the evaluation are those of the 1x fit, and the fit column says
 the H x data: at H x its ceiling is the ground truth itself, and how far its native render rises above the
 upsampled 1x ground truth (the most a 1x fit can hold) is the detail it learned from the finer images. Its
 training footprint is the finest level's, so it renders at H x S as it was trained (scale factor 1).
+--time-steps N (with --train-hires) also times stage-1 steps: per scene, 3 pairs of N-step `fit_points` runs in
+this process, the fit from the 1x images and the multi-scale one from the H x images alternating (the settings of
+--fit-args, the decoder and K of the fitted model, evaluation excluded): seconds per step, min / median / max.
 """
 from __future__ import annotations
 
@@ -62,6 +65,32 @@ def train_views(folder: Path) -> int:
         return len(json.loads((folder / "transforms_train.json").read_text())["frames"])
     except (OSError, ValueError, KeyError, TypeError):
         return 0
+
+
+def step_seconds(model_cfg, fit_args: list[str], low_train, high_train, test, steps: int, pairs: int = 3,
+                 seed: int = 0) -> dict:
+    """Seconds per stage-1 step of the fit from the 1x split low_train and of the one --fit-args describe (its
+    --train-scales) from high_train, `pairs` times each, alternating (so a drift of the machine's speed hits both).
+    model_cfg: the ModelConfig both use. Returns {"1x": [s/step, ...], "hires": [...]}."""
+    import argparse
+    import dataclasses
+
+    from core.config import add_to_parser, from_args
+    from core.points.train import TrainConfig, fit_points
+
+    ap = argparse.ArgumentParser(add_help=False)
+    add_to_parser(ap, TrainConfig)
+    hires_cfg, _ = ap.parse_known_args(fit_args)
+    hires_cfg = from_args(TrainConfig, hires_cfg)
+    plain = dataclasses.replace(hires_cfg, train_scales="", train_scale_weights="")
+    out = {"1x": [], "hires": []}
+    for i in range(pairs):
+        for key, split, cfg in (("1x", low_train, plain), ("hires", high_train, hires_cfg)):
+            cfg = dataclasses.replace(cfg, steps=steps, minutes=0.0, eval_every=1e9, eval_views=1, seed=seed + i,
+                                      device="cpu")
+            _, hist = fit_points(split, test, model_cfg, cfg, show_progress=False)
+            out[key].append(hist[-1]["seconds"] / max(hist[-1]["step"], 1))
+    return out
 
 
 def upsample(img, factor: int):
@@ -159,6 +188,8 @@ def main(argv=None) -> int:
     ap.add_argument("--train-hires", type=int, default=0,
                     help="fit from the ground truth at this factor x --size with multi-scale training "
                          "(`fit --train-scales 1,2,...,H`); 0 = fit at 1x")
+    ap.add_argument("--time-steps", type=int, default=0,
+                    help="with --train-hires: also time this many stage-1 steps of both fits, 3 pairs alternating")
     ap.add_argument("--model", default=None, help="a model fitted at --size on the one scene of --scenes "
                                                   "(instead of fitting)")
     ap.add_argument("--render-mode", default="auto",
@@ -184,6 +215,8 @@ def main(argv=None) -> int:
         ap.error("--fit-args: name the setting with --tag (the model file's name)")
     if args.train_hires < 0 or args.train_hires == 1:
         ap.error("--train-hires: a factor >= 2 (0 = fit at 1x)")
+    if args.time_steps and not args.train_hires:
+        ap.error("--time-steps compares the 1x fit with --train-hires's: give --train-hires")
     if args.train_hires and args.model:
         ap.error("--train-hires fits a model: leave out --model")
     hires = args.train_hires
@@ -206,6 +239,7 @@ def main(argv=None) -> int:
             f"{args.views_train} train / {args.views_test} test views, seed {args.seed}")
     print(head, flush=True)
     rows = []
+    timing: dict = {}
     for name in scenes:
         for f in sorted({*factors, *([hires] if hires else [])}):
             folder = work / name / f"x{f}"
@@ -240,8 +274,19 @@ def main(argv=None) -> int:
                        **res}
                 rows.append(row)
                 print(markdown([row], "").strip().splitlines()[-1], flush=True)
+        if args.time_steps:
+            import statistics
+
+            times = step_seconds(model.cfg, fit_args, load_split(work / name / "x1", "train"),
+                                 load_split(work / name / f"x{hires}", "train"), low, args.time_steps,
+                                 seed=args.seed)
+            for key, vals in times.items():
+                print(f"{name}: seconds per step, {key} fit, min / median / max of {len(vals)}: "
+                      f"{min(vals):.3f} / {statistics.median(vals):.3f} / {max(vals):.3f}", flush=True)
+            timing[name] = times
         if args.json:
-            Path(args.json).write_text(json.dumps({"machine": head, "rows": rows}, indent=1))
+            Path(args.json).write_text(json.dumps({"machine": head, "rows": rows, "step_seconds": timing},
+                                                  indent=1))
     table = markdown(rows, "```\n" + head + "\n```")
     print(table)
     for f in factors[1:]:
