@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from core.config import opt
 from core.images.intrinsics import Intrinsics
 from core.images.metrics import blank_floor, mean_scores, score_views, ssim
+from core.images.pyramid import parse_scales, parse_weights, pyramid
 from core.points.render import render_frame
 from core.points.resolution import training_footprint
 from core.images.cameras import rays_for_pixels
@@ -62,6 +63,14 @@ class TrainConfig:
                                 "and average them down to the training pixels, so the model is fitted between "
                                 "pixel centres too (renders beyond the training size, core/points/resolution.py)",
                          min=0.0, max=1.0)
+    train_scales: str = opt("", "multi-scale training from images larger than the training size: comma-separated "
+                                "downscale factors of the loaded images (e.g. 1,2,4), each step trains on the patches "
+                                "of one level (the images area-averaged by that factor, the camera scaled to match, "
+                                "searched and rendered as a frame of that size); the coarsest level is the training "
+                                "size (visual hull, profile, atlas, test renders), the finest the training footprint "
+                                "renders are scaled against; empty = off (train on the loaded images as they are)")
+    train_scale_weights: str = opt("", "share of the steps per level of --train-scales, comma-separated in its "
+                                       "(sorted) order, fine to coarse; empty = equal shares")
     zoom_max: int = opt(2, "largest zoom of those steps (each picks 2..zoom_max; patches / zoom² of them, so a "
                            "step costs about the same)", min=2, max=8)
     dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)",
@@ -119,6 +128,21 @@ def pool_index(p: int, size: int, zoom: int) -> torch.Tensor:
     r, c = torch.meshgrid(t, t, indexing="ij")
     local = (r * size + c).reshape(-1)
     return (torch.arange(p)[:, None] * size * size + local[None]).reshape(-1)
+
+
+def patch_neighbors(points: torch.Tensor, model_cfg: ModelConfig, c2w: torch.Tensor, level, px: torch.Tensor,
+                    zoom: int = 1):
+    """Rays and neighbours of a training step's pixels, found as a frame of the level's size renders them.
+
+    points [N, 3] (detached; NaN rows = dropped out), c2w [4, 4], level: the split (or pyramid level) the pixels
+    belong to (height, width, focal), px [R, 2] pixel centres (col, row) in that level's pixels (with zoom > 1,
+    sub-pixel centres of `zoom_pixels`, searched as a frame zoom times larger). Returns origins [R, 3],
+    dirs [R, 3] and idx [R, K]: `select_neighbors` with the model's method, K and pixel-radius rule over the whole
+    level frame — the neighbours `render_frame` at that size gives those pixels."""
+    o, d = rays_for_pixels(c2w, px, level.height, level.width, level.focal)
+    idx = select_neighbors(points, model_cfg.neighbors, model_cfg.k, c2w, level.height * zoom, level.width * zoom,
+                           _zoom_focal(level.focal, zoom), px * zoom, o, d, model_cfg.neighbor_radius_px)
+    return o, d, idx
 
 
 def sample_patches(alpha: torch.Tensor, n: int, size: int, fg_frac: float, gen: torch.Generator):
@@ -310,6 +334,9 @@ class CollapseGuard:
 def fit_points(train, test, model_cfg: ModelConfig, cfg: TrainConfig, background=(1.0, 1.0, 1.0),
                progress_callback=None, show_progress: bool = True):
     """Train a PointModel. train/test: `SplitData` (images [V,H,W,3], alphas [V,H,W], c2w [V,4,4], focal, ...).
+    With `cfg.train_scales`, train holds the images at the finest size (H, W divisible by every factor, else
+    InputError); the visual hull starts from the coarsest level and the training footprint is the finest level's.
+    test is rendered at its own size (the fit command passes it at the coarsest level).
 
     Returns (model, history) where history is a list of dicts (step, seconds, points, psnr, psnr_object, ssim,
     coverage) measured on `cfg.eval_views` test views; `seconds` is training wall-clock time, evaluation excluded.
@@ -329,11 +356,17 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     dev = resolve_device(cfg.device)
-    xyz = visual_hull_points(train.alphas, train.c2w, train.focal, model_cfg.num_points, seed=cfg.seed)
+    # Multi-scale training: one split per level, fine to coarse; the coarsest is the training size.
+    scales = parse_scales(cfg.train_scales)
+    levels = [train] if not scales else list(pyramid(train, scales).values())
+    level_p = torch.tensor(parse_weights(cfg.train_scale_weights, len(levels)), dtype=torch.float64)
+    level_steps = [0] * len(levels)
+    fine, coarse = levels[0], levels[-1]
+    xyz = visual_hull_points(coarse.alphas, coarse.c2w, coarse.focal, model_cfg.num_points, seed=cfg.seed)
 
     def start(mcfg):
         m = PointModel(mcfg, xyz, mean_spacing(xyz)).to(dev)
-        m.train_footprint.fill_(training_footprint(train.c2w, train.focal, xyz))
+        m.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, xyz))
         o = build_optimizer(m, cfg)
         return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev)
 
@@ -346,7 +379,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
 
     model, opt, base_lrs, dens = start(model_cfg)
     bg = torch.as_tensor(background, dtype=torch.float32, device=dev)
-    images, alphas, c2ws = train.images, train.alphas, train.c2w
+    c2ws = train.c2w
     eval_ids = list(range(0, len(test.files), max(1, len(test.files) // max(cfg.eval_views, 1))))[: cfg.eval_views]
     guard = CollapseGuard(blank_floor(test.images, test.alphas, eval_ids, background), cfg.guard_margin)
     history: list[dict] = []
@@ -382,6 +415,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             decay = cfg.lr_final ** frac
             for g, lr in zip(opt.param_groups, base_lrs):
                 g["lr"] = lr * decay
+            li = 0 if len(levels) == 1 else int(torch.multinomial(level_p, 1, generator=gen))
+            lv = levels[li]  # the level's images, size and camera; one level (off): the training images
+            level_steps[li] += 1
+            images, alphas = lv.images, lv.alphas
             v = int(torch.randint(images.shape[0], (1,), generator=gen))
             zoom = 1
             if cfg.zoom_frac > 0 and float(torch.rand(1, generator=gen)) < cfg.zoom_frac:
@@ -395,15 +432,12 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
                 px = zoom_pixels(px, size, zoom)
                 pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
-            o, d = rays_for_pixels(c2w, px, train.height, train.width, train.focal)
             search = model.xyz.detach()
             p_drop = cfg.dropout * _cosine(min(frac * 2, 1.0))
             if p_drop > 0:
                 drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
                 search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
-            idx = select_neighbors(search, model_cfg.neighbors, model_cfg.k, c2w, train.height * zoom,
-                                   train.width * zoom, _zoom_focal(train.focal, zoom), px * zoom,
-                                   o, d, model_cfg.neighbor_radius_px)
+            o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
             att = model.attend(model.xyz, model.influence, o, d, idx, keys=cfg.key_path)
             sh = model.shade(att, d, idx, bg)
             zs = size * zoom
@@ -475,9 +509,11 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             else:
                 bar.update(1, **info)
     # the training pixel's world size at the final points (what renders at other sizes are scaled against)
-    model.train_footprint.fill_(training_footprint(train.c2w, train.focal, model.xyz.detach()))
+    model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
     scores = evaluate(model, test, eval_ids, background)
     reason = collapse_reason(scores, guard.floor, cfg.guard_margin)
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,
                     "guard": {**guard.summary(), "collapsed": reason}})
+    if scales:  # steps per level, finest first: {"1": n, "2": n, ...}
+        history[-1]["train_levels"] = {str(s): n for s, n in zip(scales, level_steps)}
     return model, history

@@ -422,7 +422,9 @@ def test_deeply_nested_json_is_a_clear_error(env, tmp_path, capsys):
                                         ("--device", "bogus"), ("--atlas-device", "gpu7"), ("--k", "0"),
                                         ("--atlas-texture-res", "100000"), ("--atlas-texture-res", "-1"),
                                         ("--dropout", "1"), ("--downscale", "0"), ("--atlas-lr", "nan"),
-                                        ("--neighbor-radius-px", "-2"), ("--neighbor-radius-px", "nan")])
+                                        ("--neighbor-radius-px", "-2"), ("--neighbor-radius-px", "nan"),
+                                        ("--train-scales", "1,x"), ("--train-scales", "2,2"),
+                                        ("--train-scales", "0,2")])
 def test_fit_flags_are_validated_with_the_flag_named(env, tmp_path, capsys, monkeypatch, flag, value):
     import core.images.dataset
 

@@ -1,6 +1,7 @@
 """`pointgt fit` end to end on a tiny analytic scene written to disk: the summary is measured on every test view."""
 import json
 
+import pytest
 import torch
 
 from core.bundle import load_bundle
@@ -83,3 +84,28 @@ def test_fit_refuses_to_hand_over_a_blank_model(tmp_path, capsys, monkeypatch):
     assert meta["train"]["guard"]["collapsed"] and meta["train"]["guard"]["blank_floor_all_views"]["psnr"] > 0
     assert load_bundle(out, "cpu").atlas is None  # stage 2 did not run on it
     assert main(args + ["--stage", "papr", "--allow-blank"]) == 0
+
+
+def test_fit_multi_scale_trains_from_the_loaded_size_at_the_coarsest(tmp_path, capsys):
+    """`pointgt fit --train-scales 1,2` on 24² images: the model's training size is 12² (its meta, test figures),
+    the finest level sets the training footprint; factors that do not divide the images are refused first."""
+    from core.points.resolution import training_footprint
+
+    root = tmp_path / "card"
+    write_split(root, render_split("card", fibonacci_cameras(6, seed=0), 24))
+    write_split(root, render_split("card", fibonacci_cameras(2, seed=5), 24, split="test"))
+    out = tmp_path / "m.pgt"
+    flags = ["--out", str(out), "--stage", "papr", "--steps", "12", "--points", "300", "--eval-views", "1",
+             "--no-profile", "--no-progress", "--device", "cpu", "--threads", "1", "--allow-blank"]
+    assert main(["fit", str(root), *flags, "--train-scales", "1,5"]) != 0
+    assert "--train-scales" in capsys.readouterr().err and not out.exists()
+    assert main(["fit", str(root), *flags, "--train-scales", "1,2", "--train-scale-weights", "1,1"]) == 0
+    assert "multi-scale training on levels 24x24, 12x12; training size 12x12" in capsys.readouterr().out
+    bundle = load_bundle(out, "cpu")
+    scene = bundle.meta["scene"]
+    assert (scene["width"], scene["train_images"]["width"]) == (12, 24)
+    levels = bundle.meta["train"]["final"]["train_levels"]
+    assert sum(levels.values()) == 12 and min(levels.values()) > 0, levels
+    native = load_split(root, "train")
+    fp = training_footprint(native.c2w, native.focal, bundle.model.xyz.detach())
+    assert float(bundle.model.train_footprint) == pytest.approx(fp, rel=1e-5)

@@ -59,3 +59,33 @@ def test_bench_end_to_end_on_a_tiny_library_scene(tmp_path):
     assert rows[0]["psnr_object"] == pytest.approx(rows[1]["psnr_object"])  # 1x: every mode the same
     assert (tmp_path / "w" / "tube" / "x2" / "scene.json").exists() and "| tube | zoom | 32² (2x) |" in md.read_text()
     assert (tmp_path / "w" / "tube" / "model_3_zoom.pgt").exists() and all(r["fit"] == "zoom" for r in rows)
+    # --train-hires 2 on the same folder: the 2x scene gets its training views, the fit trains from them on
+    # levels 32² and 16² (its training size is still 16²), the rows say so
+    assert resolution.main(["--work", str(tmp_path / "w"), "--scenes", "tube", "--size", "16", "--factors", "2",
+                            "--views-train", "4", "--views-test", "2", "--steps", "3", "--render-mode", "filtered",
+                            "--train-hires", "2", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["factor"], r["fit"]) for r in rows] == [(1, "hires2"), (2, "hires2")]
+    assert resolution.train_views(tmp_path / "w" / "tube" / "x2") == 4
+    from core.bundle import load_bundle
+
+    meta = load_bundle(tmp_path / "w" / "tube" / "model_3_hires2.pgt", "cpu").meta
+    assert meta["scene"]["width"] == 16 and meta["scene"]["train_images"]["width"] == 32
+    assert meta["train"]["config"]["train_scales"] == "1,2"
+    assert rows[1]["scale"] == pytest.approx(1.0)  # the 2x frame is the finest level's size: rendered as trained
+
+
+def test_hires_scales_are_the_powers_of_two_that_divide_the_factor_and_the_factor():
+    assert [resolution.hires_scales(f) for f in (2, 3, 4, 6, 8, 12)] == ["1,2", "1,3", "1,2,4", "1,2,6", "1,2,4,8",
+                                                                         "1,2,4,12"]
+
+
+def test_step_seconds_times_both_fits_alternating():
+    from tests.helpers.tiny import model_config
+
+    cams = fibonacci_cameras(3, seed=1)
+    low, high = render_split("sphere", cams, 16), render_split("sphere", cams, 32)
+    times = resolution.step_seconds(model_config("fast"), ["--train-scales", "1,2", "--patches", "1",
+                                                           "--patch-size", "8", "--threads", "1"],
+                                    low, high, low, steps=3, pairs=2)
+    assert sorted(times) == ["1x", "hires"] and all(len(v) == 2 and all(t > 0 for t in v) for v in times.values())

@@ -2,8 +2,8 @@
 those sizes.
 
     python -m tools.bench.resolution --work DIR [--scenes tube,crate,suzanne] [--size 64] [--factors 2,4]
-        [--steps 300] [--fit-args "--zoom-frac 0.5" --tag zoom] [--model M.pgt] [--views-test 8] [--threads 1]
-        [--render-mode auto,pixels,...] [--json OUT] [--markdown OUT]
+        [--steps 300] [--fit-args "--zoom-frac 0.5" --tag zoom] [--train-hires 4] [--model M.pgt]
+        [--views-test 8] [--threads 1] [--render-mode auto,pixels,...] [--json OUT] [--markdown OUT]
 
 Per library scene (`pointgt make-scene --list`): the Cycles ground truth at 1x (`make-scene --size S`, train and
 test views) and at each factor F (`--size F*S`, the same test cameras: a scene's cameras depend on the seed, not
@@ -18,6 +18,18 @@ render's coverage):
 Seconds per frame: the native render, and the 1x render plus its upsampling. Factor 1 is scored too (native = the
 training size: a check that a mode leaves it unchanged). The scale factor of each frame comes from the model's
 training footprint (a --model file from before it gets the 1x test cameras').
+
+--train-hires H fits from the ground truth at H x the training size instead (the H x folder then holds the train
+views too: `make-scene --size H*S` renders the same training cameras) with multi-scale training,
+`pointgt fit --train-scales 1,2,...,H` (the powers of two below H that divide it, and H; a `--train-scales` or
+`--train-scale-weights` in --fit-args wins): its coarsest level is the training size S, so the 1x render, the
+bicubic rows and the evaluation are those of the 1x fit, and the fit column says `hiresH`. Such a model has seen
+the H x data: at H x its ceiling is the ground truth itself, and how far its native render rises above the
+upsampled 1x ground truth (the most a 1x fit can hold) is the detail it learned from the finer images. Its
+training footprint is the finest level's, so it renders at H x S as it was trained (scale factor 1).
+--time-steps N (with --train-hires) also times stage-1 steps: per scene, 3 pairs of N-step `fit_points` runs in
+this process, the fit from the 1x images and the multi-scale one from the H x images alternating (the settings of
+--fit-args, the decoder and K of the fitted model, evaluation excluded): seconds per step, min / median / max.
 """
 from __future__ import annotations
 
@@ -33,6 +45,52 @@ from tools.bench import run_command
 from tools.machine import machine_line
 
 DEFAULT_SCENES = "tube,crate,suzanne"
+
+
+def hires_scales(factor: int) -> str:
+    """The --train-scales of a fit from images `factor` x the training size: the powers of two below it that
+    divide it, and the factor itself (so every level divides the images): "1,2,4" for 4, "1,2,6" for 6, "1,3"
+    for 3."""
+    out, s = [], 1
+    while s < factor:
+        if factor % s == 0:
+            out.append(s)
+        s *= 2
+    return ",".join(map(str, out + [factor]))
+
+
+def train_views(folder: Path) -> int:
+    """Number of training frames of a rendered scene folder (0 when it has none)."""
+    try:
+        return len(json.loads((folder / "transforms_train.json").read_text())["frames"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
+def step_seconds(model_cfg, fit_args: list[str], low_train, high_train, test, steps: int, pairs: int = 3,
+                 seed: int = 0) -> dict:
+    """Seconds per stage-1 step of the fit from the 1x split low_train and of the one --fit-args describe (its
+    --train-scales) from high_train, `pairs` times each, alternating (so a drift of the machine's speed hits both).
+    model_cfg: the ModelConfig both use. Returns {"1x": [s/step, ...], "hires": [...]}."""
+    import argparse
+    import dataclasses
+
+    from core.config import add_to_parser, from_args
+    from core.points.train import TrainConfig, fit_points
+
+    ap = argparse.ArgumentParser(add_help=False)
+    add_to_parser(ap, TrainConfig)
+    hires_cfg, _ = ap.parse_known_args(fit_args)
+    hires_cfg = from_args(TrainConfig, hires_cfg)
+    plain = dataclasses.replace(hires_cfg, train_scales="", train_scale_weights="")
+    out = {"1x": [], "hires": []}
+    for i in range(pairs):
+        for key, split, cfg in (("1x", low_train, plain), ("hires", high_train, hires_cfg)):
+            cfg = dataclasses.replace(cfg, steps=steps, minutes=0.0, eval_every=1e9, eval_views=1, seed=seed + i,
+                                      device="cpu")
+            _, hist = fit_points(split, test, model_cfg, cfg, show_progress=False)
+            out[key].append(hist[-1]["seconds"] / max(hist[-1]["step"], 1))
+    return out
 
 
 def upsample(img, factor: int):
@@ -123,10 +181,15 @@ def main(argv=None) -> int:
     ap.add_argument("--factors", default="2,4", help="comma-separated render size factors (1 is always scored)")
     ap.add_argument("--views-train", type=int, default=40)
     ap.add_argument("--views-test", type=int, default=8)
-    ap.add_argument("--steps", type=int, default=300, help="stage-1 steps of the 1x fit")
-    ap.add_argument("--fit-args", default="", help="more `pointgt fit` flags for the 1x fit (one string)")
-    ap.add_argument("--tag", default="", help="name of this fit setting: the model file is model_<steps>_<tag>.pgt "
+    ap.add_argument("--steps", type=int, default=300, help="stage-1 steps of the fit")
+    ap.add_argument("--fit-args", default="", help="more `pointgt fit` flags for the fit (one string)")
+    ap.add_argument("--tag", default="", help="name of this fit setting: the model file is model_<steps>[_hires<H>]_<tag>.pgt "
                                              "(needed with --fit-args, so settings do not share a file)")
+    ap.add_argument("--train-hires", type=int, default=0,
+                    help="fit from the ground truth at this factor x --size with multi-scale training "
+                         "(`fit --train-scales 1,2,...,H`); 0 = fit at 1x")
+    ap.add_argument("--time-steps", type=int, default=0,
+                    help="with --train-hires: also time this many stage-1 steps of both fits, 3 pairs alternating")
     ap.add_argument("--model", default=None, help="a model fitted at --size on the one scene of --scenes "
                                                   "(instead of fitting)")
     ap.add_argument("--render-mode", default="auto",
@@ -150,6 +213,16 @@ def main(argv=None) -> int:
         ap.error("--factors: integers >= 1")
     if args.fit_args and not args.tag:
         ap.error("--fit-args: name the setting with --tag (the model file's name)")
+    if args.train_hires < 0 or args.train_hires == 1:
+        ap.error("--train-hires: a factor >= 2 (0 = fit at 1x)")
+    if args.time_steps and not args.train_hires:
+        ap.error("--time-steps compares the 1x fit with --train-hires's: give --train-hires")
+    if args.train_hires and args.model:
+        ap.error("--train-hires fits a model: leave out --model")
+    hires = args.train_hires
+    fit_args = shlex.split(args.fit_args)
+    if hires and "--train-scales" not in fit_args:
+        fit_args += ["--train-scales", hires_scales(hires)]
     if args.model and len(scenes) != 1:
         ap.error("--model: give exactly one scene in --scenes (the scene the model was fitted on)")
     if args.threads > 0:
@@ -157,29 +230,37 @@ def main(argv=None) -> int:
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m", "tools.cli"]
-    fit_desc = f"{args.steps} steps{(' ' + args.fit_args) if args.fit_args else ''}"
+    fit_desc = f"{args.steps} steps{(' ' + shlex.join(fit_args)) if fit_args else ''}"
+    if hires:
+        fit_desc += f" from the {args.size * hires}² images"
     if args.model:
         fit_desc = f"the model {args.model}"
     head = (f"{machine_line()}\n1x = {args.size}², fit: {fit_desc}, {args.threads} thread(s), "
             f"{args.views_train} train / {args.views_test} test views, seed {args.seed}")
     print(head, flush=True)
     rows = []
+    timing: dict = {}
     for name in scenes:
-        for f in factors:
+        for f in sorted({*factors, *([hires] if hires else [])}):
             folder = work / name / f"x{f}"
-            if not (folder / "scene.json").exists():
-                train = args.views_train if f == 1 else 1  # only the 1x training views are used
+            train = args.views_train if f in (1, hires) else 1  # only the training size's views are used
+            if not (folder / "scene.json").exists() or train_views(folder) < train:
                 run_command(py + ["make-scene", name, "--out", str(folder), "--size", str(args.size * f),
                                   "--views-train", str(train), "--views-val", "0", "--views-test", str(args.views_test),
-                                  "--seed", str(args.seed)], print, check=True)
-        suffix = f"_{args.tag}" if args.tag else ""
+                                  "--seed", str(args.seed), "--force"], print, check=True)
+        suffix = (f"_hires{hires}" if hires else "") + (f"_{args.tag}" if args.tag else "")
         model_path = Path(args.model) if args.model else work / name / f"model_{args.steps}{suffix}.pgt"
         if not model_path.exists():
-            run_command(py + ["fit", str(work / name / "x1"), "--stage", "papr", "--steps", str(args.steps),
-                              "--minutes", "0", "--threads", str(args.threads), "--no-progress", "--seed",
-                              str(args.seed), "--allow-blank", *shlex.split(args.fit_args), "--out", str(model_path)],
+            run_command(py + ["fit", str(work / name / f"x{hires or 1}"), "--stage", "papr", "--steps",
+                              str(args.steps), "--minutes", "0", "--threads", str(args.threads), "--no-progress",
+                              "--seed", str(args.seed), "--allow-blank", *fit_args, "--out", str(model_path)],
                         print, check=True)
-        model = load_bundle(model_path, device="cpu").model.eval()
+        bundle = load_bundle(model_path, device="cpu")
+        size = bundle.meta.get("scene", {}).get("width")
+        if size is not None and size != args.size:
+            raise SystemExit(f"{model_path}: trained at {size}², not --size {args.size}² (with --train-hires, the "
+                             "coarsest of --train-scales must be the hires factor)")
+        model = bundle.model.eval()
         low = load_split(work / name / "x1", "test")
         if not float(model.train_footprint) > 0:  # a model file from before the footprint: the 1x test cameras'
             model.train_footprint.fill_(training_footprint(low.c2w, low.focal, model.xyz.detach()))
@@ -188,12 +269,24 @@ def main(argv=None) -> int:
             high = low if f == 1 else load_split(work / name / f"x{f}", "test")
             for mode in modes:
                 res = evaluate(model, low, high, f, mode, cache)
-                row = {"scene": name, "factor": f, "size": high.width, "mode": mode, "fit": args.tag or "default",
+                fit = "+".join(t for t in (f"hires{hires}" if hires else "", args.tag) if t) or "default"
+                row = {"scene": name, "factor": f, "size": high.width, "mode": mode, "fit": fit,
                        **res}
                 rows.append(row)
                 print(markdown([row], "").strip().splitlines()[-1], flush=True)
+        if args.time_steps:
+            import statistics
+
+            times = step_seconds(model.cfg, fit_args, load_split(work / name / "x1", "train"),
+                                 load_split(work / name / f"x{hires}", "train"), low, args.time_steps,
+                                 seed=args.seed)
+            for key, vals in times.items():
+                print(f"{name}: seconds per step, {key} fit, min / median / max of {len(vals)}: "
+                      f"{min(vals):.3f} / {statistics.median(vals):.3f} / {max(vals):.3f}", flush=True)
+            timing[name] = times
         if args.json:
-            Path(args.json).write_text(json.dumps({"machine": head, "rows": rows}, indent=1))
+            Path(args.json).write_text(json.dumps({"machine": head, "rows": rows, "step_seconds": timing},
+                                                  indent=1))
     table = markdown(rows, "```\n" + head + "\n```")
     print(table)
     for f in factors[1:]:

@@ -72,6 +72,11 @@ def run(args) -> int:
     from core.util.device import check_device
 
     check_device(train_cfg.device, "--device")
+    from core.images.pyramid import check_divides, downscale_split, parse_scales, parse_weights
+
+    scales = parse_scales(train_cfg.train_scales)  # multi-scale training (--train-scales), [] = off
+    if scales:
+        parse_weights(train_cfg.train_scale_weights, len(scales))
     check_device(atlas_cfg.device, "--atlas-device")
     existed = out.exists()
     bundle = None
@@ -81,6 +86,14 @@ def run(args) -> int:
                         progress=not args.no_progress, **load_kw)
     train, test = data["train"], data["test"]
     print(f"[fit] {args.data}: {len(train)} train / {len(test)} test views at {train.width}x{train.height}")
+    images = train  # what stage 1 trains on: the loaded images, or with --train-scales the finest level's
+    if scales:
+        check_divides(train.height, train.width, scales, where="training")
+        check_divides(test.height, test.width, scales, where="test")
+        # The coarsest level is the training size: profile, test renders, atlas and the model's meta use it.
+        train, test = downscale_split(train, scales[-1]), downscale_split(test, scales[-1])
+        print(f"[fit] multi-scale training on levels {', '.join(f'{images.width // s}x{images.height // s}' for s in scales)}; "
+              f"training size {train.width}x{train.height}")
     profile = None
     if args.profile and args.stage in ("papr", "all"):
         from core.profile import apply_profile, explicit_fields, scene_profile
@@ -99,7 +112,7 @@ def run(args) -> int:
     if args.stage in ("papr", "all"):
         t0 = time.perf_counter()
         try:
-            model, history = fit_points(train, test, model_cfg, train_cfg, show_progress=not args.no_progress)
+            model, history = fit_points(images, test, model_cfg, train_cfg, show_progress=not args.no_progress)
         except KeyboardInterrupt:
             raise KeyboardInterrupt(f"nothing was saved; {out} is unchanged") from None
         seconds = time.perf_counter() - t0
@@ -116,7 +129,9 @@ def run(args) -> int:
                  "collapsed": collapse_reason(all_views, floor, train_cfg.guard_margin)}
         meta = {"scene": {"data": str(Path(args.data).resolve()), "width": train.width, "height": train.height,
                           "camera_angle_x": train.camera_angle_x, "layout": train.layout,
-                          "intrinsics": dict(zip(("fx", "fy", "cx", "cy"), train.intrinsics.as_list()))},
+                          "intrinsics": dict(zip(("fx", "fy", "cx", "cy"), train.intrinsics.as_list())),
+                          **({"train_images": {"width": images.width, "height": images.height}}
+                             if images is not train else {})},
                 "profile": profile.to_dict() if profile else None,
                 "train": {"config": to_dict(train_cfg), "seconds": round(seconds, 2),
                           "train_seconds": final["seconds"], "steps": final["step"], "final": final,

@@ -1,0 +1,107 @@
+"""Multi-scale stage-1 training (`TrainConfig.train_scales`): one level is the plain step exactly, a level's
+neighbours are those of a frame of its size, and every level trains."""
+import pytest
+import torch
+
+from core.images.pyramid import downscale_split
+from core.points.render import trace_frame
+from core.points.resolution import training_footprint
+from core.points.train import TrainConfig, fit_points, patch_neighbors, sample_patches
+from core.util.errors import DataError, InputError
+from tests.helpers.synthetic import fibonacci_cameras, render_split
+from tests.helpers.tiny import model_config
+
+TINY_MODEL = model_config("card", num_points=600)
+
+
+def _cfg(**kw):
+    base = dict(steps=40, patches=2, patch_size=12, eval_every=1e9, eval_views=2, device="cpu", seed=0, threads=1,
+                prune_every=15, clone_every=20, reg_start=0.0, max_points=700, lr_final=0.2)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def _native(size=48, views=3):
+    cams = fibonacci_cameras(views, seed=3)
+    return render_split("sphere", cams, size)
+
+
+def _state(model):
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def _same(a, b):
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_one_level_is_the_plain_step_exactly():
+    """--train-scales 1 is the fit without it; --train-scales 2 alone is the fit on the images downscaled by 2
+    (the loader's --downscale 2): same model to the bit, same history."""
+    native = _native()
+    test = downscale_split(native, 2)
+    for decoder in ("none", "unet"):
+        mcfg = model_config("card", num_points=600, decoder=decoder)
+        plain, h0 = fit_points(native, test, mcfg, _cfg(), show_progress=False)
+        one, h1 = fit_points(native, test, mcfg, _cfg(train_scales="1"), show_progress=False)
+        assert _same(_state(plain), _state(one)) and h0[-1]["psnr"] == h1[-1]["psnr"]
+        assert h1[-1]["train_levels"] == {"1": 40} and "train_levels" not in h0[-1]
+        low, h2 = fit_points(test, test, mcfg, _cfg(), show_progress=False)
+        two, h3 = fit_points(native, test, mcfg, _cfg(train_scales="2"), show_progress=False)
+        assert _same(_state(low), _state(two)) and h2[-1]["psnr"] == h3[-1]["psnr"]
+
+
+def test_a_levels_neighbours_are_those_of_a_frame_of_its_size():
+    """The step searches a level's pixels as render_frame at that size does (pixel-radius rule included)."""
+    native = _native(size=64)
+    model, _ = fit_points(downscale_split(native, 4), downscale_split(native, 4), TINY_MODEL, _cfg(steps=10),
+                          show_progress=False)
+    for s in (1, 2, 4):
+        level = downscale_split(native, s)
+        px, rows, cols, _ = sample_patches(level.alphas[0], 3, 8, 1.0, torch.Generator().manual_seed(1))
+        o, d, idx = patch_neighbors(model.xyz.detach(), model.cfg, level.c2w[0], level, px)
+        tr = trace_frame(model, level.c2w[0], level.height, level.width, level.focal)
+        flat = rows * level.width + cols
+        assert torch.equal(idx, tr.idx[flat]), s
+        assert torch.allclose(o, tr.origins[flat]) and torch.allclose(d, tr.dirs[flat], atol=1e-6)
+
+
+def test_every_level_trains_and_the_footprint_is_the_finest_levels():
+    native = _native()
+    for decoder in ("none", "unet"):
+        mcfg = model_config("card", num_points=600, decoder=decoder)
+        cfg = _cfg(steps=120, train_scales="1,2,4", prune_every=0, clone_every=0)
+        model, hist = fit_points(native, downscale_split(native, 4), mcfg, cfg, show_progress=False)
+        levels = hist[-1]["train_levels"]
+        assert sum(levels.values()) == 120 and min(levels.values()) > 20, levels
+        for p in model.parameters():
+            assert torch.isfinite(p).all()
+        assert hist[-1]["psnr"] > hist[0]["psnr"] + 5, (decoder, hist[0]["psnr"], hist[-1]["psnr"])
+        fine = training_footprint(native.c2w, native.focal, model.xyz.detach())
+        assert float(model.train_footprint) == pytest.approx(fine, rel=1e-6)
+        # the finest level's pixel is a quarter of the coarsest's: renders at the native size are at scale 1
+        assert fine == pytest.approx(training_footprint(native.c2w, native.focal / 4, model.xyz.detach()) / 4)
+
+
+def test_level_weights_pick_the_levels():
+    native = _native(size=32)
+    _, hist = fit_points(native, native, TINY_MODEL, _cfg(steps=30, train_scales="1,2", train_scale_weights="0,1"),
+                         show_progress=False)
+    assert hist[-1]["train_levels"] == {"1": 0, "2": 30}
+
+
+def test_extreme_levels_sizes_that_do_not_divide_and_a_one_pixel_level():
+    odd = _native(size=33)
+    with pytest.raises(InputError, match="--train-scales"):
+        fit_points(odd, odd, TINY_MODEL, _cfg(steps=5, train_scales="1,2"), show_progress=False)
+    with pytest.raises(InputError, match="--train-scale-weights"):
+        fit_points(odd, odd, TINY_MODEL, _cfg(steps=5, train_scales="1,3", train_scale_weights="1"),
+                   show_progress=False)
+    # a coarsest level smaller than a patch (4² for 12² patches): the fit runs and stays finite
+    tiny = _native(size=16)
+    model, hist = fit_points(tiny, tiny, TINY_MODEL, _cfg(steps=20, train_scales="1,4", patch_size=12),
+                             show_progress=False)
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    assert hist[-1]["train_levels"]["4"] > 0
+    # one pixel, the object no longer opaque in it: the visual hull says so, as --downscale 16 would
+    with pytest.raises(DataError, match="no 3-D point projects onto the foreground"):
+        fit_points(tiny, tiny, TINY_MODEL, _cfg(steps=5, train_scales="1,16"), show_progress=False)
