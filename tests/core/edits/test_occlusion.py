@@ -102,17 +102,24 @@ def test_extreme_inputs_stay_finite():
     assert torch.allclose(out.weights.sum(1) + out.bg, torch.ones(2), atol=1e-5)
 
 
+def _noisy_three_parts(g: torch.Generator):
+    """The fold's two layers plus an edge in front of them, positions jittered and a random near-identity inverse
+    gradient per point: points [M, 3], p_can [M, 3], inv_f [M, 3, 3]."""
+    points, p_can, _ = _fold()
+    edge = _sheet(0.4, 3) + torch.tensor([0.3, 0.0, 0.0])
+    points = torch.cat([points, edge]) + 0.02 * torch.randn(points.shape[0] + edge.shape[0], 3, generator=g)
+    p_can = torch.cat([p_can, edge - torch.tensor([3.0, 0.0, 0.0])])
+    inv_f = torch.eye(3) + 0.1 * torch.randn(points.shape[0], 3, 3, generator=g)
+    return points, p_can, inv_f
+
+
 def test_compiled_and_torch_keep_the_same_neighbours():
     """Many rays over a noisy fold (three layers: front, back, an edge in front) with random neighbour lists and
     weights: the compiled walk keeps exactly the neighbours the torch reference keeps."""
     pytest.importorskip("numba")
     g = torch.Generator().manual_seed(1)
-    points, p_can, _ = _fold()
-    edge = _sheet(0.4, 3) + torch.tensor([0.3, 0.0, 0.0])
-    points = torch.cat([points, edge]) + 0.02 * torch.randn(points.shape[0] + edge.shape[0], 3, generator=g)
-    p_can = torch.cat([p_can, edge - torch.tensor([3.0, 0.0, 0.0])])
+    points, p_can, inv_f = _noisy_three_parts(g)
     m = points.shape[0]
-    inv_f = torch.eye(3) + 0.1 * torch.randn(m, 3, 3, generator=g)
     r, k = 300, 12
     idx = torch.stack([torch.randperm(m, generator=g)[:k] for _ in range(r)])
     idx[torch.rand(r, k, generator=g) < 0.1] = -1
@@ -150,12 +157,8 @@ def test_unoccluded_compiled_equals_torch():
     compiled choice takes exactly the candidates the torch reference takes."""
     pytest.importorskip("numba")
     g = torch.Generator().manual_seed(4)
-    points, p_can, _ = _fold()
-    edge = _sheet(0.4, 3) + torch.tensor([0.3, 0.0, 0.0])
-    points = torch.cat([points, edge]) + 0.02 * torch.randn(points.shape[0] + edge.shape[0], 3, generator=g)
-    p_can = torch.cat([p_can, edge - torch.tensor([3.0, 0.0, 0.0])])
+    points, p_can, inv_f = _noisy_three_parts(g)
     m = points.shape[0]
-    inv_f = torch.eye(3) + 0.1 * torch.randn(m, 3, 3, generator=g)
     s, c = 300, 16
     cand = torch.stack([torch.randperm(m, generator=g)[:c] for _ in range(s)])
     cand[torch.rand(s, c, generator=g) < 0.15] = -1
