@@ -113,6 +113,14 @@ def _noisy_three_parts(g: torch.Generator):
     return points, p_can, inv_f
 
 
+def _random_lists(m: int, rows: int, cols: int, empty: float, g: torch.Generator) -> torch.Tensor:
+    """rows lists of cols distinct point indices in [0, m), each slot -1 (empty) with probability `empty`:
+    [rows, cols] int64."""
+    lists = torch.stack([torch.randperm(m, generator=g)[:cols] for _ in range(rows)])
+    lists[torch.rand(rows, cols, generator=g) < empty] = -1
+    return lists
+
+
 def test_compiled_and_torch_keep_the_same_neighbours():
     """Many rays over a noisy fold (three layers: front, back, an edge in front) with random neighbour lists and
     weights: the compiled walk keeps exactly the neighbours the torch reference keeps."""
@@ -121,8 +129,7 @@ def test_compiled_and_torch_keep_the_same_neighbours():
     points, p_can, inv_f = _noisy_three_parts(g)
     m = points.shape[0]
     r, k = 300, 12
-    idx = torch.stack([torch.randperm(m, generator=g)[:k] for _ in range(r)])
-    idx[torch.rand(r, k, generator=g) < 0.1] = -1
+    idx = _random_lists(m, r, k, 0.1, g)
     w = torch.rand(r, k, generator=g) * (idx >= 0)
     fg = w / w.sum(1, keepdim=True).clamp_min(1e-12)
     xy = 0.2 * torch.randn(r, 2, generator=g)
@@ -160,8 +167,7 @@ def test_unoccluded_compiled_equals_torch():
     points, p_can, inv_f = _noisy_three_parts(g)
     m = points.shape[0]
     s, c = 300, 16
-    cand = torch.stack([torch.randperm(m, generator=g)[:c] for _ in range(s)])
-    cand[torch.rand(s, c, generator=g) < 0.15] = -1
+    cand = _random_lists(m, s, c, 0.15, g)
     cand[:3] = -1
     anchor = cand.clamp_min(0)[:, 0]
     o = torch.cat([0.2 * torch.randn(s, 2, generator=g), torch.full((s, 1), 5.0)], 1)
