@@ -51,6 +51,27 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
 BACKENDS = ("auto", "torch", "compiled")
+
+
+def _compiled(backend: str, device: torch.device) -> bool:
+    """Whether the compiled loops run for `backend` ("auto": where numba is there and the tensors are on the CPU);
+    ValueError for an unknown backend, or "compiled" where it cannot run."""
+    if backend not in BACKENDS:
+        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
+    compiled = backend != "torch" and numba is not None and device.type == "cpu"
+    if backend == "compiled" and not compiled:
+        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
+    return compiled
+
+
+def _f32(t: torch.Tensor) -> np.ndarray:
+    """t as a contiguous float32 numpy array on the CPU (what the compiled loops take)."""
+    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
+
+
+def _i64(t: torch.Tensor) -> np.ndarray:
+    """t as a contiguous int64 numpy array on the CPU."""
+    return np.ascontiguousarray(t.detach().to("cpu", torch.int64).numpy())
 # The edited render searches a ray again only when the neighbours its front layer hides hold more than this share of
 # its foreground weight: below it, redoing the ray changed the cloth's and the strip's joint by at most 0.03 dB
 # (`python -m tools.bench.regions`) and cost a fifth to a third more redone rays.
@@ -98,16 +119,12 @@ def front_anchors(trace: Trace, points: torch.Tensor, p_can: torch.Tensor, inv_f
     rays whose dropped neighbours hold more than this share of their foreground weight): None when there is
     none, else (rows [S] int64 ray indices, anchor [S] int64 the point that starts each ray's front layer, depth
     [S] its depth along the ray, keep [S, K] bool: the ray's neighbours in that layer or in front of it)."""
-    if backend not in BACKENDS:
-        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
     idx = trace.idx
+    compiled = _compiled(backend, idx.device)
     if idx.shape[0] == 0 or idx.shape[1] < 2:
         return None
     pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
     can, fi = p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32)
-    compiled = backend != "torch" and numba is not None and idx.device.type == "cpu"
-    if backend == "compiled" and not compiled:
-        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
     if compiled:  # one pass over the whole frame's arrays (no gathers): only rays that drop something come back
         keep, first = _keep_compiled(idx, trace.fg_weights, trace.active, trace.origins, trace.dirs, pts, can, fi,
                                      float(alpha), float(beta) * float(spacing), float(min_share), float(min_hidden))
@@ -141,11 +158,7 @@ def unoccluded(candidates: torch.Tensor, anchor: torch.Tensor, depth: torch.Tens
     rays origins / dirs [S, 3] as from `front_anchors`; points, p_can, inv_f as there; backend: "compiled" (CPU,
     numba), "torch" or "auto" (compiled where it can run; both choose the same). Returns idx [S, k] (-1 pads).
     """
-    if backend not in BACKENDS:
-        raise ValueError(f"occlusion backend must be one of {BACKENDS}, got {backend!r}")
-    compiled = backend != "torch" and numba is not None and candidates.device.type == "cpu"
-    if backend == "compiled" and not compiled:
-        raise ValueError("occlusion backend 'compiled' needs numba and a CPU device; use 'auto' or 'torch'")
+    compiled = _compiled(backend, candidates.device)
     pts = torch.nan_to_num(points.detach().to(torch.float32), nan=0.0, posinf=0.0, neginf=0.0)
     can, fi = p_can.detach().to(torch.float32), inv_f.detach().to(torch.float32)
     if compiled:
@@ -184,19 +197,11 @@ def _unoccluded_loop(cand, anchor, depth, o, d, pts, can, fi, alpha, tol, out):
                     break
 
 
-_choice_kernel = None
-
-
 def _unoccluded_compiled(cand, anchor, depth, origins, dirs, pts, can, fi, alpha, tol, k):
     """`unoccluded` by the compiled loop (float32 tensors in, idx [S, k] int64 out)."""
-    global _choice_kernel
-    if _choice_kernel is None:
-        _choice_kernel = _jit(_unoccluded_loop)
     out = np.full((cand.shape[0], k), -1, dtype=np.int64)
-    f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
-    i64 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.int64).numpy())  # noqa: E731
-    _choice_kernel(i64(cand), i64(anchor), f32(depth), f32(origins), f32(dirs), f32(pts), f32(can),
-                   f32(fi.reshape(-1, 9)), alpha, tol, out)
+    _kernel(_unoccluded_loop)(_i64(cand), _i64(anchor), _f32(depth), _f32(origins), _f32(dirs), _f32(pts), _f32(can),
+                              _f32(fi.reshape(-1, 9)), alpha, tol, out)
     return torch.from_numpy(out).to(cand.device)
 
 
@@ -341,14 +346,14 @@ def _in_layer(pts, can, fi, m, l, alpha, tol):
 _in_layer = _jit(_in_layer)  # a compiled _keep_loop calls the compiled form
 
 
-_kernel = None
+_kernels: dict = {}
 
 
-def _get_kernel():
-    global _kernel
-    if _kernel is None:
-        _kernel = _jit(_keep_loop)
-    return _kernel
+def _kernel(loop):
+    """The compiled form of one of this module's loops, compiled on first use and kept."""
+    if loop not in _kernels:
+        _kernels[loop] = _jit(loop)
+    return _kernels[loop]
 
 
 def _keep_compiled(idx, w, active, origins, dirs, pts, can, fi, alpha, tol, min_share, min_hidden=0.0):
@@ -358,9 +363,8 @@ def _keep_compiled(idx, w, active, origins, dirs, pts, can, fi, alpha, tol, min_
     k = idx.shape[1]
     keep = np.ones(tuple(idx.shape), dtype=np.uint8)
     first = np.full(idx.shape[0], -1, dtype=np.int64)
-    f32 = lambda t: np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())  # noqa: E731
-    _get_kernel()(np.ascontiguousarray(idx.to("cpu", torch.int64).numpy()), f32(w),
-                  np.ascontiguousarray(active.to("cpu", torch.bool).numpy()), f32(origins), f32(dirs),
-                  f32(pts), f32(can), f32(fi.reshape(-1, 9)), float(alpha), float(tol), float(min_share),
-                  float(min_hidden), keep, first, np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.float64))
+    _kernel(_keep_loop)(_i64(idx), _f32(w), np.ascontiguousarray(active.to("cpu", torch.bool).numpy()),
+                        _f32(origins), _f32(dirs), _f32(pts), _f32(can), _f32(fi.reshape(-1, 9)), float(alpha),
+                        float(tol), float(min_share), float(min_hidden), keep, first, np.zeros(k, dtype=np.int64),
+                        np.zeros(k, dtype=np.float64))
     return torch.from_numpy(keep).to(idx.device, torch.bool), torch.from_numpy(first).to(idx.device)
