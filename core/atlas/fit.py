@@ -23,6 +23,17 @@ from core.util.progress import Progress
 MIN_SAMPLES = 64
 
 
+def _local_pca(xyz: np.ndarray, tree: cKDTree, query: np.ndarray, neighbours: int):
+    """Principal axes of the `neighbours` + 1 nearest samples of each query point: xyz [S, 3] with its tree,
+    query [m, 3] -> (offsets [m, K+1, 3] of those samples from the query point, eigenvalues [m, 3] ascending,
+    eigenvectors [m, 3, 3] as columns: the first the direction of least spread, the last two the tangent plane)."""
+    _, idx = tree.query(query, k=neighbours + 1)
+    nb = xyz[idx] - query[:, None]
+    c = nb - nb.mean(1, keepdims=True)
+    w, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", c, c))
+    return nb, w, vec
+
+
 def sample_spacing(xyz: np.ndarray, k: int = 8, neighbours: int = 48, max_points: int = 4000,
                    seed: int = 0, per_sample: bool = False):
     """(median nearest-neighbour distance, estimated surface area) of samples xyz [S, 3].
@@ -39,10 +50,7 @@ def sample_spacing(xyz: np.ndarray, k: int = 8, neighbours: int = 48, max_points
     tree = cKDTree(xyz)
     d1, _ = tree.query(xyz, k=2)
     sel = np.random.default_rng(seed).permutation(S)[:max_points]
-    _, idx = tree.query(xyz[sel], k=K + 1)
-    nb = xyz[idx] - xyz[sel][:, None]  # [m, K+1, 3] offsets (row 0 is the sample itself)
-    c = nb - nb.mean(1, keepdims=True)
-    _, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", c, c))  # ascending: the last two span the tangent plane
+    nb, _, vec = _local_pca(xyz, tree, xyz[sel], K)  # offsets [m, K+1, 3] (row 0 is the sample itself)
     r = np.sort(np.linalg.norm(np.einsum("mki,mij->mkj", nb, vec[:, :, 1:]), axis=-1), axis=1)[:, k]
     if per_sample:
         elem = S * math.pi * r ** 2 / k / len(sel)
@@ -68,10 +76,7 @@ def sample_normals(xyz: np.ndarray, neighbours: int = 256, max_points: int = 200
     sel = np.sort(np.random.default_rng(seed).permutation(S)[:max_points])
     normals = np.zeros((len(sel), 3))
     for s in range(0, len(sel), chunk):
-        _, idx = tree.query(xyz[sel[s:s + chunk]], k=K + 1)
-        nb = xyz[idx]
-        c = nb - nb.mean(1, keepdims=True)
-        w, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", c, c))  # ascending eigenvalues
+        _, w, vec = _local_pca(xyz, tree, xyz[sel[s:s + chunk]], K)
         ok = np.isfinite(vec[:, :, 0]).all(-1) & (w[:, 1] > 1e-30)  # a plane is defined (two directions of spread)
         normals[s:s + chunk][ok] = vec[ok, :, 0]
     _, near = cKDTree(xyz[sel]).query(xyz)
