@@ -3,7 +3,8 @@
 Each step renders a few random image patches of one training view (patches, not scattered rays, so the UNet
 decoder and SSIM see image structure), with neighbours re-selected from the current points. Schedules run on the
 fraction of the budget used (steps or wall-clock minutes, whichever ends first), so `--minutes` and `--steps`
-give the same shape of training.
+give the same shape of training. A time budget alone (`--minutes` without `--steps`) has no step cap: it trains
+for the minutes asked (`step_cap`).
 """
 from __future__ import annotations
 
@@ -31,13 +32,17 @@ from core.util.device import resolve_device
 from core.util.progress import Progress
 
 
+DEFAULT_STEPS = 6000  # the step budget of a fit given neither --steps nor --minutes
+
+
 @dataclass
 class TrainConfig:
     """Stage-1 training (PAPR + geometry regularizers)."""
 
-    steps: int = opt(6000, "maximum optimisation steps", min=1)
-    minutes: float = opt(0.0, "wall-clock budget in minutes (0 = no limit; training ends at whichever comes first)",
-                         min=0.0)
+    steps: int = opt(0, f"maximum optimisation steps (0 = no cap when --minutes is set, else {DEFAULT_STEPS})",
+                     min=0)
+    minutes: float = opt(0.0, "wall-clock budget in minutes (0 = no limit; with --steps too, training ends at "
+                              "whichever comes first)", min=0.0)
     patches: int = opt(16, "image patches per step", min=1, max=4096)
     patch_size: int = opt(16, "patch side in pixels", min=1, max=4096)
     fg_patch_frac: float = opt(0.75, "fraction of patches centred on foreground pixels", min=0.0, max=1.0)
@@ -90,6 +95,14 @@ class TrainConfig:
     seed: int = opt(0, "random seed", min=0)
     device: str = opt("auto", "cpu | cuda | auto")
     threads: int = opt(0, "torch CPU threads (0 = torch default)", min=0, max=1024)
+
+
+def step_cap(cfg: TrainConfig) -> float:
+    """The fit's step budget: `cfg.steps` when set (> 0); otherwise none (inf) under a time budget
+    (`cfg.minutes` > 0), so the minutes asked for are trained, and `DEFAULT_STEPS` without one."""
+    if cfg.steps > 0:
+        return float(cfg.steps)
+    return float("inf") if cfg.minutes > 0 else float(DEFAULT_STEPS)
 
 
 def _cosine(frac: float) -> float:
@@ -390,9 +403,11 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     # A restart (the guard's last resort) runs the schedules again over what is left of the budget.
     step0, sec0 = 0, 0.0
     by_time = budget_s < float("inf")
-    with Progress(1000 if by_time else cfg.steps, "fit", callback=progress_callback, enabled=show_progress) as bar:
-        while step < cfg.steps and train_s < budget_s:
-            frac = max((step - step0) / max(cfg.steps - step0, 1), (train_s - sec0) / (budget_s - sec0))
+    max_steps = step_cap(cfg)  # inf: a time budget alone, the minutes decide
+    with Progress(1000 if by_time else int(max_steps), "fit", callback=progress_callback,
+                  enabled=show_progress) as bar:
+        while step < max_steps and train_s < budget_s:
+            frac = max((step - step0) / max(max_steps - step0, 1), (train_s - sec0) / (budget_s - sec0))
             if train_s >= next_eval:
                 scores = evaluate(model, test, eval_ids, background)
                 history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores})
@@ -505,7 +520,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             info = dict(step=step, loss=float(loss.detach()), pts=model.num_points,
                         psnr=history[-1]["psnr"] if history else float("nan"))
             if by_time:
-                bar.set_fraction(max(step / cfg.steps, train_s / budget_s), **info)
+                bar.set_fraction(max(step / max_steps, train_s / budget_s), **info)
             else:
                 bar.update(1, **info)
     # the training pixel's world size at the final points (what renders at other sizes are scaled against)
