@@ -92,6 +92,10 @@ class TrainConfig:
                                 "chunks, hand-written backward: the same numbers, ~1.9x less CPU time per step on "
                                 "one CPU thread) | torch (autograd through the module, the reference) | auto (chunked "
                                 "when the key MLP is the standard one)", choices=KEY_PATHS)
+    key_threads: int = opt(0, "CPU threads the chunked key MLP shares its chunks out to, each running its chunks on "
+                              "one torch thread (the same numbers to float rounding; far fewer thread "
+                              "synchronisations than splitting each small operation over the threads): 0 = as many "
+                              "as torch threads (--threads), 1 = the training thread alone", min=0, max=64)
     seed: int = opt(0, "random seed", min=0)
     device: str = opt("auto", "cpu | cuda | auto")
     threads: int = opt(0, "torch CPU threads (0 = torch default)", min=0, max=1024)
@@ -453,7 +457,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
                 search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
             o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
-            att = model.attend(model.xyz, model.influence, o, d, idx, keys=cfg.key_path)
+            att = model.attend(model.xyz, model.influence, o, d, idx, keys=cfg.key_path,
+                               key_workers=cfg.key_threads or None)
             sh = model.shade(att, d, idx, bg)
             zs = size * zoom
             if model.decoder is None:

@@ -1,13 +1,16 @@
 """Stage-1 step time: seconds per training step of `pointgt fit` on a scene, per key-MLP path, split by part.
 
     python -m tools.bench.train_step --data DIR [--steps 40] [--repeats 3] [--paths torch,chunked]
-        [--threads 1] [--json OUT]
+        [--key-threads 0] [--threads 1] [--json OUT]
 
 Loads the scene and applies the scene profile as `pointgt fit` does, then runs `fit_points` for --steps steps with
-each `--key-path` in turn (A B A B ..., so a drifting machine load hits both alike), --repeats times. Per fit:
+each `--key-path` (and each `--key-threads` value: `TrainConfig.key_threads`, e.g. `1,0` to compare the chunks
+on the training thread with the chunks shared out to one worker per thread) in turn (A B A B ..., so a drifting
+machine load hits all alike), --repeats times. Per fit:
 wall seconds per step from the fit's own training clock (what a `--minutes` budget counts) and CPU seconds per
 step of the training thread (the fit's thread CPU time minus its test evaluations and set-up — visual hull,
-spacing, blank floor, footprint — over the steps; on a shared machine this moves less than the wall clock). A
+spacing, blank floor, footprint — over the steps; on a shared machine this moves less than the wall clock; with
+several threads it leaves out the other threads' work, so compare the wall clock there). A
 short fit per path first, not counted, takes the one-time costs (numba compile, first convolutions). The parts of the step are timed by
 wrapping the core functions the step calls (thread CPU time): patch sampling, neighbour search, attention
 forward, shading, decoder forward, the regularizers, backward, Adam; the rest of the step is "other". Medians
@@ -85,6 +88,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=40, help="training steps per fit")
     ap.add_argument("--repeats", type=int, default=3, help="fits per key path (medians are reported)")
     ap.add_argument("--paths", default="torch,chunked", help="comma-separated key paths (TrainConfig.key_path)")
+    ap.add_argument("--key-threads", default="0",
+                    help="comma-separated TrainConfig.key_threads values, each run with every key path")
     ap.add_argument("--seed", type=int, default=0)
     args = parse(ap, argv, threads=1)
 
@@ -100,31 +105,36 @@ def main(argv=None) -> int:
     model_cfg = ModelConfig()
     profile = scene_profile(train, seed=args.seed, device="cpu", num_points=model_cfg.num_points)
     model_cfg, _, _ = apply_profile(profile, model_cfg, AtlasConfig(), set())
-    paths = args.paths.split(",")
+    variants = [(p, int(k)) for p in args.paths.split(",") for k in args.key_threads.split(",")]
+    name = {v: v[0] if len(variants) == len(args.paths.split(",")) else f"{v[0]}, key threads {v[1]}"
+            for v in variants}
     print(machine_line())
     print(f"{args.data}: {len(train)} train views at {train.width}x{train.height}; decoder {model_cfg.decoder}, "
-          f"K {model_cfg.k}; {args.steps} steps per fit, {args.repeats} fits per key path, "
+          f"K {model_cfg.k}; {args.steps} steps per fit, {args.repeats} fits per variant, "
           f"{args.threads} thread(s)")
-    runs: dict = {p: [] for p in paths}
-    for p in paths:  # warm-up, not counted: one-time costs (compiled neighbour search, first convolutions)
-        time_fit(train, test, model_cfg, TrainConfig(steps=3, eval_every=1e9, threads=args.threads, key_path=p))
+    runs: dict = {name[v]: [] for v in variants}
+    for p, k in variants:  # warm-up, not counted: one-time costs (compiled neighbour search, first convolutions)
+        time_fit(train, test, model_cfg, TrainConfig(steps=3, eval_every=1e9, threads=args.threads, key_path=p,
+                                                     key_threads=k))
     for _ in range(args.repeats):
-        for p in paths:
-            cfg = TrainConfig(steps=args.steps, eval_every=1e9, threads=args.threads, seed=args.seed, key_path=p)
-            runs[p].append(time_fit(train, test, model_cfg, cfg))
+        for p, k in variants:
+            cfg = TrainConfig(steps=args.steps, eval_every=1e9, threads=args.threads, seed=args.seed, key_path=p,
+                              key_threads=k)
+            runs[name[p, k]].append(time_fit(train, test, model_cfg, cfg))
     med = {p: {"wall_per_step": statistics.median(r["wall_per_step"] for r in rs),
                "cpu_per_step": statistics.median(r["cpu_per_step"] for r in rs),
                "parts": {k: statistics.median(r["parts"][k] for r in rs) for k in PARTS}} for p, rs in runs.items()}
-    print("| key path | wall s/step | CPU s/step | " + " | ".join(PARTS) + " |")
+    print("| variant | wall s/step | CPU s/step | " + " | ".join(PARTS) + " |")
     print("|---|---|---|" + "---|" * len(PARTS))
     for p, m in med.items():
         share = " | ".join(f"{1000 * m['parts'][k]:.1f} ms ({100 * m['parts'][k] / m['cpu_per_step']:.0f} %)"
                            for k in PARTS)
         print(f"| {p} | {m['wall_per_step']:.3f} | {m['cpu_per_step']:.3f} | {share} |")
-    if len(paths) > 1:
-        ref = med[paths[0]]
-        for p in paths[1:]:
-            print(f"{p} vs {paths[0]}: CPU per step x {ref['cpu_per_step'] / med[p]['cpu_per_step']:.2f} faster, "
+    names = list(runs)
+    if len(names) > 1:
+        ref = med[names[0]]
+        for p in names[1:]:
+            print(f"{p} vs {names[0]}: CPU per step x {ref['cpu_per_step'] / med[p]['cpu_per_step']:.2f} faster, "
                   f"wall x {ref['wall_per_step'] / med[p]['wall_per_step']:.2f}")
     print(machine_line())
     if args.json:
