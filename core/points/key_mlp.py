@@ -14,23 +14,21 @@ them, then forms the gradients of the weights, biases and key features by hand.
 Plain torch on any device. Equality with the autograd path: tests/core/points/test_key_mlp.py; speed:
 `python -m tools.bench.train_step` (docs/benchmarks.md, "Stage-1 step").
 
-With several CPU threads the chunks are shared out to worker threads (`workers`), each running its chunks with
-one torch thread, instead of every small operation of every chunk splitting itself over the threads: a chunk's
-operations are too small for that (tens of microseconds to a millisecond each, ~130 per step), and their
-synchronisation — hundreds of thread barriers per step, each waiting for the slowest thread — costs more than it
-saves, most of all when other processes hold the cores. torch releases the GIL inside its operations, so the workers
-run in parallel. Each worker's chunks are the serial path's chunks, computed by the same operations (a BLAS on
+With several CPU threads the chunks are shared out to worker threads (core/util/workers.py), each running its
+chunks with one torch thread, instead of every small operation of every chunk splitting itself over the threads:
+a chunk's operations are too small for that (tens of microseconds to a millisecond each, ~130 per step), and their
+synchronisation — a thread barrier per operation, each waiting for the slowest thread — costs more than it
+saves, most of all when other processes hold the cores. Each worker's chunks are the serial path's chunks, computed by the same operations (a BLAS on
 one thread may round differently); the weight gradients are summed per worker and then over the workers (float
 rounding only).
 """
 from __future__ import annotations
 
-import threading
-from concurrent.futures import ThreadPoolExecutor
-
 import torch
 import torch.nn as nn
 from torch.autograd.function import once_differentiable
+
+from core.util.workers import cpu_workers, run
 
 KEY_PATHS = ("auto", "torch", "chunked")
 CHUNK = 4096  # slots per chunk: [4096, 64] float32 arrays are 1 MB, the L2 cache per core of the AMD EPYC it was
@@ -92,62 +90,11 @@ def _relu_backward_(grad: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
     return torch.ops.aten.threshold_backward.grad_input(grad, out, 0.0, grad_input=grad)
 
 
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-_POOL_LOCK = threading.Lock()
-
-
-def _one_torch_thread(ready: threading.Barrier) -> None:
-    """Worker initialiser: this thread's torch operations run on one thread (its own OpenMP / MKL setting; the
-    first call makes torch's lazy per-thread set-up happen before, so it cannot undo the setting later)."""
-    torch.get_num_threads()
-    torch.set_num_threads(1)
-    ready.wait()
-
-
-def _pool(n: int) -> ThreadPoolExecutor:
-    """A process-wide pool of n worker threads with one torch thread each, started on first use."""
-    with _POOL_LOCK:
-        pool = _POOLS.get(n)
-        if pool is None:
-            caller = torch.get_num_threads()
-            ready = threading.Barrier(n + 1)
-            pool = ThreadPoolExecutor(n, thread_name_prefix="pointgt-key-mlp", initializer=_one_torch_thread,
-                                      initargs=(ready,))
-            for _ in range(n):  # start every worker now (the pool starts one per submitted task)
-                pool.submit(int)
-            ready.wait()
-            torch.set_num_threads(caller)  # set_num_threads in a worker also moved torch's process default
-            _POOLS[n] = pool
-        return pool
-
-
-def workers_for(feats: torch.Tensor, chunks: int, workers: int | None) -> int:
-    """How many worker threads run `chunks` chunks of feats: `workers` (None: torch's CPU thread count),
-    at most one per chunk; 1 (the calling thread alone) off the CPU."""
-    if feats.device.type != "cpu":
-        return 1
-    n = torch.get_num_threads() if workers is None else int(workers)
-    return max(1, min(n, chunks))
-
-
 def _spans(m: int, chunk: int, n: int) -> list[tuple[int, int]]:
     """[start, end) slot ranges of n workers: consecutive whole chunks of the serial path, shared evenly."""
     chunks = (m + chunk - 1) // chunk
     cuts = [round(i * chunks / n) * chunk for i in range(n + 1)]
     return [(min(a, m), min(b, m)) for a, b in zip(cuts[:-1], cuts[1:]) if min(a, m) < min(b, m)]
-
-
-def _run(spans: list[tuple[int, int]], fn) -> list:
-    """fn(a, b) over every span: in the calling thread for one span, else one span per pool worker (without
-    autograd: grad mode is per thread, and the workers' is on)."""
-    if len(spans) <= 1:
-        return [fn(a, b) for a, b in spans]
-
-    def task(a, b):
-        with torch.no_grad():
-            return fn(a, b)
-    futures = [_pool(len(spans)).submit(task, a, b) for a, b in spans]
-    return [f.result() for f in futures]
 
 
 def _forward_span(feats, out, a, b, freqs, chunk, w1, b1, w2, b2, w3, b3) -> None:
@@ -204,7 +151,7 @@ class _ChunkedKeyMLP(torch.autograd.Function):
         m = feats.shape[0]
         out = torch.empty(m, dtype=feats.dtype, device=feats.device)
         spans = _spans(m, chunk, workers)
-        _run(spans, lambda a, b: _forward_span(feats, out, a, b, freqs, chunk, w1, b1, w2, b2, w3, b3))
+        run(lambda a, b: _forward_span(feats, out, a, b, freqs, chunk, w1, b1, w2, b2, w3, b3), spans)
         ctx.save_for_backward(feats, w1, b1, w2, b2, w3)
         ctx.freqs, ctx.chunk, ctx.spans = freqs, chunk, spans
         return out
@@ -218,8 +165,8 @@ class _ChunkedKeyMLP(torch.autograd.Function):
         gf = torch.empty_like(feats) if ctx.needs_input_grad[0] else None
         if not ctx.spans:  # no slot
             return (gf, None, None, None, *(torch.zeros_like(t) for t in (w1, b1, w2, b2, w3)), gb3)
-        parts = _run(ctx.spans, lambda a, b: _backward_span(feats, g, gf, a, b, ctx.freqs, ctx.chunk,
-                                                            w1, b1, w2, b2, w3))
+        parts = run(lambda a, b: _backward_span(feats, g, gf, a, b, ctx.freqs, ctx.chunk, w1, b1, w2, b2, w3),
+                    ctx.spans)
         gw1, gb1, gw2, gb2, gw3 = parts[0]
         for p in parts[1:]:  # the workers' sums, added in span order
             for acc, part in zip((gw1, gb1, gw2, gb2, gw3), p):
@@ -244,7 +191,7 @@ def key_logits(seq: nn.Sequential, feats: torch.Tensor, freqs: int, valid: torch
     flat = flat.contiguous()
     l1, l2, l3 = seq[0], seq[2], seq[4]
     chunk = max(int(chunk), 1)
-    n = workers_for(flat, (flat.shape[0] + chunk - 1) // chunk, workers)
+    n = cpu_workers(flat, (flat.shape[0] + chunk - 1) // chunk, workers)
     out = _ChunkedKeyMLP.apply(flat, int(freqs), chunk, n, l1.weight, l1.bias, l2.weight, l2.bias, l3.weight,
                                l3.bias)
     if rows is None:

@@ -22,6 +22,7 @@ from core.points.decoders import UNetDecoder
 from core.points.key_mlp import KEY_PATHS, key_logits, standard_key_mlp
 from core.points.neighbors.base import METHODS
 from core.util.errors import InputError
+from core.util.workers import split_batch
 
 # Every model trains over white (datasets are composited onto it, `load_split`'s default): a decoder learns to
 # paint this background itself, so renders over another colour must move its share (core/points/render.py).
@@ -249,10 +250,13 @@ class PointModel(nn.Module):
         """feature_image [B, C, H, W] -> rgb [B, 3, H, W] (UNet decoder only)."""
         return self.decode_with_alpha(feature_image)[0]
 
-    def decode_with_alpha(self, feature_image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def decode_with_alpha(self, feature_image: torch.Tensor, workers: int = 1
+                          ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """feature_image [B, C, H, W] -> (rgb [B, 3, H, W], alpha [B, H, W] or None without the mask head).
-        The residual decoder's rgb is not clamped (training keeps its gradient everywhere): clamp to show it."""
-        y = self.decoder(feature_image)
+        The residual decoder's rgb is not clamped (training keeps its gradient everywhere): clamp to show it.
+        workers > 1 (with gradients, on the CPU): the batch is shared out to that many worker threads, forward and
+        backward (core/util/workers.py `split_batch`; the same numbers to float rounding)."""
+        y = self.decoder(feature_image) if workers <= 1 else split_batch(self.decoder, feature_image, workers)
         rgb = y[:, :3] if self.cfg.decoder_residual else torch.sigmoid(y[:, :3])
         return rgb, (torch.sigmoid(y[:, 3]) if y.shape[1] > 3 else None)
 

@@ -92,10 +92,15 @@ class TrainConfig:
                                 "chunks, hand-written backward: the same numbers, ~1.9x less CPU time per step on "
                                 "one CPU thread) | torch (autograd through the module, the reference) | auto (chunked "
                                 "when the key MLP is the standard one)", choices=KEY_PATHS)
-    key_threads: int = opt(0, "CPU threads the chunked key MLP shares its chunks out to, each running its chunks on "
-                              "one torch thread (the same numbers to float rounding; far fewer thread "
-                              "synchronisations than splitting each small operation over the threads): 0 = as many "
-                              "as torch threads (--threads), 1 = the training thread alone", min=0, max=64)
+    workers: int = opt(0, "CPU worker threads the training step shares its large independent pieces out to, the "
+                          "key MLP's chunks and the decoder's patches, each worker on one torch thread (the same "
+                          "numbers to float rounding, one thread synchronisation per piece instead of one per "
+                          "operation); 0 = as many as torch threads (--threads), 1 = none: all on the training "
+                          "thread", min=0, max=64)
+    op_threads: int = opt(0, "torch threads of the step's other operations: 0 = one when the step has workers "
+                             "(each operation split over the threads costs a thread synchronisation, and stalls "
+                             "when other processes hold the cores), else --threads; test renders always use "
+                             "--threads", min=0, max=1024)
     seed: int = opt(0, "random seed", min=0)
     device: str = opt("auto", "cpu | cuda | auto")
     threads: int = opt(0, "torch CPU threads (0 = torch default)", min=0, max=1024)
@@ -407,12 +412,18 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     # A restart (the guard's last resort) runs the schedules again over what is left of the budget.
     step0, sec0 = 0, 0.0
     by_time = budget_s < float("inf")
+    # CPU threads: test renders use all (--threads); the step shares its large pieces out to `workers`, and runs
+    # its other operations on op_threads
+    threads = torch.get_num_threads()
+    workers = cfg.workers or threads
+    op_threads = cfg.op_threads or (1 if workers > 1 else threads)
     max_steps = step_cap(cfg)  # inf: a time budget alone, the minutes decide
     with Progress(1000 if by_time else int(max_steps), "fit", callback=progress_callback,
                   enabled=show_progress) as bar:
         while step < max_steps and train_s < budget_s:
             frac = max((step - step0) / max(max_steps - step0, 1), (train_s - sec0) / (budget_s - sec0))
             if train_s >= next_eval:
+                torch.set_num_threads(threads)
                 scores = evaluate(model, test, eval_ids, background)
                 history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores})
                 next_eval = train_s + cfg.eval_every
@@ -431,6 +442,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                     step0, sec0 = step, train_s
                     frac = 0.0
             t0 = time.perf_counter()
+            if torch.get_num_threads() != op_threads:
+                torch.set_num_threads(op_threads)
             decay = cfg.lr_final ** frac
             for g, lr in zip(opt.param_groups, base_lrs):
                 g["lr"] = lr * decay
@@ -458,14 +471,14 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
             o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
             att = model.attend(model.xyz, model.influence, o, d, idx, keys=cfg.key_path,
-                               key_workers=cfg.key_threads or None)
+                               key_workers=workers)
             sh = model.shade(att, d, idx, bg)
             zs = size * zoom
             if model.decoder is None:
                 rgb = sh["rgb"]
             else:
                 feat = sh["feature"].reshape(n_patches, zs, zs, -1).permute(0, 3, 1, 2)
-                rgb, dec_alpha = model.decode_with_alpha(feat)
+                rgb, dec_alpha = model.decode_with_alpha(feat, workers=workers)
                 rgb = rgb.permute(0, 2, 3, 1).reshape(-1, 3)
                 if dec_alpha is not None and zoom > 1:
                     dec_alpha = pool_zoomed(dec_alpha.reshape(-1, 1), n_patches, size, zoom)
@@ -528,6 +541,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 bar.set_fraction(max(step / max_steps, train_s / budget_s), **info)
             else:
                 bar.update(1, **info)
+    torch.set_num_threads(threads)
     # the training pixel's world size at the final points (what renders at other sizes are scaled against)
     model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
     scores = evaluate(model, test, eval_ids, background)

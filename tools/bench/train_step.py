@@ -1,11 +1,12 @@
 """Stage-1 step time: seconds per training step of `pointgt fit` on a scene, per key-MLP path, split by part.
 
     python -m tools.bench.train_step --data DIR [--steps 40] [--repeats 3] [--paths torch,chunked]
-        [--key-threads 0] [--threads 1] [--json OUT]
+        [--workers 0] [--op-threads 0] [--threads 1] [--json OUT]
 
 Loads the scene and applies the scene profile as `pointgt fit` does, then runs `fit_points` for --steps steps with
-each `--key-path` (and each `--key-threads` value: `TrainConfig.key_threads`, e.g. `1,0` to compare the chunks
-on the training thread with the chunks shared out to one worker per thread) in turn (A B A B ..., so a drifting
+each `--key-path` (and each `--workers` and `--op-threads` value: `TrainConfig.workers`, e.g. `1,0` to compare
+the step on the training thread alone with its key-MLP chunks and decoder patches shared out to one worker per
+thread, and `TrainConfig.op_threads`) in turn (A B A B ..., so a drifting
 machine load hits all alike), --repeats times. Per fit:
 wall seconds per step from the fit's own training clock (what a `--minutes` budget counts) and CPU seconds per
 step of the training thread (the fit's thread CPU time minus its test evaluations and set-up — visual hull,
@@ -19,6 +20,7 @@ over the repeats are printed with the machine line.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import statistics
 import time
@@ -88,8 +90,10 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=40, help="training steps per fit")
     ap.add_argument("--repeats", type=int, default=3, help="fits per key path (medians are reported)")
     ap.add_argument("--paths", default="torch,chunked", help="comma-separated key paths (TrainConfig.key_path)")
-    ap.add_argument("--key-threads", default="0",
-                    help="comma-separated TrainConfig.key_threads values, each run with every key path")
+    ap.add_argument("--workers", default="0",
+                    help="comma-separated TrainConfig.workers values, each run with every key path")
+    ap.add_argument("--op-threads", default="0",
+                    help="comma-separated TrainConfig.op_threads values, each run with every key path and workers value")
     ap.add_argument("--seed", type=int, default=0)
     args = parse(ap, argv, threads=1)
 
@@ -105,22 +109,23 @@ def main(argv=None) -> int:
     model_cfg = ModelConfig()
     profile = scene_profile(train, seed=args.seed, device="cpu", num_points=model_cfg.num_points)
     model_cfg, _, _ = apply_profile(profile, model_cfg, AtlasConfig(), set())
-    variants = [(p, int(k)) for p in args.paths.split(",") for k in args.key_threads.split(",")]
-    name = {v: v[0] if len(variants) == len(args.paths.split(",")) else f"{v[0]}, key threads {v[1]}"
-            for v in variants}
+    lists = {"key_path": args.paths.split(","), "workers": [int(k) for k in args.workers.split(",")],
+             "op_threads": [int(k) for k in args.op_threads.split(",")]}
+    variants = [dict(zip(lists, v)) for v in itertools.product(*lists.values())]
+    shown = [k for k, vals in lists.items() if len(vals) > 1] or ["key_path"]  # what tells the variants apart
+    name = [", ".join(str(v[k]) if k == "key_path" else f"{k.replace('_', ' ')} {v[k]}" for k in shown)
+            for v in variants]
     print(machine_line())
     print(f"{args.data}: {len(train)} train views at {train.width}x{train.height}; decoder {model_cfg.decoder}, "
           f"K {model_cfg.k}; {args.steps} steps per fit, {args.repeats} fits per variant, "
           f"{args.threads} thread(s)")
-    runs: dict = {name[v]: [] for v in variants}
-    for p, k in variants:  # warm-up, not counted: one-time costs (compiled neighbour search, first convolutions)
-        time_fit(train, test, model_cfg, TrainConfig(steps=3, eval_every=1e9, threads=args.threads, key_path=p,
-                                                     key_threads=k))
+    runs: dict = {n: [] for n in name}
+    for v in variants:  # warm-up, not counted: one-time costs (compiled neighbour search, first convolutions)
+        time_fit(train, test, model_cfg, TrainConfig(steps=3, eval_every=1e9, threads=args.threads, **v))
     for _ in range(args.repeats):
-        for p, k in variants:
-            cfg = TrainConfig(steps=args.steps, eval_every=1e9, threads=args.threads, seed=args.seed, key_path=p,
-                              key_threads=k)
-            runs[name[p, k]].append(time_fit(train, test, model_cfg, cfg))
+        for n, v in zip(name, variants):
+            cfg = TrainConfig(steps=args.steps, eval_every=1e9, threads=args.threads, seed=args.seed, **v)
+            runs[n].append(time_fit(train, test, model_cfg, cfg))
     med = {p: {"wall_per_step": statistics.median(r["wall_per_step"] for r in rs),
                "cpu_per_step": statistics.median(r["cpu_per_step"] for r in rs),
                "parts": {k: statistics.median(r["parts"][k] for r in rs) for k in PARTS}} for p, rs in runs.items()}

@@ -105,3 +105,26 @@ def test_minutes_alone_train_past_the_default_step_count(monkeypatch):
     assert hist[-1]["step"] > 3 and hist[-1]["seconds"] >= 0.6
     _, hist = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=2, minutes=0.01), show_progress=False)
     assert hist[-1]["step"] == 2
+
+
+def test_training_steps_with_workers_equal_the_training_thread(monkeypatch):
+    """A stage-1 fit (UNet decoder, regularizers, dropout) with the step's key-MLP chunks and decoder patches on
+    two workers (other operations on one torch thread) or all on the training thread: the same points and
+    weights after a few steps, to float rounding (small key chunks so that these tiny steps have several)."""
+    import functools
+
+    import core.points.model as model_mod
+    from core.points.key_mlp import key_logits
+
+    monkeypatch.setattr(model_mod, "key_logits", functools.partial(key_logits, chunk=256))
+    before = torch.get_num_threads()
+    train = test = render_split("sphere", fibonacci_cameras(6, seed=3), 32)
+    mcfg = model_config("card", num_points=500, decoder="unet")
+    fits = {w: fit_points(train, test, mcfg, _tiny_cfg(steps=3, patches=2, patch_size=16, reg_start=0.0,
+                                                       key_path="chunked", threads=2, workers=w),
+                          show_progress=False)[0] for w in (1, 2)}
+    for name, p in fits[1].named_parameters():
+        p, q = p.detach(), dict(fits[2].named_parameters())[name].detach()
+        err = float((p - q).abs().max()) / max(float(p.abs().max()), 1e-12)
+        assert err <= 1e-4, f"{name} after 3 steps: {err:.2e}"  # Adam's first steps amplify rounding a little
+    assert torch.get_num_threads() == before, "fit_points left the thread count changed"

@@ -1,0 +1,67 @@
+"""core/util/workers.py: workers with one torch thread each, and a module's batch split over them (forward and
+backward equal to the module on the calling thread, to float rounding)."""
+from concurrent.futures import wait
+
+import pytest
+import torch
+
+from core.points.decoders import UNetDecoder
+from core.util.workers import cpu_workers, pool, run, split_batch
+
+RTOL = 1e-5
+
+
+def _close(a, b, what):
+    err = float((a - b).abs().max()) / max(float(b.abs().max()), 1e-12)
+    assert err <= RTOL, f"{what}: relative error {err:.2e}"
+
+
+def test_workers_run_one_torch_thread_and_leave_the_callers_setting():
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        p = pool(2)
+        futures = [p.submit(torch.get_num_threads) for _ in range(4)]
+        wait(futures)
+        assert [f.result() for f in futures] == [1] * 4
+        assert torch.get_num_threads() == 2
+        assert cpu_workers(torch.zeros(1), 5, None) == 2  # torch's threads unless given
+        assert cpu_workers(torch.zeros(1), 1, None) == 1  # never more than the pieces
+        assert cpu_workers(torch.zeros(1), 5, 4) == 4
+        assert cpu_workers(torch.zeros(1, device="meta"), 5, 4) == 1  # off the CPU: the calling thread
+    finally:
+        torch.set_num_threads(before)
+    assert run(lambda a, b: a * b, [(2, 3), (4, 5), (6, 7)]) == [6, 20, 42]  # in order
+    assert run(lambda: torch.is_grad_enabled(), [(), ()]) == [False, False]
+    assert run(lambda: torch.is_grad_enabled(), [(), ()], grad=True) == [True, True]
+    with pytest.raises(ZeroDivisionError):  # a worker's error reaches the caller
+        run(lambda a: 1 // a, [(1,), (0,)])
+
+
+@pytest.mark.parametrize("batch,workers", [(16, 2), (5, 3), (3, 8), (1, 2)])
+def test_split_batch_equals_the_module_forward_and_backward(batch, workers):
+    torch.manual_seed(batch)
+    net = UNetDecoder(4 + 8, alpha=True, residual=True)
+    for p in net.parameters():  # non-zero last layers: every parameter gets a gradient
+        torch.nn.init.normal_(p, std=0.1)
+    x = torch.rand(batch, 12, 16, 16)
+    g = torch.randn(batch, 4, 16, 16)
+    outs = []
+    for split in (False, True):
+        xi = x.clone().requires_grad_()
+        net.zero_grad()
+        y = split_batch(net, xi, workers) if split else net(xi)
+        y.backward(g)
+        outs.append((y.detach(), xi.grad, {n: p.grad.clone() for n, p in net.named_parameters()}))
+    (y0, gx0, gp0), (y1, gx1, gp1) = outs
+    _close(y1, y0, "output")
+    _close(gx1, gx0, "input gradient")
+    for name in gp0:
+        _close(gp1[name], gp0[name], name)
+    with torch.no_grad():  # no gradients: the calling thread
+        assert torch.equal(split_batch(net, x, workers), net(x))
+    # an input that needs no gradient: the parameters' gradients still flow
+    net.zero_grad()
+    split_batch(net, x, workers).backward(g)
+    for name, p in net.named_parameters():
+        _close(p.grad, gp0[name], name + " (input without gradient)")
