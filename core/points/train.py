@@ -30,6 +30,7 @@ from core.points.regularizers import close_to_ray, close_to_surface
 from core.points.neighbors.select import select_neighbors
 from core.util.device import resolve_device
 from core.util.progress import Progress
+from core.util.workers import split_rows
 
 
 DEFAULT_STEPS = 6000  # the step budget of a fit given neither --steps nor --minutes
@@ -92,8 +93,8 @@ class TrainConfig:
                                 "chunks, hand-written backward: the same numbers, ~1.9x less CPU time per step on "
                                 "one CPU thread) | torch (autograd through the module, the reference) | auto (chunked "
                                 "when the key MLP is the standard one)", choices=KEY_PATHS)
-    workers: int = opt(0, "CPU worker threads the training step shares its large independent pieces out to, the "
-                          "key MLP's chunks and the decoder's patches, each worker on one torch thread (the same "
+    workers: int = opt(0, "CPU worker threads the training step shares its large independent pieces out to, its "
+                          "rays' attention and its patches' decoder, each worker on one torch thread (the same "
                           "numbers to float rounding, one thread synchronisation per piece instead of one per "
                           "operation); 0 = as many as torch threads (--threads), 1 = none: all on the training "
                           "thread", min=0, max=64)
@@ -165,6 +166,33 @@ def patch_neighbors(points: torch.Tensor, model_cfg: ModelConfig, c2w: torch.Ten
     idx = select_neighbors(points, model_cfg.neighbors, model_cfg.k, c2w, level.height * zoom, level.width * zoom,
                            _zoom_focal(level.focal, zoom), px * zoom, o, d, model_cfg.neighbor_radius_px)
     return o, d, idx
+
+
+_ATTENTION = ("weights", "bg", "x", "t", "p", "valid", "fg_weights")  # what attend returns, in this order
+
+
+def attend_and_shade(model: PointModel, origins: torch.Tensor, dirs: torch.Tensor, idx: torch.Tensor,
+                     background: torch.Tensor, keys: str = "auto", workers: int = 1) -> tuple[dict, dict]:
+    """`model.attend` (all points, their influence) and `model.shade` of a training step's rays: origins, dirs
+    [R, 3], idx [R, K]; background [3]. Returns (att, shaded) as those give them. workers > 1 (CPU, with
+    gradients): the rays are shared out to that many worker threads in contiguous pieces, forward and backward
+    (core/util/workers.py `split_rows`; rays are independent there, so the same numbers to float rounding), the
+    point values computed once before."""
+    if workers <= 1 or not torch.is_grad_enabled():
+        att = model.attend(model.xyz, model.influence, origins, dirs, idx, keys=keys, key_workers=1)
+        return att, model.shade(att, dirs, idx, background)
+    table = model.point_table()  # None: view-dependent values, gathered per slot inside the pieces
+    shared = [model.xyz, model.influence] + ([table] if table is not None else [])
+    params = [p for n, p in model.named_parameters()
+              if n not in ("xyz", "influence") and not n.startswith("decoder.")]
+
+    def piece(o, d, i, xyz, influence, *tab):
+        att = model.attend(xyz, influence, o, d, i, keys=keys, key_workers=1)
+        sh = model.shade(att, d, i, background, table=tab[0] if tab else None)
+        return [att[k] for k in _ATTENTION] + [sh["rgb"] if model.decoder is None else sh["feature"]]
+    *att, out = split_rows(piece, [origins, dirs, idx], shared, params, workers)
+    att = dict(zip(_ATTENTION, att))
+    return att, ({"rgb": out, "feature": None} if model.decoder is None else {"rgb": None, "feature": out})
 
 
 def sample_patches(alpha: torch.Tensor, n: int, size: int, fg_frac: float, gen: torch.Generator):
@@ -470,9 +498,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
                 search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
             o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
-            att = model.attend(model.xyz, model.influence, o, d, idx, keys=cfg.key_path,
-                               key_workers=workers)
-            sh = model.shade(att, d, idx, bg)
+            att, sh = attend_and_shade(model, o, d, idx, bg, cfg.key_path, workers)
             zs = size * zoom
             if model.decoder is None:
                 rgb = sh["rgb"]

@@ -107,3 +107,75 @@ def split_batch(module: torch.nn.Module, x: torch.Tensor, workers: int | None = 
     b = x.shape[0]
     sizes = [(i + 1) * b // n - i * b // n for i in range(n)]
     return _SplitBatch.apply(x, module, sizes, *module.parameters())
+
+
+class _SplitRows(torch.autograd.Function):
+    """fn over row pieces on the workers, outputs concatenated; gradients to the row inputs concatenated, to the
+    shared inputs and params summed over the pieces in order."""
+
+    @staticmethod
+    def forward(ctx, fn, sizes, n_rows, n_shared, *tensors):
+        rows, shared, params = tensors[:n_rows], tensors[n_rows:n_rows + n_shared], tensors[n_rows + n_shared:]
+        need = ctx.needs_input_grad[4:]
+
+        def piece(*row_pieces):
+            ins = [t.detach().requires_grad_(need[i] and t.is_floating_point())
+                   for i, t in enumerate((*row_pieces, *shared))]
+            return ins, fn(*ins)
+        ctx.pieces = run(piece, list(zip(*(t.split(sizes) for t in rows))), grad=True)
+        ctx.params, ctx.n_rows, ctx.n_shared = params, n_rows, n_shared
+        outs = [torch.cat([out[j].detach() for _, out in ctx.pieces]) for j in range(len(ctx.pieces[0][1]))]
+        ctx.mark_non_differentiable(*[o for o in outs if not o.is_floating_point()])
+        return tuple(outs)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        n_rows, n_shared = ctx.n_rows, ctx.n_shared
+        params = [p for p in ctx.params if p.requires_grad]
+        sizes = [out[0].shape[0] for _, out in ctx.pieces]
+
+        def piece(ins, outs, gs):
+            pairs = [(o, g) for o, g in zip(outs, gs) if o.requires_grad and g is not None]
+            wrt = [t for t in ins if t.requires_grad] + params
+            got = (torch.autograd.grad([o for o, _ in pairs], wrt, [g for _, g in pairs], allow_unused=True)
+                   if pairs and wrt else [None] * len(wrt))
+            # a row input this piece did not use gets zeros: the pieces are concatenated
+            row_ins = [i < n_rows for i, t in enumerate(ins) if t.requires_grad] + [False] * len(params)
+            return [torch.zeros_like(w) if g is None and r else g for g, w, r in zip(got, wrt, row_ins)]
+        split = [g.split(sizes) if g is not None else [None] * len(sizes) for g in grads]
+        res = run(piece, [(ins, outs, [s[i] for s in split]) for i, (ins, outs) in enumerate(ctx.pieces)])
+        needs = [t.requires_grad for t in ctx.pieces[0][0]]
+        ctx.pieces = None
+        n_ins = sum(needs)
+
+        def total(parts, like_rows):
+            if like_rows:  # row inputs: one piece per worker, concatenated
+                return torch.cat(parts)
+            parts = [p for p in parts if p is not None]
+            return sum(parts[1:], parts[0].clone()) if parts else None
+        out, k = [], 0
+        for i, need in enumerate(needs):
+            if need:
+                out.append(total([r[k] for r in res], i < n_rows))
+                k += 1
+            else:
+                out.append(None)
+        it = iter(total([r[n_ins + j] for r in res], False) for j in range(len(params)))
+        out += [next(it) if p.requires_grad else None for p in ctx.params]
+        return (None, None, None, None, *out)
+
+
+def split_rows(fn, rows: list[torch.Tensor], shared: list[torch.Tensor], params: list[torch.Tensor],
+               workers: int | None = None) -> list[torch.Tensor]:
+    """fn(*row_pieces, *shared) -> list of tensors [r, ...], run on the rows' pieces (rows: tensors [R, ...] split
+    along dim 0 into contiguous pieces, one per worker; `cpu_workers`) and concatenated back to [R, ...], gradients
+    included: to rows (concatenated), to shared tensors and to params (parameters fn uses directly, e.g. a
+    module's weights), summed over the pieces. The same numbers as fn on the calling thread to float rounding
+    when fn treats rows independently. One worker (or grad off): fn on the calling thread. fn must not start
+    workers itself."""
+    n = cpu_workers(rows[0], rows[0].shape[0], workers)
+    if n <= 1 or not torch.is_grad_enabled():
+        return list(fn(*rows, *shared))
+    r = rows[0].shape[0]
+    sizes = [(i + 1) * r // n - i * r // n for i in range(n)]
+    return list(_SplitRows.apply(fn, sizes, len(rows), len(shared), *rows, *shared, *params))

@@ -1,7 +1,7 @@
 """Stage-1 step time: seconds per training step of `pointgt fit` on a scene, per key-MLP path, split by part.
 
     python -m tools.bench.train_step --data DIR [--steps 40] [--repeats 3] [--paths torch,chunked]
-        [--workers 0] [--op-threads 0] [--threads 1] [--json OUT]
+        [--workers 0] [--op-threads 0] [--threads 1 | --fit-threads 1,2] [--json OUT]
 
 Loads the scene and applies the scene profile as `pointgt fit` does, then runs `fit_points` for --steps steps with
 each `--key-path` (and each `--workers` and `--op-threads` value: `TrainConfig.workers`, e.g. `1,0` to compare
@@ -90,10 +90,12 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=40, help="training steps per fit")
     ap.add_argument("--repeats", type=int, default=3, help="fits per key path (medians are reported)")
     ap.add_argument("--paths", default="torch,chunked", help="comma-separated key paths (TrainConfig.key_path)")
+    ap.add_argument("--fit-threads", default=None,
+                    help="comma-separated TrainConfig.threads values run in turn (e.g. 1,2; default: --threads)")
     ap.add_argument("--workers", default="0",
                     help="comma-separated TrainConfig.workers values, each run with every key path")
     ap.add_argument("--op-threads", default="0",
-                    help="comma-separated TrainConfig.op_threads values, each run with every key path and workers value")
+                    help="comma-separated TrainConfig.op_threads values, each run with every other variant")
     ap.add_argument("--seed", type=int, default=0)
     args = parse(ap, argv, threads=1)
 
@@ -109,7 +111,9 @@ def main(argv=None) -> int:
     model_cfg = ModelConfig()
     profile = scene_profile(train, seed=args.seed, device="cpu", num_points=model_cfg.num_points)
     model_cfg, _, _ = apply_profile(profile, model_cfg, AtlasConfig(), set())
-    lists = {"key_path": args.paths.split(","), "workers": [int(k) for k in args.workers.split(",")],
+    fit_threads = args.fit_threads.split(",") if args.fit_threads else [args.threads]
+    lists = {"threads": [int(t) for t in fit_threads], "key_path": args.paths.split(","),
+             "workers": [int(k) for k in args.workers.split(",")],
              "op_threads": [int(k) for k in args.op_threads.split(",")]}
     variants = [dict(zip(lists, v)) for v in itertools.product(*lists.values())]
     shown = [k for k, vals in lists.items() if len(vals) > 1] or ["key_path"]  # what tells the variants apart
@@ -118,13 +122,13 @@ def main(argv=None) -> int:
     print(machine_line())
     print(f"{args.data}: {len(train)} train views at {train.width}x{train.height}; decoder {model_cfg.decoder}, "
           f"K {model_cfg.k}; {args.steps} steps per fit, {args.repeats} fits per variant, "
-          f"{args.threads} thread(s)")
+          f"{', '.join(map(str, lists['threads']))} thread(s)")
     runs: dict = {n: [] for n in name}
     for v in variants:  # warm-up, not counted: one-time costs (compiled neighbour search, first convolutions)
-        time_fit(train, test, model_cfg, TrainConfig(steps=3, eval_every=1e9, threads=args.threads, **v))
+        time_fit(train, test, model_cfg, TrainConfig(steps=3, eval_every=1e9, **v))
     for _ in range(args.repeats):
         for n, v in zip(name, variants):
-            cfg = TrainConfig(steps=args.steps, eval_every=1e9, threads=args.threads, seed=args.seed, **v)
+            cfg = TrainConfig(steps=args.steps, eval_every=1e9, seed=args.seed, **v)
             runs[n].append(time_fit(train, test, model_cfg, cfg))
     med = {p: {"wall_per_step": statistics.median(r["wall_per_step"] for r in rs),
                "cpu_per_step": statistics.median(r["cpu_per_step"] for r in rs),
@@ -146,7 +150,7 @@ def main(argv=None) -> int:
         from core.util.atomic import atomic_write_text
 
         atomic_write_text(args.json, json.dumps({"machine": machine_info(), "data": args.data, "steps": args.steps,
-                                                 "threads": args.threads, "model": model_cfg.__dict__,
+                                                 "threads": lists["threads"], "model": model_cfg.__dict__,
                                                  "median": med, "runs": runs}, indent=1))
     return 0
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from core.points.decoders import UNetDecoder
-from core.util.workers import cpu_workers, pool, run, split_batch
+from core.util.workers import cpu_workers, pool, run, split_batch, split_rows
 
 RTOL = 1e-5
 
@@ -65,3 +65,37 @@ def test_split_batch_equals_the_module_forward_and_backward(batch, workers):
     split_batch(net, x, workers).backward(g)
     for name, p in net.named_parameters():
         _close(p.grad, gp0[name], name + " (input without gradient)")
+
+
+@pytest.mark.parametrize("rows,workers", [(40, 2), (7, 3), (2, 8)])
+def test_split_rows_equals_fn_forward_and_backward(rows, workers):
+    """Rows through a small function with row inputs (one without gradient, one integer), a shared tensor and a
+    parameter used directly, several outputs (one integer): the same outputs and gradients as on the calling
+    thread."""
+    torch.manual_seed(rows)
+    lin = torch.nn.Linear(3, 3)
+    table = torch.randn(10, 3)
+    a, b = torch.randn(rows, 3), torch.randn(rows, 3)
+    idx = torch.randint(0, 10, (rows, 4))
+
+    def fn(a, b, idx, table):
+        g = table.index_select(0, idx.reshape(-1)).view(*idx.shape, 3)       # [r, 4, 3]
+        y = lin(a[:, None] * g).sum(1) + b.square()
+        return [y, torch.softmax(y, 1), idx >= 5]
+
+    outs = []
+    for split in (False, True):
+        ai, ti = a.clone().requires_grad_(), table.clone().requires_grad_()
+        lin.zero_grad()
+        y, s, m = (split_rows(fn, [ai, b, idx], [ti], list(lin.parameters()), workers) if split
+                   else fn(ai, b, idx, ti))
+        (y.square().sum() + (s * torch.arange(3.0)).sum()).backward()
+        outs.append((y.detach(), s.detach(), m, ai.grad, ti.grad, [p.grad.clone() for p in lin.parameters()]))
+    (y0, s0, m0, ga0, gt0, gp0), (y1, s1, m1, ga1, gt1, gp1) = outs
+    _close(y1, y0, "output")
+    _close(s1, s0, "softmax")
+    assert torch.equal(m1, m0) and not m1.requires_grad
+    _close(ga1, ga0, "row input gradient")
+    _close(gt1, gt0, "shared input gradient")
+    for a1, a0 in zip(gp1, gp0):
+        _close(a1, a0, "parameter gradient")
