@@ -175,9 +175,9 @@ def attend_and_shade(model: PointModel, origins: torch.Tensor, dirs: torch.Tenso
                      background: torch.Tensor, keys: str = "auto", workers: int = 1) -> tuple[dict, dict]:
     """`model.attend` (all points, their influence) and `model.shade` of a training step's rays: origins, dirs
     [R, 3], idx [R, K]; background [3]. Returns (att, shaded) as those give them. workers > 1 (CPU, with
-    gradients): the rays are shared out to that many worker threads in contiguous pieces, forward and backward
-    (core/util/workers.py `split_rows`; rays are independent there, so the same numbers to float rounding), the
-    point values computed once before."""
+    gradients): the rays are shared out to that many worker threads in contiguous pieces of about equal work,
+    forward and backward (core/util/workers.py `split_rows`; rays are independent there, so the same numbers to
+    float rounding), the point values computed once before."""
     if workers <= 1 or not torch.is_grad_enabled():
         att = model.attend(model.xyz, model.influence, origins, dirs, idx, keys=keys, key_workers=1)
         return att, model.shade(att, dirs, idx, background)
@@ -190,7 +190,10 @@ def attend_and_shade(model: PointModel, origins: torch.Tensor, dirs: torch.Tenso
         att = model.attend(xyz, influence, o, d, i, keys=keys, key_workers=1)
         sh = model.shade(att, d, i, background, table=tab[0] if tab else None)
         return [att[k] for k in _ATTENTION] + [sh["rgb"] if model.decoder is None else sh["feature"]]
-    *att, out = split_rows(piece, [origins, dirs, idx], shared, params, workers)
+    # pieces of equal work: a ray costs its K slots' geometry and its non-empty slots' key MLP (~5x a slot's
+    # geometry); the background patches' rays have few non-empty slots
+    cost = (idx >= 0).sum(1) + 0.2 * idx.shape[1]
+    *att, out = split_rows(piece, [origins, dirs, idx], shared, params, workers, cost)
     att = dict(zip(_ATTENTION, att))
     return att, ({"rgb": out, "feature": None} if model.decoder is None else {"rgb": None, "feature": out})
 

@@ -165,10 +165,26 @@ class _SplitRows(torch.autograd.Function):
         return (None, None, None, None, *out)
 
 
+def piece_sizes(r: int, n: int, cost: torch.Tensor | None = None) -> list[int]:
+    """Sizes of n contiguous pieces of r rows: equal row counts, or with cost [r] (≥ 0, the work of each row)
+    equal shares of the total cost (each piece at least one row when r ≥ n)."""
+    if cost is None or r < n:
+        return [(i + 1) * r // n - i * r // n for i in range(n)]
+    c = torch.cumsum(cost.detach().double().clamp_min(0.0).cpu(), 0)
+    goals = c[-1] * torch.arange(1, n, dtype=torch.float64) / n
+    cuts = torch.searchsorted(c, goals).tolist()
+    bounds = [0]
+    for i, cut in enumerate(cuts):  # strictly increasing, room left for the pieces after
+        bounds.append(min(max(cut + 1, bounds[-1] + 1), r - (n - 1 - i)))
+    bounds.append(r)
+    return [b - a for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 def split_rows(fn, rows: list[torch.Tensor], shared: list[torch.Tensor], params: list[torch.Tensor],
-               workers: int | None = None) -> list[torch.Tensor]:
+               workers: int | None = None, cost: torch.Tensor | None = None) -> list[torch.Tensor]:
     """fn(*row_pieces, *shared) -> list of tensors [r, ...], run on the rows' pieces (rows: tensors [R, ...] split
-    along dim 0 into contiguous pieces, one per worker; `cpu_workers`) and concatenated back to [R, ...], gradients
+    along dim 0 into contiguous pieces, one per worker (`cpu_workers`), of equal cost [R] when given, else of equal
+    row counts (`piece_sizes`)) and concatenated back to [R, ...], gradients
     included: to rows (concatenated), to shared tensors and to params (parameters fn uses directly, e.g. a
     module's weights), summed over the pieces. The same numbers as fn on the calling thread to float rounding
     when fn treats rows independently. One worker (or grad off): fn on the calling thread. fn must not start
@@ -176,6 +192,5 @@ def split_rows(fn, rows: list[torch.Tensor], shared: list[torch.Tensor], params:
     n = cpu_workers(rows[0], rows[0].shape[0], workers)
     if n <= 1 or not torch.is_grad_enabled():
         return list(fn(*rows, *shared))
-    r = rows[0].shape[0]
-    sizes = [(i + 1) * r // n - i * r // n for i in range(n)]
+    sizes = piece_sizes(rows[0].shape[0], n, cost)
     return list(_SplitRows.apply(fn, sizes, len(rows), len(shared), *rows, *shared, *params))

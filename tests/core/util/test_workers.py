@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from core.points.decoders import UNetDecoder
-from core.util.workers import cpu_workers, pool, run, split_batch, split_rows
+from core.util.workers import cpu_workers, piece_sizes, pool, run, split_batch, split_rows
 
 RTOL = 1e-5
 
@@ -99,3 +99,14 @@ def test_split_rows_equals_fn_forward_and_backward(rows, workers):
     _close(gt1, gt0, "shared input gradient")
     for a1, a0 in zip(gp1, gp0):
         _close(a1, a0, "parameter gradient")
+
+
+def test_piece_sizes_share_rows_or_cost_evenly():
+    assert piece_sizes(10, 3) == [3, 3, 4]
+    assert piece_sizes(2, 3) == [0, 1, 1]  # fewer rows than pieces: some are empty
+    cost = torch.tensor([10.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    assert piece_sizes(8, 2, cost) == [1, 7]  # half of the work is in the first row
+    assert piece_sizes(8, 4, torch.zeros(8)) == [1, 1, 1, 5]  # no work: every piece still gets a row
+    sizes = piece_sizes(1000, 2, torch.arange(1000.0))
+    assert sum(sizes) == 1000 and 700 <= sizes[0] <= 710  # cost grows along the rows: the first piece is longer
+    assert piece_sizes(5, 5, torch.rand(5)) == [1] * 5
