@@ -14,8 +14,12 @@ spacing, blank floor, footprint — over the steps; on a shared machine this mov
 several threads it leaves out the other threads' work, so compare the wall clock there). A
 short fit per path first, not counted, takes the one-time costs (numba compile, first convolutions). The parts of the step are timed by
 wrapping the core functions the step calls (thread CPU time): patch sampling, neighbour search, attention
-forward, shading, decoder forward, the regularizers, backward, Adam; the rest of the step is "other". Medians
-over the repeats are printed with the machine line.
+forward, shading, decoder forward, the regularizers, backward, Adam; the rest of the step is "other". With
+workers (`--workers`, `--fit-threads` above 1) CPU seconds are the training thread's, the workers' CPU time for
+their pieces is its own column, and the critical path adds to the training thread's CPU time the slowest piece of
+each join: what a step takes on otherwise idle cores, measured in CPU time, which a loaded machine moves far less
+than the wall clock (on one thread it is the CPU time). Medians over the repeats are printed with the machine
+line, the wall clock's min and max too.
 """
 from __future__ import annotations
 
@@ -52,12 +56,50 @@ def _timed(owner, name: str, part: str, clock: dict):
         setattr(owner, name, fn)
 
 
+@contextlib.contextmanager
+def _pieces(owners, clock: dict):
+    """Replace `run` of each module in owners (core.util.workers.run and its imports) by a wrapper that adds, per
+    call with several pieces, the CPU time of its slowest piece to clock["slowest"] and of all to clock["pieces"]."""
+    import core.util.workers as workers
+
+    run = workers.run
+
+    def wrapper(fn, args, grad=False):
+        if len(args) <= 1:
+            return run(fn, args, grad)
+        cpu = [0.0] * len(args)
+
+        def timed(i, *a):
+            t = time.thread_time()
+            try:
+                return fn(*a)
+            finally:
+                cpu[i] = time.thread_time() - t
+        out = run(timed, [(i, *a) for i, a in enumerate(args)], grad)
+        clock["slowest"] = clock.get("slowest", 0.0) + max(cpu)
+        clock["pieces"] = clock.get("pieces", 0.0) + sum(cpu)
+        return out
+
+    for owner in owners:
+        owner.run = wrapper
+    try:
+        yield
+    finally:
+        for owner in owners:
+            owner.run = run
+
+
 def time_fit(train, test, model_cfg, cfg) -> dict:
-    """One fit_points run with its parts timed: dict(wall_per_step, cpu_per_step, parts {part: CPU s per step},
-    steps, points)."""
+    """One fit_points run with its parts timed: dict(wall_per_step, cpu_per_step, critical_per_step,
+    pieces_per_step, parts {part: CPU s per step}, steps, points). With workers (`TrainConfig.workers`),
+    cpu_per_step is the training thread's alone, pieces_per_step the workers' CPU time for their pieces, and
+    critical_per_step the step's critical path: the training thread's CPU time plus, at each join, the slowest
+    piece's (what a step would take on idle cores); the parts timed inside a worker add its CPU time."""
     import torch
 
+    import core.points.key_mlp as key_mlp
     import core.points.train as tr
+    import core.util.workers as workers
     from core.points.model import PointModel
 
     clock: dict = {}
@@ -70,15 +112,18 @@ def time_fit(train, test, model_cfg, cfg) -> dict:
     with contextlib.ExitStack() as stack:
         for owner, name, part in wraps:
             stack.enter_context(_timed(owner, name, part, clock))
+        stack.enter_context(_pieces((workers, key_mlp), clock))
         t = time.thread_time()
         _, history = tr.fit_points(train, test, model_cfg, cfg, show_progress=False)
         total = time.thread_time() - t
     steps = max(history[-1]["step"], 1)
     step_cpu = total - clock.pop("_evaluate", 0.0) - clock.pop("_setup", 0.0)
     clock.pop("_outer", None)
+    slowest, pieces = clock.pop("slowest", 0.0), clock.pop("pieces", 0.0)
     parts = {p: clock.get(p, 0.0) / steps for p in PARTS if p != "other"}
     parts["other"] = max(step_cpu / steps - sum(parts.values()), 0.0)
-    return {"wall_per_step": history[-1]["seconds"] / steps, "cpu_per_step": step_cpu / steps, "parts": parts,
+    return {"wall_per_step": history[-1]["seconds"] / steps, "cpu_per_step": step_cpu / steps,
+            "critical_per_step": (step_cpu + slowest) / steps, "pieces_per_step": pieces / steps, "parts": parts,
             "steps": steps, "points": history[-1]["points"]}
 
 
@@ -130,21 +175,25 @@ def main(argv=None) -> int:
         for n, v in zip(name, variants):
             cfg = TrainConfig(steps=args.steps, eval_every=1e9, seed=args.seed, **v)
             runs[n].append(time_fit(train, test, model_cfg, cfg))
-    med = {p: {"wall_per_step": statistics.median(r["wall_per_step"] for r in rs),
-               "cpu_per_step": statistics.median(r["cpu_per_step"] for r in rs),
+    keys = ("wall_per_step", "cpu_per_step", "critical_per_step", "pieces_per_step")
+    med = {p: {**{k: statistics.median(r[k] for r in rs) for k in keys},
+               "wall_range": [min(r["wall_per_step"] for r in rs), max(r["wall_per_step"] for r in rs)],
                "parts": {k: statistics.median(r["parts"][k] for r in rs) for k in PARTS}} for p, rs in runs.items()}
-    print("| variant | wall s/step | CPU s/step | " + " | ".join(PARTS) + " |")
-    print("|---|---|---|" + "---|" * len(PARTS))
+    print("| variant | wall s/step min / median / max | CPU s/step | critical path s/step | worker pieces CPU "
+          "s/step | " + " | ".join(PARTS) + " |")
+    print("|---|---|---|---|---|" + "---|" * len(PARTS))
     for p, m in med.items():
         share = " | ".join(f"{1000 * m['parts'][k]:.1f} ms ({100 * m['parts'][k] / m['cpu_per_step']:.0f} %)"
                            for k in PARTS)
-        print(f"| {p} | {m['wall_per_step']:.3f} | {m['cpu_per_step']:.3f} | {share} |")
+        lo, hi = m["wall_range"]
+        print(f"| {p} | {lo:.3f} / {m['wall_per_step']:.3f} / {hi:.3f} | {m['cpu_per_step']:.3f} | "
+              f"{m['critical_per_step']:.3f} | {m['pieces_per_step']:.3f} | {share} |")
     names = list(runs)
     if len(names) > 1:
         ref = med[names[0]]
         for p in names[1:]:
-            print(f"{p} vs {names[0]}: CPU per step x {ref['cpu_per_step'] / med[p]['cpu_per_step']:.2f} faster, "
-                  f"wall x {ref['wall_per_step'] / med[p]['wall_per_step']:.2f}")
+            print(f"{p} vs {names[0]}: wall x {ref['wall_per_step'] / med[p]['wall_per_step']:.2f} faster, "
+                  f"critical path x {ref['critical_per_step'] / med[p]['critical_per_step']:.2f}")
     print(machine_line())
     if args.json:
         from core.util.atomic import atomic_write_text
