@@ -97,7 +97,7 @@ class TrainConfig:
                           "rays' attention and its patches' decoder, each worker on one torch thread (the same "
                           "numbers to float rounding, one thread synchronisation per piece instead of one per "
                           "operation); 0 = as many as torch threads (--threads), 1 = none: all on the training "
-                          "thread", min=0, max=64)
+                          "thread; training on a GPU uses none", min=0, max=64)
     op_threads: int = opt(0, "torch threads of the step's other operations: 0 = one when the step has workers "
                              "(each operation split over the threads costs a thread synchronisation, and stalls "
                              "when other processes hold the cores), else --threads; test renders always use "
@@ -443,10 +443,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     # A restart (the guard's last resort) runs the schedules again over what is left of the budget.
     step0, sec0 = 0, 0.0
     by_time = budget_s < float("inf")
-    # CPU threads: test renders use all (--threads); the step shares its large pieces out to `workers`, and runs
-    # its other operations on op_threads
+    # CPU threads: test renders use all (--threads); the step shares its large pieces out to `workers` (on the CPU),
+    # and runs its other operations on op_threads
     threads = torch.get_num_threads()
-    workers = cfg.workers or threads
+    workers = (cfg.workers or threads) if dev.type == "cpu" else 1
     op_threads = cfg.op_threads or (1 if workers > 1 else threads)
     max_steps = step_cap(cfg)  # inf: a time budget alone, the minutes decide
     with Progress(1000 if by_time else int(max_steps), "fit", callback=progress_callback,
