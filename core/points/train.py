@@ -4,7 +4,9 @@ Each step renders a few random image patches of one training view (patches, not 
 decoder and SSIM see image structure), with neighbours re-selected from the current points. Schedules run on the
 fraction of the budget used (steps or wall-clock minutes, whichever ends first), so `--minutes` and `--steps`
 give the same shape of training. A time budget alone (`--minutes` without `--steps`) has no step cap: it trains
-for the minutes asked (`step_cap`).
+for the minutes asked (`step_cap`). On several CPU threads a step shares its rays (attention and shading) and its
+decoder patches out to worker threads with one torch thread each (`attend_and_shade`, core/util/workers.py) and
+runs its other operations on one thread (`TrainConfig.workers`, `op_threads`).
 """
 from __future__ import annotations
 
