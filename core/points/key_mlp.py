@@ -14,13 +14,14 @@ them, then forms the gradients of the weights, biases and key features by hand.
 Plain torch on any device. Equality with the autograd path: tests/core/points/test_key_mlp.py; speed:
 `python -m tools.bench.train_step` (docs/benchmarks.md, "Stage-1 step").
 
-With several CPU threads the chunks are shared out to worker threads (core/util/workers.py), each running its
-chunks with one torch thread, instead of every small operation of every chunk splitting itself over the threads:
-a chunk's operations are too small for that (tens of microseconds to a millisecond each, ~130 per step), and their
-synchronisation — a thread barrier per operation, each waiting for the slowest thread — costs more than it
-saves, most of all when other processes hold the cores. Each worker's chunks are the serial path's chunks, computed by the same operations (a BLAS on
-one thread may round differently); the weight gradients are summed per worker and then over the workers (float
-rounding only).
+With several CPU threads (`workers`) the chunks are shared out to worker threads (core/util/workers.py), each
+running its chunks with one torch thread, instead of every small operation of every chunk splitting itself over the
+threads: a chunk's operations are too small for that (tens of microseconds to a millisecond each, ~130 per step),
+and a thread barrier per operation, each waiting for the slowest thread, costs more than it saves, most of all when
+other processes hold the cores. Each worker's chunks are the serial path's chunks, computed by the same operations
+(a BLAS on one thread may round differently); the weight gradients are summed per worker, then over the workers.
+Training itself shares out whole pieces of rays instead (core/points/train.py `attend_and_shade`), each running
+this on its worker thread.
 """
 from __future__ import annotations
 
