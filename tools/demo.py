@@ -105,7 +105,7 @@ def run_demo(args) -> int:
         mcfg, _, applied = apply_profile(profile, ModelConfig(), AtlasConfig(), explicit=set())
         report["profile"] = {**profile.to_dict(), "applied": applied}
         print(f"scene profile: decoder={profile.decoder} k={profile.k} charts={profile.charts}")
-        tcfg = TrainConfig(minutes=sz.minutes, steps=10**9, device=args.device)
+        tcfg = TrainConfig(minutes=sz.minutes, device=args.device)
         model, history = fit_points(train, test, mcfg, tcfg)
         bundle = Bundle(model=model, meta={"scene": {"name": name, "data": str(scene_dir.resolve())},
                                            "train": {"config": to_dict(tcfg), "final": history[-1]}})

@@ -22,6 +22,7 @@ from core.points.decoders import UNetDecoder
 from core.points.key_mlp import KEY_PATHS, key_logits, standard_key_mlp
 from core.points.neighbors.base import METHODS
 from core.util.errors import InputError
+from core.util.workers import split_batch
 
 # Every model trains over white (datasets are composited onto it, `load_split`'s default): a decoder learns to
 # paint this background itself, so renders over another colour must move its share (core/points/render.py).
@@ -116,7 +117,7 @@ class PointModel(nn.Module):
     # ---- attention -------------------------------------------------------------------------------------------
     def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
                idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None,
-               log_window: torch.Tensor | None = None, keys: str = "auto") -> dict:
+               log_window: torch.Tensor | None = None, keys: str = "auto", key_workers: int | None = None) -> dict:
         """Attention over each ray's neighbours plus the background slot.
 
         Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
@@ -131,6 +132,8 @@ class PointModel(nn.Module):
         the non-empty slots, in cache-sized chunks, a hand-written backward; the same numbers to float rounding,
         about half the time of a training step's key MLP) or "auto" (chunked when gradients are on and the key MLP
         is the standard one; without gradients the renderers chunk the rays themselves).
+        key_workers: CPU threads the chunked key MLP shares its chunks out to, one torch thread each (None:
+        torch's thread count; 1: the calling thread; `key_logits`).
         Returns dict: weights [R, K] (0 on empty slots), bg [R] background weight, x [R, 3] surface point
         (NaN-free: rays with no neighbour get the ray point at the mean depth 0), t [R, K] depth along the ray.
         """
@@ -164,7 +167,7 @@ class PointModel(nn.Module):
             raise InputError("attend: keys='chunked' needs the standard key MLP (Linear, ReLU, Linear, ReLU, Linear)")
         if keys == "chunked" or (keys == "auto" and standard and torch.is_grad_enabled()):
             # empty slots are masked out of the softmax below: their logits are never used
-            key = key_logits(self.key_mlp, feats, self.cfg.key_freqs, valid)
+            key = key_logits(self.key_mlp, feats, self.cfg.key_freqs, valid, workers=key_workers)
         else:
             key = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1)
         # Influence clamped: ±1e30 softmaxes fine (max subtracted), an infinite one (diverged fit) would give inf − inf.
@@ -247,10 +250,13 @@ class PointModel(nn.Module):
         """feature_image [B, C, H, W] -> rgb [B, 3, H, W] (UNet decoder only)."""
         return self.decode_with_alpha(feature_image)[0]
 
-    def decode_with_alpha(self, feature_image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def decode_with_alpha(self, feature_image: torch.Tensor, workers: int = 1
+                          ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """feature_image [B, C, H, W] -> (rgb [B, 3, H, W], alpha [B, H, W] or None without the mask head).
-        The residual decoder's rgb is not clamped (training keeps its gradient everywhere): clamp to show it."""
-        y = self.decoder(feature_image)
+        The residual decoder's rgb is not clamped (training keeps its gradient everywhere): clamp to show it.
+        workers > 1 (with gradients, on the CPU): the batch is shared out to that many worker threads, forward and
+        backward (core/util/workers.py `split_batch`; the same numbers to float rounding)."""
+        y = self.decoder(feature_image) if workers <= 1 else split_batch(self.decoder, feature_image, workers)
         rgb = y[:, :3] if self.cfg.decoder_residual else torch.sigmoid(y[:, :3])
         return rgb, (torch.sigmoid(y[:, 3]) if y.shape[1] > 3 else None)
 

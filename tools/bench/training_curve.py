@@ -43,7 +43,7 @@ def main(argv=None) -> int:
         data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"))
         profile = scene_profile(data["train"])
         mcfg, _, _ = apply_profile(profile, ModelConfig(), AtlasConfig(), explicit=set())
-        _, history = fit_points(data["train"], data["test"], mcfg, TrainConfig(minutes=args.minutes, steps=10**9))
+        _, history = fit_points(data["train"], data["test"], mcfg, TrainConfig(minutes=args.minutes))
     print(machine_line())
     print_curve(history)
     if args.plot:

@@ -178,3 +178,47 @@ def test_chunked_keys_finite_on_extreme_points():
         assert torch.isfinite(att["weights"]).all() and torch.isfinite(att["bg"]).all()
         assert all(torch.isfinite(q.grad).all() for q in m.key_mlp.parameters())
         m.zero_grad()
+
+
+@pytest.mark.parametrize("workers,chunk,empty", [(2, 64, 0.3), (3, 7, 0.0), (2, 4096, 0.2), (8, 100, 0.5),
+                                                 (2, 64, 1.0)])
+def test_chunks_shared_out_to_workers_equal_the_calling_thread(workers, chunk, empty):
+    """The chunks on worker threads (one torch thread each) give the calling thread's logits and gradients to
+    float rounding (the weight gradients are summed per worker), and the autograd reference's; more workers than
+    chunks, one chunk and no slot at all work too."""
+    torch.manual_seed(workers + chunk)
+    seq = _mlp(2 * (1 + 2 * 4), 32, 1)
+    r, k = 60, 12
+    feats = torch.stack([torch.rand(r, k) * 64.0, (torch.rand(r, k) - 0.5) * 128.0], dim=-1)
+    valid = torch.rand(r, k) >= empty
+    g = torch.randn(r, k) * valid
+    outs = []
+    for w in (1, workers):
+        f = feats.clone().requires_grad_()
+        seq.zero_grad()
+        y = key_logits(seq, f, 4, valid, chunk, workers=w)
+        y.backward(g)
+        outs.append((y.detach(), f.grad, [p.grad.clone() for p in seq.parameters()]))
+    (y1, gf1, gp1), (y2, gf2, gp2) = outs
+    if not bool(valid.any()):  # no slot: logits 0, no gradient anywhere
+        assert bool((y2 == 0).all()) and bool((gf2 == 0).all())
+        assert all(bool((a == 0).all()) for a in gp2)
+    else:
+        # each chunk runs the same operations on either thread (a BLAS on one thread may round otherwise)
+        _close(y2, y1, "logits")
+        _close(gf2, gf1, "feature gradient")
+        for name, a, b in zip(("w1", "b1", "w2", "b2", "w3", "b3"), gp2, gp1):
+            _close(a, b, name)
+        y0, gf0, gp0 = _reference(seq, feats, 4, g)
+        _close(y2[valid], y0[valid], "logits")
+        _close(gf2, gf0, "feature gradient")
+        for name, a, b in zip(("w1", "b1", "w2", "b2", "w3", "b3"), gp2, gp0):
+            _close(a, b, name)
+
+
+def test_worker_spans_are_whole_chunks_of_the_serial_path():
+    from core.points.key_mlp import _spans
+
+    assert _spans(10, 3, 2) == [(0, 6), (6, 10)]  # chunks 0-3-6 | 6-9-10
+    assert _spans(10, 3, 8) == [(0, 3), (3, 6), (6, 9), (9, 10)]
+    assert _spans(0, 3, 2) == []

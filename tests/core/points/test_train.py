@@ -3,7 +3,8 @@ import torch
 
 from core.bundle import Bundle, load_bundle, save_bundle
 from core.points.render import render_frame
-from core.points.train import TrainConfig, fit_points
+import core.points.train as train_mod
+from core.points.train import DEFAULT_STEPS, TrainConfig, fit_points, step_cap
 from tests.helpers.synthetic import fibonacci_cameras, render_split
 from tests.helpers.tiny import model_config
 
@@ -84,3 +85,46 @@ def test_zoomed_steps_train_both_decoders_and_stay_finite():
             assert torch.isfinite(p).all()
         assert hist[-1]["psnr"] > hist[0]["psnr"] + 5, (decoder, hist[0]["psnr"], hist[-1]["psnr"])
         assert float(model.train_footprint) > 0
+
+
+def test_step_cap_follows_the_budget_given():
+    assert step_cap(TrainConfig()) == DEFAULT_STEPS  # no budget given: the default step count
+    assert step_cap(TrainConfig(minutes=10.0)) == float("inf")  # minutes alone: no step cap
+    assert step_cap(TrainConfig(steps=50, minutes=10.0)) == 50  # both: whichever ends first
+    assert step_cap(TrainConfig(steps=50)) == 50
+
+
+def test_minutes_alone_train_past_the_default_step_count(monkeypatch):
+    """A time budget without --steps runs until the minutes are spent, not until DEFAULT_STEPS (made tiny here);
+    without a time budget the default step count ends the fit."""
+    monkeypatch.setattr(train_mod, "DEFAULT_STEPS", 3)
+    train, test = _two_views()
+    _, hist = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=0), show_progress=False)
+    assert hist[-1]["step"] == 3
+    _, hist = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=0, minutes=0.01), show_progress=False)
+    assert hist[-1]["step"] > 3 and hist[-1]["seconds"] >= 0.6
+    _, hist = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=2, minutes=0.01), show_progress=False)
+    assert hist[-1]["step"] == 2
+
+
+def test_training_steps_with_workers_equal_the_training_thread(monkeypatch):
+    """A stage-1 fit (UNet decoder, regularizers, dropout) with the step's key-MLP chunks and decoder patches on
+    two workers (other operations on one torch thread) or all on the training thread: the same points and
+    weights after a few steps, to float rounding (small key chunks so that these tiny steps have several)."""
+    import functools
+
+    import core.points.model as model_mod
+    from core.points.key_mlp import key_logits
+
+    monkeypatch.setattr(model_mod, "key_logits", functools.partial(key_logits, chunk=256))
+    before = torch.get_num_threads()
+    train = test = render_split("sphere", fibonacci_cameras(6, seed=3), 32)
+    mcfg = model_config("card", num_points=500, decoder="unet")
+    fits = {w: fit_points(train, test, mcfg, _tiny_cfg(steps=3, patches=2, patch_size=16, reg_start=0.0,
+                                                       key_path="chunked", threads=2, workers=w),
+                          show_progress=False)[0] for w in (1, 2)}
+    for name, p in fits[1].named_parameters():
+        p, q = p.detach(), dict(fits[2].named_parameters())[name].detach()
+        err = float((p - q).abs().max()) / max(float(p.abs().max()), 1e-12)
+        assert err <= 1e-4, f"{name} after 3 steps: {err:.2e}"  # Adam's first steps amplify rounding a little
+    assert torch.get_num_threads() == before, "fit_points left the thread count changed"
