@@ -146,3 +146,22 @@ def test_texel_map_projects_the_samples_it_is_given():
     atlas, _, noisy = _strip_atlas()
     atlas.compute_texel_points(noisy, max_dist=0.05)
     assert torch.allclose(atlas.bake_samples, atlas.surface.project(noisy).float())
+
+
+def test_rendered_lookups_use_the_same_projection_as_chart_uv():
+    """The frame renderer's sub-pixel lookups (core/atlas/subpixel.py, also the footprint refit's) go through the
+    atlas's projection: on a frame of points they equal an atlas without one given the projected points."""
+    from core.atlas.subpixel import subpixel_chart_uv
+
+    atlas, xyz, noisy = _strip_atlas()
+    plain = Atlas(4, 16, 2, atlas.centre, atlas.half)
+    plain.load_state_dict(atlas.state_dict())
+    pts = noisy[:64].reshape(8, 8, 3)
+    valid = torch.ones(8, 8, dtype=torch.bool)
+    valid[0, 0] = False
+    depth = torch.ones(8, 8)
+    got = subpixel_chart_uv(atlas, pts, valid, depth, 2, 1e9)
+    want = subpixel_chart_uv(plain, atlas.surface.project(pts.reshape(-1, 3)).reshape(8, 8, 3), valid, depth, 2, 1e9)
+    assert torch.equal(got[2], want[2])
+    assert torch.allclose(got[1], want[1], atol=1e-6) and torch.allclose(got[0], want[0], atol=1e-6)
+    assert not torch.allclose(got[1], subpixel_chart_uv(plain, pts, valid, depth, 2, 1e9)[1], atol=1e-4)
