@@ -62,8 +62,11 @@ class AtlasConfig:
                                    "from the PCA of mid_surface_neighbours samples) before the chart networks — for "
                                    "the texture, the texel map, baking and every lookup alike — so a point's place "
                                    "across the samples' slab does not change its texel (docs/atlas.md)")
-    mid_surface_neighbours: int = opt(256, "mid-surface: samples in each anchor plane's neighbourhood", min=3,
+    mid_surface_neighbours: int = opt(1024, "mid-surface: samples in each anchor plane's neighbourhood", min=3,
                                       max=4096)
+    mid_surface_max_ratio: float = opt(0.7, "mid-surface: an anchor whose neighbourhood's spread across exceeds this "
+                                            "share of its spread along the surface (no clear plane: a slab as thick "
+                                            "as wide, an edge) leaves points where they are", above=0.0)
     distortion: bool = opt(True, "use the normal-free distortion loss")
     distortion_weighting: str = opt("prob", "weight each chart's distortion by P(c|x) (prob) or not (uniform, paper formula)",
                                     choices=("prob", "uniform"))

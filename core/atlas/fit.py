@@ -373,9 +373,12 @@ def mid_surface(atlas: Atlas, xyz: torch.Tensor, cfg: AtlasConfig, spacing: floa
     """Give the atlas its mid-surface projection (core/atlas/surface.py) built from the samples xyz [S, 3] and
     return the projected samples in the network frame [S, 3]; hist gets the median move in sample spacings."""
     t0 = time.perf_counter()
-    atlas.surface = SurfaceProjection.from_samples(xyz.numpy(), neighbours=cfg.mid_surface_neighbours, seed=cfg.seed)
+    atlas.surface = SurfaceProjection.from_samples(xyz.numpy(), neighbours=cfg.mid_surface_neighbours,
+                                                   max_ratio=cfg.mid_surface_max_ratio, seed=cfg.seed)
     moved = atlas.on_surface(xyz)
-    hist["mid_surface"] = {"anchors": len(atlas.surface), "seconds": round(time.perf_counter() - t0, 2),
+    planes = float((atlas.surface.normals != 0).any(1).mean()) if len(atlas.surface) else 0.0
+    hist["mid_surface"] = {"anchors": len(atlas.surface), "planes": planes,
+                           "seconds": round(time.perf_counter() - t0, 2),
                            "move_median": float((moved - xyz).norm(dim=-1).median()) / max(spacing, 1e-12)}
     return atlas.normalise(moved.to(atlas.device))
 

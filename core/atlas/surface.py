@@ -71,11 +71,14 @@ class SurfaceProjection:
         self._tree = cKDTree(c) if len(c) else None
 
     @classmethod
-    def from_samples(cls, xyz, neighbours: int = 256, max_anchors: int = 20000, k: int = 8,
-                     seed: int = 0, chunk: int = 2000) -> "SurfaceProjection":
+    def from_samples(cls, xyz, neighbours: int = 1024, max_ratio: float = 0.7, max_anchors: int = 20000, k: int = 8,
+                     seed: int = 0, chunk: int = 500) -> "SurfaceProjection":
         """Anchor planes from surface samples xyz [S, 3]: at most `max_anchors` anchors (a fixed random subset),
-        each the centroid and PCA normal of its `neighbours` nearest samples; the bandwidth is the anchors'
-        median nearest-anchor distance."""
+        each the PCA normal of its `neighbours` nearest samples through the slab's middle there; the bandwidth is
+        the anchors' median nearest-anchor distance. An anchor whose neighbourhood is not clearly thinner across
+        than along (spread across / spread along the second axis above `max_ratio`: a slab as thick as it is
+        wide, or an edge where two faces meet) defines no plane and gets a zero normal (points near it stay
+        where they are)."""
         x = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         if not np.isfinite(x).all():
             raise InputError("surface projection: the samples contain NaN or infinite values")
@@ -92,7 +95,8 @@ class SurfaceProjection:
             mu = nb.mean(1)
             d = nb - mu[:, None]
             w, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", d, d))
-            plane = np.isfinite(vec[:, :, 0]).all(-1) & (w[:, 1] > 1e-12 * np.maximum(w[:, 2], 1e-300))
+            plane = np.isfinite(vec[:, :, 0]).all(-1) & (w[:, 1] > 1e-12 * np.maximum(w[:, 2], 1e-300)) \
+                & (np.maximum(w[:, 0], 0.0) <= max_ratio ** 2 * w[:, 1])
             centres[s:s + chunk] = mu + _height_at_centroid(d, vec)[:, None] * vec[:, :, 0] * plane[:, None]
             n0 = vec[:, :, 0] / np.maximum(np.linalg.norm(vec[:, :, 0], axis=1, keepdims=True), 1e-300)
             normals[s:s + chunk] = np.where(plane[:, None], n0, 0.0)

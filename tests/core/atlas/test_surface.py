@@ -60,6 +60,12 @@ def test_far_extreme_and_degenerate_inputs_give_finite_points():
         p = SurfaceProjection.from_samples(samples)
         y = torch.tensor([[0.3, 2.0, -1.0], [1e20, 0.0, 0.0]], dtype=torch.float64)
         assert torch.equal(p.project(y), y)
+    # a slab as thick as it is wide (a ball of samples) defines no plane either: left as it is
+    ball = np.random.default_rng(4).normal(size=(3000, 3))
+    p = SurfaceProjection.from_samples(ball, neighbours=256)
+    assert float((p.normals != 0).any(1).mean()) < 0.05
+    y = torch.from_numpy(ball[:200])
+    assert float((p.project(y) - y).norm(dim=-1).median()) < 1e-3
     with pytest.raises(InputError):
         SurfaceProjection.from_samples(np.array([[0.0, 0.0, np.nan]] * 10))
     with pytest.raises(InputError):
