@@ -10,9 +10,11 @@ where in the slab a point sits no longer matters.
 The mid-surface is described by anchor planes: for a fixed subset of the samples, the direction of least spread
 (PCA) of their `neighbours` nearest samples as normal, through the slab's middle there (the constant term of a
 quadric height field fitted to those samples, which unlike their centroid does not sit inside a bend). A
-neighbourhood that wide spans the slab's whole thickness, so its middle is well defined and its normal is stable (with 48 neighbours the normals of
-adjacent tube samples disagree; `core/atlas/fit.py` `sample_normals`). A point is moved along the normals onto
-the Gaussian-weighted mean of its nearest anchors' planes.
+neighbourhood that wide spans the slab's whole thickness, so its middle is well defined and its normal is stable
+(with 48 neighbours the normals of adjacent tube samples disagree; `core/atlas/fit.py` `sample_normals`); an
+anchor whose neighbourhood is not clearly thinner across than along defines no plane. A point is moved along the
+normals onto the Gaussian-weighted mean of its nearest anchors' planes. Thin parts (narrower than a neighbourhood)
+are put on one sheet, which folds their texels (docs/atlas.md measures it).
 """
 from __future__ import annotations
 
@@ -45,7 +47,7 @@ def _height_at_centroid(d: np.ndarray, vec: np.ndarray) -> np.ndarray:
 
 
 class SurfaceProjection:
-    """Anchor planes of a sample slab: centres [m, 3] (neighbourhood centroids) and unit normals [m, 3] (zero where
+    """Anchor planes of a sample slab: centres [m, 3] (points on the slab's middle) and unit normals [m, 3] (zero where
     a neighbourhood spans no plane: that anchor leaves points where they are); bandwidth h (world units) of the
     weights over the `k` nearest anchors.
 
