@@ -11,14 +11,16 @@ from core.atlas.config import MAX_CHART_RES
 from core.atlas.islands import IslandLayout
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet
 from core.atlas.packing import GridLayout, pack, sample_charts, texel_uv, unpack, uv_to_pixel
+from core.atlas.surface import SurfaceProjection
 from core.atlas.texture import kernel_texture, local_linear_points
 from core.util.errors import InputError, ModelFileError
 
 # 1: grid layout; 2: island layout ("layout": "islands"); 3: islands some of which are transposed
-# (atlas/islands/orient, which a version-2 reader would ignore and misplace). Files are written at the lowest
-# version that describes them, so older readers load every file they can read correctly.
-FORMAT_VERSION = 3
-READ_VERSIONS = (1, 2, 3)
+# (atlas/islands/orient, which a version-2 reader would ignore and misplace); 4: lookups projected onto the samples'
+# mid-surface first (atlas/surface/..., which an older reader would ignore and read other texels). Files are written
+# at the lowest version that describes them, so older readers load every file they can read correctly.
+FORMAT_VERSION = 4
+READ_VERSIONS = (1, 2, 3, 4)
 _CHUNK = 65536
 MAX_BAKE_SAMPLES = 200_000  # stored surface samples for baking (2.4 MB); more are subsampled
 
@@ -72,6 +74,9 @@ class Atlas(nn.Module):
         # kernel width they were splatted with; None in files written before they were stored.
         self.bake_samples: torch.Tensor | None = None
         self.bake_sigma = 1.0
+        # Mid-surface projection applied to every point before the chart networks (core/atlas/surface.py); None:
+        # points go to the networks as they are (files written before it existed, AtlasConfig.mid_surface off).
+        self.surface: SurfaceProjection | None = None
 
     @property
     def n(self) -> int:
@@ -119,16 +124,22 @@ class Atlas(nn.Module):
     def denormalise(self, xn: torch.Tensor) -> torch.Tensor:
         return xn * self.half + self.centre
 
+    def on_surface(self, x: torch.Tensor) -> torch.Tensor:
+        """World points [M, 3] -> the points the chart networks see [M, 3]: projected onto the samples'
+        mid-surface when the atlas has one (`surface`), else unchanged."""
+        return x if self.surface is None else self.surface.project(x)
+
     # --- queries (no gradients, chunked) -------------------------------------------------------------
     @torch.no_grad()
     def chart_uv(self, x, placed: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
-        """x [M, 3] world -> (probs [M, n] chart probabilities, uv [M, n, 2] per-chart texture coordinates).
+        """x [M, 3] world -> (probs [M, n] chart probabilities, uv [M, n, 2] per-chart texture coordinates), at
+        x projected onto the samples' mid-surface when the atlas has one (`on_surface`).
         Island layout: probs one-hot (one chart per point), uv already placed in the packed image (see place);
         placed False: the networks' raw outputs (softmax, t_c), to interpolate before `place`."""
         x = check_points(x).to(self.device)
         ps, uvs = [], []
         for s in range(0, len(x), _CHUNK):
-            xn = self.normalise(x[s:s + _CHUNK])
+            xn = self.normalise(self.on_surface(x[s:s + _CHUNK]))
             p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
             if placed:
                 p, uv = self.place(p, uv)
@@ -179,11 +190,12 @@ class Atlas(nn.Module):
         A texel keeps its point only where the chart net picks chart c there, the point lies within max_dist of
         some sample, and t_c(point) returns to within max_cycle texels of the texel centre.
         The samples (at most MAX_BAKE_SAMPLES) and sigma are kept as `bake_samples` / `bake_sigma` for baking.
+        With a mid-surface (`surface`) the samples are projected onto it first, for the map and the bake alike.
         """
         if mode not in ("splat", "inverse"):
             raise InputError(f"texel map mode must be 'splat' or 'inverse', got {mode!r}")
         L, R = self.layout, self.layout.R
-        samples = check_points(samples, "surface samples").to(self.device)
+        samples = self.on_surface(check_points(samples, "surface samples").to(self.device))
         if self.islands:
             if mode != "splat":
                 raise InputError("the island layout builds its texel map from the forward map only (texel_map splat)")
@@ -243,7 +255,7 @@ class Atlas(nn.Module):
         reach = max_move * float(slope.norm(dim=-1).median())  # max_move texels of the typical texel size
 
         def chart_texels(pts, ch, ar):  # raw t_c -> chart texel coordinates (before the island offset) [K, 2]
-            raw = self.tex(self.normalise(pts))[ar, ch]
+            raw = self.tex(self.normalise(self.on_surface(pts)))[ar, ch]
             return (aff[ch, :, :2] @ raw[..., None])[..., 0] + aff[ch, :, 2]
 
         for s in range(0, len(x), chunk):
@@ -253,7 +265,7 @@ class Atlas(nn.Module):
             q = torch.zeros(len(x0), 2, device=self.device)
             xs = x0.clone()
             for _ in range(iters):
-                raw = self.tex(self.normalise(xs))[ar, ch]
+                raw = self.tex(self.normalise(self.on_surface(xs)))[ar, ch]
                 pix = self.layout.place(raw[:, None].expand(-1, self.n, -1).contiguous())[:, 0] * A \
                     if self.n == 1 else self._place_one(raw, ch) * A
                 r = pix - tg
@@ -353,9 +365,12 @@ class Atlas(nn.Module):
         """JSON-able description needed to rebuild the atlas from its arrays."""
         L = self.layout
         version = 1 if not self.islands else (3 if bool((L.orient != 0).any()) else 2)
+        extra = {}
+        if self.surface is not None:
+            version, extra = 4, {"surface": self.surface.meta()}
         return dict(version=version, n=L.n, R=L.R, pad=L.pad, half=self.half,
                     height=L.shape[0], width=L.shape[1], layout=getattr(L, "kind", "grid"),
-                    uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch)
+                    uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch, **extra)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """All state as named float32 arrays: 'atlas/image' [H, W, 3], 'atlas/texel_points' [H, W, 3],
@@ -370,6 +385,8 @@ class Atlas(nn.Module):
             arrays.update(self.layout.to_arrays())
         if self.bake_samples is not None:
             arrays["atlas/bake_samples"] = self.bake_samples.cpu().numpy().astype(np.float32)
+        if self.surface is not None:
+            arrays.update(self.surface.to_arrays())
         return arrays
 
     @classmethod
@@ -387,9 +404,11 @@ class Atlas(nn.Module):
                         arrays["atlas/centre"], float(meta["half"]), **{k: int(meta[k]) for k in keys})
             if kind == "islands":
                 atlas.set_layout(IslandLayout.from_arrays(arrays, int(meta["n"]), int(meta["R"]), int(meta["pad"])))
+            if "surface" in meta:
+                atlas.surface = SurfaceProjection.from_arrays(arrays, meta["surface"])
         except KeyError as e:
             raise ModelFileError(f"atlas: missing entry {e} in the model file") from e
-        except InputError as e:
+        except (InputError, TypeError, ValueError) as e:
             raise ModelFileError(f"atlas: {e}") from e
         state = {}
         for name, p in atlas.named_parameters():

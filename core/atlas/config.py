@@ -58,6 +58,15 @@ class AtlasConfig:
                                "sample's surface normal (PCA of its 256 neighbours), squared, in the frame where the "
                                "tangent derivatives are 1, so a texel holds one place of the samples' slab "
                                "(0 = off; 0.5 measured in docs/atlas.md)", min=0.0)
+    mid_surface: bool = opt(False, "after the maps, project every point onto the samples' mid-surface (anchor planes "
+                                   "from the PCA of mid_surface_neighbours samples) before the chart networks — for "
+                                   "the texture, the texel map, baking and every lookup alike — so a point's place "
+                                   "across the samples' slab does not change its texel (docs/atlas.md)")
+    mid_surface_neighbours: int = opt(1024, "mid-surface: samples in each anchor plane's neighbourhood", min=3,
+                                      max=4096)
+    mid_surface_max_ratio: float = opt(0.7, "mid-surface: an anchor whose neighbourhood's spread across exceeds this "
+                                            "share of its spread along the surface (no clear plane: a slab as thick "
+                                            "as wide, an edge) leaves points where they are", above=0.0)
     distortion: bool = opt(True, "use the normal-free distortion loss")
     distortion_weighting: str = opt("prob", "weight each chart's distortion by P(c|x) (prob) or not (uniform, paper formula)",
                                     choices=("prob", "uniform"))

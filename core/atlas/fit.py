@@ -14,6 +14,7 @@ from core.atlas.atlas import Atlas, check_points
 from core.atlas.config import AtlasConfig
 from core.atlas.distortion import distortion_terms, uv_jacobian
 from core.atlas.packing import dilate_unused, sample_charts
+from core.atlas.surface import SurfaceProjection
 from core.atlas.texture import filled_kernel_texture
 from core.images.metrics import psnr
 from core.util.device import resolve_device
@@ -321,6 +322,8 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         bar.update(1, psnr=p)
 
     # Final texture with the maps frozen: chart probabilities and uv of every sample are fixed.
+    if cfg.mid_surface:  # from here on every point reads the maps on the mid-surface (surface.py)
+        xn = mid_surface(atlas, xyz, cfg, spacing, hist).to(dev)
     probs_all, uv_all = _predict(atlas, xn)
     if cfg.layout == "islands":
         layout, info = island_layout(probs_all, uv_all, xyz.numpy().astype(np.float64), area, k_area, R, cfg,
@@ -364,6 +367,20 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     hist["total_seconds"] = time.perf_counter() - t0
     hist["spacing"], hist["area"] = spacing, area
     return atlas, hist
+
+
+def mid_surface(atlas: Atlas, xyz: torch.Tensor, cfg: AtlasConfig, spacing: float, hist: dict) -> torch.Tensor:
+    """Give the atlas its mid-surface projection (core/atlas/surface.py) built from the samples xyz [S, 3] and
+    return the projected samples in the network frame [S, 3]; hist gets the median move in sample spacings."""
+    t0 = time.perf_counter()
+    atlas.surface = SurfaceProjection.from_samples(xyz.numpy(), neighbours=cfg.mid_surface_neighbours,
+                                                   max_ratio=cfg.mid_surface_max_ratio, seed=cfg.seed)
+    moved = atlas.on_surface(xyz)
+    planes = float((atlas.surface.normals != 0).any(1).mean()) if len(atlas.surface) else 0.0
+    hist["mid_surface"] = {"anchors": len(atlas.surface), "planes": planes,
+                           "seconds": round(time.perf_counter() - t0, 2),
+                           "move_median": float((moved - xyz).norm(dim=-1).median()) / max(spacing, 1e-12)}
+    return atlas.normalise(moved.to(atlas.device))
 
 
 def _used_texels(probs: torch.Tensor, uv: torch.Tensor, R: int, min_prob: float = 1e-3) -> torch.Tensor:

@@ -219,6 +219,16 @@ ATLAS_CASES = {
     "atlas_entry_missing": lambda a, m: _drop(m["atlas"], "R"),
     "atlas_array_missing": lambda a, m: _drop(a, next(k for k in a if k.startswith("atlas/net/"))),
     "atlas_image_wrong_size": lambda a, m: a.update({"atlas/image": a["atlas/image"][:-1].copy()}),
+    # a mid-surface (version 4) without its arrays, with normals that are not unit vectors, with a bad bandwidth
+    "atlas_surface_missing": lambda a, m: m["atlas"].update(version=4, surface={"bandwidth": 0.1, "k": 8}),
+    "atlas_surface_bad_normals": lambda a, m: (
+        a.update({"atlas/surface/centres": np.zeros((5, 3), np.float32),
+                  "atlas/surface/normals": np.full((5, 3), 2.0, np.float32)}),
+        m["atlas"].update(version=4, surface={"bandwidth": 0.1, "k": 8})),
+    "atlas_surface_bandwidth": lambda a, m: (
+        a.update({"atlas/surface/centres": np.zeros((5, 3), np.float32),
+                  "atlas/surface/normals": np.tile(np.eye(3, dtype=np.float32)[:1], (5, 1))}),
+        m["atlas"].update(version=4, surface={"bandwidth": "wide", "k": 8})),
 }
 # load_bundle prefixes the atlas's own ModelFileError with the model file's path.
 

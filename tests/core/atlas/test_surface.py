@@ -1,0 +1,173 @@
+"""Mid-surface projection (core/atlas/surface.py): points of a noisy slab go to its middle, a point's offset across
+the slab does not change where it lands, extreme and degenerate inputs stay finite, and an atlas with it reads
+the same texel across the slab, saves and loads it, and bakes through it."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from core.atlas.atlas import Atlas
+from core.atlas.surface import SurfaceProjection
+from core.atlas.synthetic import synthetic_samples
+from core.util.errors import InputError, ModelFileError
+
+RADIUS = 0.8  # synthetic sphere
+
+
+def _noisy_sphere(noise=0.01, n=20000, seed=2):
+    xyz = synthetic_samples("sphere", n, seed=seed)[0].double()
+    return xyz + noise * torch.randn(xyz.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+
+
+def test_projection_moves_a_noisy_slab_to_its_middle():
+    """Samples scattered 1 cm (about 3 sample spacings) off a sphere: projected, they lie within a fraction of
+    that of the sphere."""
+    xyz = _noisy_sphere()
+    proj = SurfaceProjection.from_samples(xyz.numpy())
+    before = (xyz.norm(dim=-1) - RADIUS).abs()
+    after = (proj.project(xyz).norm(dim=-1) - RADIUS).abs()
+    assert float(before.median()) > 0.005
+    assert float(after.median()) < 0.25 * float(before.median()), (float(before.median()), float(after.median()))
+    # the move is along the normal: the direction from the centre is kept
+    cos = torch.nn.functional.cosine_similarity(proj.project(xyz), xyz, dim=-1)
+    assert float(cos.min()) > 0.999
+
+
+def test_where_a_point_sits_across_the_slab_does_not_change_its_projection():
+    """The same surface place offset by -2..+2 cm along its normal lands on (nearly) one point; without the
+    projection those points are 4 cm apart."""
+    proj = SurfaceProjection.from_samples(_noisy_sphere().numpy())
+    dirs = torch.nn.functional.normalize(torch.randn(300, 3, generator=torch.Generator().manual_seed(3),
+                                                     dtype=torch.float64), dim=-1)
+    outs = torch.stack([proj.project(dirs * (RADIUS + d)) for d in (-0.02, -0.01, 0.0, 0.01, 0.02)])
+    spread = (outs - outs.mean(0)).norm(dim=-1).max(0).values
+    assert float(spread.median()) < 0.002, float(spread.median())   # against 0.02 unprojected
+    assert torch.isfinite(outs).all()
+
+
+def test_far_extreme_and_degenerate_inputs_give_finite_points():
+    proj = SurfaceProjection.from_samples(_noisy_sphere(n=3000).numpy(), neighbours=64)
+    x = torch.tensor([[1e6, 0.0, 0.0], [0.0, -1e30, 3.0], [1e-30, 1e-30, 1e-30], [0.0, 0.0, 0.0], [5.0, 5.0, 5.0]])
+    out = proj.project(x)
+    assert out.dtype == torch.float32 and torch.isfinite(out).all()
+    # a far point moves along its nearest planes' normals only: its distance from the surface is what changes
+    assert float((out[0] - x[0]).norm()) <= 1e6 + 1
+    assert proj.project(torch.zeros(0, 3)).shape == (0, 3)
+    # empty neighbourhoods (too few samples), a line and one repeated point span no plane: points stay put
+    for samples in (np.zeros((2, 3)), np.stack([np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)], -1),
+                    np.ones((40, 3))):
+        p = SurfaceProjection.from_samples(samples)
+        y = torch.tensor([[0.3, 2.0, -1.0], [1e20, 0.0, 0.0]], dtype=torch.float64)
+        assert torch.equal(p.project(y), y)
+    # a slab as thick as it is wide (a ball of samples) defines no plane either: left as it is
+    ball = np.random.default_rng(4).normal(size=(3000, 3))
+    p = SurfaceProjection.from_samples(ball, neighbours=256)
+    assert float((p.normals != 0).any(1).mean()) < 0.05
+    y = torch.from_numpy(ball[:200])
+    assert float((p.project(y) - y).norm(dim=-1).median()) < 1e-3
+    with pytest.raises(InputError):
+        SurfaceProjection.from_samples(np.array([[0.0, 0.0, np.nan]] * 10))
+    with pytest.raises(InputError):
+        proj.project(torch.zeros(4, 2))
+
+
+def _strip_atlas():
+    """A random 4-chart atlas over the strip with a mid-surface from 1 cm-noisy strip samples."""
+    torch.manual_seed(0)
+    xyz = synthetic_samples("strip", 6000, seed=1)[0]
+    noisy = xyz + 0.01 * torch.randn(xyz.shape, generator=torch.Generator().manual_seed(1))
+    atlas = Atlas(4, 16, 2, xyz.mean(0), float((xyz.max(0).values - xyz.min(0).values).max()) / 2 + 0.05)
+    atlas.surface = SurfaceProjection.from_samples(noisy.numpy())
+    return atlas, xyz, noisy
+
+
+def test_atlas_reads_one_texel_across_the_slab_and_round_trips_its_mid_surface():
+    atlas, xyz, noisy = _strip_atlas()
+    x = xyz[:400]
+    n = torch.from_numpy(atlas.surface.normals[atlas.surface._tree.query(x.double().numpy())[1]]).float()
+    shifted = [atlas.chart_uv(x + d * n, placed=False)[1] for d in (-0.015, 0.015)]
+    plain = Atlas(4, 16, 2, atlas.centre, atlas.half)
+    plain.load_state_dict(atlas.state_dict())
+    free = [plain.chart_uv(x + d * n, placed=False)[1] for d in (-0.015, 0.015)]
+    moved, moved_free = (shifted[0] - shifted[1]).norm(dim=-1), (free[0] - free[1]).norm(dim=-1)
+    assert float(moved.median()) < 0.1 * float(moved_free.median()), (float(moved.median()),
+                                                                     float(moved_free.median()))
+    # saved and loaded: the same projection, bit for bit
+    arrays, meta = atlas.to_arrays(), atlas.meta()
+    assert meta["version"] == 4 and "atlas/surface/normals" in arrays
+    b = Atlas.from_arrays({k: v.copy() for k, v in arrays.items()}, json.loads(json.dumps(meta)), "cpu")
+    assert torch.equal(b.chart_uv(noisy[:500])[1], atlas.chart_uv(noisy[:500])[1])
+    # an atlas without it is written as before (version 1 for the grid) and has no surface on loading
+    assert plain.meta()["version"] == 1 and Atlas.from_arrays(plain.to_arrays(), plain.meta()).surface is None
+    broken = dict(meta, surface={"bandwidth": -1.0})
+    with pytest.raises(ModelFileError):
+        Atlas.from_arrays(arrays, broken)
+    with pytest.raises(ModelFileError):
+        Atlas.from_arrays({k: v for k, v in arrays.items() if k != "atlas/surface/centres"}, meta)
+
+
+def test_a_fit_with_the_mid_surface_bakes_and_reads_on_it():
+    """A quick island fit to samples 1 cm off the strip with `mid_surface=True`: the stored bake samples and
+    the texel map lie on the mid-surface, every texel's point maps back within 1 texel, and a point's texel no
+    longer depends on its offset across the slab (without the projection the same fit's maps move it by texels)."""
+    from core.atlas.config import AtlasConfig
+    from core.atlas.fit import fit_atlas
+
+    xyz, rgb = synthetic_samples("strip", 4000, seed=4)
+    noisy = xyz + 0.01 * torch.randn(xyz.shape, generator=torch.Generator().manual_seed(1))
+    quick = dict(steps=300, batch=256, uv_batch=32, distortion_batch=64, width_map=32, depth_map=2, width_chart=16,
+                 depth_chart=1, log_every=1000, eval_samples=256, charts="4", layout="islands", image_size=96,
+                 mid_surface_neighbours=128)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        atlas, hist = fit_atlas(noisy, rgb, AtlasConfig(mid_surface=True, **quick), quiet=True)
+    finally:
+        torch.set_num_threads(threads)
+    assert hist["mid_surface"]["anchors"] == 4000 and hist["mid_surface"]["move_median"] > 0
+    assert torch.allclose(atlas.bake_samples, atlas.surface.project(noisy).float(), atol=1e-6)
+    tp = atlas.texel_points()
+    ok = torch.isfinite(tp).all(-1)
+    assert float(ok.float().mean()) > 0.3
+    off = (atlas.surface.project(tp[ok]) - tp[ok]).norm(dim=-1)
+    assert float(off.median()) < 1e-3, float(off.median())   # the noise: 1e-2
+    _, pix = atlas.atlas_pixel_coords(tp[ok])
+    rows, cols = torch.nonzero(ok, as_tuple=True)
+    assert float(((pix - torch.stack([cols + 0.5, rows + 0.5], -1)).norm(dim=-1) <= 1).float().mean()) == 1.0
+    # the same place at the slab's two faces: one texel with the projection, texels apart without
+    x = xyz[:500]
+    n = torch.from_numpy(atlas.surface.normals[atlas.surface._tree.query(x.double().numpy())[1]]).float()
+    px = [atlas.atlas_pixel_coords(x + d * n)[1] for d in (-0.01, 0.01)]
+    surface, atlas.surface = atlas.surface, None
+    free = [atlas.atlas_pixel_coords(x + d * n)[1] for d in (-0.01, 0.01)]
+    atlas.surface = surface
+    moved, moved_free = (px[0] - px[1]).norm(dim=-1).median(), (free[0] - free[1]).norm(dim=-1).median()
+    assert float(moved) < 0.2 and float(moved_free) > 5 * float(moved), (float(moved), float(moved_free))
+    assert torch.isfinite(atlas.lookup(torch.tensor([[1e6, -1e6, 3.0], [0.0, 0.0, 0.0]]))).all()
+
+
+def test_texel_map_projects_the_samples_it_is_given():
+    """compute_texel_points projects the samples it is given: the stored bake samples are the projected ones."""
+    atlas, _, noisy = _strip_atlas()
+    atlas.compute_texel_points(noisy, max_dist=0.05)
+    assert torch.allclose(atlas.bake_samples, atlas.surface.project(noisy).float())
+
+
+def test_rendered_lookups_use_the_same_projection_as_chart_uv():
+    """The frame renderer's sub-pixel lookups (core/atlas/subpixel.py, also the footprint refit's) go through the
+    atlas's projection: on a frame of points they equal an atlas without one given the projected points."""
+    from core.atlas.subpixel import subpixel_chart_uv
+
+    atlas, xyz, noisy = _strip_atlas()
+    plain = Atlas(4, 16, 2, atlas.centre, atlas.half)
+    plain.load_state_dict(atlas.state_dict())
+    pts = noisy[:64].reshape(8, 8, 3)
+    valid = torch.ones(8, 8, dtype=torch.bool)
+    valid[0, 0] = False
+    depth = torch.ones(8, 8)
+    got = subpixel_chart_uv(atlas, pts, valid, depth, 2, 1e9)
+    want = subpixel_chart_uv(plain, atlas.surface.project(pts.reshape(-1, 3)).reshape(8, 8, 3), valid, depth, 2, 1e9)
+    assert torch.equal(got[2], want[2])
+    assert torch.allclose(got[1], want[1], atol=1e-6) and torch.allclose(got[0], want[0], atol=1e-6)
+    assert not torch.allclose(got[1], subpixel_chart_uv(plain, pts, valid, depth, 2, 1e9)[1], atol=1e-4)
