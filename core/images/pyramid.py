@@ -18,6 +18,9 @@ from core.util.errors import InputError
 def parse_scales(text: str, flag: str = "--train-scales") -> list[int]:
     """"1,2,4" -> [1, 2, 4] (sorted, distinct, each >= 1); "" -> []. A malformed list raises InputError naming
     `flag`."""
+    if str(text).strip().lower() == "auto":
+        raise InputError(f"{flag} auto: `pointgt fit` turns it into factors from --downscale; give the factors "
+                         "here (e.g. 1,2,4)")
     parts = [p.strip() for p in str(text).split(",") if p.strip()]
     try:
         vals = [int(p) for p in parts]
@@ -87,3 +90,41 @@ def pyramid(split, scales: list[int], flag: str = "--train-scales") -> dict:
     check_divides(split.height, split.width, scales, flag)
     return {s: downscale_split(split, s, flag) for s in scales}
 
+
+
+# `pointgt fit --downscale N --train-scales auto` (N > 1): the finest level is at most
+# this many times the training size (the factor measured in docs/results.md#resolution), so the images held in
+# memory are at most AUTO_MAX_FACTOR² times the training size's.
+AUTO_MAX_FACTOR = 4
+
+
+def ladder(factor: int) -> list[int]:
+    """The pyramid factors from a level `factor` x the coarsest down to it: the powers of two below it that divide
+    it, and the factor itself (so every level divides the images): [1, 2, 4] for 4, [1, 2, 6] for 6, [1, 3] for
+    3, [1] for 1."""
+    out, s = [], 1
+    while s < factor:
+        if factor % s == 0:
+            out.append(s)
+        s *= 2
+    return out + [factor]
+
+
+def auto_train_scales(downscale: int, max_factor: int = AUTO_MAX_FACTOR) -> tuple[int, str, str]:
+    """The multi-scale training of `pointgt fit --downscale N --train-scales auto`.
+
+    The training size is the images / N either way. For N > 1 the images are read at a finer size — divided by L,
+    the smallest divisor of N with N / L <= max_factor — and trained as the pyramid `ladder(N / L)` of that size,
+    half the steps on the coarsest level (the training size), the other half in equal shares on the finer ones.
+    Returns (L, train_scales, train_scale_weights) as the flags spell them; N = 1 returns (1, "", ""): nothing
+    finer than the training size, no pyramid."""
+    n = int(downscale)
+    if n <= 1:
+        return 1, "", ""
+    load = next(d for d in range(1, n + 1) if n % d == 0 and n // d <= max_factor)
+    scales = ladder(n // load)
+    if len(scales) == 1:
+        return load, "", ""
+    fine = len(scales) - 1
+    weights = [1] * fine + [fine]  # coarsest: as many steps as all finer levels together
+    return load, ",".join(map(str, scales)), ",".join(map(str, weights))

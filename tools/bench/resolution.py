@@ -48,15 +48,11 @@ DEFAULT_SCENES = "tube,crate,suzanne"
 
 
 def hires_scales(factor: int) -> str:
-    """The --train-scales of a fit from images `factor` x the training size: the powers of two below it that
-    divide it, and the factor itself (so every level divides the images): "1,2,4" for 4, "1,2,6" for 6, "1,3"
-    for 3."""
-    out, s = [], 1
-    while s < factor:
-        if factor % s == 0:
-            out.append(s)
-        s *= 2
-    return ",".join(map(str, out + [factor]))
+    """The --train-scales of a fit from images `factor` x the training size (`core.images.pyramid.ladder`):
+    "1,2,4" for 4, "1,2,6" for 6, "1,3" for 3."""
+    from core.images.pyramid import ladder
+
+    return ",".join(map(str, ladder(factor)))
 
 
 def train_views(folder: Path) -> int:

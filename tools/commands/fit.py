@@ -72,8 +72,21 @@ def run(args) -> int:
     from core.util.device import check_device
 
     check_device(train_cfg.device, "--device")
-    from core.images.pyramid import check_divides, downscale_split, parse_scales, parse_weights
+    from core.images.pyramid import (AUTO_MAX_FACTOR, auto_train_scales, check_divides, downscale_split,
+                                     parse_scales, parse_weights)
 
+    # --downscale N sets the training size (the images / N); --train-scales auto reads the images at a finer size
+    # and trains on their pyramid down to the training size (auto_train_scales).
+    read_factor, auto = args.downscale, None
+    if train_cfg.train_scales.strip().lower() == "auto":
+        load, auto_scales, auto_weights = auto_train_scales(args.downscale)
+        if auto_scales and args.stage in ("papr", "all"):
+            read_factor, auto = load, auto_scales
+        elif args.stage in ("papr", "all"):
+            print(f"[fit] --train-scales auto: --downscale {args.downscale} leaves no finer images within "
+                  f"{AUTO_MAX_FACTOR}x the training size; training on the loaded images alone")
+        weights = (train_cfg.train_scale_weights or auto_weights) if auto else train_cfg.train_scale_weights
+        train_cfg = dataclasses.replace(train_cfg, train_scales=auto or "", train_scale_weights=weights)
     scales = parse_scales(train_cfg.train_scales)  # multi-scale training (--train-scales), [] = off
     if scales:
         parse_weights(train_cfg.train_scale_weights, len(scales))
@@ -82,8 +95,15 @@ def run(args) -> int:
     bundle = None
     if args.stage == "atlas":
         bundle = load_bundle(out, device=train_cfg.device)  # before the images: a missing model is found at once
-    data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"), downscale=args.downscale,
-                        progress=not args.no_progress, **load_kw)
+    try:
+        data = load_dataset(args.data, splits=("train", "test"), required=("train", "test"), downscale=read_factor,
+                            progress=not args.no_progress, **load_kw)
+    except PointGTError as exc:
+        if auto:  # the finer images did not fit (memory) or divide: say what read them
+            raise type(exc)(f"{exc}; --train-scales auto with --downscale {args.downscale} reads the images at "
+                            f"1/{read_factor} of their size (levels {auto}); leave out --train-scales auto to "
+                            f"read them at the training size only") from exc
+        raise
     train, test = data["train"], data["test"]
     print(f"[fit] {args.data}: {len(train)} train / {len(test)} test views at {train.width}x{train.height}")
     images = train  # what stage 1 trains on: the loaded images, or with --train-scales the finest level's
@@ -93,7 +113,9 @@ def run(args) -> int:
         # The coarsest level is the training size: profile, test renders, atlas and the model's meta use it.
         train, test = downscale_split(train, scales[-1]), downscale_split(test, scales[-1])
         print(f"[fit] multi-scale training on levels {', '.join(f'{images.width // s}x{images.height // s}' for s in scales)}; "
-              f"training size {train.width}x{train.height}")
+              f"training size {train.width}x{train.height}"
+              + (f" (--train-scales auto with --downscale {args.downscale}: --train-scales {train_cfg.train_scales} "
+                 f"--train-scale-weights {train_cfg.train_scale_weights})" if auto else ""))
     profile = None
     if args.profile and args.stage in ("papr", "all"):
         from core.profile import apply_profile, explicit_fields, scene_profile

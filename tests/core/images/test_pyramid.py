@@ -5,7 +5,8 @@ import torch
 
 from core.images.cameras import Intrinsics, rays_for_pixels
 from core.images.dataset import load_split
-from core.images.pyramid import area_downscale, downscale_split, parse_scales, parse_weights, pyramid
+from core.images.pyramid import (AUTO_MAX_FACTOR, area_downscale, auto_train_scales, downscale_split, ladder,
+                                 parse_scales, parse_weights, pyramid)
 from core.points.train import sample_patches
 from core.util.errors import InputError
 from tests.helpers.synthetic import fibonacci_cameras, render_split, write_split
@@ -73,3 +74,33 @@ def test_sizes_and_lists_that_do_not_fit_are_refused_naming_the_flag():
     for bad in ("1", "1,2,3", "0,0", "-1,2", "inf,1", "nan,1", "a,b"):
         with pytest.raises(InputError, match="--train-scale-weights"):
             parse_weights(bad, 2)
+
+
+def test_ladder_is_the_powers_of_two_that_divide_the_factor_and_the_factor():
+    assert [ladder(f) for f in (1, 2, 3, 4, 6, 8, 12)] == [[1], [1, 2], [1, 3], [1, 2, 4], [1, 2, 6], [1, 2, 4, 8],
+                                                           [1, 2, 4, 12]]
+
+
+def test_the_default_pyramid_of_a_downscale():
+    """--downscale N --train-scales auto: no pyramid for N = 1; else the images are read at 1/L with N/L <=
+    AUTO_MAX_FACTOR and trained down to the training size (1/N), half the steps on it; "auto" itself is no list
+    of factors (only `pointgt fit` resolves it)."""
+    assert auto_train_scales(1) == (1, "", "")
+    assert auto_train_scales(2) == (1, "1,2", "1,1")
+    assert auto_train_scales(3) == (1, "1,3", "1,1")
+    assert auto_train_scales(4) == (1, "1,2,4", "1,1,2")
+    assert auto_train_scales(8) == (2, "1,2,4", "1,1,2")
+    assert auto_train_scales(6) == (2, "1,3", "1,1")
+    assert auto_train_scales(5) == (5, "", "")  # no divisor of 5 leaves a factor of 2-4: the training size alone
+    for n in range(1, 65):
+        load, scales, weights = auto_train_scales(n)
+        assert n % load == 0
+        if scales:
+            levels = parse_scales(scales)
+            assert load * levels[-1] == n and levels[-1] <= AUTO_MAX_FACTOR  # coarsest level = the training size
+            shares = parse_weights(weights, len(levels))
+            assert shares[-1] == pytest.approx(0.5) and len(set(shares[:-1])) == 1
+        else:
+            assert load == n
+    with pytest.raises(InputError, match="--train-scales auto: `pointgt fit`"):
+        parse_scales("auto")
