@@ -57,6 +57,11 @@ class TrainConfig:
     alpha_weight: float = opt(0.05, "weight of the foreground-mask loss (1 - background weight vs alpha)", min=0.0)
     decoder_alpha_weight: float = opt(0.5, "weight of the decoder mask head's loss (MSE against alpha)", min=0.0)
     ssim_weight: float = opt(0.0, "weight of the (1 - SSIM) loss on patches", min=0.0)
+    base_weight: float = opt(0.0, "residual UNet decoder: weight of the loss (MSE against the image) on the "
+                                  "decoder-free render the decoder corrects (the points' own blended colours), so "
+                                  "the points carry the colour and the decoder only a correction", min=0.0)
+    decoder_weight_decay: float = opt(0.0, "decoupled weight decay (AdamW, per step: lr x this) on the decoder's "
+                                           "weights", min=0.0)
     close2ray: bool = opt(True, "use the close-to-ray regularizer")
     close2ray_weight: float = opt(0.002, "close-to-ray weight gamma", min=0.0)
     close2surface: bool = opt(True, "use the close-to-surface regularizer")
@@ -263,13 +268,18 @@ _POINT_PARAMS = ("xyz", "features", "influence")
 
 
 def build_optimizer(model: PointModel, cfg: TrainConfig) -> torch.optim.Adam:
-    nets = [p for n, p in model.named_parameters() if n not in _POINT_PARAMS]
-    return torch.optim.Adam([
+    nets = [p for n, p in model.named_parameters() if n not in _POINT_PARAMS and not n.startswith("decoder.")]
+    dec = [p for n, p in model.named_parameters() if n.startswith("decoder.")]
+    groups = [
         {"params": [model.xyz], "lr": cfg.lr_points * float(model.spacing), "name": "xyz"},
         {"params": [model.features], "lr": cfg.lr_features, "name": "features"},
         {"params": [model.influence], "lr": cfg.lr_influence, "name": "influence"},
         {"params": nets, "lr": cfg.lr_networks, "name": "networks"},
-    ])
+    ]
+    if dec:
+        groups.append({"params": dec, "lr": cfg.lr_networks, "name": "decoder",
+                       "weight_decay": cfg.decoder_weight_decay})
+    return torch.optim.Adam(groups, weight_decay=0.0, decoupled_weight_decay=True)
 
 
 def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, jitter: torch.Tensor | None = None):
@@ -525,6 +535,11 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 loss = loss + cfg.decoder_alpha_weight * F.mse_loss(dec_alpha.reshape(-1), gt_a)
             if cfg.alpha_weight > 0:
                 loss = loss + cfg.alpha_weight * F.mse_loss(cover, gt_a)
+            if model.decoder is not None and model.cfg.decoder_residual and cfg.base_weight > 0:
+                base = sh["feature"][:, :3]
+                if zoom > 1:
+                    base = pool_zoomed(base, n_patches, size, zoom)
+                loss = loss + cfg.base_weight * F.mse_loss(base, gt)
             if cfg.ssim_weight > 0:
                 pr = rgb.reshape(n_patches, size, size, 3)
                 loss = loss + cfg.ssim_weight * (1 - ssim(pr, gt.reshape(n_patches, size, size, 3)))

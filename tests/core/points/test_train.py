@@ -4,7 +4,7 @@ import torch
 from core.bundle import Bundle, load_bundle, save_bundle
 from core.points.render import render_frame
 import core.points.train as train_mod
-from core.points.train import DEFAULT_STEPS, TrainConfig, fit_points, step_cap
+from core.points.train import DEFAULT_STEPS, TrainConfig, build_optimizer, fit_points, step_cap
 from tests.helpers.synthetic import fibonacci_cameras, render_split
 from tests.helpers.tiny import model_config
 
@@ -128,3 +128,29 @@ def test_training_steps_with_workers_equal_the_training_thread(monkeypatch):
         err = float((p - q).abs().max()) / max(float(p.abs().max()), 1e-12)
         assert err <= 1e-4, f"{name} after 3 steps: {err:.2e}"  # Adam's first steps amplify rounding a little
     assert torch.get_num_threads() == before, "fit_points left the thread count changed"
+
+
+def test_base_weight_trains_the_decoder_free_render_of_the_residual_unet_only():
+    train, test = _two_views()
+    for decoder, changes in (("unet", True), ("none", False)):
+        mcfg = model_config("card", num_points=600, decoder=decoder)
+        feats = [fit_points(train, test, mcfg, _tiny_cfg(steps=5, base_weight=w), show_progress=False)[0].features
+                 for w in (0.0, 1.0)]
+        assert torch.isfinite(feats[1]).all()
+        assert torch.equal(feats[0], feats[1]) != changes, decoder
+
+
+def test_decoder_weight_decay_shrinks_only_the_decoder():
+    train, test = _two_views()
+    mcfg = model_config("card", num_points=600, decoder="unet")
+    norms = {}
+    for wd in (0.0, 50.0):
+        model, _ = fit_points(train, test, mcfg, _tiny_cfg(steps=30, decoder_weight_decay=wd), show_progress=False)
+        dec = model.decoder.enc1[0].weight
+        assert torch.isfinite(dec).all()
+        norms[wd] = float(dec.detach().norm())
+    assert norms[50.0] < 0.8 * norms[0.0], norms
+    groups = {g["name"]: g for g in build_optimizer(model, _tiny_cfg(decoder_weight_decay=50.0)).param_groups}
+    assert groups["decoder"]["weight_decay"] == 50.0  # the decoder's weights alone are decayed
+    assert all(g["weight_decay"] == 0.0 for n, g in groups.items() if n != "decoder")
+    assert {id(p) for p in groups["decoder"]["params"]} == {id(p) for p in model.decoder.parameters()}
