@@ -91,7 +91,6 @@ def pyramid(split, scales: list[int], flag: str = "--train-scales") -> dict:
     return {s: downscale_split(split, s, flag) for s in scales}
 
 
-
 # `pointgt fit --downscale N --train-scales auto` (N > 1): the finest level is at most
 # this many times the training size (the factor measured in docs/results.md#resolution), so the images held in
 # memory are at most AUTO_MAX_FACTOR² times the training size's.
