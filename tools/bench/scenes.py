@@ -2,19 +2,23 @@
 on/off pair, the scene profile's choices and the collapse guard's actions.
 
     python -m tools.bench.scenes --work DIR [--scenes cloth,strip,...] [--size 128] [--minutes 10 | --steps N]
-        [--threads 1] [--views-train 60 --views-test 20] [--json OUT] [--markdown OUT]
+        [--threads 1] [--views-train 60 --views-test 20] [--fit-args "--decoder-weight-decay 0.5" --tag wd]
+        [--json OUT] [--markdown OUT]
 
 Per scene: `pointgt make-scene NAME --out DIR/NAME` (reused when it exists), then `pointgt fit` stage 1 with the
 defaults (the profile picks the decoder), then the same fit with the other decoder (`--decoder none|unet`). Each
 fit is a separate process, exactly what a user runs. Reported per fit: full / object PSNR over all test views,
 steps, seconds, the guard's events and verdict; per scene the blank frame's PSNR, the profile's measurements and
 the default's gap to the better decoder setting. A step budget (`--steps`) keeps the pair fair on a shared machine;
-`--minutes` is what users get.
+`--minutes` is what users get. `--fit-args` adds `pointgt fit` flags to every fit (a trial option measured across
+the library); `--tag` names that setting's model files (DIR/NAME.TAG.default.pgt), so settings never share a model; a
+seed other than 0 is in the name too (DIR/NAME.s1.default.pgt).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -38,6 +42,13 @@ def fit_result(model: Path) -> dict:
             "profile": {k: prof.get(k) for k in ("decoder", "k", "charts", "view_dependent")} if prof else None,
             "measured": {k: (prof.get("measured") or {}).get(k)
                          for k in ("pixels_per_point", "view_variation", "hull_flatness")} if prof else None}
+
+
+def model_path(work: Path, scene: str, decoder: str | None, tag: str = "", seed: int = 0) -> Path:
+    """Model file of a scene's fit: the default fit (decoder None) or the pair's other decoder setting, under the
+    setting's tag when --fit-args are given and the seed when it is not 0 (so no two settings share a file)."""
+    return work / ".".join([scene, *([tag] if tag else []), *([f"s{seed}"] if seed else []), decoder or "default",
+                            "pgt"])
 
 
 def markdown(rows: list[dict], header: str) -> str:
@@ -75,15 +86,25 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads per fit")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-pair", action="store_true", help="only the default fit (no decoder on/off pair)")
+    ap.add_argument("--fit-args", default="", help="more `pointgt fit` flags for every fit (one string)")
+    ap.add_argument("--tag", default="", help="name of the --fit-args setting: its model files are "
+                                              "NAME.TAG.default.pgt and NAME.TAG.<decoder>.pgt (needed with "
+                                              "--fit-args)")
     ap.add_argument("--json", default=None, help="write all figures here")
     ap.add_argument("--markdown", default=None, help="write the table here")
     args = ap.parse_args(argv)
+    if args.fit_args and not args.tag:
+        ap.error("--fit-args: name the setting with --tag (the model files' name)")
+    if args.tag and not all(c.isalnum() or c in "-_" for c in args.tag):
+        ap.error(f"--tag {args.tag!r}: letters, digits, '-' and '_' only (it names files)")
+    extra = shlex.split(args.fit_args)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m", "tools.cli"]
     budget = ["--steps", str(args.steps), "--minutes", "0"] if args.steps else ["--minutes", str(args.minutes)]
     head = (f"{machine_line()}\nbudget per fit: {' '.join(budget)}, {args.threads} thread(s), {args.size}², "
-            f"{args.views_train} train / {args.views_test} test views, seed {args.seed}")
+            f"{args.views_train} train / {args.views_test} test views, seed {args.seed}"
+            + (f"\nfit flags: {args.fit_args}" if extra else ""))
     print(head, flush=True)
     rows = []
     for name in [s for s in args.scenes.split(",") if s]:
@@ -93,14 +114,14 @@ def main(argv=None) -> int:
                               str(args.views_train), "--views-test", str(args.views_test), "--views-val", "0"], print)
         row = {"scene": name, "other": []}
         common = ["fit", str(scene), "--stage", "papr", "--threads", str(args.threads), "--no-progress",
-                  "--seed", str(args.seed), "--allow-blank", *budget]
-        default = work / f"{name}.default.pgt"
+                  "--seed", str(args.seed), "--allow-blank", *budget, *extra]
+        default = model_path(work, name, None, args.tag, args.seed)
         if not default.exists():
             run_command(py + common + ["--out", str(default)], print)
         row["default"] = fit_result(default)
         if not args.no_pair:
             other = "none" if row["default"]["decoder"] == "unet" else "unet"
-            path = work / f"{name}.{other}.pgt"
+            path = model_path(work, name, other, args.tag, args.seed)
             if not path.exists():
                 run_command(py + common + ["--out", str(path), "--decoder", other], print)
             row["other"].append(fit_result(path))
