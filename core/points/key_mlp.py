@@ -14,22 +14,12 @@ them, then forms the gradients of the weights, biases and key features by hand.
 Plain torch on any device. Equality with the autograd path: tests/core/points/test_key_mlp.py; speed:
 `python -m tools.bench.train_step` (docs/benchmarks.md, "Stage-1 step").
 
-With several CPU threads (`workers`) the chunks are shared out to worker threads (core/util/workers.py), each
-running its chunks with one torch thread, instead of every small operation of every chunk splitting itself over the
-threads: a chunk's operations are too small for that (tens of microseconds to a millisecond each, ~130 per step),
-and a thread barrier per operation, each waiting for the slowest thread, costs more than it saves, most of all when
-other processes hold the cores. Each worker's chunks are the serial path's chunks, computed by the same operations
-(a BLAS on one thread may round differently); the weight gradients are summed per worker, then over the workers.
-Training itself shares out whole pieces of rays instead (core/points/train.py `attend_and_shade`), each running
-this on its worker thread.
 """
 from __future__ import annotations
 
 import torch
 import torch.nn as nn
 from torch.autograd.function import once_differentiable
-
-from core.util.workers import cpu_workers, run
 
 KEY_PATHS = ("auto", "torch", "chunked")
 CHUNK = 4096  # slots per chunk: [4096, 64] float32 arrays are 1 MB, the L2 cache per core of the AMD EPYC it was
@@ -91,13 +81,6 @@ def _relu_backward_(grad: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
     return torch.ops.aten.threshold_backward.grad_input(grad, out, 0.0, grad_input=grad)
 
 
-def _spans(m: int, chunk: int, n: int) -> list[tuple[int, int]]:
-    """[start, end) slot ranges of n workers: consecutive whole chunks of the serial path, shared evenly."""
-    chunks = (m + chunk - 1) // chunk
-    cuts = [round(i * chunks / n) * chunk for i in range(n + 1)]
-    return [(min(a, m), min(b, m)) for a, b in zip(cuts[:-1], cuts[1:]) if min(a, m) < min(b, m)]
-
-
 def _forward_span(feats, out, a, b, freqs, chunk, w1, b1, w2, b2, w3, b3) -> None:
     """Logits of slots [a, b) into out[a:b], chunk by chunk."""
     dim = feats.shape[1]
@@ -144,17 +127,16 @@ def _backward_span(feats, g, gf, a, b, freqs, chunk, w1, b1, w2, b2, w3):
 
 
 class _ChunkedKeyMLP(torch.autograd.Function):
-    """logits [M] = key_mlp(fourier(feats [M, D])) chunk by chunk; the backward recomputes the activations.
-    The chunks run on `workers` threads (1: the calling thread)."""
+    """logits [M] = key_mlp(fourier(feats [M, D])) chunk by chunk; the backward recomputes the activations."""
 
     @staticmethod
-    def forward(ctx, feats, freqs, chunk, workers, w1, b1, w2, b2, w3, b3):
+    def forward(ctx, feats, freqs, chunk, w1, b1, w2, b2, w3, b3):
         m = feats.shape[0]
         out = torch.empty(m, dtype=feats.dtype, device=feats.device)
-        spans = _spans(m, chunk, workers)
-        run(lambda a, b: _forward_span(feats, out, a, b, freqs, chunk, w1, b1, w2, b2, w3, b3), spans)
+        if m:
+            _forward_span(feats, out, 0, m, freqs, chunk, w1, b1, w2, b2, w3, b3)
         ctx.save_for_backward(feats, w1, b1, w2, b2, w3)
-        ctx.freqs, ctx.chunk, ctx.spans = freqs, chunk, spans
+        ctx.freqs, ctx.chunk = freqs, chunk
         return out
 
     @staticmethod
@@ -164,25 +146,19 @@ class _ChunkedKeyMLP(torch.autograd.Function):
         g = g.contiguous()
         gb3 = g.sum().reshape(1)
         gf = torch.empty_like(feats) if ctx.needs_input_grad[0] else None
-        if not ctx.spans:  # no slot
-            return (gf, None, None, None, *(torch.zeros_like(t) for t in (w1, b1, w2, b2, w3)), gb3)
-        parts = run(lambda a, b: _backward_span(feats, g, gf, a, b, ctx.freqs, ctx.chunk, w1, b1, w2, b2, w3),
-                    ctx.spans)
-        gw1, gb1, gw2, gb2, gw3 = parts[0]
-        for p in parts[1:]:  # the workers' sums, added in span order
-            for acc, part in zip((gw1, gb1, gw2, gb2, gw3), p):
-                acc += part
-        return gf, None, None, None, gw1, gb1, gw2, gb2, gw3, gb3
+        if feats.shape[0] == 0:  # no slot
+            return (gf, None, None, *(torch.zeros_like(t) for t in (w1, b1, w2, b2, w3)), gb3)
+        gw1, gb1, gw2, gb2, gw3 = _backward_span(feats, g, gf, 0, feats.shape[0], ctx.freqs, ctx.chunk, w1, b1,
+                                                 w2, b2, w3)
+        return gf, None, None, gw1, gb1, gw2, gb2, gw3, gb3
 
 
 def key_logits(seq: nn.Sequential, feats: torch.Tensor, freqs: int, valid: torch.Tensor | None = None,
-               chunk: int = CHUNK, workers: int | None = None) -> torch.Tensor:
+               chunk: int = CHUNK) -> torch.Tensor:
     """The standard key MLP (`standard_key_mlp`) over the Fourier features of feats [R, K, D] -> logits [R, K],
     equal to seq(fourier(feats, freqs)).squeeze(-1) to float rounding, gradients included (to feats and seq's
     weights). valid [R, K] bool: only those slots are evaluated, the others get logit 0 and no gradient (for
-    slots the caller masks out). chunk: slots per chunk (≥ 1). workers: CPU threads the chunks are shared out to,
-    one torch thread each (None: torch's thread count; 1: the calling thread with its own torch threads; tensors
-    off the CPU always use the calling thread)."""
+    slots the caller masks out). chunk: slots per chunk (≥ 1)."""
     r, k, dim = feats.shape
     flat = feats.reshape(r * k, dim)
     rows = None
@@ -191,10 +167,8 @@ def key_logits(seq: nn.Sequential, feats: torch.Tensor, freqs: int, valid: torch
         flat = flat.index_select(0, rows)
     flat = flat.contiguous()
     l1, l2, l3 = seq[0], seq[2], seq[4]
-    chunk = max(int(chunk), 1)
-    n = cpu_workers(flat, (flat.shape[0] + chunk - 1) // chunk, workers)
-    out = _ChunkedKeyMLP.apply(flat, int(freqs), chunk, n, l1.weight, l1.bias, l2.weight, l2.bias, l3.weight,
-                               l3.bias)
+    out = _ChunkedKeyMLP.apply(flat, int(freqs), max(int(chunk), 1), l1.weight, l1.bias, l2.weight, l2.bias,
+                               l3.weight, l3.bias)
     if rows is None:
         return out.reshape(r, k)
     return torch.zeros(r * k, dtype=out.dtype, device=out.device).index_put((rows,), out).reshape(r, k)

@@ -117,7 +117,7 @@ class PointModel(nn.Module):
     # ---- attention -------------------------------------------------------------------------------------------
     def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
                idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None,
-               log_window: torch.Tensor | None = None, keys: str = "auto", key_workers: int | None = None) -> dict:
+               log_window: torch.Tensor | None = None, keys: str = "auto") -> dict:
         """Attention over each ray's neighbours plus the background slot.
 
         Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
@@ -132,8 +132,6 @@ class PointModel(nn.Module):
         the non-empty slots, in cache-sized chunks, a hand-written backward; the same numbers to float rounding,
         about half the time of a training step's key MLP) or "auto" (chunked when gradients are on and the key MLP
         is the standard one; without gradients the renderers chunk the rays themselves).
-        key_workers: CPU threads the chunked key MLP shares its chunks out to, one torch thread each (None:
-        torch's thread count; 1: the calling thread; `key_logits`).
         Returns dict: weights [R, K] (0 on empty slots), bg [R] background weight, x [R, 3] surface point
         (NaN-free: rays with no neighbour get the ray point at the mean depth 0), t [R, K] depth along the ray.
         """
@@ -167,7 +165,7 @@ class PointModel(nn.Module):
             raise InputError("attend: keys='chunked' needs the standard key MLP (Linear, ReLU, Linear, ReLU, Linear)")
         if keys == "chunked" or (keys == "auto" and standard and torch.is_grad_enabled()):
             # empty slots are masked out of the softmax below: their logits are never used
-            key = key_logits(self.key_mlp, feats, self.cfg.key_freqs, valid, workers=key_workers)
+            key = key_logits(self.key_mlp, feats, self.cfg.key_freqs, valid)
         else:
             key = self.key_mlp(fourier(feats, self.cfg.key_freqs)).squeeze(-1)
         # Influence clamped: ±1e30 softmaxes fine (max subtracted), an infinite one (diverged fit) would give inf − inf.

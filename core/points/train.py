@@ -189,7 +189,7 @@ def attend_and_shade(model: PointModel, origins: torch.Tensor, dirs: torch.Tenso
     forward and backward (core/util/workers.py `split_rows`; rays are independent there, so the same numbers to
     float rounding), the point values computed once before."""
     if workers <= 1 or not torch.is_grad_enabled():
-        att = model.attend(model.xyz, model.influence, origins, dirs, idx, keys=keys, key_workers=1)
+        att = model.attend(model.xyz, model.influence, origins, dirs, idx, keys=keys)
         return att, model.shade(att, dirs, idx, background)
     table = model.point_table()  # None: view-dependent values, gathered per slot inside the pieces
     shared = [model.xyz, model.influence] + ([table] if table is not None else [])
@@ -197,7 +197,7 @@ def attend_and_shade(model: PointModel, origins: torch.Tensor, dirs: torch.Tenso
               if n not in ("xyz", "influence") and not n.startswith("decoder.")]
 
     def piece(o, d, i, xyz, influence, *tab):
-        att = model.attend(xyz, influence, o, d, i, keys=keys, key_workers=1)
+        att = model.attend(xyz, influence, o, d, i, keys=keys)
         sh = model.shade(att, d, i, background, table=tab[0] if tab else None)
         return [att[k] for k in _ATTENTION] + [sh["rgb"] if model.decoder is None else sh["feature"]]
     # pieces of equal work: a ray costs its K slots' geometry and its non-empty slots' key MLP (~5x a slot's

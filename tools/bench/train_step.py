@@ -5,7 +5,7 @@
 
 Loads the scene and applies the scene profile as `pointgt fit` does, then runs `fit_points` for --steps steps with
 each `--key-path` (and each `--workers` and `--op-threads` value: `TrainConfig.workers`, e.g. `1,0` to compare
-the step on the training thread alone with its key-MLP chunks and decoder patches shared out to one worker per
+the step on the training thread alone with its rays and decoder patches shared out to one worker per
 thread, and `TrainConfig.op_threads`) in turn (A B A B ..., so a drifting
 machine load hits all alike), --repeats times. Per fit:
 wall seconds per step from the fit's own training clock (what a `--minutes` budget counts) and CPU seconds per
@@ -97,7 +97,6 @@ def time_fit(train, test, model_cfg, cfg) -> dict:
     piece's (what a step would take on idle cores); the parts timed inside a worker add its CPU time."""
     import torch
 
-    import core.points.key_mlp as key_mlp
     import core.points.train as tr
     import core.util.workers as workers
     from core.points.model import PointModel
@@ -112,7 +111,7 @@ def time_fit(train, test, model_cfg, cfg) -> dict:
     with contextlib.ExitStack() as stack:
         for owner, name, part in wraps:
             stack.enter_context(_timed(owner, name, part, clock))
-        stack.enter_context(_pieces((workers, key_mlp), clock))
+        stack.enter_context(_pieces((workers,), clock))
         t = time.thread_time()
         _, history = tr.fit_points(train, test, model_cfg, cfg, show_progress=False)
         total = time.thread_time() - t
