@@ -31,7 +31,7 @@ MODES = ("deform-aware", "naive", "deform-gradient")
 def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.Tensor, origins: torch.Tensor,
                      dirs: torch.Tensor, p_def: torch.Tensor, p_can: torch.Tensor,
                      mode: str = "deform-aware", inv_f: torch.Tensor | None = None,
-                     fold_radius: float | None = None) -> torch.Tensor:
+                     fold_radius: float | None = None, fold_inv_f: torch.Tensor | None = None) -> torch.Tensor:
     """Canonical lookup points x_can [R, 3].
 
     Args: fg_weights [R, K] attention over neighbours (rows sum to 1 where any neighbour exists), idx [R, K]
@@ -39,14 +39,20 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
     p_def [M, 3] deformed positions, p_can [M, 3] canonical positions of the same points (row j of both is the
     same point; with ids: p_can = canonical_xyz[ids]); inv_f [M, 3, 3] inverse deformation gradients of the
     points (needed by mode "deform-gradient"); fold_radius: keep only the neighbours whose displacement
-    p_can − p_def lies within this distance (world units) of the most-attended neighbour's (None or inf: all).
+    p_can − p_def lies within this distance (world units) of the most-attended neighbour's (None or inf: all);
+    fold_inv_f [M, 3, 3]: the fold rule compares each neighbour's own estimate of the ray's canonical point,
+    p_can + fold_inv_f (x_def − p_def), instead of its displacement (see `_fold_reject`).
     """
     if mode not in MODES:
         raise ValueError(f"correspondence must be one of {MODES}, got {mode!r}")
     w = fg_weights * (idx >= 0)
     safe = idx.clamp_min(0)
     if fold_radius is not None and fold_radius < float("inf") and w.shape[1]:
-        w, x_hat = _fold_reject(w, idx, safe, x_hat, p_def, p_can, float(fold_radius))
+        local = None
+        if fold_inv_f is not None:  # each neighbour's estimate of the canonical point, through its local map
+            off = project_on_ray(x_hat, origins, dirs)[:, None, :] - p_def[safe]
+            local = p_can[safe] + (fold_inv_f[safe] @ off[..., None]).squeeze(-1)        # [R, K, 3]
+        w, x_hat = _fold_reject(w, idx, safe, x_hat, p_def, p_can, float(fold_radius), local)
     if mode == "naive":
         return (w[..., None] * p_can[safe]).sum(1)
     x_def = project_on_ray(x_hat, origins, dirs)
@@ -63,13 +69,14 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
 
 def ray_canonical_points(trace: Trace, sel: torch.Tensor | None = None, p_def: torch.Tensor | None = None,
                          p_can: torch.Tensor | None = None, mode: str = "deform-aware",
-                         inv_f: torch.Tensor | None = None, fold_radius: float | None = None) -> torch.Tensor:
+                         inv_f: torch.Tensor | None = None, fold_radius: float | None = None,
+                         fold_inv_f: torch.Tensor | None = None) -> torch.Tensor:
     """Canonical surface points [S, 3] of the rays `sel` of a traced frame.
 
     trace: `trace_frame` of the points p_def [M, 3]; sel: [S] ray indices (or an [R] bool mask with S set; None:
     all R rays);
     p_can [M, 3] the canonical positions of the same points; mode, inv_f [M, 3, 3] and fold_radius as
-    `canonical_points`.
+    `canonical_points`, and fold_inv_f.
     p_def None: nothing moved, so the canonical point is the ray's surface point projected on its ray, Π(x̂), as
     the atlas saw it while fitting. Non-finite rows of p_def (a broken rig) enter the arithmetic as 0, as in
     `trace_frame` (no ray selects them as a neighbour). The result can be non-finite where the correspondence
@@ -84,17 +91,24 @@ def ray_canonical_points(trace: Trace, sel: torch.Tensor | None = None, p_def: t
         raise ValueError("ray_canonical_points: p_def was given without p_can (the canonical positions)")
     pts = torch.nan_to_num(p_def, nan=0.0, posinf=0.0, neginf=0.0)
     return canonical_points(trace.fg_weights[sel], trace.idx[sel], x_hat, origins, dirs, pts, p_can, mode,
-                            inv_f=inv_f, fold_radius=fold_radius)
+                            inv_f=inv_f, fold_radius=fold_radius, fold_inv_f=fold_inv_f)
 
 
 def _fold_reject(w: torch.Tensor, idx: torch.Tensor, safe: torch.Tensor, x_hat: torch.Tensor, p_def: torch.Tensor,
-                 p_can: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+                 p_can: torch.Tensor, radius: float, local: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Weights [R, K] over the neighbours whose displacement lies within `radius` of that of each ray's
     most-attended one, renormalised to the row's old sum, and x̂ [R, 3] recomputed from them (rows the rule left
-    whole unchanged)."""
-    anchor = safe.gather(1, w.argmax(1, keepdim=True))                          # [R, 1]
-    disp = p_can - p_def                                                        # [M, 3]
-    dist = (disp[safe] - disp[anchor]).norm(dim=-1)                             # [R, K]
+    whole unchanged). local [R, K, 3]: compare these per-neighbour canonical estimates instead of the
+    displacements (under any affine map of one part they agree exactly: a uniform stretch or a rotation drops
+    nothing; a part the pose brought there from elsewhere still disagrees by about its canonical distance)."""
+    slot = w.argmax(1, keepdim=True)                                             # [R, 1]
+    if local is not None:
+        dist = (local - local.gather(1, slot[..., None].expand(-1, 1, 3))).norm(dim=-1)      # [R, K]
+    else:
+        anchor = safe.gather(1, slot)                                            # [R, 1]
+        disp = p_can - p_def                                                     # [M, 3]
+        dist = (disp[safe] - disp[anchor]).norm(dim=-1)                          # [R, K]
     keep = (idx >= 0) & ~(dist > radius)  # NaN positions: kept, as without the rule
     kept = w * keep
     total, left = w.sum(1, keepdim=True), kept.sum(1, keepdim=True)

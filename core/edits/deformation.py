@@ -236,16 +236,19 @@ class DeformationField:
 
     @torch.no_grad()
     def gradients_and_fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
-                           max_per_pair: int = 8, budget: float = 1.0):
+                           max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False):
         """`gradients` and `fill` of the same points, sharing their neighbour gathering: (F [M, 3, 3], (new [P, 3],
-        canonical [P, 3], source [P]))."""
+        canonical [P, 3], source [P])); with_partner: the fill's tuple also holds partner [P] and fraction [P]
+        (see `fill`)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         if pts.shape[0] == 0:
-            return torch.zeros(0, 3, 3, device=self.device), self.fill(pts, ids, ratio, max_per_pair, budget)
+            return torch.zeros(0, 3, 3, device=self.device), self.fill(pts, ids, ratio, max_per_pair, budget,
+                                                                       with_partner)
         gathered = self._gather_deformed(pts, ids, with_rows=True)
-        return self._fit(pts, *gathered[:5], ids), self._fill(pts, gathered, ratio, max_per_pair, budget)
+        return (self._fit(pts, *gathered[:5], ids),
+                self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner))
 
     def _fit(self, pts, dc, dd, w, cid, own_ok, ids):
         """The fit of `gradients` from gathered neighbour offsets (see _gather_deformed)."""
@@ -305,7 +308,7 @@ class DeformationField:
 
     @torch.no_grad()
     def fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
-             max_per_pair: int = 8, budget: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+             max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False) -> tuple:
         """Extra points where the deformation pulled canonical neighbours apart (a stretched surface: a joint's
         blend band, a scaled part), so the deformed cloud keeps about its canonical density.
 
@@ -317,16 +320,20 @@ class DeformationField:
 
         points [M, 3] deformed (non-finite = absent), ids [M] as in `gradients`. Returns (new [P, 3] deformed
         positions, canonical [P, 3] their canonical positions, source [P] int64 the row of `points` each takes
-        its features and F from: the nearer end of its segment). P = 0 where nothing stretched."""
+        its features and F from: the nearer end of its segment). P = 0 where nothing stretched. with_partner: also
+        partner [P] int64, the row of the segment's other end, and fraction [P] float32 in (0, 0.5], how far along
+        the segment from the source towards the partner the point lies (to blend the two ends' features)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         gathered = self._gather_deformed(pts, ids, with_rows=True) if pts.shape[0] else None
-        return self._fill(pts, gathered, ratio, max_per_pair, budget)
+        return self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner)
 
-    def _fill(self, pts, gathered, ratio, max_per_pair, budget):
+    def _fill(self, pts, gathered, ratio, max_per_pair, budget, with_partner=False):
         """The work of `fill` from gathered neighbour offsets (_gather_deformed with rows; None: no points)."""
         empty = (pts.new_zeros(0, 3), pts.new_zeros(0, 3), torch.zeros(0, dtype=torch.long, device=self.device))
+        if with_partner:
+            empty = empty + (torch.zeros(0, dtype=torch.long, device=self.device), pts.new_zeros(0))
         if not (ratio > 1.0 and math.isfinite(ratio)):
             raise InputError(f"fill ratio must be a finite number > 1, got {ratio}")
         if not (budget >= 0 and math.isfinite(budget)):
@@ -375,8 +382,13 @@ class DeformationField:
         jr, sr = j[rep], slot[rep]
         new = pts[jr] + t * dd[jr, sr]
         canonical = self.canonical[cid[jr]] + t * dc[jr, sr]
-        source = torch.where(t[:, 0] <= 0.5, jr, rows[jr, sr])
-        return new, canonical, source
+        near_j = t[:, 0] <= 0.5
+        source = torch.where(near_j, jr, rows[jr, sr])
+        if not with_partner:
+            return new, canonical, source
+        partner = torch.where(near_j, rows[jr, sr], jr)
+        fraction = torch.where(near_j, t[:, 0], 1.0 - t[:, 0])
+        return new, canonical, source, partner, fraction
 
 
 def _moments(w: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

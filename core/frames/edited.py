@@ -35,6 +35,8 @@ from core.util.errors import InputError
 
 
 COMPRESSION = ("tangent", "keep", "undo")
+FILL_FEATURES = ("nearer", "blend")
+FOLD_TESTS = ("displacement", "local-map")
 RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
 
 
@@ -58,6 +60,11 @@ class EditConfig:
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
                                   "behind); 0 = keep all (the paper's)", min=0.0, max=1e6)
+    fold_test: str = opt("displacement", "fold rule (fold_radius): what it compares between a ray's neighbours: "
+                                         "displacement (canonical − deformed position) | local-map (each neighbour's "
+                                         "estimate of the ray's canonical point through its own local deformation "
+                                         "gradient: a uniform stretch or a rotation drops nothing)",
+                         choices=FOLD_TESTS)
     f_fill: bool = opt(True, "moved points: add points along canonical neighbour pairs the pose pulled apart "
                               "(stretched surfaces, a joint's blend band), taking features and F from the nearer "
                               "end; rest frames are unchanged")
@@ -65,6 +72,10 @@ class EditConfig:
                                    "this many times their canonical distance apart", min=1.01, max=100.0)
     f_fill_budget: float = opt(1.0, "f_fill: at most this many added points per point (the ratio is raised past "
                                     "it)", min=0.0, max=64.0)
+    f_fill_features: str = opt("nearer", "f_fill: what an added point carries of its pair's two ends: nearer (the "
+                                         "features and influence of the nearer end) | blend (both ends' features and "
+                                         "influence, mixed by where the point lies between them)",
+                               choices=FILL_FEATURES)
     f_occlusion: bool = opt(False, "moved points: each ray keeps the front one of the surface layers among its "
                                    "neighbours (layers told apart by the points' local deformation gradients: a "
                                    "joint's fold, a part swung behind another); rest frames are unchanged")
@@ -101,6 +112,7 @@ class EditState:
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
         self._f = self._inv_f = self._inv_f_keys = self._radius_scale = None
+        self._fill_blend = None  # f_fill_features = blend: (canonical ids of both ends [P], fraction [P])
         self.deformation_seconds = 0.0  # time spent on F and what derives from it (0 until it is needed)
         self.fit_seconds = 0.0  # of which the fit of F
         if not 1 <= int(self.cfg.antialias) <= 8:
@@ -150,6 +162,14 @@ class EditState:
             self.p_can = torch.cat([self.p_can[:self.p_can.shape[0] - fill_can.shape[0]], fill_can])
         self.features = None if self.ids is None else model.features.detach()[self.ids]
         self.influence = model.influence.detach() if self.ids is None else model.influence.detach()[self.ids]
+        if self._fill_blend is not None:  # f_fill_features = blend: added points mix their pair's two ends
+            a, b, t = self._fill_blend
+            p = t.shape[0]
+            t = t.to(self.features.dtype)
+            feats = model.features.detach()
+            self.features[-p:] = (1 - t)[:, None] * feats[a] + t[:, None] * feats[b]
+            infl = model.influence.detach()
+            self.influence[-p:] = (1 - t.to(infl.dtype)) * infl[a] + t.to(infl.dtype) * infl[b]
         self.atlas_image = None
         self.mask_image = None
         self._edit_textures = None
@@ -175,8 +195,8 @@ class EditState:
         (DeformationField.fill) and extend points, ids and F with them. Returns their canonical positions [P, 3]
         (None when nothing was added)."""
         fld = field_for(self.bundle.model, self.deformation_cfg)
-        f, (new, can, src) = self._timed(lambda: fld.gradients_and_fill(
-            self.points, self.ids, ratio=self.cfg.f_fill_ratio, budget=self.cfg.f_fill_budget))
+        f, (new, can, src, partner, frac) = self._timed(lambda: fld.gradients_and_fill(
+            self.points, self.ids, ratio=self.cfg.f_fill_ratio, budget=self.cfg.f_fill_budget, with_partner=True))
         self._f = f
         self.fit_seconds = self.deformation_seconds
         if new.shape[0] == 0:
@@ -187,6 +207,8 @@ class EditState:
         self.ids = torch.cat([ids, ids[src]])
         self._f = torch.cat([f, f[src]])
         self.filled_points = int(new.shape[0])
+        if self.cfg.f_fill_features == "blend":
+            self._fill_blend = (ids[src], ids[partner], frac)
         return can
 
     @torch.no_grad()
@@ -347,8 +369,10 @@ class EditState:
         cfg = self.cfg
         mode = cfg.correspondence
         fold = cfg.fold_radius * float(self.bundle.model.spacing) if cfg.fold_radius > 0 else None
+        local = fold is not None and cfg.fold_test == "local-map"
         return ray_canonical_points(trace, sel, self.points, self.p_can, mode,
-                                    inv_f=self.inv_f_keys if mode == "deform-gradient" else None, fold_radius=fold)
+                                    inv_f=self.inv_f_keys if mode == "deform-gradient" else None, fold_radius=fold,
+                                    fold_inv_f=self.inv_f_keys if local else None)
 
     @property
     def textured(self) -> bool:

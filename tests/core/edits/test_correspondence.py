@@ -202,3 +202,39 @@ def test_fold_rule_is_finite_on_hostile_rows():
     naive = canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode="naive", fold_radius=0.0)
     top = idx[3, w[3].argmax()]
     assert torch.allclose(naive[3], p_can[top] * w[3].sum(), atol=1e-6)
+
+
+def test_local_map_fold_test_drops_nothing_under_an_affine_map_and_still_drops_the_part_behind():
+    """fold_inv_f: neighbours are compared by their own local-map estimates of the ray's canonical point. Under a
+    5× stretch with a rotation (F exact) the displacements differ by 4× the neighbours' canonical offsets and the
+    displacement test drops most of them, but every local estimate agrees: nothing is dropped, even at a tight
+    radius. Two parts (one swung behind, F = I on both): the local-map test drops the part behind as the
+    displacement test does."""
+    w, idx, _, o, d, _, p_can = _case(7)
+    a = torch.tensor([[5.0, 0.0, 0.0], [0.0, 0.8, -0.6], [0.0, 0.6, 0.8]])
+    b = torch.tensor([0.3, -1.0, 0.5])
+    p_def = p_can @ a.T + b
+    x_hat = (w[..., None] * p_def[idx.clamp_min(0)]).sum(1)
+    inv_f = torch.linalg.inv(a).expand(p_def.shape[0], 3, 3).contiguous()
+    for mode, kw in (("deform-aware", {}), ("deform-gradient", {"inv_f": inv_f})):
+        ref = canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode, **kw)
+        local = canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode, fold_radius=0.05, fold_inv_f=inv_f, **kw)
+        assert torch.equal(local, ref)
+        disp = canonical_points(w, idx, x_hat, o, d, p_def, p_can, mode, fold_radius=0.05, **kw)
+        assert float((disp - ref).norm(dim=1).max()) > 0.1  # the displacement test dropped neighbours
+    case = _two_layers()
+    front_can = (case[0][:, :-2, None] * case[6][case[1][:, :-2]]).sum(1) / 0.9
+    eye = torch.eye(3).expand(case[5].shape[0], 3, 3)
+    for mode in ("naive", "deform-aware"):
+        got = canonical_points(*case, mode=mode, fold_radius=1.0, fold_inv_f=eye)
+        assert torch.isfinite(got).all()
+        assert float((got[:, :2] - front_can[:, :2]).abs().max()) < 0.2
+    # hostile rows: no neighbours, underflowed weights, a singular local map
+    w, idx, x_hat, o, d, p_def, p_can = _case(3)
+    idx[1] = -1
+    w[1] = 0.0
+    w[2] = 0.0
+    bad = torch.eye(3).repeat(p_def.shape[0], 1, 1)
+    bad[::3] = 0.0
+    out = canonical_points(w, idx, x_hat, o, d, p_def, p_can, "deform-aware", fold_radius=0.0, fold_inv_f=bad)
+    assert torch.isfinite(out).all()

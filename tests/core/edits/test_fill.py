@@ -127,3 +127,33 @@ def test_bad_ratio_and_budget_are_refused():
     for kw in ({"ratio": 1.0}, {"ratio": float("nan")}, {"budget": -1.0}, {"budget": float("inf")}):
         with pytest.raises(InputError):
             fld.fill(p, **kw)
+
+
+@pytest.mark.parametrize("make", [_sheet, _volume])
+def test_partner_and_fraction_place_each_point_between_its_pair(make):
+    """with_partner: every added point lies `fraction` of the way from its source to its partner (deformed and
+    canonical), fraction in (0, 0.5] (the source is the nearer end); the first three outputs are the plain call's."""
+    p = make()
+    a = torch.tensor([[4.0, 0.3, 0.0], [0.0, 1.0, 0.0], [0.0, 0.2, 1.0]])
+    q = p @ a.T
+    fld = DeformationField(p)
+    new, can, src, partner, frac = fld.fill(q, ratio=1.5, budget=10.0, with_partner=True)
+    plain = fld.fill(q, ratio=1.5, budget=10.0)
+    assert all(torch.equal(x, y) for x, y in zip((new, can, src), plain))
+    assert new.shape[0] > 0 and partner.shape == src.shape == frac.shape
+    assert bool((frac > 0).all()) and bool((frac <= 0.5).all()) and bool((partner != src).all())
+    f = frac[:, None]
+    assert torch.allclose(new, (1 - f) * q[src] + f * q[partner], atol=1e-4)
+    assert torch.allclose(can, (1 - f) * p[src] + f * p[partner], atol=1e-5)
+    # gradients_and_fill gives the same tuple
+    _, both = fld.gradients_and_fill(q, ratio=1.5, budget=10.0, with_partner=True)
+    assert all(torch.equal(x, y) for x, y in zip(both, (new, can, src, partner, frac)))
+
+
+def test_partner_outputs_are_empty_where_nothing_stretched():
+    p = _sheet(8)
+    fld = DeformationField(p)
+    for q in (p, p * 0.5, torch.full_like(p, float("nan"))):
+        out = fld.fill(q, with_partner=True)
+        assert len(out) == 5 and all(x.shape[0] == 0 for x in out)
+    assert len(fld.fill(p, budget=0.0, with_partner=True)) == 5

@@ -156,6 +156,76 @@ def test_fill_closes_a_stretch_and_keeps_ids_features_and_canonical_points(tiny)
     assert cover[True] > cover[False]
 
 
+def test_blended_fill_mixes_both_ends_and_leaves_rest_frames_unchanged(tiny):
+    """f_fill_features = blend: an added point's features and influence are its pair's two ends' mixed by where it
+    lies between them (the given points keep theirs); nothing changes at rest, and extreme stretches stay finite."""
+    bundle, _, test = tiny
+    model = bundle.model
+    xyz = model.xyz.detach()
+    n = model.num_points
+    s = torch.tensor([4.0, 1.0, 1.0])
+    nearer = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=2.0))
+    blend = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=2.0, f_fill_features="blend"))
+    p = blend.filled_points
+    assert p > 0 and p == nearer.filled_points and torch.equal(blend.points, nearer.points)
+    assert torch.equal(blend.features[:n], nearer.features[:n]) and torch.equal(blend.influence[:n],
+                                                                                 nearer.influence[:n])
+    # each added point: features = (1 − t) f_a + t f_b with t its fraction of the canonical segment from a to b
+    a, b, t = blend._fill_blend
+    assert torch.equal(a, blend.ids[n:]) and bool((t > 0).all()) and bool((t <= 0.5).all())
+    assert torch.allclose(blend.p_can[n:], (1 - t)[:, None] * xyz[a] + t[:, None] * xyz[b], atol=1e-5)
+    feats = model.features.detach()
+    assert torch.allclose(blend.features[n:], (1 - t)[:, None] * feats[a] + t[:, None] * feats[b], atol=1e-6)
+    differs = (feats[a] - feats[b]).abs().amax(1) > 1e-3
+    assert bool(differs.any()) and not torch.allclose(blend.features[n:][differs], nearer.features[n:][differs])
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.5
+    for pts in (xyz * s, xyz * torch.tensor([1e3, 1.0, 1.0])):
+        out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_features="blend")), c2w,
+                            test.height, test.width, test.focal)
+        assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+    # rest: the canonical points given (nothing moved) or forced through the moved path with ids
+    today = EditState(bundle, cfg=EditConfig(f_attention=False, f_fill=False, fold_radius=0.0))
+    for st in (EditState(bundle, points=xyz.clone(), cfg=EditConfig(f_fill_features="blend")),
+               EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(f_fill_features="blend"))):
+        assert st.filled_points == 0
+        for i in range(len(test)):
+            ra = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+            rb = render_edited(st, test.c2w[i], test.height, test.width, test.focal)
+            assert torch.allclose(ra["rgb"], rb["rgb"], atol=1e-5) and torch.allclose(ra["alpha"], rb["alpha"],
+                                                                                       atol=1e-5)
+
+
+def test_local_map_fold_test_leaves_rest_frames_and_a_uniform_stretch_alone(tiny):
+    """fold_test = local-map: at rest (forced through the moved path, F ≈ I) the textured frame is today's; under a
+    uniform stretch (F exact) the fold rule drops nothing, so the lookups equal those without the rule, while the
+    displacement test at the same radius changes them."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    atlas = bake(bundle.atlas, _half_split)
+    local = dict(fold_test="local-map", fold_radius=0.5)
+    today = EditState(bundle, atlas=atlas)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), atlas=atlas, cfg=EditConfig(**local))
+    for i in range(len(test)):
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-4) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    exact = DeformationConfig(sheet_ratio=0.0)
+    s = torch.tensor([4.0, 1.0, 1.0])
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.5
+    x = {}
+    for name, extra in (("off", dict(fold_radius=0.0)), ("local", local),
+                        ("displacement", dict(fold_radius=0.5))):
+        st = EditState(bundle, points=xyz * s, atlas=atlas, cfg=EditConfig(f_fill=False, **extra), deformation=exact)
+        x[name] = render_edited(st, c2w, test.height, test.width, test.focal)["x_can"]
+    hit = torch.isfinite(x["off"]).all(-1)
+    assert int(hit.sum()) > 50
+    assert torch.allclose(x["local"][hit], x["off"][hit], atol=1e-5)
+    assert float((x["displacement"][hit] - x["off"][hit]).norm(dim=-1).max()) > 1e-3
+
+
 def test_occlusion_rule_hides_a_part_swung_behind(tiny):
     """Half of the card swung behind the other half: with the occlusion rule the frame is closer to the front half
     rendered alone (the hidden half's points removed by ids) where that half covers the pixels (alpha > 0.5)."""
