@@ -36,7 +36,7 @@ EDITS = ("geometry", "retexture", "decal")
 # renderer variants: the EditConfig fields each sets (every F switch named: the defaults may change); "paper" =
 # the paper's renderer and correspondence. f_compression also changes the deform-gradient correspondence.
 _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0,
-          "f_occlusion": False}
+          "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement"}
 RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-radius": {**_PAPER, "f_radius": True}, "f-both": {**_PAPER, "f_attention": True, "f_radius": True},
              "f-keep": {**_PAPER, "f_attention": True, "f_compression": "keep"},
@@ -45,7 +45,13 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "fold": {**_PAPER, "fold_radius": 2.0}, "fill-fold": {**_PAPER, "f_fill": True, "fold_radius": 2.0},
              "f-fold": {**_PAPER, "f_attention": True, "fold_radius": 2.0},
              "f-fill-fold": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0},
-             "f-fill-fold-occ": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_occlusion": True}}
+             "f-fill-fold-occ": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_occlusion": True},
+             "f-fill-fold-blend": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                   "f_fill_features": "blend"},
+             "f-fill-fold-local": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 0.5,
+                                   "fold_test": "local-map"},
+             "f-fill-fold-blend-local": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 0.5,
+                                         "fold_test": "local-map", "f_fill_features": "blend"}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
@@ -258,7 +264,7 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
     def render(i):
         c = state.cfg  # what the trace depends on (the correspondence and fold rule do not change it)
         key = (i, c.temperature, c.f_attention, c.f_radius, c.f_compression if c.f_attention else "-",
-               (c.f_fill_ratio, c.f_fill_budget) if c.f_fill else None, c.f_occlusion)
+               (c.f_fill_ratio, c.f_fill_budget, c.f_fill_features) if c.f_fill else None, c.f_occlusion)
         cached = traces.get(key) if traces is not None else None
         view = (gt.c2w[i], gt.height, gt.width, gt.focal)
         out = render_edited(state, *view, background, trace=cached[0] if cached else None)
@@ -453,7 +459,10 @@ def markdown(result: dict) -> str:
               "compression / all compression (and so does their deform-gradient correspondence), fill / f-fill = paper / "
               "f-attention with points added where the pose pulled neighbours apart, fold / fill-fold / f-fold / f-fill-fold = "
               "paper / fill / f-attention / f-fill with the correspondence's fold rule, f-fill-fold-occ = f-fill-fold "
-              "with the occlusion rule (each ray keeps its front surface layer); first temperature, soft blend; "
+              "with the occlusion rule (each ray keeps its front surface layer), f-fill-fold-blend = f-fill-fold "
+              "with each added point's features mixed from both ends of its pair, f-fill-fold-local = f-fill-fold "
+              "whose fold rule compares each neighbour's local-map estimate of the canonical point (radius 0.5 "
+              "spacings), f-fill-fold-blend-local = both; first temperature, soft blend; "
               "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]
     # summary: mean over poses per magnitude, per method

@@ -17,7 +17,8 @@ import time
 from pathlib import Path
 
 _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware",
-        "f_fill": False, "fold_radius": 0.0, "f_occlusion": False}
+        "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
+        "fold_test": "displacement"}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -33,6 +34,10 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     "f-attention + fill + fold rule, deform-aware": {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0},
     "f-attention + fill + fold rule + occlusion, deform-aware": {**_OFF, "f_attention": True, "f_fill": True,
                                                                  "fold_radius": 2.0, "f_occlusion": True},
+    "f-attention + blended fill + fold rule, deform-aware": {**_OFF, "f_attention": True, "f_fill": True,
+                                                             "fold_radius": 2.0, "f_fill_features": "blend"},
+    "f-attention + fill + local-map fold rule, deform-aware": {**_OFF, "f_attention": True, "f_fill": True,
+                                                               "fold_radius": 0.5, "fold_test": "local-map"},
 }
 
 

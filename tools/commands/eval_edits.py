@@ -27,7 +27,10 @@ def add_arguments(p):
                         "correspondence) | fill / f-fill (paper / f-attention with points added where the pose pulled neighbours "
                         "apart) | fold / fill-fold / f-fold / f-fill-fold (paper / fill / f-attention / f-fill with the "
                         "correspondence's fold rule) | f-fill-fold-occ (f-fill-fold with the occlusion rule: each ray "
-                        "keeps its front surface layer)")
+                        "keeps its front surface layer) | f-fill-fold-blend (f-fill-fold, each added point's "
+                        "features mixed from both ends of its pair) | f-fill-fold-local (f-fill-fold, the fold rule "
+                        "comparing each neighbour's local-map estimate of the canonical point, radius 0.5) | "
+                        "f-fill-fold-blend-local (both)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

@@ -22,7 +22,7 @@ def add_arguments(p):
     from core.config import add_to_parser
     from core.edits.correspondence import MODES
     from core.edits.deformation import DeformationConfig
-    from core.frames.edited import COMPRESSION, EditConfig
+    from core.frames.edited import COMPRESSION, FILL_FEATURES, FOLD_TESTS, EditConfig
 
     p.add_argument("model", help="model file (.pgt)")
     p.add_argument("--cameras", required=True, help="transforms JSON whose cameras to render (transforms_*.json, or "
@@ -54,10 +54,16 @@ def add_arguments(p):
                    help="--f-fill: a neighbour pair whose distance grew by more than this gets points (> 1)")
     p.add_argument("--f-fill-budget", type=float, default=EditConfig.f_fill_budget,
                    help="--f-fill: at most this many added points per point (>= 0)")
+    p.add_argument("--f-fill-features", default=EditConfig.f_fill_features, choices=FILL_FEATURES,
+                   help="--f-fill: an added point carries the features of the nearer end of its pair (nearer) or "
+                        "both ends' mixed by where it lies between them (blend)")
     p.add_argument("--fold-radius", type=float, default=EditConfig.fold_radius,
                    help="moved points: the correspondence keeps a ray's neighbours whose displacement lies within "
                         "this many point spacings of its most-attended one's, dropping the other side of a fold "
                         "(0 = keep all)")
+    p.add_argument("--fold-test", default=EditConfig.fold_test, choices=FOLD_TESTS,
+                   help="--fold-radius: compare the neighbours' displacements (displacement) or each neighbour's "
+                        "estimate of the ray's canonical point through its local deformation gradient (local-map)")
     p.add_argument("--f-occlusion", action=argparse.BooleanOptionalAction, default=EditConfig.f_occlusion,
                    help="moved points: each ray keeps the front one of the surface layers among its neighbours "
                         "(a joint's fold, a part swung behind another; told apart by the local deformation gradients)")
@@ -160,7 +166,8 @@ def run(args) -> int:
     cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
                               f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
                               f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
-                              fold_radius=args.fold_radius, f_occlusion=args.f_occlusion,
+                              f_fill_features=args.f_fill_features,
+                              fold_radius=args.fold_radius, fold_test=args.fold_test, f_occlusion=args.f_occlusion,
                               render_mode=args.render_mode,
                               **({} if args.temperature is None else {"temperature": args.temperature})))
     check_device(args.device, "--device")
