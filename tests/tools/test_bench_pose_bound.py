@@ -1,0 +1,45 @@
+"""tools/bench/pose_bound.py: the low-pass of a texture function, the object PSNR and the table (the Blender side
+is the eval-edits ground truth, tested there)."""
+import math
+
+import torch
+
+from tools.bench.pose_bound import lowpassed, markdown, object_psnr
+
+
+def test_lowpass_keeps_a_linear_texture_and_averages_a_step():
+    def linear(x):
+        return (x @ torch.tensor([[0.3, 0.1, 0.0], [0.2, 0.0, 0.5], [0.1, 0.4, 0.2]])) + 0.1
+
+    x = torch.randn(50, 3)
+    assert lowpassed(linear, 0.0) is linear
+    assert torch.allclose(lowpassed(linear, 0.7)(x), linear(x), atol=1e-5)  # a symmetric mean of a linear map
+
+    def step(x):
+        return (x[:, :1] > 0).float().expand(-1, 3)
+
+    on_edge = torch.zeros(1, 3)
+    assert float(lowpassed(step, 1.0)(on_edge)[0, 0]) == 0.5  # half the cube on each side
+    far = torch.tensor([[2.0, 0.0, 0.0]])
+    assert float(lowpassed(step, 1.0)(far)[0, 0]) == 1.0
+    assert torch.isfinite(lowpassed(step, 1e30)(x)).all()
+
+
+def test_object_psnr_pools_the_union_of_both_masks():
+    img = torch.ones(4, 4, 3)
+    rgb = img.clone()
+    rgb[0, 0] = 0.0  # one object pixel off by 1 in each channel
+    gt_alpha = torch.zeros(4, 4)
+    gt_alpha[:2, :2] = 1.0
+    alpha = torch.zeros(4, 4)
+    alpha[:2, :3] = 1.0  # the render covers 6 pixels: the union is 6
+    assert math.isclose(object_psnr(rgb, alpha, img, gt_alpha), -10 * math.log10(3 / 18), rel_tol=1e-6)
+    assert object_psnr(img, alpha, img, gt_alpha) > 100  # no error: finite, bounded by the 1e-12 floor
+
+
+def test_markdown_gives_the_gap_to_rest():
+    res = {"scene": "cloth", "texture": "flag", "views": 2,
+           "poses": {"rest": {"render x": 30.0, "perfect texture": 29.0},
+                     "stretch": {"render x": 23.5, "perfect texture": 29.5}}}
+    text = markdown(res)
+    assert "| stretch | 23.50 (-6.50) | 29.50 (+0.50) |" in text and "| rest | 30.00 | 29.00 |" in text
