@@ -35,7 +35,7 @@ from core.util.errors import InputError
 
 
 COMPRESSION = ("tangent", "keep", "undo")
-FILL_FEATURES = ("nearer", "blend")
+FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
 RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
 
@@ -72,9 +72,9 @@ class EditConfig:
                                    "this many times their canonical distance apart", min=1.01, max=100.0)
     f_fill_budget: float = opt(1.0, "f_fill: at most this many added points per point (the ratio is raised past "
                                     "it)", min=0.0, max=64.0)
-    f_fill_features: str = opt("nearer", "f_fill: what an added point carries of its pair's two ends: nearer (the "
-                                         "features and influence of the nearer end) | blend (both ends' features and "
-                                         "influence, mixed by where the point lies between them)",
+    f_fill_features: str = opt("blend", "f_fill: what an added point carries of its pair's two ends: blend (both "
+                                        "ends' features and influence, mixed by where the point lies between them) | "
+                                        "nearer (the features and influence of the nearer end)",
                                choices=FILL_FEATURES)
     f_occlusion: bool = opt(False, "moved points: each ray keeps the front one of the surface layers among its "
                                    "neighbours (layers told apart by the points' local deformation gradients: a "

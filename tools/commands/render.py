@@ -55,8 +55,8 @@ def add_arguments(p):
     p.add_argument("--f-fill-budget", type=float, default=EditConfig.f_fill_budget,
                    help="--f-fill: at most this many added points per point (>= 0)")
     p.add_argument("--f-fill-features", default=EditConfig.f_fill_features, choices=FILL_FEATURES,
-                   help="--f-fill: an added point carries the features of the nearer end of its pair (nearer) or "
-                        "both ends' mixed by where it lies between them (blend)")
+                   help="--f-fill: an added point carries both ends' features of its pair, mixed by where it lies "
+                        "between them (blend), or those of the nearer end (nearer)")
     p.add_argument("--fold-radius", type=float, default=EditConfig.fold_radius,
                    help="moved points: the correspondence keeps a ray's neighbours whose displacement lies within "
                         "this many point spacings of its most-attended one's, dropping the other side of a fold "

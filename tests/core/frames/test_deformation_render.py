@@ -133,8 +133,8 @@ def test_rest_frames_unchanged_with_fill_and_fold_rule(tiny):
 
 def test_fill_closes_a_stretch_and_keeps_ids_features_and_canonical_points(tiny):
     """The card stretched 4× along x with today's keys: its points pull apart and rays fall through between them;
-    filled, the frame covers more of the stretched card. Added points carry their source's features and F and
-    sit between their pair's canonical points."""
+    filled, the frame covers more of the stretched card. Added points carry their source's features (the "nearer"
+    rule) and F and sit between their pair's canonical points."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
     s = torch.tensor([4.0, 1.0, 1.0])
@@ -142,7 +142,8 @@ def test_fill_closes_a_stretch_and_keeps_ids_features_and_canonical_points(tiny)
     c2w[:3, 3] *= 2.5
     cover = {}
     for fill in (False, True):
-        st = EditState(bundle, points=xyz * s, cfg=EditConfig(f_attention=False, f_fill=fill, f_fill_budget=4.0))
+        st = EditState(bundle, points=xyz * s, cfg=EditConfig(f_attention=False, f_fill=fill, f_fill_budget=4.0,
+                                                              f_fill_features="nearer"))
         out = render_edited(st, c2w, test.height, test.width, test.focal)
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
         cover[fill] = int((out["alpha"] > 0.5).sum())
@@ -164,7 +165,7 @@ def test_blended_fill_mixes_both_ends_and_leaves_rest_frames_unchanged(tiny):
     xyz = model.xyz.detach()
     n = model.num_points
     s = torch.tensor([4.0, 1.0, 1.0])
-    nearer = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=2.0))
+    nearer = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=2.0, f_fill_features="nearer"))
     blend = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=2.0, f_fill_features="blend"))
     p = blend.filled_points
     assert p > 0 and p == nearer.filled_points and torch.equal(blend.points, nearer.points)
