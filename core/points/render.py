@@ -32,7 +32,7 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
                 inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto",
-                soft_scale: float = 1.0, index=None) -> Trace:
+                soft_scale: float = 1.0, index=None, reach: torch.Tensor | None = None) -> Trace:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -48,7 +48,10 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     attention runs in torch, which takes the footprint's log-window);
     index: a ScreenIndex of these points and this camera (core/points/neighbors/select.py `screen_index` with the
     model's method, K, cap and radius_scale) to query instead of building one, so a caller can search some rays
-    again without projecting the points twice (not used in footprint mode).
+    again without projecting the points twice (not used in footprint mode);
+    reach [M] (>= 1) or None: point m is a neighbour candidate within the pixel radius cap × reach[m] (a point whose
+    surroundings a deformation stretched; core/points/neighbors/index.py `ScreenIndex`; footprint mode uses the
+    largest reach for every point).
     Returns a Trace of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], active [R], plus shape (H, W) and depth [R] on demand.
     """
@@ -66,13 +69,17 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
     log_w = None
     if soft_scale > 1.0:
+        soft_radius = radius_scale
+        if reach is not None and reach.numel():
+            soft_radius = radius_scale * max(1.0, float(torch.nan_to_num(reach.double(), 1.0, 1.0, 1.0).max()))
         idx, log_w = select_neighbors_soft(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
                                            model.cfg.neighbor_radius_px, width_px=soft_scale - 1.0,
-                                           radius_scale=radius_scale)
+                                           radius_scale=soft_radius)
         k = idx.shape[1]
     else:
         idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
-                               model.cfg.neighbor_radius_px, radius_scale=radius_scale, index=index)
+                               model.cfg.neighbor_radius_px, radius_scale=radius_scale, index=index,
+                               reach=reach)
     fi = None if inv_f is None else inv_f.to(dev, torch.float32)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.

@@ -37,13 +37,15 @@ def available() -> bool:
     return numba is not None
 
 
-def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val):
+def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val, rs, rcell,
+            rs_max):
     """For each query q[i] = (col, row) relative to the grid origin: its K best (ids[slot], value) ascending.
     xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
     weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
-    pre-filled; values are ranked in float64 and stored in float32."""
-    rmax = int(math.ceil(cap / cell)) + 1
-    cap2 = cap * cap
+    pre-filled; values are ranked in float64 and stored in float32. rs [M] each point's reach factor (its cap is
+    cap × rs), rcell [ncx*ncy] the largest per cell, rs_max the largest of all (all ones: one cap)."""
+    reach = cap * rs_max  # no point is a candidate beyond this
+    rmax = int(math.ceil(reach / cell)) + 1
     best = np.empty(k, dtype=np.float64)  # the query's K best values, ascending ...
     slot = np.empty(k, dtype=np.int64)  # ... and their slots
     for i in range(q.shape[0]):
@@ -51,14 +53,14 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
         qy = q[i, 1]
         if not (math.isfinite(qx) and math.isfinite(qy)):
             continue
-        if qx < -cap or qy < -cap or qx > ncx * cell + cap or qy > ncy * cell + cap:
+        if qx < -reach or qy < -reach or qx > ncx * cell + reach or qy > ncy * cell + reach:
             continue  # beyond the cap of every cell (and keeps the cell index arithmetic small)
         cx = int(math.floor(qx / cell))
         cy = int(math.floor(qy / cell))
         n = 0
         for r in range(rmax + 1):
             lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
-            if lb > cap:
+            if lb > reach:
                 break
             if n == k and lb * wmin_all >= best[k - 1]:
                 break
@@ -83,7 +85,7 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                     ex = max(x * cell - qx, qx - (x + 1) * cell, 0.0)
                     ey = max(y * cell - qy, qy - (y + 1) * cell, 0.0)
                     md = math.sqrt(ex * ex + ey * ey)
-                    if md > cap:
+                    if md > cap * rcell[c]:
                         continue
                     if n == k and md * wcell[c] >= best[k - 1]:
                         continue
@@ -91,7 +93,8 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                         ddx = xs[j] - qx
                         ddy = ys[j] - qy
                         d2 = ddx * ddx + ddy * ddy
-                        if d2 > cap2:
+                        cj = cap * rs[j]
+                        if d2 > cj * cj:
                             continue
                         v = math.sqrt(d2) * ws[j]
                         if n == k and v >= best[k - 1]:
@@ -132,10 +135,11 @@ class CompiledGrid:
 
     px [M, 2] float64 (col, row) pixel coords, already filtered (finite, in front, inside the frame ± 1 px);
     weight [M] float64 or None; ids [M] int64, what a query returns for each point; cap > 0 pixels (finite);
-    height, width of the frame."""
+    height, width of the frame; reach [M] float64 >= 1 or None: point m is a candidate within cap × reach[m]
+    pixels (cells stay sized by `cap`, so a few far-reaching points do not make every query visit larger cells)."""
 
     def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
-                 width: int):
+                 width: int, reach: np.ndarray | None = None):
         self.cap = float(cap)
         span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
         self.cell = max(_CELL_PER_CAP * self.cap, math.sqrt(span_x * span_y / _MAX_CELLS))
@@ -156,6 +160,12 @@ class CompiledGrid:
         self.wcell = np.full(self.ncx * self.ncy, np.inf)
         np.minimum.at(self.wcell, cell_id, w)
         self.wmin = float(w.min()) if len(w) else 1.0
+        rs = np.ones(len(rel)) if reach is None else np.maximum(np.nan_to_num(np.asarray(reach, dtype=np.float64),
+                                                                              nan=1.0, posinf=1.0), 1.0)
+        self.rs = np.ascontiguousarray(rs[self.order])
+        self.rcell = np.ones(self.ncx * self.ncy)
+        np.maximum.at(self.rcell, cell_id, rs)
+        self.rs_max = float(rs.max()) if len(rs) else 1.0
 
     def query(self, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """q [R, 2] float64 (col, row), non-finite rows get no neighbours -> (ids [R, k] int64 of the ids given
@@ -166,5 +176,5 @@ class CompiledGrid:
         if r and len(self.xs):
             qq = np.ascontiguousarray(np.asarray(q, dtype=np.float64) + 1.0)
             _get_kernel()(self.xs, self.ys, self.ws, self.ids, self.wcell, self.start, self.ncx, self.ncy, self.cell,
-                          self.wmin, qq, self.cap, k, idx, val)
+                          self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max)
         return idx, val

@@ -59,10 +59,14 @@ class ScreenIndex:
     distance; with Intrinsics the focal is sqrt(fx * fy)).
     max_radius_px: candidates lie within this many pixels of the query; "auto" (or 0) derives it from the
     projected density and K (`radius_px(k)`), inf (or a negative number) means no cap.
+    reach [N] (>= 1) or None: point n is a candidate within the cap × reach[n] pixels (a point whose surroundings a
+    deformation stretched reaches farther). The compiled backend applies it per point, with cells still sized by
+    the cap; the others, which have one cap per index, use the cap × the largest reach.
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
-                 depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto"):
+                 depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto",
+                 reach: torch.Tensor | None = None):
         check_matrix("points", points, 3)
         check_camera(c2w, height, width, focal)
         self.radius = check_radius(max_radius_px)
@@ -77,6 +81,14 @@ class ScreenIndex:
         keep &= (px[:, 0] >= -1) & (px[:, 0] <= width + 1) & (px[:, 1] >= -1) & (px[:, 1] <= height + 1)
         self.ids = torch.nonzero(keep).squeeze(1)  # [M] original point index of each candidate
         self.px = px[keep]  # [M, 2] (col, row)
+        self.reach = None  # [M] float64 >= 1: each candidate's cap factor (None: 1)
+        if reach is not None:
+            r = torch.as_tensor(reach).detach().to(p.device, torch.float64).reshape(-1)
+            if r.shape[0] != p.shape[0]:
+                raise InputError(f"neighbour search: reach must have one value per point ({p.shape[0]}), got "
+                                 f"{r.shape[0]}")
+            r = torch.nan_to_num(r, nan=1.0, posinf=1.0).clamp_min(1.0)[keep]
+            self.reach = r if bool((r > 1.0).any()) else None
         self.weight = depth[keep] / float(focal_scale(cam)) if depth_factor else None  # [M]
         self._density: float | None = None
         self._grids: dict[float, CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
@@ -90,10 +102,15 @@ class ScreenIndex:
             self._w32 = None if self.weight is None else self.weight.to(torch.float32)
 
     def radius_px(self, k: int) -> float:
-        """The pixel radius cap a query with K = k uses (inf = no cap)."""
+        """The pixel radius cap a query with K = k uses (inf = no cap); with `reach`, that of a point of reach 1."""
         if self.radius != "auto":
             return self.radius
         return auto_radius_px(self._median_density(), check_k(k))
+
+    def _uniform_cap(self, k: int) -> float:
+        """The one cap of the backends without per-point reach: the cap × the largest reach."""
+        cap = self.radius_px(k)
+        return cap if self.reach is None else cap * float(self.reach.max())
 
     def _median_density(self) -> float:
         if self._density is None:
@@ -109,7 +126,7 @@ class ScreenIndex:
             return empty(r, k, self.device)
         if self.backend == "grid":
             with one_cpu_thread(self.device):
-                cap = self.radius_px(k)
+                cap = self._uniform_cap(k)
                 if cap not in self._grids:
                     self._grids[cap] = CellGrid(self.px, self.weight, self.ids, cap, self._median_density(),
                                                  self.height, self.width)
@@ -118,8 +135,9 @@ class ScreenIndex:
             cap = self.radius_px(k)
             if cap not in self._compiled:
                 w = None if self.weight is None else self.weight.numpy()
+                reach = None if self.reach is None else self.reach.cpu().numpy()
                 self._compiled[cap] = compiled.CompiledGrid(self.px.numpy(), w, self.ids.numpy(), cap,
-                                                               self.height, self.width)
+                                                               self.height, self.width, reach=reach)
             idx, dist = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
             return Neighbors(torch.from_numpy(idx), torch.from_numpy(dist))
         ok = torch.isfinite(query_px).all(dim=1)
@@ -130,7 +148,7 @@ class ScreenIndex:
             li, ld = torch.from_numpy(li), torch.from_numpy(ld)
         else:
             q = torch.where(ok[:, None], query_px.detach().to(self.device, torch.float32), 0.0)
-            li, ld = screen_brute(self._px32, self._w32, q, k, self.radius_px(k))
+            li, ld = screen_brute(self._px32, self._w32, q, k, self._uniform_cap(k))
         ids = self.ids.to(li.device)
         idx = torch.where(li >= 0, ids[li.clamp(min=0)], -1)
         ld = ld.masked_fill(~ok.to(ld.device)[:, None], math.inf)

@@ -560,3 +560,64 @@ def test_a_shared_screen_index_searches_as_select_neighbors_does(method, scale):
     far = (px[more.clamp_min(0)] - q.double()[:, None]).norm(dim=-1)
     assert bool((far[more >= 0] <= cap + 1e-6).all())
     assert nb.select_neighbors is not None and screen_index(pts, "perpendicular", 6, c2w, H, W, FOCAL) is None
+
+
+def ref_screen_reach(points, c2w, query_px, k, depth_factor, cap, reach):
+    """ref_screen with a per-point cap: point n is a candidate within cap × reach[n] pixels."""
+    p, m = points.double(), c2w.double()
+    cam = (p - m[:3, 3]) @ m[:3, :3]
+    z = -cam[:, 2]
+    col = FOCAL * cam[:, 0] / z + 0.5 * W
+    row = -FOCAL * cam[:, 1] / z + 0.5 * H
+    keep = (z > 0) & (col >= -1) & (col <= W + 1) & (row >= -1) & (row <= H + 1) & ~_absent(points)
+    px = torch.stack([col, row], -1)
+    d = (query_px.double()[:, None, :] - px[None]).norm(dim=-1)
+    keep = keep[None] & (d <= cap * reach.double()[None])
+    if depth_factor:
+        d = d * (z / FOCAL)[None]
+    d = d.masked_fill(~keep | ~torch.isfinite(d), math.inf)
+    return _topk_ref(d, k)
+
+
+@pytest.mark.skipif(not compiled.available(), reason="the per-point reach is applied by the compiled grid")
+@pytest.mark.parametrize("depth_factor", [False, True])
+@pytest.mark.parametrize("kind", ["blob", "plane"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_compiled_grid_per_point_reach_matches_brute_force(kind, seed, depth_factor):
+    """reach [N]: each point is a candidate within the cap × its own reach (cells still sized by the cap); all ones
+    is the plain capped search bit for bit; the other backends use the cap × the largest reach for every point."""
+    pts = scene(kind, 800, seed)
+    c2w = camera(seed)
+    q = random_px(600, seed)
+    g = torch.Generator().manual_seed(seed + 10)
+    reach = torch.where(torch.rand(800, generator=g) < 0.3, 1.0 + 4.0 * torch.rand(800, generator=g),
+                        torch.ones(800))
+    reach[::97] = float("nan")  # a non-finite reach counts as 1
+    plain = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend="compiled")
+    cap = plain.radius_px(12)
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend="compiled", reach=reach)
+    assert index.radius_px(12) == cap
+    got = index.query(q, 12)
+    ref = ref_screen_reach(pts, c2w, q, 12, depth_factor, cap, torch.nan_to_num(reach, nan=1.0))
+    assert_same(got, ref)
+    assert not torch.equal(got.idx, plain.query(q, 12).idx)  # the reach mattered somewhere
+    ones = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend="compiled", reach=torch.ones(800))
+    a, b = ones.query(q, 12), plain.query(q, 12)
+    assert torch.equal(a.idx, b.idx) and torch.equal(a.dist, b.dist)
+    big = float(torch.nan_to_num(reach, nan=1.0).max())
+    uniform = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend="grid", reach=reach)
+    assert_same(uniform.query(q, 12), ref_screen(pts, c2w, q, 12, depth_factor, cap * big))
+
+
+@pytest.mark.stability
+def test_reach_input_checks_and_hostile_values():
+    pts = scene("blob", 200, 3)
+    c2w = camera(3)
+    with pytest.raises(InputError):
+        nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, reach=torch.ones(199))
+    wild = torch.full((200,), float("inf"))
+    wild[::2] = -5.0  # below 1: raised to 1
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, reach=wild)
+    assert index.reach is None  # nothing above 1 is left: the plain search
+    got = index.query(random_px(50, 3), 8)
+    assert torch.isfinite(got.dist[got.valid]).all()
