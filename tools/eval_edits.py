@@ -36,9 +36,10 @@ EDITS = ("geometry", "retexture", "decal")
 # renderer variants: the EditConfig fields each sets (every F switch named: the defaults may change); "paper" =
 # the paper's renderer and correspondence. f_compression also changes the deform-gradient correspondence.
 _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0,
-          "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement"}
+          "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap"}
 RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
-             "f-radius": {**_PAPER, "f_radius": True}, "f-both": {**_PAPER, "f_attention": True, "f_radius": True},
+             "f-radius": {**_PAPER, "f_radius": True, "f_radius_rule": "frame"},
+             "f-both": {**_PAPER, "f_attention": True, "f_radius": True, "f_radius_rule": "frame"},
              "f-keep": {**_PAPER, "f_attention": True, "f_compression": "keep"},
              "f-squash": {**_PAPER, "f_attention": True, "f_compression": "undo"},
              "fill": {**_PAPER, "f_fill": True}, "f-fill": {**_PAPER, "f_attention": True, "f_fill": True},
@@ -51,7 +52,9 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-fill-fold-local": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 0.5,
                                    "fold_test": "local-map"},
              "f-fill-fold-blend-local": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 0.5,
-                                         "fold_test": "local-map", "f_fill_features": "blend"}}
+                                         "fold_test": "local-map", "f_fill_features": "blend"},
+             "f-fill-fold-blend-reach": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                         "f_fill_features": "blend", "f_radius": True}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
@@ -258,13 +261,14 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
         if state.cfg.f_attention or state.cfg.correspondence == "deform-gradient":
             _ = state.inv_f_keys
         if state.cfg.f_radius:
-            _ = state.radius_scale
+            _ = state.search_radius()
         f_seconds = state.deformation_seconds
 
     def render(i):
         c = state.cfg  # what the trace depends on (the correspondence and fold rule do not change it)
         key = (i, c.temperature, c.f_attention, c.f_radius, c.f_compression if c.f_attention else "-",
-               (c.f_fill_ratio, c.f_fill_budget, c.f_fill_features) if c.f_fill else None, c.f_occlusion)
+               (c.f_fill_ratio, c.f_fill_budget, c.f_fill_features) if c.f_fill else None, c.f_occlusion,
+               c.f_radius_rule if c.f_radius else None)
         cached = traces.get(key) if traces is not None else None
         view = (gt.c2w[i], gt.height, gt.width, gt.focal)
         out = render_edited(state, *view, background, trace=cached[0] if cached else None)
@@ -462,7 +466,9 @@ def markdown(result: dict) -> str:
               "with the occlusion rule (each ray keeps its front surface layer), f-fill-fold-blend = f-fill-fold "
               "with each added point's features mixed from both ends of its pair, f-fill-fold-local = f-fill-fold "
               "whose fold rule compares each neighbour's local-map estimate of the canonical point (radius 0.5 "
-              "spacings), f-fill-fold-blend-local = both; first temperature, soft blend; "
+              "spacings), f-fill-fold-blend-local = both, f-fill-fold-blend-reach = f-fill-fold-blend whose points "
+              "reach the neighbour search's pixel cap times the growth the fill left on their pairs; first "
+              "temperature, soft blend; "
               "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]
     # summary: mean over poses per magnitude, per method

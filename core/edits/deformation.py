@@ -236,19 +236,20 @@ class DeformationField:
 
     @torch.no_grad()
     def gradients_and_fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
-                           max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False):
+                           max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False,
+                           with_gap: bool = False):
         """`gradients` and `fill` of the same points, sharing their neighbour gathering: (F [M, 3, 3], (new [P, 3],
         canonical [P, 3], source [P])); with_partner: the fill's tuple also holds partner [P] and fraction [P]
-        (see `fill`)."""
+        (see `fill`); with_gap: it also ends with gap [M] (see `fill`)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         if pts.shape[0] == 0:
             return torch.zeros(0, 3, 3, device=self.device), self.fill(pts, ids, ratio, max_per_pair, budget,
-                                                                       with_partner)
+                                                                       with_partner, with_gap)
         gathered = self._gather_deformed(pts, ids, with_rows=True)
         return (self._fit(pts, *gathered[:5], ids),
-                self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner))
+                self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap))
 
     def _fit(self, pts, dc, dd, w, cid, own_ok, ids):
         """The fit of `gradients` from gathered neighbour offsets (see _gather_deformed)."""
@@ -308,7 +309,8 @@ class DeformationField:
 
     @torch.no_grad()
     def fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
-             max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False) -> tuple:
+             max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False,
+             with_gap: bool = False) -> tuple:
         """Extra points where the deformation pulled canonical neighbours apart (a stretched surface: a joint's
         blend band, a scaled part), so the deformed cloud keeps about its canonical density.
 
@@ -322,18 +324,24 @@ class DeformationField:
         positions, canonical [P, 3] their canonical positions, source [P] int64 the row of `points` each takes
         its features and F from: the nearer end of its segment). P = 0 where nothing stretched. with_partner: also
         partner [P] int64, the row of the segment's other end, and fraction [P] float32 in (0, 0.5], how far along
-        the segment from the source towards the partner the point lies (to blend the two ends' features)."""
+        the segment from the source towards the partner the point lies (to blend the two ends' features).
+        with_gap: the tuple ends with gap [M] float32 >= 1, per given point the largest growth g / (n + 1) left
+        between consecutive points on any of its pairs where that exceeds `ratio` (the budget or max_per_pair kept
+        a stretched pair sparser than the ratio; pairs beyond max_stretch are tears and count as closed), else 1."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         gathered = self._gather_deformed(pts, ids, with_rows=True) if pts.shape[0] else None
-        return self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner)
+        return self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap)
 
-    def _fill(self, pts, gathered, ratio, max_per_pair, budget, with_partner=False):
+    def _fill(self, pts, gathered, ratio, max_per_pair, budget, with_partner=False, with_gap=False):
         """The work of `fill` from gathered neighbour offsets (_gather_deformed with rows; None: no points)."""
+        gap = torch.ones(pts.shape[0], dtype=torch.float32, device=self.device)
         empty = (pts.new_zeros(0, 3), pts.new_zeros(0, 3), torch.zeros(0, dtype=torch.long, device=self.device))
         if with_partner:
             empty = empty + (torch.zeros(0, dtype=torch.long, device=self.device), pts.new_zeros(0))
+        if with_gap:
+            empty = empty + (gap,)
         if not (ratio > 1.0 and math.isfinite(ratio)):
             raise InputError(f"fill ratio must be a finite number > 1, got {ratio}")
         if not (budget >= 0 and math.isfinite(budget)):
@@ -371,6 +379,11 @@ class DeformationField:
                 mid = (lo + hi) // 2
                 lo, hi = (lo, mid) if int(count(float(cands[mid])).sum()) <= limit else (mid + 1, hi)
             n = count(float(cands[lo]))
+        if with_gap:  # growth left between consecutive points of each pair, at both ends
+            left = (g / (n + 1).to(g.dtype)).to(torch.float32)
+            left = torch.where(left > ratio, left, torch.ones_like(left))
+            gap = gap.scatter_reduce(0, j, left, "amax").scatter_reduce(0, rows[j, slot], left, "amax")
+            empty = empty[:-1] + (gap,)
         keep = n > 0
         j, slot, n = j[keep], slot[keep], n[keep]
         if j.numel() == 0:
@@ -384,11 +397,12 @@ class DeformationField:
         canonical = self.canonical[cid[jr]] + t * dc[jr, sr]
         near_j = t[:, 0] <= 0.5
         source = torch.where(near_j, jr, rows[jr, sr])
-        if not with_partner:
-            return new, canonical, source
-        partner = torch.where(near_j, rows[jr, sr], jr)
-        fraction = torch.where(near_j, t[:, 0], 1.0 - t[:, 0])
-        return new, canonical, source, partner, fraction
+        out = (new, canonical, source)
+        if with_partner:
+            partner = torch.where(near_j, rows[jr, sr], jr)
+            fraction = torch.where(near_j, t[:, 0], 1.0 - t[:, 0])
+            out = out + (partner, fraction)
+        return out + (gap,) if with_gap else out
 
 
 def _moments(w: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

@@ -37,6 +37,7 @@ from core.util.errors import InputError
 COMPRESSION = ("tangent", "keep", "undo")
 FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
+RADIUS_RULES = ("gap", "frame")
 RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
 
 
@@ -55,7 +56,12 @@ class EditConfig:
                                         "surface, not across it) | keep (none: stretch only) | undo (all, full F⁻¹)",
                              choices=COMPRESSION)
     f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
-                                "stretch (90th percentile of the largest local stretch, at least 1)")
+                                "stretch (f_radius_rule)")
+    f_radius_rule: str = opt("gap", "f_radius: gap (each point reaches the cap × the largest growth f_fill left "
+                                    "between consecutive points on its canonical neighbour pairs where that exceeds "
+                                    "f_fill_ratio — the fill budget kept them sparse — else 1; without f_fill its "
+                                    "largest local stretch above f_fill_ratio) | frame (the whole frame's cap × the "
+                                    "90th percentile of the points' largest local stretch)", choices=RADIUS_RULES)
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
@@ -111,8 +117,9 @@ class EditState:
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
-        self._f = self._inv_f = self._inv_f_keys = self._radius_scale = None
+        self._f = self._inv_f = self._inv_f_keys = self._radius_scale = self._reach = None
         self._fill_blend = None  # f_fill_features = blend: (canonical ids of both ends [P], fraction [P])
+        self._gap = None  # f_fill: per point the growth the fill left on its pairs where above the ratio, else 1
         self.deformation_seconds = 0.0  # time spent on F and what derives from it (0 until it is needed)
         self.fit_seconds = 0.0  # of which the fit of F
         if not 1 <= int(self.cfg.antialias) <= 8:
@@ -195,9 +202,11 @@ class EditState:
         (DeformationField.fill) and extend points, ids and F with them. Returns their canonical positions [P, 3]
         (None when nothing was added)."""
         fld = field_for(self.bundle.model, self.deformation_cfg)
-        f, (new, can, src, partner, frac) = self._timed(lambda: fld.gradients_and_fill(
-            self.points, self.ids, ratio=self.cfg.f_fill_ratio, budget=self.cfg.f_fill_budget, with_partner=True))
+        f, (new, can, src, partner, frac, gap) = self._timed(lambda: fld.gradients_and_fill(
+            self.points, self.ids, ratio=self.cfg.f_fill_ratio, budget=self.cfg.f_fill_budget, with_partner=True,
+            with_gap=True))
         self._f = f
+        self._gap = gap
         self.fit_seconds = self.deformation_seconds
         if new.shape[0] == 0:
             return None
@@ -206,6 +215,7 @@ class EditState:
         self.points = torch.cat([self.points, new.to(self.points.dtype)])
         self.ids = torch.cat([ids, ids[src]])
         self._f = torch.cat([f, f[src]])
+        self._gap = torch.cat([gap, torch.maximum(gap[src], gap[partner])])
         self.filled_points = int(new.shape[0])
         if self.cfg.f_fill_features == "blend":
             self._fill_blend = (ids[src], ids[partner], frac)
@@ -288,6 +298,32 @@ class EditState:
             self._radius_scale = self._timed(scale)
         return self._radius_scale
 
+    @property
+    def reach(self) -> torch.Tensor | None:
+        """Per-point factor on the neighbour search's pixel radius cap [M] (f_radius_rule "gap"): the growth the
+        fill left between consecutive points on the point's canonical neighbour pairs where it exceeds
+        f_fill_ratio (without f_fill: its largest local stretch where above f_fill_ratio), else 1; None when
+        nothing moved."""
+        if self.f is None:
+            return None
+        if self._reach is None:
+            def reach():
+                if self._gap is not None:
+                    return self._gap.double()
+                st = torch.nan_to_num(stretch(self._f).double(), nan=1.0, posinf=1.0, neginf=1.0)
+                return torch.where(st > self.cfg.f_fill_ratio, st, torch.ones_like(st))
+            self._reach = self._timed(reach)
+        return self._reach
+
+    def search_radius(self) -> tuple[float, torch.Tensor | None]:
+        """(radius_scale, reach) the neighbour search of these points takes by f_radius and f_radius_rule: (1, None)
+        with f_radius off or nothing moved."""
+        if not (self.cfg.f_radius and self.moved):
+            return 1.0, None
+        if self.cfg.f_radius_rule == "frame":
+            return self.radius_scale, None
+        return 1.0, self.reach
+
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
         fit took; what this state derives from F is computed (and timed) here."""
@@ -308,8 +344,9 @@ class EditState:
     def _screen_index(self, c2w, height, width, focal, k):
         model, pts = self.bundle.model, self.points
         search = torch.where(torch.isfinite(pts).all(dim=1)[:, None], pts, torch.full_like(pts, float("nan")))
+        radius_scale, reach = self.search_radius()
         return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
-                            model.cfg.neighbor_radius_px, radius_scale=self.radius_scale if self.cfg.f_radius else 1.0)
+                            model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach)
 
     def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
@@ -466,9 +503,10 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     if trace is None:
         soft = "footprint" in parts and scale > 1.0  # footprint windows: keep them, drop hidden weights only
         index = None if soft else state.search_index(c2w, height, width, focal)  # shared with the occlusion rule
+        radius_scale, reach = state.search_radius()
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
-                         radius_scale=state.radius_scale if cfg.f_radius else 1.0, attention=cfg.attention,
+                         radius_scale=radius_scale, reach=reach, attention=cfg.attention,
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
     else:

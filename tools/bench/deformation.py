@@ -18,7 +18,7 @@ from pathlib import Path
 
 _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware",
         "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
-        "fold_test": "displacement"}
+        "fold_test": "displacement", "f_radius_rule": "frame"}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -38,6 +38,9 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
                                                              "fold_radius": 2.0, "f_fill_features": "blend"},
     "f-attention + fill + local-map fold rule, deform-aware": {**_OFF, "f_attention": True, "f_fill": True,
                                                                "fold_radius": 0.5, "fold_test": "local-map"},
+    "f-attention + blended fill + fold rule + gap reach, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_radius": True, "f_radius_rule": "gap"},
 }
 
 

@@ -30,7 +30,8 @@ def add_arguments(p):
                         "keeps its front surface layer) | f-fill-fold-blend (f-fill-fold, each added point's "
                         "features mixed from both ends of its pair) | f-fill-fold-local (f-fill-fold, the fold rule "
                         "comparing each neighbour's local-map estimate of the canonical point, radius 0.5) | "
-                        "f-fill-fold-blend-local (both)")
+                        "f-fill-fold-blend-local (both) | f-fill-fold-blend-reach (f-fill-fold-blend, each point "
+                        "reaching the neighbour search's cap times the growth the fill left on its pairs)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

@@ -157,3 +157,26 @@ def test_partner_outputs_are_empty_where_nothing_stretched():
         out = fld.fill(q, with_partner=True)
         assert len(out) == 5 and all(x.shape[0] == 0 for x in out)
     assert len(fld.fill(p, budget=0.0, with_partner=True)) == 5
+
+
+def test_gap_is_what_the_budget_left_open():
+    """with_gap: per point the largest growth g / (n + 1) left between consecutive points on its pairs where that
+    exceeds the ratio, else 1. A generous budget closes every pair (all 1); a tight one leaves the 4×-stretched
+    x pairs sparse; rest, a compression and a tear (beyond max_stretch) leave nothing open."""
+    p = _sheet(12)
+    fld = DeformationField(p)
+    q = p * torch.tensor([4.0, 1.0, 1.0])
+    full = fld.fill(q, ratio=1.5, budget=100.0, with_gap=True)
+    assert len(full) == 4 and torch.equal(full[3], torch.ones(p.shape[0]))
+    tight = fld.fill(q, ratio=1.5, budget=0.2, with_gap=True)
+    gap = tight[3]
+    assert tight[0].shape[0] <= 0.2 * p.shape[0]
+    assert bool((gap >= 1).all()) and float(gap.max()) > 1.5 and float(gap.max()) <= 4.0 + 1e-5
+    assert bool(((gap == 1) | (gap > 1.5)).all())
+    _, both = fld.gradients_and_fill(q, ratio=1.5, budget=0.2, with_partner=True, with_gap=True)
+    assert len(both) == 6 and torch.equal(both[5], gap)
+    for r in (p, p * 0.5, p * torch.tensor([100.0, 1.0, 1.0])):  # 100×: every x-offset pair tears
+        out = fld.fill(r, ratio=1.5, budget=0.2, with_gap=True)
+        assert torch.equal(out[-1], torch.ones(p.shape[0]))
+    nan = fld.fill(torch.full_like(p, float("nan")), with_gap=True)
+    assert torch.equal(nan[-1], torch.ones(p.shape[0]))

@@ -227,6 +227,44 @@ def test_local_map_fold_test_leaves_rest_frames_and_a_uniform_stretch_alone(tiny
     assert float((x["displacement"][hit] - x["off"][hit]).norm(dim=-1).max()) > 1e-3
 
 
+def test_gap_reach_only_where_the_fill_left_gaps_and_rest_unchanged(tiny):
+    """f_radius with the gap rule: at rest (forced through the moved path) the frame is today's; a stretch the fill
+    closes (a generous budget) reaches no farther; one the budget leaves sparse gets reach > 1 on those points and
+    covers at least as much; extreme poses stay finite."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    on = dict(f_radius=True, f_radius_rule="gap")
+    today = EditState(bundle)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**on))
+    assert forced.search_radius()[1] is not None and bool((forced.reach == 1).all())
+    for i in range(len(test)):
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    s = torch.tensor([4.0, 1.0, 1.0])
+    closed = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=8.0, **on))
+    assert bool((closed.reach == 1).all())
+    sparse = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1, **on))
+    off = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1))
+    assert sparse.reach.shape[0] == sparse.points.shape[0] and float(sparse.reach.max()) > 1.5
+    assert off.search_radius() == (1.0, None)
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.5
+    got = render_edited(sparse, c2w, test.height, test.width, test.focal)
+    ref = render_edited(off, c2w, test.height, test.width, test.focal)
+    assert int((got["alpha"] > 0.5).sum()) >= int((ref["alpha"] > 0.5).sum())
+    assert int((got["trace"].idx >= 0).sum()) > int((ref["trace"].idx >= 0).sum())
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+        for rule in ("gap", "frame"):
+            st = EditState(bundle, points=pts, cfg=EditConfig(f_radius=True, f_radius_rule=rule, f_fill_budget=0.1))
+            out = render_edited(st, c2w, test.height, test.width, test.focal)
+            assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+
+
 def test_occlusion_rule_hides_a_part_swung_behind(tiny):
     """Half of the card swung behind the other half: with the occlusion rule the frame is closer to the front half
     rendered alone (the hidden half's points removed by ids) where that half covers the pixels (alpha > 0.5)."""
