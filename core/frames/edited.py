@@ -72,8 +72,8 @@ class EditConfig:
                                          "gradient: a uniform stretch or a rotation drops nothing)",
                          choices=FOLD_TESTS)
     f_fill: bool = opt(True, "moved points: add points along canonical neighbour pairs the pose pulled apart "
-                              "(stretched surfaces, a joint's blend band), taking features and F from the nearer "
-                              "end; rest frames are unchanged")
+                              "(stretched surfaces, a joint's blend band), taking F from the nearer end and "
+                              "features as f_fill_features says; rest frames are unchanged")
     f_fill_ratio: float = opt(1.5, "f_fill: a pair whose distance grew by more than this gets points, spaced at most "
                                    "this many times their canonical distance apart", min=1.01, max=100.0)
     f_fill_budget: float = opt(1.0, "f_fill: at most this many added points per point (the ratio is raised past "
