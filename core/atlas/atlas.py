@@ -264,11 +264,19 @@ class Atlas(nn.Module):
             ar = torch.arange(len(x0), device=self.device)
             q = torch.zeros(len(x0), 2, device=self.device)
             xs = x0.clone()
-            for _ in range(iters):
+            best, best_miss = x0.clone(), torch.full((len(x0),), float("inf"), device=self.device)
+            for it in range(iters + 1):
                 raw = self.tex(self.normalise(self.on_surface(xs)))[ar, ch]
                 pix = self.layout.place(raw[:, None].expand(-1, self.n, -1).contiguous())[:, 0] * A \
                     if self.n == 1 else self._place_one(raw, ch) * A
                 r = pix - tg
+                # keep the iterate that lands nearest its texel: where the map is not smooth enough for
+                # Gauss-Newton (a fold, the mid-surface's anchor planes changing) a step can land farther away
+                miss = r.norm(dim=-1).nan_to_num(float("inf"))
+                better = miss < best_miss
+                best[better], best_miss[better] = xs[better], miss[better]
+                if it == iters:
+                    break
                 if rot is not None:  # the miss in chart texels: image offsets turned back (orthogonal matrices)
                     r = (rot.transpose(1, 2) @ r[..., None])[..., 0]
                 t0 = chart_texels(xs, ch, ar)
@@ -281,7 +289,7 @@ class Atlas(nn.Module):
                 d = (q[:, :, None] * B).sum(1)
                 q = q * (reach / d.norm(dim=-1, keepdim=True).clamp_min(reach))  # stay near the samples
                 xs = x0 + (q[:, :, None] * B).sum(1)
-            out[s:s + chunk] = xs
+            out[s:s + chunk] = best
         return out
 
     def _place_one(self, raw: torch.Tensor, chart: torch.Tensor) -> torch.Tensor:

@@ -64,6 +64,10 @@ class AtlasConfig:
                                    "across the samples' slab does not change its texel (docs/atlas.md)")
     mid_surface_neighbours: int = opt(1024, "mid-surface: samples in each anchor plane's neighbourhood", min=3,
                                       max=4096)
+    mid_surface_adaptive: bool = opt(False, "mid-surface: each anchor's neighbourhood is the one of "
+                                            "mid_surface_neighbours, 1/2, 1/4 or 1/8 of it that is flattest (spread "
+                                            "across / along), so it stops growing at a bend, an edge or a thin part's "
+                                            "other face (docs/atlas.md)")
     mid_surface_max_ratio: float = opt(0.7, "mid-surface: an anchor whose neighbourhood's spread across exceeds this "
                                             "share of its spread along the surface (no clear plane: a slab as thick "
                                             "as wide, an edge) leaves points where they are", above=0.0)

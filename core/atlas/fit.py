@@ -374,7 +374,8 @@ def mid_surface(atlas: Atlas, xyz: torch.Tensor, cfg: AtlasConfig, spacing: floa
     return the projected samples in the network frame [S, 3]; hist gets the median move in sample spacings."""
     t0 = time.perf_counter()
     atlas.surface = SurfaceProjection.from_samples(xyz.numpy(), neighbours=cfg.mid_surface_neighbours,
-                                                   max_ratio=cfg.mid_surface_max_ratio, seed=cfg.seed)
+                                                   max_ratio=cfg.mid_surface_max_ratio, seed=cfg.seed,
+                                                   adaptive=cfg.mid_surface_adaptive)
     moved = atlas.on_surface(xyz)
     planes = float((atlas.surface.normals != 0).any(1).mean()) if len(atlas.surface) else 0.0
     hist["mid_surface"] = {"anchors": len(atlas.surface), "planes": planes,

@@ -46,6 +46,45 @@ def _height_at_centroid(d: np.ndarray, vec: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(a), a, 0.0)
 
 
+def _candidate_sizes(K: int, smallest: int = 32) -> list[int]:
+    """Neighbourhood sizes an adaptive anchor chooses from: K, K/2, K/4, K/8, none below `smallest` (K itself
+    always)."""
+    return sorted({K} | {K >> j for j in range(1, 4) if K >> j >= smallest})
+
+
+def _flattest(nb: np.ndarray, sizes: list[int]) -> np.ndarray:
+    """Neighbourhoods nb [m, K, 3] (nearest first) -> [m] index into sizes of the prefix whose spread across (least
+    PCA eigenvalue) is the smallest share of its spread along (the middle one); ties and undefined ratios: the
+    largest."""
+    ratio = np.full((len(nb), len(sizes)), np.inf)
+    local = nb - nb[:, :1]                                               # moments about the anchor: no cancellation
+    s1 = np.cumsum(local, 1)                                             # [m, K, 3] running sums, every size at once
+    s2 = np.cumsum(local[..., :, None] * local[..., None, :], 1)         # [m, K, 3, 3]
+    for j, kk in enumerate(sizes):
+        mu = s1[:, kk - 1] / kk
+        w = np.linalg.eigvalsh(s2[:, kk - 1] / kk - mu[:, :, None] * mu[:, None, :])
+        with np.errstate(all="ignore"):
+            r = np.maximum(w[:, 0], 0.0) / w[:, 1]
+        ratio[:, j] = np.where(np.isfinite(r) & (w[:, 1] > 0), r, np.inf)
+    # the largest size among those within 1 % of the smallest ratio (a flat sheet: every size alike -> the widest)
+    best = ratio.min(1, keepdims=True)
+    ok = ratio <= best * 1.01 + 1e-300
+    return len(sizes) - 1 - np.argmax(ok[:, ::-1], axis=1)
+
+
+def _anchor_planes(nb: np.ndarray, max_ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Neighbourhoods nb [m, K, 3] -> centres [m, 3] on the slab's middle and unit normals [m, 3] (zero where the
+    neighbourhood spans no clear plane: spread across above max_ratio x the spread along its second axis)."""
+    mu = nb.mean(1)
+    d = nb - mu[:, None]
+    w, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", d, d))
+    plane = np.isfinite(vec[:, :, 0]).all(-1) & (w[:, 1] > 1e-12 * np.maximum(w[:, 2], 1e-300)) \
+        & (np.maximum(w[:, 0], 0.0) <= max_ratio ** 2 * w[:, 1])
+    centres = mu + _height_at_centroid(d, vec)[:, None] * vec[:, :, 0] * plane[:, None]
+    n0 = vec[:, :, 0] / np.maximum(np.linalg.norm(vec[:, :, 0], axis=1, keepdims=True), 1e-300)
+    return centres, np.where(plane[:, None], n0, 0.0)
+
+
 class SurfaceProjection:
     """Anchor planes of a sample slab: centres [m, 3] (points on the slab's middle) and unit normals [m, 3] (zero where
     a neighbourhood spans no plane: that anchor leaves points where they are); bandwidth h (world units) of the
@@ -74,13 +113,15 @@ class SurfaceProjection:
 
     @classmethod
     def from_samples(cls, xyz, neighbours: int = 1024, max_ratio: float = 0.7, max_anchors: int = 20000, k: int = 8,
-                     seed: int = 0, chunk: int = 500) -> "SurfaceProjection":
+                     seed: int = 0, chunk: int = 500, adaptive: bool = False) -> "SurfaceProjection":
         """Anchor planes from surface samples xyz [S, 3]: at most `max_anchors` anchors (a fixed random subset),
         each the PCA normal of its `neighbours` nearest samples through the slab's middle there; the bandwidth is
         the anchors' median nearest-anchor distance. An anchor whose neighbourhood is not clearly thinner across
         than along (spread across / spread along the second axis above `max_ratio`: a slab as thick as it is
         wide, or an edge where two faces meet) defines no plane and gets a zero normal (points near it stay
-        where they are)."""
+        where they are). adaptive: each anchor's neighbourhood is the one of `neighbours`, 1/2, 1/4 and 1/8 of it
+        (at least 32 samples) whose spread across is the smallest share of its spread along — a neighbourhood
+        stops growing where a bend, an edge or the other face of a thin part makes it thicker."""
         x = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         if not np.isfinite(x).all():
             raise InputError("surface projection: the samples contain NaN or infinite values")
@@ -93,15 +134,15 @@ class SurfaceProjection:
         centres, normals = np.zeros((len(sel), 3)), np.zeros((len(sel), 3))
         for s in range(0, len(sel), chunk):
             _, idx = tree.query(x[sel[s:s + chunk]], k=K)
-            nb = x[idx]                                                   # [m, K, 3]
-            mu = nb.mean(1)
-            d = nb - mu[:, None]
-            w, vec = np.linalg.eigh(np.einsum("mki,mkj->mij", d, d))
-            plane = np.isfinite(vec[:, :, 0]).all(-1) & (w[:, 1] > 1e-12 * np.maximum(w[:, 2], 1e-300)) \
-                & (np.maximum(w[:, 0], 0.0) <= max_ratio ** 2 * w[:, 1])
-            centres[s:s + chunk] = mu + _height_at_centroid(d, vec)[:, None] * vec[:, :, 0] * plane[:, None]
-            n0 = vec[:, :, 0] / np.maximum(np.linalg.norm(vec[:, :, 0], axis=1, keepdims=True), 1e-300)
-            normals[s:s + chunk] = np.where(plane[:, None], n0, 0.0)
+            nb = x[idx.reshape(-1, K)]                                    # [m, K, 3], nearest first
+            sizes = _candidate_sizes(K) if adaptive else [K]
+            size = np.full(len(nb), K) if len(sizes) == 1 else np.asarray(sizes)[_flattest(nb, sizes)]
+            for kk in sizes:
+                rows = np.nonzero(size == kk)[0]
+                if len(rows) == 0:
+                    continue
+                c, n = _anchor_planes(nb[rows, :kk], max_ratio)
+                centres[s + rows], normals[s + rows] = c, n
         if len(centres) > 1:
             dd, _ = cKDTree(centres).query(centres, k=2)
             h = float(np.median(dd[:, 1]))

@@ -26,3 +26,30 @@ def test_normal_ratio_reads_the_slope_across_the_slab(a, b):
     ratio = normal_ratio(_PlaneMap(a, b), max_samples=500)
     # the PCA normal of a 0.5 cm slab over a 1 m square is z to within a degree or so
     assert abs(ratio - (a * a + b * b) ** 0.5) < 0.05 * max(1.0, (a * a + b * b) ** 0.5), ratio
+
+
+def test_lookup_stats_place_the_lookups_without_a_surface_point():
+    """On a tiny card model: shares lie in [0, 1]; a grid atlas has no island padding to land in; with the texel map
+    emptied every lookup is one without a point, and the stored sample nearest each lies near it and lands within a
+    few texels of it through the same chart."""
+    import math
+
+    from tests.helpers.tiny import tiny_bundle
+    from tools.bench.retexture_gap import lookup_stats
+
+    bundle, _, test = tiny_bundle("fast")
+    atlas = bundle.atlas
+    spacing = float(bundle.meta["atlas_fit"]["spacing"])
+    st = lookup_stats(bundle, test, spacing)
+    for k in ("no_point", "far", "off_island", "no_point_other_chart"):
+        assert 0.0 <= st[k] <= 1.0, (k, st)
+    assert st["off_island"] == 0.0                       # grid layout: no islands, no padding between them
+    saved = atlas.texel_xyz.clone()
+    try:
+        atlas.texel_xyz.fill_(float("nan"))
+        empty = lookup_stats(bundle, test, spacing)
+    finally:
+        atlas.texel_xyz.copy_(saved)
+    assert empty["no_point"] == 1.0 and empty["far"] == 0.0
+    assert math.isfinite(empty["no_point_sample_dist"]) and empty["no_point_sample_dist"] < 5.0, empty
+    assert empty["no_point_sample_texels"] < 5.0 and empty["no_point_other_chart"] < 0.5, empty

@@ -16,7 +16,9 @@ For every scene DIR/<name>/ with a stage-1 model DIR/<name>.pgt or DIR/<name>.de
 and, per density, the median ratio of the texture coordinates' derivative along the samples' normal to that along
 the surface (`normal_ratio`: a chart map that changes across the samples' slab sends a point off its middle to
 another place's texels), the share of the test views' object lookups that read a texel without a surface point or one
-whose surface point lies more than 3 sample spacings from the looked-up point (a folded chart map).
+whose surface point lies more than 3 sample spacings from the looked-up point (a folded chart map), and where the
+lookups without a point are (`lookup_stats`: in an island's padding, on another chart than the nearest sample, how far
+from that sample in space and in texels).
 """
 from __future__ import annotations
 
@@ -33,14 +35,23 @@ from tools.bench import parse_with_config, parser
 def lookup_stats(bundle, gt, spacing: float) -> dict:
     """Object rays of the test views (rest): share whose nearest texel has no surface point (`no_point`) and share
     whose texel's surface point is more than 3 sample spacings from the ray's canonical point (`far`); median
-    distance in sample spacings."""
+    distance in sample spacings. Of the lookups without a point: the share outside every island (`off_island`, the
+    padding; island layouts only), the share whose chart is not the chart of the stored surface sample nearest their
+    (projected) point (`no_point_other_chart`), that sample's median distance in sample spacings
+    (`no_point_sample_dist`) and how many texels from the lookup it lands (`no_point_sample_texels`, median)."""
+    from scipy.spatial import cKDTree
+
     from core.edits.correspondence import ray_canonical_points
     from core.points.render import trace_frame
 
     atlas = bundle.atlas
     tp = atlas.texel_points()
     H, W = tp.shape[:2]
-    no_point, far, dists, total = 0, 0, [], 0
+    island = atlas.layout.island_pixels if atlas.islands else None
+    S = atlas.bake_samples
+    tree = cKDTree(S.numpy()) if S is not None and len(S) else None
+    no_point, far, dists, total, off_island, other = 0, 0, [], 0, 0, 0
+    near_d, near_t = [], []
     for i in range(gt.images.shape[0]):
         tr = trace_frame(bundle.model, gt.c2w[i], gt.height, gt.width, gt.focal)
         hit = tr.active & (tr.fg > 0.5)
@@ -54,12 +65,24 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
         ok = torch.isfinite(p).all(-1)
         d = (p[ok] - x[ok]).norm(dim=-1) / max(spacing, 1e-12)
         no_point += int((~ok).sum())
+        if island is not None:
+            off_island += int((~island[r, c]).sum())
+        if tree is not None and bool((~ok).any()):
+            xs = atlas.on_surface(x[~ok])
+            dn, j = tree.query(xs.cpu().numpy(), k=1)
+            near = S[torch.from_numpy(j)].to(xs.device)
+            other += int((atlas.chart_uv(x[~ok])[0].argmax(-1) != atlas.chart_uv(near)[0].argmax(-1)).sum())
+            near_d.append(torch.from_numpy(dn) / max(spacing, 1e-12))
+            near_t.append((atlas.atlas_pixel_coords(near)[1] - pix[~ok]).norm(dim=-1).cpu())
         far += int((d > 3).sum())
         dists.append(d)
         total += int(x.shape[0])
     d = torch.cat(dists) if dists else torch.zeros(0)
+    med = lambda v: float(torch.cat(v).double().median()) if v else float("nan")  # noqa: E731
     return {"no_point": no_point / max(total, 1), "far": far / max(total, 1),
-            "dist_median": float(d.median()) if d.numel() else float("nan")}
+            "dist_median": float(d.median()) if d.numel() else float("nan"),
+            "off_island": off_island / max(total, 1), "no_point_other_chart": other / max(no_point, 1),
+            "no_point_sample_dist": med(near_d), "no_point_sample_texels": med(near_t)}
 
 
 def normal_ratio(atlas, max_samples: int = 3000) -> float:

@@ -321,3 +321,33 @@ def test_subpixel_lookups_across_a_cut_land_on_an_island():
     d = distance_transform_edt(~a.layout.island_pixels.numpy())
     k = pix.floor().long().clamp(0, a.layout.size - 1)
     assert bool((p[:, 0] == 1).all()) and float(d[k[:, 1], k[:, 0]].max()) <= 1.0
+
+
+def test_texel_map_newton_keeps_its_best_step_where_the_map_folds():
+    """Where the map folds (the wobbly map's fine wobble) a Gauss-Newton step can land farther from the texel than
+    where it started; the texel map keeps each point's best iterate, so no point ends farther from its texel than
+    its local-linear start."""
+    a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
+    a.chart, a.tex = _SideChart(), _WobblyMap()
+    g = torch.Generator().manual_seed(5)
+    u = torch.rand(20000, 2, generator=g) * 1.6 - 0.8
+    x = torch.stack([u[:, 0], u[:, 1], 0.2 * torch.sin(2 * u[:, 0])], -1)
+    probs, uv = a.chart_uv(x)
+    a.set_layout(build_islands(probs, uv, np.array([80.0, 80.0]), pad=2))
+    A = a.layout.size
+    # start from the samples themselves, aimed at a texel 1.5 texels off where they land, along the surface
+    chart = probs.argmax(-1)[:4000]
+    start = x[:4000]
+    pix0 = a._place_one(a.tex(a.normalise(start))[torch.arange(4000), chart], chart) * A
+    target = pix0 + torch.tensor([1.5, -1.0])
+    slope = torch.zeros(4000, 2, 3)
+    slope[:, 0, 0], slope[:, 1, 1] = 1.6 / A, 1.6 / A   # about one texel per unit step, in the sheet's plane
+    out = a._newton_to_texels(start, slope, chart, target)
+
+    def miss(p):
+        return (a._place_one(a.tex(a.normalise(p))[torch.arange(len(p)), chart], chart) * A - target).norm(dim=-1)
+
+    before, after = miss(start), miss(out)
+    assert torch.isfinite(out).all()
+    assert bool((after <= before + 1e-5).all()), float((after - before).max())
+    assert float(after.median()) < 0.5 * float(before.median())   # and the steps still converge where they can

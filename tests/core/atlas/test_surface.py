@@ -171,3 +171,63 @@ def test_rendered_lookups_use_the_same_projection_as_chart_uv():
     assert torch.equal(got[2], want[2])
     assert torch.allclose(got[1], want[1], atol=1e-6) and torch.allclose(got[0], want[0], atol=1e-6)
     assert not torch.allclose(got[1], subpixel_chart_uv(plain, pts, valid, depth, 2, 1e9)[1], atol=1e-4)
+
+
+def _noisy_plate(thickness, n=40000, width=0.5, noise=0.003, seed=0):
+    """The two faces of a width x width plate at z = +-thickness/2, scattered `noise` across (spacing ~3.5 mm)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-width / 2, width / 2, (n, 2))
+    z = np.where(rng.random(n) < 0.5, thickness / 2, -thickness / 2)
+    return np.c_[xy, z] + noise * rng.normal(size=(n, 3))
+
+
+def test_adaptive_neighbourhoods_keep_the_two_faces_of_a_thin_part_apart():
+    """A plate 3 cm thick (about 8 sample spacings): a 1024-sample neighbourhood spans both faces, so its plane
+    runs through the plate's middle and presses both faces onto one sheet; adaptive neighbourhoods stop growing
+    before they reach the other face and keep each face on its own middle. A thick plate is left alike."""
+    for thickness, fixed_gap in ((0.03, (0.0, 0.012)), (0.1, (0.095, 0.105))):
+        x = _noisy_plate(thickness)
+        inner = (np.abs(x[:, :2]) < 0.15).all(1)
+        top = inner & (x[:, 2] > 0)
+        bottom = inner & (x[:, 2] < 0)
+        gaps = {}
+        for adaptive in (False, True):
+            p = SurfaceProjection.from_samples(x, adaptive=adaptive).project(x).numpy()
+            assert np.isfinite(p).all()
+            gaps[adaptive] = float(np.median(p[top, 2]) - np.median(p[bottom, 2]))
+            assert float(np.std(p[top, 2])) < 0.003       # each face still lands on one sheet
+        assert fixed_gap[0] < gaps[False] < fixed_gap[1], gaps
+        assert abs(gaps[True] - thickness) < 0.1 * thickness, gaps
+
+
+def test_adaptive_neighbourhoods_stay_finite_on_degenerate_samples():
+    """Too few samples for the smaller sizes, a line, one repeated point and far outliers: finite planes and
+    finite projections, and points stay put where no neighbourhood spans a plane."""
+    for samples in (np.zeros((2, 3)), np.stack([np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)], -1),
+                    np.ones((40, 3)), np.r_[_noisy_plate(0.03, n=3000), [[1e6, 0, 0], [0, 0, -1e6]]]):
+        p = SurfaceProjection.from_samples(samples, neighbours=256, adaptive=True)
+        assert np.isfinite(p.centres).all() and np.isfinite(p.normals).all()
+        q = torch.tensor([[1e6, 0.0, 0.0], [0.0, 0.0, 0.0], [1e-30, 2.0, -3.0]])
+        assert torch.isfinite(p.project(q)).all()
+        if len(samples) < 100:
+            assert torch.equal(p.project(q), q)
+
+
+def test_the_adaptive_flag_reaches_the_fits_projection():
+    """AtlasConfig.mid_surface_adaptive (`--atlas-mid-surface-adaptive`) builds the atlas's projection with adaptive
+    neighbourhoods, the same planes as SurfaceProjection.from_samples(adaptive=True)."""
+    from core.atlas.config import AtlasConfig
+    from core.atlas.fit import mid_surface
+
+    x = torch.from_numpy(_noisy_plate(0.03, n=6000)).float()
+    got = {}
+    for adaptive in (False, True):
+        a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
+        hist = {}
+        moved = mid_surface(a, x, AtlasConfig(mid_surface=True, mid_surface_neighbours=512,
+                                              mid_surface_adaptive=adaptive), 0.005, hist)
+        assert moved.shape == x.shape and torch.isfinite(moved).all() and hist["mid_surface"]["anchors"] == 6000
+        got[adaptive] = a.surface
+    ref = SurfaceProjection.from_samples(x.numpy(), neighbours=512, adaptive=True)
+    assert np.array_equal(got[True].centres, ref.centres) and np.array_equal(got[True].normals, ref.normals)
+    assert not np.array_equal(got[False].centres, got[True].centres)
