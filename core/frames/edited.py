@@ -35,6 +35,7 @@ from core.util.errors import InputError
 
 
 COMPRESSION = ("tangent", "keep", "undo")
+DEPTH_REFS = ("nearest", "ray")
 FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
 RADIUS_RULES = ("gap", "frame")
@@ -55,6 +56,11 @@ class EditConfig:
                                         "undo of a local compression: tangent (along the canonical neighbourhood's "
                                         "surface, not across it) | keep (none: stretch only) | undo (all, full F⁻¹)",
                              choices=COMPRESSION)
+    f_depth: str = opt("nearest", "F-aware keys (f_attention): each neighbour's depth measured from the ray's "
+                                  "nearest neighbour in the canonical frames (nearest: as the keys were trained, "
+                                  "'depth behind the nearest point') | from the deformed ray's nearest neighbour "
+                                  "(ray: the earlier rule; a squash or bend reorders the canonical depths)",
+                       choices=DEPTH_REFS)
     f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
                                 "stretch (f_radius_rule)")
     f_radius_rule: str = opt("gap", "f_radius: gap (each point reaches the cap × the largest growth f_fill left "
@@ -274,6 +280,12 @@ class EditState:
         return self._inv_f_keys
 
     @property
+    def rebase_depth(self) -> bool:
+        """Whether the F-aware keys take depths from the ray's nearest neighbour in the canonical frames (f_depth
+        nearest; `PointModel.attend`): only for moved points with f_attention."""
+        return bool(self.moved and self.cfg.f_attention and self.cfg.f_depth == "nearest")
+
+    @property
     def local_scale(self) -> float:
         """How much larger the moved points are than their canonical neighbourhoods: the median over the finite
         points of |det F|^(1/3) (an object scaled by s: s; a bend: about 1); 1 when nothing moved or undefined."""
@@ -387,9 +399,11 @@ class EditState:
         keys = self.inv_f_keys if cfg.f_attention else None
         pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
         if cfg.attention != "torch" and supported(model, pts.device):  # as trace_frame chooses
-            att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
+            att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys,
+                                  rebase_depth=self.rebase_depth)
         else:
-            att = model.attend(pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
+            att = model.attend(pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys,
+                               rebase_depth=self.rebase_depth)
         new = {name: getattr(trace, name).clone() for name in ("idx", "weights", "fg_weights", "bg", "x")}
         new["idx"][rows] = idx
         for name in ("weights", "fg_weights", "bg", "x"):
@@ -506,6 +520,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         radius_scale, reach = state.search_radius()
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
+                         rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)

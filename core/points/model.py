@@ -117,7 +117,7 @@ class PointModel(nn.Module):
     # ---- attention -------------------------------------------------------------------------------------------
     def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
                idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None,
-               log_window: torch.Tensor | None = None, keys: str = "auto") -> dict:
+               log_window: torch.Tensor | None = None, keys: str = "auto", rebase_depth: bool = False) -> dict:
         """Attention over each ray's neighbours plus the background slot.
 
         Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
@@ -126,6 +126,10 @@ class PointModel(nn.Module):
         key features are then measured in each neighbour's canonical frame: with δ = p − (o + t_min d) the offset
         from the ray's reference point, u = F⁻¹ δ and the ray direction d' = F⁻¹ d / |F⁻¹ d| mapped the same way,
         depth = u·d' and distance = |u − (u·d') d'| (the same numbers as without inv_f when F = I).
+        rebase_depth (with inv_f): the depths are then taken from the ray's nearest neighbour in these canonical
+        frames (the smallest u·d' of the ray's neighbours is 0, as the smallest t − t_min is without inv_f) instead
+        of from the deformed ray's nearest one: a deformation that is no rigid motion reorders depths (a squash's
+        canonical ray runs across the squashed axis), and the key learned "depth behind the nearest neighbour".
         log_window [R, K]: added to the neighbours' logits (finite; core/points/neighbors/select.py
         `select_neighbors_soft`: a neighbour's share faded out towards the edges of its footprint).
         keys: how the key MLP runs: "torch" (autograd through the module), "chunked" (core/points/key_mlp.py: only
@@ -157,6 +161,9 @@ class PointModel(nn.Module):
             dc = safe_normalize((fi @ dirs[:, None, :, None].expand(-1, idx.shape[1], -1, -1)).squeeze(-1))
             depth = (u * dc).sum(-1)
             rho = (u - depth[..., None] * dc).norm(dim=-1)
+            if rebase_depth:  # from the nearest neighbour in the canonical frames (empty slots left out)
+                d_min = torch.where(valid, depth.detach(), torch.full_like(depth, big)).min(dim=1, keepdim=True).values
+                depth = depth - torch.where(d_min >= big, torch.zeros_like(d_min), d_min)
         feats = torch.stack([(rho / s).clamp(max=64.0), (depth / s).clamp(-64.0, 64.0)], dim=-1)
         if keys not in KEY_PATHS:
             raise InputError(f"attend: keys must be one of {KEY_PATHS}, got {keys!r}")

@@ -34,7 +34,7 @@ def test_rest_frames_equal_todays_with_every_part_on(tiny):
     today = EditState(bundle, atlas=atlas)
     # ids force the "moved" path: F is fitted (≈ I), attention keys, radius and correspondence all use it
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), atlas=atlas, cfg=ALL_ON)
-    assert forced.moved and forced.radius_scale == 1.0 and forced.filled_points == 0
+    assert forced.moved and forced.radius_scale == 1.0 and forced.filled_points == 0 and forced.rebase_depth
     assert torch.allclose(forced.inv_f, torch.eye(3).expand(n, 3, 3), atol=1e-5)
     for i in range(len(test)):
         a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
@@ -47,6 +47,10 @@ def test_rest_frames_equal_todays_with_every_part_on(tiny):
         tb = trace_frame(bundle.model, test.c2w[i], test.height, test.width, test.focal,
                          inv_f=torch.eye(3).expand(n, 3, 3))
         assert torch.allclose(ta.weights, tb.weights, atol=1e-5)
+        # f_depth nearest (the default, on in `forced`): at F = I the rebased depths are today's
+        tc = trace_frame(bundle.model, test.c2w[i], test.height, test.width, test.focal,
+                         inv_f=torch.eye(3).expand(n, 3, 3), rebase_depth=True)
+        assert torch.allclose(ta.weights, tc.weights, atol=1e-5)
 
 
 def test_canonical_frame_attention_undoes_a_uniform_scale(tiny):
