@@ -105,9 +105,9 @@ def _features(pts, fi, use_f, rebase, o, d, idx, s, feat):
         if use_f and rebase:
             dmin = f32(np.inf)
             for j in range(k):
-                if idx[r, j] >= 0 and dep[j] < dmin:
+                if idx[r, j] >= 0 and dep[j] < dmin and math.isfinite(dep[j]):
                     dmin = dep[j]
-            if nvalid == 0:
+            if nvalid == 0 or not math.isfinite(dmin):
                 dmin = f32(0.0)
         for j in range(k):
             f0 = rh[j] / s

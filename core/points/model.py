@@ -162,8 +162,9 @@ class PointModel(nn.Module):
             depth = (u * dc).sum(-1)
             rho = (u - depth[..., None] * dc).norm(dim=-1)
             if rebase_depth:  # from the nearest neighbour in the canonical frames (empty slots left out)
-                d_min = torch.where(valid, depth.detach(), torch.full_like(depth, big)).min(dim=1, keepdim=True).values
-                depth = depth - torch.where(d_min >= big, torch.zeros_like(d_min), d_min)
+                ok = valid & torch.isfinite(depth.detach())
+                d_min = torch.where(ok, depth.detach(), torch.full_like(depth, big)).min(dim=1, keepdim=True).values
+                depth = depth - torch.where((d_min >= big) | ~torch.isfinite(d_min), torch.zeros_like(d_min), d_min)
         feats = torch.stack([(rho / s).clamp(max=64.0), (depth / s).clamp(-64.0, 64.0)], dim=-1)
         if keys not in KEY_PATHS:
             raise InputError(f"attend: keys must be one of {KEY_PATHS}, got {keys!r}")

@@ -210,3 +210,26 @@ def test_rebased_depth_sees_the_canonical_geometry_of_an_affine_map(attention):
     plain = run(pts, o.float(), d.float(), None, False)
     same = run(pts, o.float(), d.float(), eye, True)
     assert float((same["weights"] - plain["weights"]).abs().max()) <= 1e-5
+
+
+def test_rebased_depth_is_finite_for_extreme_points_and_gradients():
+    """rebase_depth with points sent to ±1e30 (a broken rig) and inverse gradients at the clamp's ends (20× and
+    1/20 per axis, a mirror): finite weights and background in both paths (their float32 rounding differs at such
+    scales, with or without the rebase, so only finiteness is compared here)."""
+    from core.points import attention_compiled
+
+    m, pts, o, d, idx, _ = _attention_case(7, False)
+    pts = pts.clone()
+    pts[::11] = 1e30
+    pts[5::13] = -1e30
+    n = pts.shape[0]
+    scales = torch.tensor([[20.0, 1.0, 0.05], [-20.0, 20.0, 20.0], [0.05, 0.05, -0.05]])
+    fi = torch.diag_embed(scales[torch.arange(n) % 3])
+    with torch.no_grad():
+        ref = m.attend(pts, m.influence, o, d, idx, inv_f=fi, rebase_depth=True)
+    for key in ("weights", "fg_weights", "bg"):
+        assert torch.isfinite(ref[key]).all(), key
+    if attention_compiled.available():
+        got = attention_compiled.attend_compiled(m, pts, m.influence, o, d, idx, inv_f=fi, rebase_depth=True)
+        for key in ("weights", "fg_weights", "bg"):
+            assert torch.isfinite(got[key]).all(), key
