@@ -34,7 +34,7 @@ from core.points.trace import Trace
 from core.util.errors import InputError
 
 
-COMPRESSION = ("tangent", "keep", "undo")
+COMPRESSION = ("tangent", "keep", "undo", "auto")
 DEPTH_REFS = ("nearest", "ray")
 FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
@@ -54,8 +54,13 @@ class EditConfig:
                                   "ray-to-point offset; docs/editing.md has the ablation); rest frames are unchanged")
     f_compression: str = opt("tangent", "what the F-aware keys (f_attention) and the deform-gradient correspondence "
                                         "undo of a local compression: tangent (along the canonical neighbourhood's "
-                                        "surface, not across it) | keep (none: stretch only) | undo (all, full F⁻¹)",
+                                        "surface, not across it) | keep (none: stretch only) | undo (all, full F⁻¹) | "
+                                        "auto (tangent for a thin-sheet model, undo for one whose points form a thick "
+                                        "shell, where no point has a reliable normal: f_thick_spread)",
                              choices=COMPRESSION)
+    f_thick_spread: float = opt(0.15, "f_compression auto: a model whose median canonical neighbourhood spread "
+                                      "(smallest / largest) is at least this is thick: undo, else tangent",
+                                min=0.0, max=1.0)
     f_depth: str = opt("nearest", "F-aware keys (f_attention): each neighbour's depth measured from the ray's "
                                   "nearest neighbour in the canonical frames (nearest: as the keys were trained, "
                                   "'depth behind the nearest point') | from the deformed ray's nearest neighbour "
@@ -261,8 +266,9 @@ class EditState:
         f_compression: undo = F⁻¹; keep = the inverse of F with its singular values raised to at least 1 (rotation
         and stretch undone, compression kept); tangent = the inverse of G = F + (max(|F n|, 1)/|F n| − 1) F n nᵀ,
         n the canonical neighbourhood's normal (least-spread direction): F as it is along the surface, its
-        compression across it not undone. None when nothing moved."""
-        mode = self.cfg.f_compression
+        compression across it not undone; auto = one of tangent and undo by the model (`compression`). None when
+        nothing moved."""
+        mode = self.compression
         if mode == "undo" or self.f is None:
             return self.inv_f
         if self._inv_f_keys is None:
@@ -278,6 +284,16 @@ class EditState:
                     return (fi + k[:, None, None] * n[..., None] @ (n[:, None, :] @ fi)).float()
                 self._inv_f_keys = self._timed(tangent)
         return self._inv_f_keys
+
+    @property
+    def compression(self) -> str:
+        """The compression rule the keys use: f_compression, with auto resolved by the model's thickness
+        (`DeformationField.median_spread` against f_thick_spread: undo for a thick shell, tangent for a sheet)."""
+        mode = self.cfg.f_compression
+        if mode != "auto":
+            return mode
+        thick = field_for(self.bundle.model, self.deformation_cfg).median_spread >= self.cfg.f_thick_spread
+        return "undo" if thick else "tangent"
 
     @property
     def rebase_depth(self) -> bool:

@@ -48,6 +48,9 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     "f-attention + blended fill + fold rule, depth from the canonical nearest, undo, deform-aware": {
         **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
         "f_depth": "nearest", "f_compression": "undo"},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto"},
 }
 
 

@@ -34,7 +34,9 @@ def add_arguments(p):
                         "reaching the neighbour search's cap times the growth the fill left on its pairs) | "
                         "f-fill-fold-blend-undo (f-fill-fold-blend undoing all compression, f_compression undo) | "
                         "f-fill-fold-blend-depth (f-fill-fold-blend, the keys' depths from the ray's nearest "
-                        "neighbour in the canonical frames, f_depth nearest) | f-fill-fold-blend-depth-undo (both)")
+                        "neighbour in the canonical frames, f_depth nearest) | f-fill-fold-blend-depth-undo (both) | "
+                        "f-fill-fold-blend-depth-auto (f-fill-fold-blend-depth, undo on a model whose points form "
+                        "a thick shell, f_compression auto)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

@@ -44,7 +44,11 @@ def add_arguments(p):
                    help="moved points: attention keys in each point's canonical frame (local deformation gradient)")
     p.add_argument("--f-compression", default=EditConfig.f_compression, choices=COMPRESSION,
                    help="what the F-aware keys and deform-gradient correspondence undo of a local compression: "
-                        "tangent (along the surface) | keep (none) | undo (all)")
+                        "tangent (along the surface) | keep (none) | undo (all) | auto (tangent for a thin-sheet "
+                        "model, undo for a thick shell: --f-thick-spread)")
+    p.add_argument("--f-thick-spread", type=float, default=EditConfig.f_thick_spread,
+                   help="--f-compression auto: a model whose median canonical neighbourhood spread (smallest / "
+                        "largest) is at least this counts as a thick shell")
     p.add_argument("--f-depth", default=EditConfig.f_depth, choices=DEPTH_REFS,
                    help="F-aware keys: each neighbour's depth from the ray's nearest neighbour in the canonical "
                         "frames (nearest) or from the deformed ray's nearest neighbour (ray: the earlier rule)")
@@ -171,7 +175,7 @@ def run(args) -> int:
     check_flag(args.size, "--size", min=1, max=MAX_RENDER_SIZE)
     cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
                               f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
-                              f_depth=args.f_depth, f_radius_rule=args.f_radius_rule,
+                              f_depth=args.f_depth, f_thick_spread=args.f_thick_spread, f_radius_rule=args.f_radius_rule,
                               f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
                               f_fill_features=args.f_fill_features,
                               fold_radius=args.fold_radius, fold_test=args.fold_test, f_occlusion=args.f_occlusion,
