@@ -42,7 +42,7 @@ def _features(pts, fi, use_f, rebase, o, d, idx, s, feat):
     """Key geometry of rays o, d [R, 3] over neighbours idx [R, K] (-1 = empty) of points pts [N, 3], inverse
     gradients fi [N, 9] (row-major 3 × 3; used when use_f): feat [R * K, 2] float32 (distance, depth in spacings
     s, clamped), row r·K + j, as PointModel.attend builds them (empty slots measured from point 0, like its clamped
-    indices); rebase (with use_f): depths from the smallest one of the ray's valid neighbours (attend's
+    indices); rebase (with use_f): depths from the nearest foot of the ray's valid neighbours (attend's
     rebase_depth)."""
     f32 = np.float32
     r_n, k = idx.shape
@@ -50,6 +50,7 @@ def _features(pts, fi, use_f, rebase, o, d, idx, s, feat):
     tt = np.empty(k, dtype=np.float32)
     dep = np.empty(k, dtype=np.float32)
     rh = np.empty(k, dtype=np.float32)
+    gn = np.ones(k, dtype=np.float32)
     for r in range(r_n):
         ox, oy, oz = o[r, 0], o[r, 1], o[r, 2]
         dx, dy, dz = d[r, 0], d[r, 1], d[r, 2]
@@ -87,6 +88,7 @@ def _features(pts, fi, use_f, rebase, o, d, idx, s, feat):
                 cn = f32(math.sqrt(cx * cx + cy * cy + cz * cz))
                 if cn < f32(1e-12):
                     cn = f32(1e-12)
+                gn[j] = cn
                 cx = cx / cn
                 cy = cy / cn
                 cz = cz / cn
@@ -101,19 +103,23 @@ def _features(pts, fi, use_f, rebase, o, d, idx, s, feat):
                 depth = t - tmin
             rh[j] = f32(math.sqrt(px * px + py * py + pz * pz))
             dep[j] = depth
-        dmin = f32(0.0)
-        if use_f and rebase:
-            dmin = f32(np.inf)
+        fmin = f32(0.0)
+        if use_f and rebase:  # the nearest foot: where a neighbour's canonical depth is 0 along the deformed ray
+            fmin = f32(np.inf)
             for j in range(k):
-                if idx[r, j] >= 0 and dep[j] < dmin and math.isfinite(dep[j]):
-                    dmin = dep[j]
-            if nvalid == 0 or not math.isfinite(dmin):
-                dmin = f32(0.0)
+                if idx[r, j] >= 0:
+                    ft = dep[j] / gn[j]
+                    if ft < fmin and math.isfinite(ft):
+                        fmin = ft
+            if nvalid == 0 or not math.isfinite(fmin):
+                fmin = f32(0.0)
+            for j in range(k):
+                dep[j] = dep[j] - fmin * gn[j]
         for j in range(k):
             f0 = rh[j] / s
             if f0 > lim:
                 f0 = lim
-            f1 = (dep[j] - dmin) / s
+            f1 = dep[j] / s
             if f1 > lim:
                 f1 = lim
             elif f1 < -lim:
