@@ -36,6 +36,7 @@ EDITS = ("geometry", "retexture", "decal")
 # renderer variants: the EditConfig fields each sets (every F switch named: the defaults may change); "paper" =
 # the paper's renderer and correspondence. f_compression also changes the deform-gradient correspondence.
 _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0,
+          "f_depth": "ray",
           "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap"}
 RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-radius": {**_PAPER, "f_radius": True, "f_radius_rule": "frame"},
@@ -54,7 +55,17 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-fill-fold-blend-local": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 0.5,
                                          "fold_test": "local-map", "f_fill_features": "blend"},
              "f-fill-fold-blend-reach": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
-                                         "f_fill_features": "blend", "f_radius": True}}
+                                         "f_fill_features": "blend", "f_radius": True},
+             "f-fill-fold-blend-undo": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                        "f_fill_features": "blend", "f_compression": "undo"},
+             "f-fill-fold-blend-depth": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                         "f_fill_features": "blend", "f_depth": "nearest"},
+             "f-fill-fold-blend-depth-undo": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                              "f_fill_features": "blend", "f_depth": "nearest",
+                                              "f_compression": "undo"},
+             "f-fill-fold-blend-depth-auto": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                              "f_fill_features": "blend", "f_depth": "nearest",
+                                              "f_compression": "auto"}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
@@ -266,7 +277,7 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
 
     def render(i):
         c = state.cfg  # what the trace depends on (the correspondence and fold rule do not change it)
-        key = (i, c.temperature, c.f_attention, c.f_radius, c.f_compression if c.f_attention else "-",
+        key = (i, c.temperature, c.f_attention, c.f_radius, (c.f_compression, c.f_thick_spread, c.f_depth) if c.f_attention else "-",
                (c.f_fill_ratio, c.f_fill_budget, c.f_fill_features) if c.f_fill else None, c.f_occlusion,
                c.f_radius_rule if c.f_radius else None)
         cached = traces.get(key) if traces is not None else None
@@ -467,7 +478,12 @@ def markdown(result: dict) -> str:
               "with each added point's features mixed from both ends of its pair, f-fill-fold-local = f-fill-fold "
               "whose fold rule compares each neighbour's local-map estimate of the canonical point (radius 0.5 "
               "spacings), f-fill-fold-blend-local = both, f-fill-fold-blend-reach = f-fill-fold-blend whose points "
-              "reach the neighbour search's pixel cap times the growth the fill left on their pairs; first "
+              "reach the neighbour search's pixel cap times the growth the fill left on their pairs, "
+              "f-fill-fold-blend-undo = f-fill-fold-blend undoing all compression (f_compression undo), "
+              "f-fill-fold-blend-depth = f-fill-fold-blend whose keys take depths from the ray's nearest neighbour "
+              "in the canonical frames (f_depth nearest), f-fill-fold-blend-depth-undo = both, "
+              "f-fill-fold-blend-depth-auto = f-fill-fold-blend-depth undoing all compression on a model whose points "
+              "form a thick shell (f_compression auto); first "
               "temperature, soft blend; "
               "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]

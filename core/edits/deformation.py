@@ -212,14 +212,32 @@ class DeformationField:
         mu = ratio * lmax * h * h
         inv = e @ torch.diag_embed(1.0 / (lam + mu[:, None]).clamp_min(1e-30)) @ e.transpose(1, 2)
         wdc = w[..., None] * dc / w.sum(1).clamp_min(1e-30)[:, None, None]     # B = Σ_l dd_l wdc_lᵀ
+        spread = torch.where(lmax < 1e-12, torch.zeros_like(lmax), lam[:, 0] / lmax_s)  # λmin/λmax in [0, 1]
         return {"wdc": wdc, "e1": e1, "e2": e2, "e3": e3, "p2": p2, "inv": inv, "mu": mu, "line": line,
-                "empty": lmax < 1e-12}
+                "empty": lmax < 1e-12, "spread": spread}
 
     def normals(self, ids: torch.Tensor | None = None) -> torch.Tensor:
         """Unit direction of least canonical spread of each point's neighbourhood (a surface's normal) [M, 3]
         float64; ids [M] as in `gradients` (None: every canonical point)."""
         n = self._terms["e1"]
         return n if ids is None else n[ids.to(n.device, torch.long)]
+
+    def spread_ratios(self, ids: torch.Tensor | None = None) -> torch.Tensor:
+        """How thick each point's canonical neighbourhood is [M] float64 in [0, 1]: its smallest / largest spread
+        (eigenvalues of the weighted offsets' second moments); near 0 on a thin sheet or a line, where `normals` is
+        the surface's normal, up to 1 in a cloud spread evenly in 3-D, where the least-spread direction is noise.
+        0 where a point has no neighbour. ids [M] as in `gradients` (None: every canonical point)."""
+        r = self._terms["spread"]
+        return r if ids is None else r[ids.to(r.device, torch.long)]
+
+    @property
+    def median_spread(self) -> float:
+        """The median of `spread_ratios` over the points that have neighbours (0 when none has): how thick the
+        model's point cloud is at the scale of the fit (a thin sheet's ≈ 0.05–0.1, a solid's shell ≈ 0.2–0.35)."""
+        if getattr(self, "_median_spread", None) is None:
+            r = self._terms["spread"][~self._terms["empty"]]
+            self._median_spread = float(r.median()) if r.numel() else 0.0
+        return self._median_spread
 
     @torch.no_grad()
     def gradients(self, points: torch.Tensor, ids: torch.Tensor | None = None) -> torch.Tensor:

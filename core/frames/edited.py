@@ -34,7 +34,8 @@ from core.points.trace import Trace
 from core.util.errors import InputError
 
 
-COMPRESSION = ("tangent", "keep", "undo")
+COMPRESSION = ("tangent", "keep", "undo", "auto")
+DEPTH_REFS = ("nearest", "ray")
 FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
 RADIUS_RULES = ("gap", "frame")
@@ -51,10 +52,20 @@ class EditConfig:
     f_attention: bool = opt(True, "moved points: measure the attention's key geometry in each neighbour's "
                                   "canonical frame (its inverse local deformation gradient applied to the "
                                   "ray-to-point offset; docs/editing.md has the ablation); rest frames are unchanged")
-    f_compression: str = opt("tangent", "what the F-aware keys (f_attention) and the deform-gradient correspondence "
+    f_compression: str = opt("auto", "what the F-aware keys (f_attention) and the deform-gradient correspondence "
                                         "undo of a local compression: tangent (along the canonical neighbourhood's "
-                                        "surface, not across it) | keep (none: stretch only) | undo (all, full F⁻¹)",
+                                        "surface, not across it) | keep (none: stretch only) | undo (all, full F⁻¹) | "
+                                        "auto (tangent for a thin-sheet model, undo for one whose points form a thick "
+                                        "shell, where no point has a reliable normal: f_thick_spread)",
                              choices=COMPRESSION)
+    f_thick_spread: float = opt(0.15, "f_compression auto: a model whose median canonical neighbourhood spread "
+                                      "(smallest / largest) is at least this is thick: undo, else tangent",
+                                min=0.0, max=1.0)
+    f_depth: str = opt("nearest", "F-aware keys (f_attention): each neighbour's depth measured from the ray's "
+                                  "nearest neighbour in the canonical frames (nearest: as the keys were trained, "
+                                  "'depth behind the nearest point') | from the deformed ray's nearest neighbour "
+                                  "(ray: the earlier rule; a squash or bend reorders the canonical depths)",
+                       choices=DEPTH_REFS)
     f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
                                 "stretch (f_radius_rule)")
     f_radius_rule: str = opt("gap", "f_radius: gap (each point reaches the cap × the largest growth f_fill left "
@@ -255,8 +266,9 @@ class EditState:
         f_compression: undo = F⁻¹; keep = the inverse of F with its singular values raised to at least 1 (rotation
         and stretch undone, compression kept); tangent = the inverse of G = F + (max(|F n|, 1)/|F n| − 1) F n nᵀ,
         n the canonical neighbourhood's normal (least-spread direction): F as it is along the surface, its
-        compression across it not undone. None when nothing moved."""
-        mode = self.cfg.f_compression
+        compression across it not undone; auto = one of tangent and undo by the model (`compression`). None when
+        nothing moved."""
+        mode = self.compression
         if mode == "undo" or self.f is None:
             return self.inv_f
         if self._inv_f_keys is None:
@@ -272,6 +284,22 @@ class EditState:
                     return (fi + k[:, None, None] * n[..., None] @ (n[:, None, :] @ fi)).float()
                 self._inv_f_keys = self._timed(tangent)
         return self._inv_f_keys
+
+    @property
+    def compression(self) -> str:
+        """The compression rule the keys use: f_compression, with auto resolved by the model's thickness
+        (`DeformationField.median_spread` against f_thick_spread: undo for a thick shell, tangent for a sheet)."""
+        mode = self.cfg.f_compression
+        if mode != "auto":
+            return mode
+        thick = field_for(self.bundle.model, self.deformation_cfg).median_spread >= self.cfg.f_thick_spread
+        return "undo" if thick else "tangent"
+
+    @property
+    def rebase_depth(self) -> bool:
+        """Whether the F-aware keys take depths from the ray's nearest neighbour in the canonical frames (f_depth
+        nearest; `PointModel.attend`): only for moved points with f_attention."""
+        return bool(self.moved and self.cfg.f_attention and self.cfg.f_depth == "nearest")
 
     @property
     def local_scale(self) -> float:
@@ -387,9 +415,11 @@ class EditState:
         keys = self.inv_f_keys if cfg.f_attention else None
         pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
         if cfg.attention != "torch" and supported(model, pts.device):  # as trace_frame chooses
-            att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
+            att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys,
+                                  rebase_depth=self.rebase_depth)
         else:
-            att = model.attend(pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys)
+            att = model.attend(pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys,
+                               rebase_depth=self.rebase_depth)
         new = {name: getattr(trace, name).clone() for name in ("idx", "weights", "fg_weights", "bg", "x")}
         new["idx"][rows] = idx
         for name in ("weights", "fg_weights", "bg", "x"):
@@ -506,6 +536,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         radius_scale, reach = state.search_radius()
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
+                         rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)

@@ -38,15 +38,19 @@ def available() -> bool:
     return numba is not None
 
 
-def _features(pts, fi, use_f, o, d, idx, s, feat):
+def _features(pts, fi, use_f, rebase, o, d, idx, s, feat):
     """Key geometry of rays o, d [R, 3] over neighbours idx [R, K] (-1 = empty) of points pts [N, 3], inverse
     gradients fi [N, 9] (row-major 3 × 3; used when use_f): feat [R * K, 2] float32 (distance, depth in spacings
     s, clamped), row r·K + j, as PointModel.attend builds them (empty slots measured from point 0, like its clamped
-    indices)."""
+    indices); rebase (with use_f): depths from the nearest foot of the ray's valid neighbours (attend's
+    rebase_depth)."""
     f32 = np.float32
     r_n, k = idx.shape
     lim = f32(64.0)
     tt = np.empty(k, dtype=np.float32)
+    dep = np.empty(k, dtype=np.float32)
+    rh = np.empty(k, dtype=np.float32)
+    gn = np.ones(k, dtype=np.float32)
     for r in range(r_n):
         ox, oy, oz = o[r, 0], o[r, 1], o[r, 2]
         dx, dy, dz = d[r, 0], d[r, 1], d[r, 2]
@@ -84,6 +88,7 @@ def _features(pts, fi, use_f, o, d, idx, s, feat):
                 cn = f32(math.sqrt(cx * cx + cy * cy + cz * cz))
                 if cn < f32(1e-12):
                     cn = f32(1e-12)
+                gn[j] = cn
                 cx = cx / cn
                 cy = cy / cn
                 cz = cz / cn
@@ -96,11 +101,25 @@ def _features(pts, fi, use_f, o, d, idx, s, feat):
                 py = ry - t * dy
                 pz = rz - t * dz
                 depth = t - tmin
-            rho = f32(math.sqrt(px * px + py * py + pz * pz))
-            f0 = rho / s
+            rh[j] = f32(math.sqrt(px * px + py * py + pz * pz))
+            dep[j] = depth
+        fmin = f32(0.0)
+        if use_f and rebase:  # the nearest foot: where a neighbour's canonical depth is 0 along the deformed ray
+            fmin = f32(np.inf)
+            for j in range(k):
+                if idx[r, j] >= 0:
+                    ft = dep[j] / gn[j]
+                    if ft < fmin and math.isfinite(ft):
+                        fmin = ft
+            if nvalid == 0 or not math.isfinite(fmin):
+                fmin = f32(0.0)
+            for j in range(k):
+                dep[j] = dep[j] - fmin * gn[j]
+        for j in range(k):
+            f0 = rh[j] / s
             if f0 > lim:
                 f0 = lim
-            f1 = depth / s
+            f1 = dep[j] / s
             if f1 > lim:
                 f1 = lim
             elif f1 < -lim:
@@ -211,10 +230,11 @@ def _np32(t: torch.Tensor) -> np.ndarray:
 @torch.no_grad()
 def attend_compiled(model, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor,
                     dirs: torch.Tensor, idx: torch.Tensor, temperature: float | None = None,
-                    inv_f: torch.Tensor | None = None, chunk: int = 1024) -> dict:
+                    inv_f: torch.Tensor | None = None, chunk: int = 1024, rebase_depth: bool = False) -> dict:
     """PointModel.attend's render outputs: the key features and the softmaxes by the compiled kernels, the key MLP
     by torch in between (see `supported`), `chunk` rays at a time (keeps the MLP's activations in cache). Args as
-    attend: points [N, 3], influence [N], origins/dirs [R, 3], idx [R, K] (-1 = empty), inv_f [N, 3, 3] or None.
+    attend: points [N, 3], influence [N], origins/dirs [R, 3], idx [R, K] (-1 = empty), inv_f [N, 3, 3] or None,
+    rebase_depth (with inv_f).
     Returns dict(weights [R, K], fg_weights [R, K], bg [R], x [R, 3]) float32 CPU tensors."""
     features, softmax = _get_kernels()
     r, k = idx.shape
@@ -235,7 +255,7 @@ def attend_compiled(model, points: torch.Tensor, influence: torch.Tensor, origin
     for a in range(0, r, chunk):
         b = min(a + chunk, r)
         f = feat[: (b - a) * k]
-        features(pts, fi, inv_f is not None, o[a:b], d[a:b], ix[a:b], s, f)
+        features(pts, fi, inv_f is not None, bool(rebase_depth), o[a:b], d[a:b], ix[a:b], s, f)
         key = model.key_mlp(fourier(torch.from_numpy(f), freqs)).view(b - a, k).numpy()
         softmax(key, infl, pts, o[a:b], ix[a:b], bg_logit, temp, out_w[a:b], out_fg[a:b], out_bg[a:b], out_x[a:b])
     return {"weights": torch.from_numpy(out_w), "fg_weights": torch.from_numpy(out_fg),

@@ -117,7 +117,7 @@ class PointModel(nn.Module):
     # ---- attention -------------------------------------------------------------------------------------------
     def attend(self, points: torch.Tensor, influence: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
                idx: torch.Tensor, temperature: float | None = None, inv_f: torch.Tensor | None = None,
-               log_window: torch.Tensor | None = None, keys: str = "auto") -> dict:
+               log_window: torch.Tensor | None = None, keys: str = "auto", rebase_depth: bool = False) -> dict:
         """Attention over each ray's neighbours plus the background slot.
 
         Args: points [N, 3] (canonical or deformed positions), influence [N], origins [R, 3], dirs [R, 3] (unit),
@@ -126,6 +126,13 @@ class PointModel(nn.Module):
         key features are then measured in each neighbour's canonical frame: with δ = p − (o + t_min d) the offset
         from the ray's reference point, u = F⁻¹ δ and the ray direction d' = F⁻¹ d / |F⁻¹ d| mapped the same way,
         depth = u·d' and distance = |u − (u·d') d'| (the same numbers as without inv_f when F = I).
+        rebase_depth (with inv_f): the depths are then taken from the ray's nearest neighbour in these canonical
+        frames instead of from the deformed ray's nearest one: neighbour j's depth u·d' is 0 at the point
+        t_min + depth_j / |F_j⁻¹ d| of the deformed ray (its foot); every depth is measured from the nearest foot,
+        depth_j − min_l(depth_l / |F_l⁻¹ d|) |F_j⁻¹ d| (the same numbers when F = I; for one affine map shared by
+        all neighbours exactly the canonical model's depths along the canonical ray). A deformation that is no
+        rigid motion reorders depths (a squash's canonical ray runs across the squashed axis), and the key learned
+        "depth behind the nearest neighbour".
         log_window [R, K]: added to the neighbours' logits (finite; core/points/neighbors/select.py
         `select_neighbors_soft`: a neighbour's share faded out towards the edges of its footprint).
         keys: how the key MLP runs: "torch" (autograd through the module), "chunked" (core/points/key_mlp.py: only
@@ -157,6 +164,16 @@ class PointModel(nn.Module):
             dc = safe_normalize((fi @ dirs[:, None, :, None].expand(-1, idx.shape[1], -1, -1)).squeeze(-1))
             depth = (u * dc).sum(-1)
             rho = (u - depth[..., None] * dc).norm(dim=-1)
+            if rebase_depth:  # from the nearest neighbour in the canonical frames (empty slots left out)
+                # neighbour j's canonical depth falls by g_j = |F_j⁻¹ d| per unit along the deformed ray, so it is 0
+                # at depth_j / g_j past t_min (its foot): measure every depth from the nearest foot
+                g = (fi @ dirs[:, None, :, None].expand(-1, idx.shape[1], -1, -1)).squeeze(-1).norm(dim=-1)
+                g = g.clamp_min(1e-12)
+                foot = depth.detach() / g
+                ok = valid & torch.isfinite(foot)
+                f_min = torch.where(ok, foot, torch.full_like(foot, big)).min(dim=1, keepdim=True).values
+                f_min = torch.where((f_min >= big) | ~torch.isfinite(f_min), torch.zeros_like(f_min), f_min)
+                depth = depth - f_min * g
         feats = torch.stack([(rho / s).clamp(max=64.0), (depth / s).clamp(-64.0, 64.0)], dim=-1)
         if keys not in KEY_PATHS:
             raise InputError(f"attend: keys must be one of {KEY_PATHS}, got {keys!r}")

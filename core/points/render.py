@@ -32,7 +32,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
                 inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto",
-                soft_scale: float = 1.0, index=None, reach: torch.Tensor | None = None) -> Trace:
+                soft_scale: float = 1.0, index=None, reach: torch.Tensor | None = None,
+                rebase_depth: bool = False) -> Trace:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -40,7 +41,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     `python -m tools.bench.render`);
     influence [M] (default: the model's, which requires M == N);
     inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
-    `PointModel.attend`); radius_scale: the screen neighbour search's pixel radius cap times this;
+    `PointModel.attend`; rebase_depth: their depths from the ray's nearest neighbour in those frames);
+    radius_scale: the screen neighbour search's pixel radius cap times this;
     attention: "torch" (PointModel.attend, chunk by chunk) | "compiled" (core/points/attention_compiled.py, CPU
     with numba; the same numbers to float rounding, all rays in one call) | "auto" (compiled where supported);
     soft_scale: the frame's scale factor F for anti-aliased neighbour footprints (> 1: the K-nearest rule and the
@@ -96,13 +98,13 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     use_compiled = attention != "torch" and compiled and log_w is None
     if use_compiled and act.numel():
         att = attend_compiled(model, pts_math, infl, o[act], d[act], idx[act], temperature=temperature, inv_f=fi,
-                              chunk=chunk)
+                              chunk=chunk, rebase_depth=rebase_depth)
         for key in res:
             res[key][act] = att[key]
     for s in range(0, 0 if use_compiled else act.shape[0], chunk):
         sl = act[s:s + chunk]
         att = model.attend(pts_math, infl, o[sl], d[sl], idx[sl], temperature=temperature, inv_f=fi,
-                           log_window=None if log_w is None else log_w[sl])
+                           log_window=None if log_w is None else log_w[sl], rebase_depth=rebase_depth)
         for key in res:
             res[key][sl] = att[key]
     return Trace(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),

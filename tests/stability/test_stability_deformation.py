@@ -173,3 +173,20 @@ def test_expansion_inverse_compiled_matches_torch():
                    torch.diag(torch.tensor([1.0, 1.0, -1.0]))[None]])  # repeated singular values, a mirror
     # (the torch path leaves singular values within 1e-3 below 1 as they are: the paths differ by that much)
     assert torch.allclose(expansion_inverse(f), _expansion_inverse_torch(f), atol=1e-3)
+
+
+def test_spread_ratios_tell_a_sheet_from_a_thick_shell_and_stay_finite():
+    """A flat sheet's neighbourhoods are near 0 thick, a sheet with noise of a fifth of its spacing thin, a volume's
+    cloud thick (the median spread `f_compression auto` compares); degenerate inputs (one point, coincident points,
+    non-finite ones) give finite ratios in [0, 1]."""
+    flat = DeformationField(_sheet())
+    noisy = DeformationField(_sheet(noise=0.2 * 2 / 23))
+    cloud = DeformationField(_volume())
+    assert flat.median_spread < 1e-6
+    assert noisy.median_spread < 0.15 <= cloud.median_spread
+    for pts in (torch.zeros(1, 3), torch.zeros(30, 3), torch.cat([_volume(50), torch.full((5, 3), float("nan"))])):
+        fld = DeformationField(pts)
+        r = fld.spread_ratios()
+        assert r.shape == (pts.shape[0],) and torch.isfinite(r).all() and float(r.min()) >= 0 and float(r.max()) <= 1
+        assert math.isfinite(fld.median_spread)
+    assert torch.equal(cloud.spread_ratios(torch.tensor([3, 3, 0])), cloud.spread_ratios()[[3, 3, 0]])

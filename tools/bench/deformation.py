@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware",
+        "f_depth": "ray",
         "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
         "fold_test": "displacement", "f_radius_rule": "frame"}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
@@ -41,6 +42,15 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     "f-attention + blended fill + fold rule + gap reach, deform-aware": {
         **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
         "f_radius": True, "f_radius_rule": "gap"},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest"},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, undo, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "undo"},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto"},
 }
 
 

@@ -92,13 +92,14 @@ def main(argv=None) -> int:
     if attention_compiled.supported(model, torch.device("cpu")):
         def attn_torch():
             with torch.no_grad():
-                parts = [model.attend(pts, state.influence, o[s:s + 1024], d[s:s + 1024], idx[s:s + 1024], inv_f=fi)
+                parts = [model.attend(pts, state.influence, o[s:s + 1024], d[s:s + 1024], idx[s:s + 1024], inv_f=fi,
+                                      rebase_depth=state.rebase_depth)
                          for s in range(0, act.numel(), 1024)]
             return {k: torch.cat([p[k] for p in parts]) for k in ("weights", "fg_weights", "bg", "x")}
 
         attention_compiled.attend_compiled(model, pts, state.influence, o[:8], d[:8], idx[:8], inv_f=fi)  # compile
         rows.append(("attention", *_pair(attn_torch, lambda: attention_compiled.attend_compiled(
-            model, pts, state.influence, o, d, idx, inv_f=fi), args.reps)))
+            model, pts, state.influence, o, d, idx, inv_f=fi, rebase_depth=state.rebase_depth), args.reps)))
 
     att = {"weights": tr.weights, "bg": tr.bg}
     bgc = torch.ones(3)

@@ -31,7 +31,12 @@ def add_arguments(p):
                         "features mixed from both ends of its pair) | f-fill-fold-local (f-fill-fold, the fold rule "
                         "comparing each neighbour's local-map estimate of the canonical point, radius 0.5) | "
                         "f-fill-fold-blend-local (both) | f-fill-fold-blend-reach (f-fill-fold-blend, each point "
-                        "reaching the neighbour search's cap times the growth the fill left on its pairs)")
+                        "reaching the neighbour search's cap times the growth the fill left on its pairs) | "
+                        "f-fill-fold-blend-undo (f-fill-fold-blend undoing all compression, f_compression undo) | "
+                        "f-fill-fold-blend-depth (f-fill-fold-blend, the keys' depths from the ray's nearest "
+                        "neighbour in the canonical frames, f_depth nearest) | f-fill-fold-blend-depth-undo (both) | "
+                        "f-fill-fold-blend-depth-auto (f-fill-fold-blend-depth, undo on a model whose points form "
+                        "a thick shell, f_compression auto)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

@@ -22,7 +22,7 @@ def add_arguments(p):
     from core.config import add_to_parser
     from core.edits.correspondence import MODES
     from core.edits.deformation import DeformationConfig
-    from core.frames.edited import COMPRESSION, FILL_FEATURES, FOLD_TESTS, RADIUS_RULES, EditConfig
+    from core.frames.edited import COMPRESSION, DEPTH_REFS, FILL_FEATURES, FOLD_TESTS, RADIUS_RULES, EditConfig
 
     p.add_argument("model", help="model file (.pgt)")
     p.add_argument("--cameras", required=True, help="transforms JSON whose cameras to render (transforms_*.json, or "
@@ -44,7 +44,14 @@ def add_arguments(p):
                    help="moved points: attention keys in each point's canonical frame (local deformation gradient)")
     p.add_argument("--f-compression", default=EditConfig.f_compression, choices=COMPRESSION,
                    help="what the F-aware keys and deform-gradient correspondence undo of a local compression: "
-                        "tangent (along the surface) | keep (none) | undo (all)")
+                        "tangent (along the surface) | keep (none) | undo (all) | auto (tangent for a thin-sheet "
+                        "model, undo for a thick shell: --f-thick-spread)")
+    p.add_argument("--f-thick-spread", type=float, default=EditConfig.f_thick_spread,
+                   help="--f-compression auto: a model whose median canonical neighbourhood spread (smallest / "
+                        "largest) is at least this counts as a thick shell")
+    p.add_argument("--f-depth", default=EditConfig.f_depth, choices=DEPTH_REFS,
+                   help="F-aware keys: each neighbour's depth from the ray's nearest neighbour in the canonical "
+                        "frames (nearest) or from the deformed ray's nearest neighbour (ray: the earlier rule)")
     p.add_argument("--f-radius", action=argparse.BooleanOptionalAction, default=EditConfig.f_radius,
                    help="moved points: neighbour search radius cap scaled by the points' stretch")
     p.add_argument("--f-radius-rule", default=EditConfig.f_radius_rule, choices=RADIUS_RULES,
@@ -168,7 +175,7 @@ def run(args) -> int:
     check_flag(args.size, "--size", min=1, max=MAX_RENDER_SIZE)
     cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
                               f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
-                              f_radius_rule=args.f_radius_rule,
+                              f_depth=args.f_depth, f_thick_spread=args.f_thick_spread, f_radius_rule=args.f_radius_rule,
                               f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
                               f_fill_features=args.f_fill_features,
                               fold_radius=args.fold_radius, fold_test=args.fold_test, f_occlusion=args.f_occlusion,

@@ -34,7 +34,7 @@ def test_rest_frames_equal_todays_with_every_part_on(tiny):
     today = EditState(bundle, atlas=atlas)
     # ids force the "moved" path: F is fitted (≈ I), attention keys, radius and correspondence all use it
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), atlas=atlas, cfg=ALL_ON)
-    assert forced.moved and forced.radius_scale == 1.0 and forced.filled_points == 0
+    assert forced.moved and forced.radius_scale == 1.0 and forced.filled_points == 0 and forced.rebase_depth
     assert torch.allclose(forced.inv_f, torch.eye(3).expand(n, 3, 3), atol=1e-5)
     for i in range(len(test)):
         a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
@@ -47,6 +47,10 @@ def test_rest_frames_equal_todays_with_every_part_on(tiny):
         tb = trace_frame(bundle.model, test.c2w[i], test.height, test.width, test.focal,
                          inv_f=torch.eye(3).expand(n, 3, 3))
         assert torch.allclose(ta.weights, tb.weights, atol=1e-5)
+        # f_depth nearest (the default, on in `forced`): at F = I the rebased depths are today's
+        tc = trace_frame(bundle.model, test.c2w[i], test.height, test.width, test.focal,
+                         inv_f=torch.eye(3).expand(n, 3, 3), rebase_depth=True)
+        assert torch.allclose(ta.weights, tc.weights, atol=1e-5)
 
 
 def test_canonical_frame_attention_undoes_a_uniform_scale(tiny):
@@ -283,3 +287,31 @@ def test_occlusion_rule_hides_a_part_swung_behind(tiny):
         assert int(covered.sum()) > 20
         err[on] = float((out["rgb"] - alone["rgb"])[covered].abs().mean())
     assert err[True] < 0.7 * err[False], err
+
+
+def test_auto_compression_picks_tangent_for_a_sheet_and_undo_for_a_thick_shell(tiny):
+    """f_compression auto routes by the model's median canonical spread against f_thick_spread (which the
+    stability tests check tells a sheet from a thick cloud): below it the tangent rule's keys, at or above it F⁻¹
+    (undo); rest frames stay today's."""
+    from core.edits.deformation import field_for
+
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    pts = xyz * torch.tensor([1.0, 1.0, 0.05]) + 0.02 * torch.sin(5 * xyz.flip(1))
+    spread = field_for(bundle.model).median_spread
+    assert 0.0 < spread < 1.0
+    sheet = EditState(bundle, points=pts, cfg=EditConfig(f_compression="auto", f_thick_spread=min(1.0, 1.01 * spread),
+                                                         f_fill=False))
+    tangent = EditState(bundle, points=pts, cfg=EditConfig(f_compression="tangent", f_fill=False))
+    thick = EditState(bundle, points=pts, cfg=EditConfig(f_compression="auto", f_thick_spread=spread, f_fill=False))
+    assert sheet.compression == "tangent" and thick.compression == "undo"
+    assert torch.equal(sheet.inv_f_keys, tangent.inv_f_keys)
+    assert torch.equal(thick.inv_f_keys, thick.inv_f)
+    assert not torch.allclose(sheet.inv_f_keys, thick.inv_f_keys, atol=1e-3)
+    n = bundle.model.num_points
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n),
+                       cfg=EditConfig(f_compression="auto", f_thick_spread=0.0))
+    today = EditState(bundle)
+    a = render_edited(today, test.c2w[0], test.height, test.width, test.focal)
+    b = render_edited(forced, test.c2w[0], test.height, test.width, test.focal)
+    assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
