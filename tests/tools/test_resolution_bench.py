@@ -23,6 +23,19 @@ def test_upsample_keeps_constants_and_pixel_centres():
     assert bool((up[0, 3:14, 0] > up[0, 2:13, 0]).all())  # and the ramp stays increasing
 
 
+def test_specks_count_stray_pixels_away_from_the_object_only():
+    gt_alpha = torch.zeros(20, 20)
+    gt_alpha[5:10, 5:10] = 1.0
+    rgb = torch.ones(20, 20, 3)
+    rgb[5:10, 5:10] = 0.2                 # the object itself
+    rgb[10:12, 7, 0] = 0.5               # its rim, within one training pixel (2 px)
+    rgb[17, 17] = torch.tensor([1.0, 0.85, 1.0])  # a stray speck
+    rgb[1, 18] = 0.95                     # too faint to count
+    assert resolution.specks(rgb, gt_alpha, 2) == 1
+    assert resolution.specks(torch.ones(20, 20, 3), gt_alpha, 2) == 0
+    assert resolution.specks(rgb, gt_alpha, 1) == 2  # a narrower rim: the rim's second row counts too
+
+
 def test_evaluate_scores_native_and_both_upsamplings_on_the_same_views():
     bundle, _, _ = tiny_bundle("fast")
     model = bundle.model
@@ -39,6 +52,7 @@ def test_evaluate_scores_native_and_both_upsamplings_on_the_same_views():
         assert math.isfinite(two[k]), k
     assert two["scale"] == pytest.approx(2.0, rel=0.06)
     assert 0 < two["up_gt_psnr_object"] < 99
+    assert two["specks"] >= 0 and two["specks_up"] >= 0
     row = {"scene": "card", "factor": 2, "size": 64, "mode": "filtered", **two}
     table = resolution.markdown([row], "head")
     assert "| card | default | 64² (2x) | filtered |" in table
