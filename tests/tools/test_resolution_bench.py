@@ -36,6 +36,21 @@ def test_specks_count_stray_pixels_away_from_the_object_only():
     assert resolution.specks(rgb, gt_alpha, 1) == 2  # a narrower rim: the rim's second row counts too
 
 
+def test_regions_split_the_true_coverage_into_interior_and_silhouette_band():
+    gt_alpha = torch.zeros(20, 20)
+    gt_alpha[4:14, 4:14] = 1.0
+    inner, edge = resolution.region_masks(gt_alpha, 2)
+    assert torch.equal(inner.nonzero().amin(0), torch.tensor([6, 6])) and int(inner.sum()) == 36  # 10 - 2·2 = 6²
+    assert not bool((inner & edge).any()) and int(edge.sum()) == 14 * 14 - 36  # 2 px either side of the edge
+    gt = torch.full((20, 20, 3), 0.5)
+    rgb = gt.clone()
+    rgb[0, 0] = 0.6  # an error outside both regions is not counted
+    assert resolution.region_psnr(rgb, gt, inner) == pytest.approx(100.0)
+    rgb[8, 8] = 0.6
+    assert resolution.region_psnr(rgb, gt, inner) == pytest.approx(10 * math.log10(36 / 0.01), rel=1e-4)
+    assert math.isnan(resolution.region_psnr(rgb, gt, torch.zeros(20, 20, dtype=torch.bool)))
+
+
 def test_evaluate_scores_native_and_both_upsamplings_on_the_same_views():
     bundle, _, _ = tiny_bundle("fast")
     model = bundle.model
@@ -53,6 +68,8 @@ def test_evaluate_scores_native_and_both_upsamplings_on_the_same_views():
     assert two["scale"] == pytest.approx(2.0, rel=0.06)
     assert 0 < two["up_gt_psnr_object"] < 99
     assert two["specks"] >= 0 and two["specks_up"] >= 0
+    for k in ("native", "up_render", "up_gt"):
+        assert math.isfinite(two[f"{k}_interior"]) and math.isfinite(two[f"{k}_edge"]), k
     row = {"scene": "card", "factor": 2, "size": 64, "mode": "filtered", **two}
     table = resolution.markdown([row], "head")
     assert "| card | default | 64² (2x) | filtered |" in table

@@ -17,8 +17,10 @@ render's coverage):
 - ground truth 1x + bicubic: the 1x Cycles frame upsampled (what 1x data can hold, the ceiling of 1x training).
 Seconds per frame: the native render, and the 1x render plus its upsampling. Specks per frame: pixels away from
 the object (outside its true coverage grown by one training pixel) that differ from the white background by
-more than SPECK_CONTRAST — stray points — in the native render and in the upsampled 1x render. Factor 1 is scored too (native = the
-training size: a check that a mode leaves it unchanged). The scale factor of each frame comes from the model's
+more than SPECK_CONTRAST — stray points — in the native render and in the upsampled 1x render. The error by
+region (JSON only): PSNR of all three on the interior (the true coverage shrunk by one training pixel) and on the
+band of one training pixel either side of the silhouette. Factor 1 is scored too (native = the training size: a
+check that a mode leaves it unchanged). The scale factor of each frame comes from the model's
 training footprint (a --model file from before it gets the 1x test cameras').
 
 --train-hires H fits from the ground truth at H x the training size instead (the H x folder then holds the train
@@ -117,11 +119,32 @@ def specks(rgb, gt_alpha, factor: int) -> int:
     return int((far & ~near.to(far.device)).sum())
 
 
+def region_masks(gt_alpha, factor: int):
+    """The true coverage gt_alpha [H, W] (> 0.5) split for the error by region: (interior [H, W] bool: the coverage
+    shrunk by one training pixel, `factor` pixels; edge [H, W] bool: the band of one training pixel either side of
+    the silhouette)."""
+    import torch.nn.functional as F
+    r = max(int(factor), 1)
+    m = (gt_alpha > 0.5).float()[None, None]
+    grown = F.max_pool2d(m, 2 * r + 1, stride=1, padding=r)[0, 0] > 0
+    inner = ~(F.max_pool2d(1.0 - m, 2 * r + 1, stride=1, padding=r)[0, 0] > 0)
+    return inner, grown & ~inner
+
+
+def region_psnr(rgb, gt, mask) -> float:
+    """PSNR of rgb against gt ([H, W, 3]) on the pixels of mask [H, W] (NaN when it is empty)."""
+    if not bool(mask.any()):
+        return float("nan")
+    mse = float(((rgb - gt.to(rgb.device)) ** 2)[mask.to(rgb.device)].mean())
+    return 10.0 * math.log10(1.0 / max(mse, 1e-10))
+
+
 def evaluate(model, low, high, factor: int, mode: str, cache: dict | None = None) -> dict:
     """Scores of one model at one factor: low/high the test splits at 1x and factor x (same cameras).
     cache: {view: (1x rgb [H, W, 3], seconds)} shared between modes (the 1x render does not depend on the mode).
     Returns the mean {psnr, psnr_object, up_render_psnr(_object), up_gt_psnr(_object), seconds, seconds_up, specks,
-    specks_up (`specks` per frame of the native render and of the upsampled 1x render)} and per_view rows."""
+    specks_up (`specks` per frame of the native render and of the upsampled 1x render), native_interior,
+    native_edge, up_render_interior, ..., up_gt_edge (PSNR on `region_masks`' regions)} and per_view rows."""
     from core.images.metrics import mean_scores, score_views
     from core.points.render import render_frame
 
@@ -140,14 +163,21 @@ def evaluate(model, low, high, factor: int, mode: str, cache: dict | None = None
         up = upsample(low_rgb, factor)
         up_s = low_s + time.perf_counter() - t0
         gt_alpha = high.alphas[i]
+        up_gt = upsample(low.images[i], factor)
+        inner, edge = region_masks(gt_alpha, factor)
+        regions = {f"{name}_{part}": region_psnr(img, high.images[i], mask)
+                   for name, img in (("native", out["rgb"]), ("up_render", up), ("up_gt", up_gt))
+                   for part, mask in (("interior", inner), ("edge", edge))}
         return {"rgb": out["rgb"], "alpha": out["alpha"],
-                "also": {"up_render_{}": up, "up_gt_{}": upsample(low.images[i], factor)},
+                "also": {"up_render_{}": up, "up_gt_{}": up_gt},
                 "extra": {"seconds": seconds, "seconds_up": up_s, "scale": out["scale"],
-                          "specks": specks(out["rgb"], gt_alpha, factor), "specks_up": specks(up, gt_alpha, factor)}}
+                          "specks": specks(out["rgb"], gt_alpha, factor), "specks_up": specks(up, gt_alpha, factor),
+                          **regions}}
 
     rows = score_views(render, high.images, high.alphas)
     keys = ("psnr", "psnr_object", "up_render_psnr", "up_render_psnr_object", "up_gt_psnr", "up_gt_psnr_object",
-            "seconds", "seconds_up", "scale", "specks", "specks_up")
+            "seconds", "seconds_up", "scale", "specks", "specks_up",
+            *(f"{n}_{p}" for n in ("native", "up_render", "up_gt") for p in ("interior", "edge")))
     return {**mean_scores(rows, keys), "per_view": rows}
 
 
