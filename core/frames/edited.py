@@ -544,7 +544,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
     rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,
-                                 decoder_scale=scale if "decoder" in parts else 1.0)
+                                 decoder_scale=scale if "decoder" in parts else 1.0,
+                                 coverage_scale=scale if "filtered" in parts else 1.0)
     rgb = rgb.reshape(-1, 3)
     fg = tr.fg
     # Coverage of painted rays: the decoder's mask head when it has one (sharp silhouettes, opaque interior),

@@ -13,7 +13,7 @@ from core.points.attention_compiled import BACKENDS as ATTENTION_BACKENDS
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import select_neighbors, select_neighbors_soft
 from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_at_scale, filter_sigma,
-                                    gaussian_blur, scale_factor)
+                                    gate_coverage, gaussian_blur, scale_factor, training_scale_coverage)
 from core.points.trace import Trace
 from core.util.errors import InputError
 
@@ -171,12 +171,16 @@ def decode_where_active(model: PointModel, feat: torch.Tensor, active: torch.Ten
 
 @torch.no_grad()
 def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chunk: int = 16384,
-                features: torch.Tensor | None = None, with_alpha: bool = False, decoder_scale: float = 1.0):
+                features: torch.Tensor | None = None, with_alpha: bool = False, decoder_scale: float = 1.0,
+                coverage_scale: float = 1.0):
     """Colours of a traced frame from the point values: rgb [H, W, 3] in [0, 1].
     features [M, h]: per-point features of the traced points when they are not the model's own (ids).
     with_alpha: return (rgb, alpha [H, W] from the decoder's mask head, or None without one).
     decoder_scale: the frame's scale factor F for a UNet decoder run at the training scale
-    (core/points/resolution.py `decode_at_scale`; 1 = decode the frame as it is, only around the object)."""
+    (core/points/resolution.py `decode_at_scale`; 1 = decode the frame as it is, only around the object).
+    coverage_scale: the frame's scale factor F for the `filtered` mode's coverage gate (`gate_coverage`: the mask
+    head's coverage of the full-size frame limited by the one it gives at the training scale; 1 = none; only with
+    a frame decoded as it is, decoder_scale 1)."""
     h, w = trace.shape
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
@@ -202,6 +206,11 @@ def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chu
         cover = (alpha if alpha is not None else (1.0 - trace.bg).reshape(h, w)).clamp(0, 1)[..., None]
         white = torch.as_tensor(TRAIN_BACKGROUND, dtype=torch.float32, device=bg.device)
         c = ((rgb - (1.0 - cover) * white) / cover.clamp_min(1e-4)).clamp(0.0, 1.0)
+        if alpha is not None and coverage_scale > 1.0 and not decoder_scale > 1.0:
+            low = training_scale_coverage(model, feat, coverage_scale)
+            if low is not None:  # the object colour c stays; only its coverage is gated
+                alpha = gate_coverage(alpha, low[0], coverage_scale)
+                cover = alpha[..., None]
         rgb = cover * c + (1.0 - cover) * bg
     rgb = rgb.clamp(0.0, 1.0)
     return (rgb, alpha) if with_alpha else rgb
@@ -223,7 +232,8 @@ def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, 
     f = min(f, MAX_SCALE) if f == f and f > 1.0 else 1.0  # NaN or F <= 1: the training scale
     tr = trace_frame(model, c2w, height, width, focal, soft_scale=f if "footprint" in parts else 1.0, **kw)
     dec_scale = f if "decoder" in parts else 1.0
-    rgb, alpha = shade_frame(model, tr, background, with_alpha=True, decoder_scale=dec_scale)
+    rgb, alpha = shade_frame(model, tr, background, with_alpha=True, decoder_scale=dec_scale,
+                             coverage_scale=f if "filtered" in parts else 1.0)
     h, w = tr.shape
     if alpha is None:
         alpha = (1.0 - tr.bg).reshape(h, w)

@@ -14,7 +14,10 @@ within 5 % of 1: cameras a little closer than the training median) renders exact
 training size is pixel-identical in every mode); above, the modes of `RENDER_MODES` apply:
 - pixels: nothing changes (every size rendered as if it were the training size);
 - filtered: the frame (colour and coverage) is low-passed by a Gaussian of FILTER_PER_SCALE·(F − 1) output pixels —
-  zero at F = 1 and growing towards a fixed fraction of a training pixel — which anti-aliases the disc rims;
+  zero at F = 1 and growing towards a fixed fraction of a training pixel — which anti-aliases the disc rims; with a
+  UNet decoder that has a mask head its coverage is first gated by the coverage it gives at the training scale
+  (`gate_coverage`): isolated faint points that the decoder hides in a training-size frame (one pixel there)
+  would otherwise show as opaque specks a few pixels wide, since its 3×3 kernels see them magnified F times;
 - footprint: anti-aliased neighbour footprints: a point's share of a ray fades out over F − 1 output pixels (one
   training pixel at large F) where it leaves the ray's K nearest or the pixel-radius cap, instead of stopping at a
   hard edge (`core.points.neighbors.select.select_neighbors_soft`; 2K neighbour slots);
@@ -133,6 +136,34 @@ def decode_at_scale(model, feature: torch.Tensor, scale: float):
         a_corr = y[:, 3:4] - logit(low[:, 3:4])
         alpha = torch.sigmoid(logit(feature[:, 3:4]) + _upsample(a_corr, h, w))[:, 0]
     return rgb, alpha
+
+
+def training_scale_coverage(model, feature: torch.Tensor, scale: float) -> torch.Tensor | None:
+    """The coverage a residual UNet decoder's mask head gives at the training scale, at the full size: feature
+    [1, C, H, W] (as `decode_at_scale`) -> alpha [1, H, W] in [0, 1] (`decode_at_scale`'s); None for F <= 1, models
+    without a decoder, older (non-residual) decoders and decoders without a mask head."""
+    dec = getattr(model, "decoder", None)
+    if not scale > 1.0 or dec is None or not model.cfg.decoder_residual or not model.cfg.decoder_alpha:
+        return None
+    return decode_at_scale(model, feature, scale)[1]
+
+
+def gate_coverage(alpha: torch.Tensor, low_alpha: torch.Tensor, scale: float) -> torch.Tensor:
+    """The `filtered` mode's coverage gate: alpha [..., H, W] (the decoder's mask head run on the full-size frame)
+    limited by the largest training-scale coverage low_alpha [..., H, W] (`training_scale_coverage`) within
+    ⌈F⌉ pixels — about one training pixel — of each pixel. Silhouettes and interiors, covered at the training
+    scale too, keep their full-size coverage (the window reaches past the upsampled edge's blur); specks the
+    decoder hides at the training scale fade to what it gives them there. F <= 1 returns alpha itself; the result
+    is in [0, 1] and finite (non-finite inputs count as 0)."""
+    if not scale > 1.0:
+        return alpha
+    r = int(min(math.ceil(min(float(scale), 1e6)), max(low_alpha.shape[-2:])))
+    lo = torch.nan_to_num(low_alpha, nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
+    shape = lo.shape
+    lo = lo.reshape(-1, 1, *shape[-2:])
+    near = F.max_pool2d(F.pad(lo, (r, r, r, r), value=0.0), 2 * r + 1, stride=1).reshape(shape)
+    a = torch.nan_to_num(alpha, nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
+    return torch.minimum(a, near)
 
 
 def _upsample(x: torch.Tensor, h: int, w: int) -> torch.Tensor:

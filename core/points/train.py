@@ -83,8 +83,8 @@ class TrainConfig:
                                 "size (visual hull, profile, atlas, test renders), the finest the training footprint "
                                 "renders are scaled against; empty = off (train on the loaded images as they are); "
                                 "auto (`pointgt fit`) = read the images at up to 4x the training size --downscale "
-                                "sets and train on their pyramid down to it, half the steps on the training size "
-                                "(--downscale 4: levels 1,2,4 of the full-size images, weights 1,1,2)")
+                                "sets and train on their pyramid down to it, two thirds of the steps on the training "
+                                "size (--downscale 4: levels 1,2,4 of the full-size images, weights 1,1,4)")
     train_scale_weights: str = opt("", "share of the steps per level of --train-scales, comma-separated in its "
                                        "(sorted) order, fine to coarse; empty = equal shares")
     zoom_max: int = opt(2, "largest zoom of those steps (each picks 2..zoom_max; patches / zoom² of them, so a "

@@ -113,7 +113,7 @@ def test_fit_multi_scale_trains_from_the_loaded_size_at_the_coarsest(tmp_path, c
 
 def test_fit_train_scales_auto_trains_from_the_finer_images_down_to_the_downscale(tmp_path, capsys):
     """`pointgt fit --downscale 2 --train-scales auto` on 24² images: the training size is 12² as --downscale says,
-    stage 1 trains on the pyramid 24² / 12² (half the steps on 12², or the user's --train-scale-weights); without
+    stage 1 trains on the pyramid 24² / 12² (two thirds of the steps on 12², or the user's --train-scale-weights); without
     auto --downscale 2 trains on the 12² images alone, and auto with --downscale 1 finds nothing finer."""
     root = tmp_path / "card"
     write_split(root, render_split("card", fibonacci_cameras(6, seed=0), 24))
@@ -131,7 +131,7 @@ def test_fit_train_scales_auto_trains_from_the_finer_images_down_to_the_downscal
     assert "multi-scale training on levels 24x24, 12x12; training size 12x12 (--train-scales auto" in printed
     scene, cfg = auto.meta["scene"], auto.meta["train"]["config"]
     assert (scene["width"], scene["train_images"]["width"]) == (12, 24)
-    assert (cfg["train_scales"], cfg["train_scale_weights"]) == ("1,2", "1,1")
+    assert (cfg["train_scales"], cfg["train_scale_weights"]) == ("1,2", "1,2")
     assert sorted(levels) == ["1", "2"] and sum(levels.values()) == 12 and min(levels.values()) > 0
     _, printed, levels = fit("weights", "--downscale", "2", "--train-scales", "auto", "--train-scale-weights", "0,1")
     assert levels == {"1": 0, "2": 12}  # auto's levels with the user's shares (all on the coarsest)

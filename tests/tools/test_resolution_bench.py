@@ -23,6 +23,34 @@ def test_upsample_keeps_constants_and_pixel_centres():
     assert bool((up[0, 3:14, 0] > up[0, 2:13, 0]).all())  # and the ramp stays increasing
 
 
+def test_specks_count_stray_pixels_away_from_the_object_only():
+    gt_alpha = torch.zeros(20, 20)
+    gt_alpha[5:10, 5:10] = 1.0
+    rgb = torch.ones(20, 20, 3)
+    rgb[5:10, 5:10] = 0.2                 # the object itself
+    rgb[10:12, 7, 0] = 0.5               # its rim, within one training pixel (2 px)
+    rgb[17, 17] = torch.tensor([1.0, 0.85, 1.0])  # a stray speck
+    rgb[1, 18] = 0.95                     # too faint to count
+    assert resolution.specks(rgb, gt_alpha, 2) == 1
+    assert resolution.specks(torch.ones(20, 20, 3), gt_alpha, 2) == 0
+    assert resolution.specks(rgb, gt_alpha, 1) == 2  # a narrower rim: the rim's second row counts too
+
+
+def test_regions_split_the_true_coverage_into_interior_and_silhouette_band():
+    gt_alpha = torch.zeros(20, 20)
+    gt_alpha[4:14, 4:14] = 1.0
+    inner, edge = resolution.region_masks(gt_alpha, 2)
+    assert torch.equal(inner.nonzero().amin(0), torch.tensor([6, 6])) and int(inner.sum()) == 36  # 10 - 2·2 = 6²
+    assert not bool((inner & edge).any()) and int(edge.sum()) == 14 * 14 - 36  # 2 px either side of the edge
+    gt = torch.full((20, 20, 3), 0.5)
+    rgb = gt.clone()
+    rgb[0, 0] = 0.6  # an error outside both regions is not counted
+    assert resolution.region_psnr(rgb, gt, inner) == pytest.approx(100.0)
+    rgb[8, 8] = 0.6
+    assert resolution.region_psnr(rgb, gt, inner) == pytest.approx(10 * math.log10(36 / 0.01), rel=1e-4)
+    assert math.isnan(resolution.region_psnr(rgb, gt, torch.zeros(20, 20, dtype=torch.bool)))
+
+
 def test_evaluate_scores_native_and_both_upsamplings_on_the_same_views():
     bundle, _, _ = tiny_bundle("fast")
     model = bundle.model
@@ -39,6 +67,9 @@ def test_evaluate_scores_native_and_both_upsamplings_on_the_same_views():
         assert math.isfinite(two[k]), k
     assert two["scale"] == pytest.approx(2.0, rel=0.06)
     assert 0 < two["up_gt_psnr_object"] < 99
+    assert two["specks"] >= 0 and two["specks_up"] >= 0
+    for k in ("native", "up_render", "up_gt"):
+        assert math.isfinite(two[f"{k}_interior"]) and math.isfinite(two[f"{k}_edge"]), k
     row = {"scene": "card", "factor": 2, "size": 64, "mode": "filtered", **two}
     table = resolution.markdown([row], "head")
     assert "| card | default | 64² (2x) | filtered |" in table

@@ -15,8 +15,12 @@ render's coverage):
   each: every mode of `core.points.render.RENDER_MODES`);
 - render 1x + bicubic: the 1x render bicubic-upsampled to F*S (the bar native rendering must beat);
 - ground truth 1x + bicubic: the 1x Cycles frame upsampled (what 1x data can hold, the ceiling of 1x training).
-Seconds per frame: the native render, and the 1x render plus its upsampling. Factor 1 is scored too (native = the
-training size: a check that a mode leaves it unchanged). The scale factor of each frame comes from the model's
+Seconds per frame: the native render, and the 1x render plus its upsampling. Specks per frame: pixels away from
+the object (outside its true coverage grown by one training pixel) that differ from the white background by
+more than SPECK_CONTRAST — stray points — in the native render and in the upsampled 1x render. The error by
+region (JSON only): PSNR of all three on the interior (the true coverage shrunk by one training pixel) and on the
+band of one training pixel either side of the silhouette. Factor 1 is scored too (native = the training size: a
+check that a mode leaves it unchanged). The scale factor of each frame comes from the model's
 training footprint (a --model file from before it gets the 1x test cameras').
 
 --train-hires H fits from the ground truth at H x the training size instead (the H x folder then holds the train
@@ -101,11 +105,46 @@ def upsample(img, factor: int):
     return y[0].permute(1, 2, 0).clamp(0.0, 1.0)
 
 
+SPECK_CONTRAST = 0.1  # a speck pixel differs from the white background by more than this in some channel
+
+
+def specks(rgb, gt_alpha, factor: int) -> int:
+    """Speck pixels of a frame rendered over white: rgb [H, W, 3] differing from white by more than SPECK_CONTRAST
+    in some channel, away from the object — outside the ground truth's coverage gt_alpha [H, W] (> 0.05) grown
+    by one training pixel (`factor` pixels; its anti-aliased rim is not a speck)."""
+    import torch.nn.functional as F
+    r = max(int(factor), 1)
+    near = F.max_pool2d((gt_alpha > 0.05).float()[None, None], 2 * r + 1, stride=1, padding=r)[0, 0] > 0
+    far = (1.0 - rgb).abs().amax(-1) > SPECK_CONTRAST
+    return int((far & ~near.to(far.device)).sum())
+
+
+def region_masks(gt_alpha, factor: int):
+    """The true coverage gt_alpha [H, W] (> 0.5) split for the error by region: (interior [H, W] bool: the coverage
+    shrunk by one training pixel, `factor` pixels; edge [H, W] bool: the band of one training pixel either side of
+    the silhouette)."""
+    import torch.nn.functional as F
+    r = max(int(factor), 1)
+    m = (gt_alpha > 0.5).float()[None, None]
+    grown = F.max_pool2d(m, 2 * r + 1, stride=1, padding=r)[0, 0] > 0
+    inner = ~(F.max_pool2d(1.0 - m, 2 * r + 1, stride=1, padding=r)[0, 0] > 0)
+    return inner, grown & ~inner
+
+
+def region_psnr(rgb, gt, mask) -> float:
+    """PSNR of rgb against gt ([H, W, 3]) on the pixels of mask [H, W] (NaN when it is empty)."""
+    if not bool(mask.any()):
+        return float("nan")
+    mse = float(((rgb - gt.to(rgb.device)) ** 2)[mask.to(rgb.device)].mean())
+    return 10.0 * math.log10(1.0 / max(mse, 1e-10))
+
+
 def evaluate(model, low, high, factor: int, mode: str, cache: dict | None = None) -> dict:
     """Scores of one model at one factor: low/high the test splits at 1x and factor x (same cameras).
     cache: {view: (1x rgb [H, W, 3], seconds)} shared between modes (the 1x render does not depend on the mode).
-    Returns the mean {psnr, psnr_object, up_render_psnr(_object), up_gt_psnr(_object), seconds, seconds_up} and
-    per_view rows."""
+    Returns the mean {psnr, psnr_object, up_render_psnr(_object), up_gt_psnr(_object), seconds, seconds_up, specks,
+    specks_up (`specks` per frame of the native render and of the upsampled 1x render), native_interior,
+    native_edge, up_render_interior, ..., up_gt_edge (PSNR on `region_masks`' regions)} and per_view rows."""
     from core.images.metrics import mean_scores, score_views
     from core.points.render import render_frame
 
@@ -123,26 +162,35 @@ def evaluate(model, low, high, factor: int, mode: str, cache: dict | None = None
         t0 = time.perf_counter()
         up = upsample(low_rgb, factor)
         up_s = low_s + time.perf_counter() - t0
+        gt_alpha = high.alphas[i]
+        up_gt = upsample(low.images[i], factor)
+        inner, edge = region_masks(gt_alpha, factor)
+        regions = {f"{name}_{part}": region_psnr(img, high.images[i], mask)
+                   for name, img in (("native", out["rgb"]), ("up_render", up), ("up_gt", up_gt))
+                   for part, mask in (("interior", inner), ("edge", edge))}
         return {"rgb": out["rgb"], "alpha": out["alpha"],
-                "also": {"up_render_{}": up, "up_gt_{}": upsample(low.images[i], factor)},
-                "extra": {"seconds": seconds, "seconds_up": up_s, "scale": out["scale"]}}
+                "also": {"up_render_{}": up, "up_gt_{}": up_gt},
+                "extra": {"seconds": seconds, "seconds_up": up_s, "scale": out["scale"],
+                          "specks": specks(out["rgb"], gt_alpha, factor), "specks_up": specks(up, gt_alpha, factor),
+                          **regions}}
 
     rows = score_views(render, high.images, high.alphas)
     keys = ("psnr", "psnr_object", "up_render_psnr", "up_render_psnr_object", "up_gt_psnr", "up_gt_psnr_object",
-            "seconds", "seconds_up", "scale")
+            "seconds", "seconds_up", "scale", "specks", "specks_up",
+            *(f"{n}_{p}" for n in ("native", "up_render", "up_gt") for p in ("interior", "edge")))
     return {**mean_scores(rows, keys), "per_view": rows}
 
 
 def markdown(rows: list[dict], header: str) -> str:
     out = [header, "",
            "| scene | fit | size | mode | native object (full) | render 1x + bicubic | ground truth 1x + bicubic | "
-           "native − upsampled | s/frame native | s/frame 1x + up |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+           "native − upsampled | s/frame native | s/frame 1x + up | specks: native / 1x + up |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         out.append(f"| {r['scene']} | {r.get('fit', 'default')} | {r['size']}² ({r['factor']}x) | {r['mode']} | {r['psnr_object']:.2f} "
                    f"({r['psnr']:.2f}) | {r['up_render_psnr_object']:.2f} | {r['up_gt_psnr_object']:.2f} | "
                    f"{r['psnr_object'] - r['up_render_psnr_object']:+.2f} | {r['seconds']:.2f} | "
-                   f"{r['seconds_up']:.2f} |")
+                   f"{r['seconds_up']:.2f} | {r.get('specks', float('nan')):.1f} / {r.get('specks_up', float('nan')):.1f} |")
     return "\n".join(out) + "\n"
 
 

@@ -83,14 +83,14 @@ def test_ladder_is_the_powers_of_two_that_divide_the_factor_and_the_factor():
 
 def test_the_default_pyramid_of_a_downscale():
     """--downscale N --train-scales auto: no pyramid for N = 1; else the images are read at 1/L with N/L <=
-    AUTO_MAX_FACTOR and trained down to the training size (1/N), half the steps on it; "auto" itself is no list
+    AUTO_MAX_FACTOR and trained down to the training size (1/N), two thirds of the steps on it; "auto" itself is no list
     of factors (only `pointgt fit` resolves it)."""
     assert auto_train_scales(1) == (1, "", "")
-    assert auto_train_scales(2) == (1, "1,2", "1,1")
-    assert auto_train_scales(3) == (1, "1,3", "1,1")
-    assert auto_train_scales(4) == (1, "1,2,4", "1,1,2")
-    assert auto_train_scales(8) == (2, "1,2,4", "1,1,2")
-    assert auto_train_scales(6) == (2, "1,3", "1,1")
+    assert auto_train_scales(2) == (1, "1,2", "1,2")
+    assert auto_train_scales(3) == (1, "1,3", "1,2")
+    assert auto_train_scales(4) == (1, "1,2,4", "1,1,4")
+    assert auto_train_scales(8) == (2, "1,2,4", "1,1,4")
+    assert auto_train_scales(6) == (2, "1,3", "1,2")
     assert auto_train_scales(5) == (5, "", "")  # no divisor of 5 leaves a factor of 2-4: the training size alone
     for n in range(1, 65):
         load, scales, weights = auto_train_scales(n)
@@ -99,7 +99,7 @@ def test_the_default_pyramid_of_a_downscale():
             levels = parse_scales(scales)
             assert load * levels[-1] == n and levels[-1] <= AUTO_MAX_FACTOR  # coarsest level = the training size
             shares = parse_weights(weights, len(levels))
-            assert shares[-1] == pytest.approx(0.5) and len(set(shares[:-1])) == 1
+            assert shares[-1] == pytest.approx(2 / 3) and len(set(shares[:-1])) == 1
         else:
             assert load == n
     with pytest.raises(InputError, match="--train-scales auto: `pointgt fit`"):

@@ -9,8 +9,9 @@ import torch
 from core.images.cameras import look_at
 from core.points.checkpoint import model_from_arrays, model_to_arrays
 from core.points.render import RENDER_MODES, render_frame, shade_frame, trace_frame
-from core.points.resolution import (MAX_SCALE, check_mode, decode_at_scale, filter_sigma, gaussian_blur,
-                                    pixel_footprint, scale_factor, training_footprint)
+from core.points.resolution import (MAX_SCALE, check_mode, decode_at_scale, filter_sigma, gate_coverage,
+                                    gaussian_blur, pixel_footprint, scale_factor, training_footprint,
+                                    training_scale_coverage)
 from core.util.errors import InputError
 from tests.helpers.tiny import tiny_bundle
 
@@ -113,6 +114,68 @@ def test_decoder_at_the_training_scale_is_finite(unet_scene, scale):
         assert float(alpha.min()) >= 0 and float(alpha.max()) <= 1
     if scale == 1.0:
         assert torch.equal(rgb, ref_rgb)
+
+
+def test_the_coverage_gate_hides_specks_the_training_scale_hides_and_keeps_the_object():
+    """gate_coverage: an object covered at both scales keeps its full-size coverage up to its silhouette (also
+    where the training-scale coverage, upsampled, is already blurred: the window reaches one training pixel), a
+    speck the training scale does not cover fades to what that gives it, F <= 1 changes nothing, and extreme
+    inputs stay finite in [0, 1]."""
+    f = 4.0
+    alpha = torch.zeros(40, 40)
+    alpha[8:24, 8:24] = 1.0          # the object, sharp at the full size
+    alpha[33:36, 33:36] = 0.9        # an isolated speck a few pixels wide
+    low = torch.zeros(40, 40)
+    low[10:22, 10:22] = 1.0          # the training-scale coverage: the object's edge blurred inwards by 2 px ...
+    low[9, 9:23] = low[22, 9:23] = low[9:23, 9] = low[9:23, 22] = 0.5
+    low[34, 34] = 0.05               # ... and the speck nearly hidden
+    out = gate_coverage(alpha, low, f)
+    assert torch.equal(out[:30, :30], alpha[:30, :30])  # object and silhouette untouched
+    assert float(out[33:36, 33:36].max()) == pytest.approx(0.05)
+    assert bool((out <= alpha).all())
+    assert gate_coverage(alpha, low, 1.0) is alpha and gate_coverage(alpha, low, 0.5) is alpha
+    bad = alpha.clone()
+    bad[0, 0], bad[0, 1], bad[0, 2] = float("nan"), float("inf"), -float("inf")
+    weird = low.clone()
+    weird[5, 5], weird[6, 6] = float("nan"), float("inf")
+    for scale in (1.5, 4.0, 1e9, float("inf")):
+        out = gate_coverage(bad, weird, scale)
+        assert out.shape == alpha.shape and bool(torch.isfinite(out).all())
+        assert float(out.min()) >= 0 and float(out.max()) <= 1
+    batch = gate_coverage(alpha[None], low[None], f)  # leading dimensions are kept
+    assert batch.shape == (1, 40, 40) and torch.equal(batch[0], gate_coverage(alpha, low, f))
+
+
+def test_filtered_frames_gate_the_decoder_coverage(unet_scene, scene):
+    """Above the training scale `filtered` limits the mask head's coverage by the training-scale one (never
+    raising it) and keeps the object colour where it is not limited; `pixels` and models without a mask head are
+    not gated."""
+    model, _, test = unet_scene
+    c2w, h, w, f = test.c2w[0], 4 * test.height, 4 * test.width, 4 * test.focal
+    out = render_frame(model, c2w, h, w, f, mode="filtered")
+    scale = out["scale"]
+    assert scale == pytest.approx(4.0, rel=0.06)
+    tr = trace_frame(model, c2w, h, w, f)
+    rgb0, a0 = shade_frame(model, tr, with_alpha=True)
+    rgb1, a1 = shade_frame(model, tr, with_alpha=True, coverage_scale=scale)
+    assert bool((a1 <= a0 + 1e-6).all())
+    assert float((a0 - a1).max()) > 1e-4  # the tiny model's decoder covers some rays only at the full size
+    same = (a1 - a0).abs() < 1e-6
+    assert bool(same.any())
+    assert torch.allclose(rgb1[same], rgb0[same], atol=1e-5)
+    parts = model.shade({"weights": tr.weights, "bg": tr.bg}, tr.dirs, tr.idx, torch.ones(3))
+    feat = parts["feature"].reshape(h, w, -1).permute(2, 0, 1)[None]
+    with torch.no_grad():
+        low = training_scale_coverage(model, feat, scale)
+        assert torch.allclose(a1, gate_coverage(a0, low[0], scale), atol=1e-5)
+        assert training_scale_coverage(model, feat, 1.0) is None
+    plain, _, _ = scene  # no decoder: nothing to gate
+    tr = trace_frame(plain, c2w, h, w, f)
+    assert torch.equal(shade_frame(plain, tr), shade_frame(plain, tr, coverage_scale=scale))
+    sigma = filter_sigma(scale)
+    assert not torch.allclose(gaussian_blur(a0, sigma), gaussian_blur(a1, sigma), atol=1e-5)
+    assert torch.allclose(out["alpha"], gaussian_blur(a1, sigma).clamp(0, 1), atol=1e-5)
+    assert torch.allclose(out["rgb"], gaussian_blur(rgb1, sigma).clamp(0, 1), atol=1e-5)
 
 
 @pytest.mark.parametrize("mode", RENDER_MODES)
