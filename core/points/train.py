@@ -72,6 +72,11 @@ class TrainConfig:
     decoder_stop: float = opt(0.0, "UNet decoder: fraction of training at which its learning rate reaches 0 (held "
                                    "to its schedule until half of this fraction, then a cosine decay), so the "
                                    "points learn the colour late in training; 0 = off", min=0.0, max=1.0)
+    ray_jitter: float = opt(0.0, "shift each training patch's rays by a random sub-pixel offset of up to this many "
+                                 "pixels in x and y (one offset per patch, so a patch stays a regular grid the "
+                                 "decoder reads as an image; its target pixels are kept), so the points and the "
+                                 "decoder see neighbour blends between the training views' pixel centres; 0 = off",
+                            min=0.0, max=0.5)
     close2ray: bool = opt(True, "use the close-to-ray regularizer")
     close2ray_weight: float = opt(0.002, "close-to-ray weight gamma", min=0.0)
     close2surface: bool = opt(True, "use the close-to-surface regularizer")
@@ -167,6 +172,13 @@ def decoder_lr_factor(frac: float, stop: float) -> float:
     if stop <= 0:
         return 1.0
     return _cosine((frac - 0.5 * stop) / (0.5 * stop)) if frac > 0.5 * stop else 1.0
+
+
+def jitter_patches(px: torch.Tensor, p: int, amount: float, gen: torch.Generator) -> torch.Tensor:
+    """px [P*S*S, 2] pixel centres of P patches (`sample_patches`) -> the same, each patch shifted by its own
+    offset, uniform in [-amount, amount]² pixels."""
+    off = (torch.rand(p, 1, 2, generator=gen, dtype=px.dtype) * 2.0 - 1.0) * amount
+    return (px.reshape(p, -1, 2) + off).reshape(-1, 2)
 
 
 def zoom_pixels(px: torch.Tensor, size: int, zoom: int) -> torch.Tensor:
@@ -544,6 +556,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 zoom = int(torch.randint(2, cfg.zoom_max + 1, (1,), generator=gen))
             n_patches = max(1, cfg.patches // (zoom * zoom))
             px, rows, cols, size = sample_patches(alphas[v], n_patches, cfg.patch_size, cfg.fg_patch_frac, gen)
+            if cfg.ray_jitter > 0:
+                px = jitter_patches(px, n_patches, cfg.ray_jitter, gen)
             gt = images[v][rows, cols].to(dev)
             gt_a = alphas[v][rows, cols].to(dev)
             c2w = c2ws[v].to(dev)

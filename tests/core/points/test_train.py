@@ -235,3 +235,18 @@ def test_decoder_stop_freezes_the_decoder_and_the_points_keep_learning():
     for (name, p), q in zip(first.decoder.named_parameters(), late.decoder.parameters()):
         assert torch.equal(p, q), name
     assert not torch.equal(first.features, late.features)
+
+
+def test_ray_jitter_shifts_each_patch_as_a_whole():
+    gen = torch.Generator().manual_seed(0)
+    alpha = torch.zeros(40, 40)
+    alpha[10:30, 10:30] = 1.0
+    px = train_mod.sample_patches(alpha, 6, 8, 0.5, gen)[0]
+    out = train_mod.jitter_patches(px, 6, 0.5, gen)
+    shift = (out - px).reshape(6, 64, 2)
+    assert torch.allclose(shift, shift[:, :1].expand_as(shift))  # one offset per patch: still a regular grid
+    assert float(shift.abs().max()) <= 0.5 and len({tuple(s) for s in shift[:, 0].tolist()}) == 6
+    train, test = _two_views()
+    a = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5), show_progress=False)[0]
+    b = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.5), show_progress=False)[0]
+    assert torch.isfinite(b.xyz).all() and not torch.equal(a.xyz, b.xyz)
