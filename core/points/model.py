@@ -48,6 +48,8 @@ class ModelConfig:
                                        "decoder-free render")
     decoder_alpha: bool = opt(True, "the unet decoder also predicts foreground alpha (a separate mask head): the "
                                     "coverage of atlas-coloured and painted rays")
+    decoder_width: int = opt(32, "channels of the unet decoder's first level (the second has twice as many)",
+                             min=1, max=1024)
     key_width: int = opt(64, "width of the attention key MLP", min=1, max=4096)
     key_freqs: int = opt(4, "Fourier frequencies of the ray-relative key features", min=0, max=16)
     value_width: int = opt(64, "width of the value MLP", min=1, max=4096)
@@ -107,8 +109,8 @@ class PointModel(nn.Module):
             colour = 3 if cfg.decoder_residual else 0
             self.value_mlp = _mlp(cfg.feature_dim + dir_in, cfg.value_width, colour + cfg.feature_dim, layers=1)
             self.bg_value = nn.Parameter(torch.zeros(cfg.feature_dim))
-            self.decoder = UNetDecoder((colour + 1 if colour else 0) + cfg.feature_dim, alpha=cfg.decoder_alpha,
-                                       residual=cfg.decoder_residual)
+            self.decoder = UNetDecoder((colour + 1 if colour else 0) + cfg.feature_dim, width=cfg.decoder_width,
+                                       alpha=cfg.decoder_alpha, residual=cfg.decoder_residual)
 
     @property
     def num_points(self) -> int:

@@ -62,6 +62,21 @@ class TrainConfig:
                                   "the points carry the colour and the decoder only a correction", min=0.0)
     decoder_weight_decay: float = opt(0.0, "decoupled weight decay (AdamW, per step: lr x this) on the decoder's "
                                            "weights", min=0.0)
+    decoder_dropout: float = opt(0.0, "UNet decoder: probability of zeroing each point-feature channel of a training "
+                                      "patch's feature image (the others scaled by 1 / (1 - p); the residual "
+                                      "decoder's base colour and coverage are kept); test renders use all",
+                                 min=0.0, max=0.95)
+    decoder_flip: bool = opt(False, "UNet decoder: each step flips and/or transposes its patches' feature images "
+                                    "(one of the 8 symmetries of a square, at random) before the decoder and its "
+                                    "output back, so the decoder cannot learn the training views' orientation")
+    decoder_stop: float = opt(0.0, "UNet decoder: fraction of training at which its learning rate reaches 0 (held "
+                                   "to its schedule until half of this fraction, then a cosine decay), so the "
+                                   "points learn the colour late in training; 0 = off", min=0.0, max=1.0)
+    ray_jitter: float = opt(0.0, "shift each training patch's rays by a random sub-pixel offset of up to this many "
+                                 "pixels in x and y (one offset per patch, so a patch stays a regular grid the "
+                                 "decoder reads as an image; its target pixels are kept), so the points and the "
+                                 "decoder see neighbour blends between the training views' pixel centres; 0 = off",
+                            min=0.0, max=0.5)
     close2ray: bool = opt(True, "use the close-to-ray regularizer")
     close2ray_weight: float = opt(0.002, "close-to-ray weight gamma", min=0.0)
     close2surface: bool = opt(True, "use the close-to-surface regularizer")
@@ -127,6 +142,43 @@ def step_cap(cfg: TrainConfig) -> float:
 
 def _cosine(frac: float) -> float:
     return 0.5 * (1 + math.cos(math.pi * min(max(frac, 0.0), 1.0)))
+
+
+def dihedral(x: torch.Tensor, t: int, inverse: bool = False) -> torch.Tensor:
+    """One of the 8 symmetries of a square on images x [..., S, S] (t in 0..7: bit 0 flips the columns, bit 1 the
+    rows, bit 2 transposes, applied in that order); inverse=True undoes it: dihedral(dihedral(x, t), t, True) == x."""
+    flips = [d for bit, d in ((1, -1), (2, -2)) if t & bit]
+    if not inverse:
+        if flips:
+            x = torch.flip(x, flips)
+        return x.transpose(-1, -2) if t & 4 else x
+    if t & 4:
+        x = x.transpose(-1, -2)
+    return torch.flip(x, flips) if flips else x
+
+
+def feature_dropout(feat: torch.Tensor, p: float, keep: int, gen: torch.Generator) -> torch.Tensor:
+    """Channel dropout of a batch of feature images feat [B, C, H, W]: each channel from `keep` on of each image is
+    zeroed with probability p and the rest scaled by 1 / (1 - p); channels 0..keep-1 pass unchanged."""
+    if p <= 0 or feat.shape[1] <= keep:
+        return feat
+    mask = (torch.rand(feat.shape[0], feat.shape[1] - keep, 1, 1, generator=gen) >= p).to(feat)
+    return torch.cat([feat[:, :keep], feat[:, keep:] * (mask / (1.0 - p))], dim=1)
+
+
+def decoder_lr_factor(frac: float, stop: float) -> float:
+    """Multiplier of the decoder's learning rate at a fraction of training: 1 until stop / 2, a cosine decay to 0 at
+    stop, 0 after; stop <= 0: always 1."""
+    if stop <= 0:
+        return 1.0
+    return _cosine((frac - 0.5 * stop) / (0.5 * stop)) if frac > 0.5 * stop else 1.0
+
+
+def jitter_patches(px: torch.Tensor, p: int, amount: float, gen: torch.Generator) -> torch.Tensor:
+    """px [P*S*S, 2] pixel centres of P patches (`sample_patches`) -> the same, each patch shifted by its own
+    offset, uniform in [-amount, amount]² pixels."""
+    off = (torch.rand(p, 1, 2, generator=gen, dtype=px.dtype) * 2.0 - 1.0) * amount
+    return (px.reshape(p, -1, 2) + off).reshape(-1, 2)
 
 
 def zoom_pixels(px: torch.Tensor, size: int, zoom: int) -> torch.Tensor:
@@ -491,8 +543,9 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             if torch.get_num_threads() != op_threads:
                 torch.set_num_threads(op_threads)
             decay = cfg.lr_final ** frac
+            dec_factor = decoder_lr_factor(frac, cfg.decoder_stop)
             for g, lr in zip(opt.param_groups, base_lrs):
-                g["lr"] = lr * decay
+                g["lr"] = lr * decay * (dec_factor if g["name"] == "decoder" else 1.0)
             li = 0 if len(levels) == 1 else int(torch.multinomial(level_p, 1, generator=gen))
             lv = levels[li]  # the level's images, size and camera; one level (off): the training images
             level_steps[li] += 1
@@ -503,6 +556,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 zoom = int(torch.randint(2, cfg.zoom_max + 1, (1,), generator=gen))
             n_patches = max(1, cfg.patches // (zoom * zoom))
             px, rows, cols, size = sample_patches(alphas[v], n_patches, cfg.patch_size, cfg.fg_patch_frac, gen)
+            if cfg.ray_jitter > 0:
+                px = jitter_patches(px, n_patches, cfg.ray_jitter, gen)
             gt = images[v][rows, cols].to(dev)
             gt_a = alphas[v][rows, cols].to(dev)
             c2w = c2ws[v].to(dev)
@@ -522,8 +577,14 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 rgb = sh["rgb"]
             else:
                 feat = sh["feature"].reshape(n_patches, zs, zs, -1).permute(0, 3, 1, 2)
-                rgb, dec_alpha = model.decode_with_alpha(feat, workers=workers)
-                rgb = rgb.permute(0, 2, 3, 1).reshape(-1, 3)
+                if cfg.decoder_dropout > 0:  # the residual decoder's base colour and coverage stay
+                    feat = feature_dropout(feat, cfg.decoder_dropout, 4 if model.cfg.decoder_residual else 0,
+                                           gen)
+                sym = int(torch.randint(8, (1,), generator=gen)) if cfg.decoder_flip else 0
+                rgb, dec_alpha = model.decode_with_alpha(dihedral(feat, sym), workers=workers)
+                rgb = dihedral(rgb, sym, inverse=True).permute(0, 2, 3, 1).reshape(-1, 3)
+                if dec_alpha is not None:
+                    dec_alpha = dihedral(dec_alpha, sym, inverse=True)
                 if dec_alpha is not None and zoom > 1:
                     dec_alpha = pool_zoomed(dec_alpha.reshape(-1, 1), n_patches, size, zoom)
             cover = 1.0 - att["bg"]

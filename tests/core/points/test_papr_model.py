@@ -114,3 +114,23 @@ def test_unet_mask_head_and_older_files_without_it():
     back = model_from_arrays(arrays, meta)
     assert not back.cfg.decoder_alpha and back.decode_with_alpha(feat)[1] is None
     assert torch.equal(back.decode(feat), old.decode(feat))
+
+
+def test_unet_decoder_width_and_files_without_it():
+    """`decoder_width` sets the UNet's channels; files written before the setting load with the 32 they had."""
+    from core.points.checkpoint import model_from_arrays, model_to_arrays
+
+    narrow = _model(decoder="unet", decoder_width=8)
+    assert narrow.decoder.enc1[0].out_channels == 8 and narrow.decoder.enc2[0].out_channels == 16
+    wide = _model(decoder="unet")
+    assert wide.decoder.enc1[0].out_channels == 32
+    assert sum(p.numel() for p in narrow.decoder.parameters()) < sum(p.numel() for p in wide.decoder.parameters())
+    with torch.no_grad():
+        for p in narrow.decoder.parameters():
+            p.normal_(0.0, 0.3)
+    feat = torch.randn(1, 4 + narrow.cfg.feature_dim, 9, 8)
+    back = model_from_arrays(*model_to_arrays(narrow))
+    assert back.cfg.decoder_width == 8 and torch.equal(back.decode(feat), narrow.decode(feat))
+    arrays, meta = model_to_arrays(wide)
+    del meta["model"]["decoder_width"]  # as an older file's header
+    assert model_from_arrays(arrays, meta).cfg.decoder_width == 32

@@ -154,3 +154,99 @@ def test_decoder_weight_decay_shrinks_only_the_decoder():
     assert groups["decoder"]["weight_decay"] == 50.0  # the decoder's weights alone are decayed
     assert all(g["weight_decay"] == 0.0 for n, g in groups.items() if n != "decoder")
     assert {id(p) for p in groups["decoder"]["params"]} == {id(p) for p in model.decoder.parameters()}
+
+
+def test_dihedral_gives_the_eight_symmetries_and_undoes_them():
+    x = torch.arange(2 * 3 * 5 * 5, dtype=torch.float32).reshape(2, 3, 5, 5)
+    seen = set()
+    for t in range(8):
+        y = train_mod.dihedral(x, t)
+        assert y.shape == x.shape
+        assert torch.equal(train_mod.dihedral(y, t, inverse=True), x)
+        seen.add(tuple(y[0, 0].reshape(-1).tolist()))
+    assert len(seen) == 8
+    assert torch.equal(train_mod.dihedral(x, 1), x.flip(-1)) and torch.equal(train_mod.dihedral(x, 4), x.mT)
+
+
+def test_decoder_flip_keeps_the_decoded_patch_on_its_target():
+    """At initialisation the residual UNet returns its base colour and coverage pixel by pixel, so a first training
+    step with the flips must give the same points as one without: any misalignment of the decoded patch and its
+    target would change the loss."""
+    train, test = _two_views()
+    mcfg = model_config("card", num_points=600, decoder="unet")
+    used = []
+    real = train_mod.dihedral
+
+    def spy(x, t, inverse=False):
+        used.append(t)
+        return real(x, t, inverse)
+
+    train_mod.dihedral = spy
+    try:
+        for seed in range(8):
+            used.clear()
+            on = fit_points(train, test, mcfg, _tiny_cfg(steps=1, seed=seed, decoder_flip=True),
+                            show_progress=False)[0]
+            if any(t & 4 for t in used) and any(t & 3 for t in used):
+                break
+        assert any(t & 4 for t in used) and any(t & 3 for t in used), used  # transposed and flipped
+        off = fit_points(train, test, mcfg, _tiny_cfg(steps=1, seed=seed), show_progress=False)[0]
+    finally:
+        train_mod.dihedral = real
+    for name in ("xyz", "features", "influence"):
+        torch.testing.assert_close(getattr(on, name), getattr(off, name), rtol=1e-5, atol=1e-6)
+
+
+def test_feature_dropout_drops_whole_feature_channels_only():
+    gen = torch.Generator().manual_seed(0)
+    feat = torch.rand(6, 4 + 40, 5, 5) + 0.5
+    out = train_mod.feature_dropout(feat, 0.25, 4, gen)
+    assert torch.equal(out[:, :4], feat[:, :4])  # base colour and coverage kept
+    dropped = (out[:, 4:] == 0).flatten(2)
+    assert torch.equal(dropped.all(-1), dropped.any(-1))  # a channel is zeroed as a whole
+    kept = ~dropped.all(-1)[..., None, None].expand_as(feat[:, 4:])
+    torch.testing.assert_close(out[:, 4:][kept], feat[:, 4:][kept] / 0.75)
+    assert 0.1 < float(dropped.all(-1).float().mean()) < 0.4
+    assert train_mod.feature_dropout(feat, 0.0, 4, gen) is feat
+    extreme = train_mod.feature_dropout(feat, 0.95, 4, gen)
+    assert torch.isfinite(extreme).all()
+
+
+def test_decoder_dropout_trains_and_test_renders_do_not_drop():
+    train, test = _two_views()
+    mcfg = model_config("card", num_points=600, decoder="unet")
+    fits = [fit_points(train, test, mcfg, _tiny_cfg(steps=8, decoder_dropout=p), show_progress=False)[0]
+            for p in (0.0, 0.95)]
+    assert torch.isfinite(fits[1].features).all() and not torch.equal(fits[0].features, fits[1].features)
+    a = render_frame(fits[1], test.c2w[0], 32, 32, test.focal)["rgb"]
+    b = render_frame(fits[1], test.c2w[0], 32, 32, test.focal)["rgb"]
+    assert torch.equal(a, b)  # no dropout at render time
+
+
+def test_decoder_stop_freezes_the_decoder_and_the_points_keep_learning():
+    f = train_mod.decoder_lr_factor
+    assert f(0.9, 0.0) == 1.0 and f(0.2, 0.6) == 1.0 and f(0.3, 0.6) == 1.0 and f(0.6, 0.6) == 0.0
+    assert f(1.0, 0.6) == 0.0 and abs(f(0.45, 0.6) - 0.5) < 1e-9
+    train, test = _two_views()
+    mcfg = model_config("card", num_points=600, decoder="unet")
+    first = fit_points(train, test, mcfg, _tiny_cfg(steps=1), show_progress=False)[0]
+    # stop = 1e-3 of 30 steps: the decoder learns on the first step only
+    late = fit_points(train, test, mcfg, _tiny_cfg(steps=30, decoder_stop=1e-3), show_progress=False)[0]
+    for (name, p), q in zip(first.decoder.named_parameters(), late.decoder.parameters()):
+        assert torch.equal(p, q), name
+    assert not torch.equal(first.features, late.features)
+
+
+def test_ray_jitter_shifts_each_patch_as_a_whole():
+    gen = torch.Generator().manual_seed(0)
+    alpha = torch.zeros(40, 40)
+    alpha[10:30, 10:30] = 1.0
+    px = train_mod.sample_patches(alpha, 6, 8, 0.5, gen)[0]
+    out = train_mod.jitter_patches(px, 6, 0.5, gen)
+    shift = (out - px).reshape(6, 64, 2)
+    assert torch.allclose(shift, shift[:, :1].expand_as(shift))  # one offset per patch: still a regular grid
+    assert float(shift.abs().max()) <= 0.5 and len({tuple(s) for s in shift[:, 0].tolist()}) == 6
+    train, test = _two_views()
+    a = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5), show_progress=False)[0]
+    b = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.5), show_progress=False)[0]
+    assert torch.isfinite(b.xyz).all() and not torch.equal(a.xyz, b.xyz)
