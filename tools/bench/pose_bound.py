@@ -119,13 +119,15 @@ def main(argv=None) -> int:
     import json
 
     from tools.bench import parse, parser
+    from tools.eval_edits import default_renderer
 
     ap = parser(__doc__)
     ap.add_argument("model", help="model file (.pgt)")
     ap.add_argument("--scene", required=True, help="the scene folder the model was trained on (make-scene)")
     ap.add_argument("--poses", default="stretch", help="comma-separated rig poses (rest is always scored)")
     ap.add_argument("--views", type=int, default=2, help="test cameras (evenly spaced, as eval-edits)")
-    ap.add_argument("--renderers", default="f-fill-fold", help="comma-separated eval-edits renderer variants")
+    ap.add_argument("--renderers", default=default_renderer(),
+                    help="comma-separated eval-edits renderer variants (default: the default renderer)")
     ap.add_argument("--footprints", default="1", help="comma-separated low-pass widths in training pixels")
     args = parse(ap, argv)
     try:
