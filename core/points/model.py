@@ -163,14 +163,14 @@ class PointModel(nn.Module):
             fi = inv_f[safe_idx]                                                  # [R, K, 3, 3]
             delta = rel - t_min[..., None] * dirs[:, None, :]
             u = (fi @ delta[..., None]).squeeze(-1)
-            dc = safe_normalize((fi @ dirs[:, None, :, None].expand(-1, idx.shape[1], -1, -1)).squeeze(-1))
+            fd = (fi @ dirs[:, None, :, None].expand(-1, idx.shape[1], -1, -1)).squeeze(-1)  # F⁻¹ d [R, K, 3]
+            dc = safe_normalize(fd)
             depth = (u * dc).sum(-1)
             rho = (u - depth[..., None] * dc).norm(dim=-1)
             if rebase_depth:  # from the nearest neighbour in the canonical frames (empty slots left out)
                 # neighbour j's canonical depth falls by g_j = |F_j⁻¹ d| per unit along the deformed ray, so it is 0
                 # at depth_j / g_j past t_min (its foot): measure every depth from the nearest foot
-                g = (fi @ dirs[:, None, :, None].expand(-1, idx.shape[1], -1, -1)).squeeze(-1).norm(dim=-1)
-                g = g.clamp_min(1e-12)
+                g = fd.norm(dim=-1).clamp_min(1e-12)
                 foot = depth.detach() / g
                 ok = valid & torch.isfinite(foot)
                 f_min = torch.where(ok, foot, torch.full_like(foot, big)).min(dim=1, keepdim=True).values

@@ -271,7 +271,8 @@ class _WobblyMap(torch.nn.Module):
         return torch.stack([u, u.flip(-1)], 1)
 
 
-def test_texels_newton_misses_take_the_nearest_sample_and_still_map_back():
+def _wobbly_island_atlas():
+    """An island atlas of the wobbly map over 20 000 samples of a bent sheet: (atlas, samples x [S, 3], probs)."""
     a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
     a.chart, a.tex = _SideChart(), _WobblyMap()
     g = torch.Generator().manual_seed(5)
@@ -279,6 +280,11 @@ def test_texels_newton_misses_take_the_nearest_sample_and_still_map_back():
     x = torch.stack([u[:, 0], u[:, 1], 0.2 * torch.sin(2 * u[:, 0])], -1)
     probs, uv = a.chart_uv(x)
     a.set_layout(build_islands(probs, uv, np.array([80.0, 80.0]), pad=2))
+    return a, x, probs
+
+
+def test_texels_newton_misses_take_the_nearest_sample_and_still_map_back():
+    a, x, _ = _wobbly_island_atlas()
     tp = a.compute_texel_points(x, 3 * 1.6 / 20000 ** 0.5, 1.0, "splat", 1.0)
     st = a.texel_stats
     ok = torch.isfinite(tp).all(-1)
@@ -327,13 +333,7 @@ def test_texel_map_newton_keeps_its_best_step_where_the_map_folds():
     """Where the map folds (the wobbly map's fine wobble) a Gauss-Newton step can land farther from the texel than
     where it started; the texel map keeps each point's best iterate, so no point ends farther from its texel than
     its local-linear start."""
-    a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
-    a.chart, a.tex = _SideChart(), _WobblyMap()
-    g = torch.Generator().manual_seed(5)
-    u = torch.rand(20000, 2, generator=g) * 1.6 - 0.8
-    x = torch.stack([u[:, 0], u[:, 1], 0.2 * torch.sin(2 * u[:, 0])], -1)
-    probs, uv = a.chart_uv(x)
-    a.set_layout(build_islands(probs, uv, np.array([80.0, 80.0]), pad=2))
+    a, x, probs = _wobbly_island_atlas()
     A = a.layout.size
     # start from the samples themselves, aimed at a texel 1.5 texels off where they land, along the surface
     chart = probs.argmax(-1)[:4000]

@@ -53,6 +53,7 @@ def ref_perpendicular(points, origins, dirs, k):
 
 
 def ref_screen(points, c2w, query_px, k, depth_factor, cap=INF):
+    """Brute-force screen search; cap: pixel radius, a number or per point [1, N]."""
     p, m = points.double(), c2w.double()
     cam = (p - m[:3, 3]) @ m[:3, :3]
     z = -cam[:, 2]
@@ -564,19 +565,7 @@ def test_a_shared_screen_index_searches_as_select_neighbors_does(method, scale):
 
 def ref_screen_reach(points, c2w, query_px, k, depth_factor, cap, reach):
     """ref_screen with a per-point cap: point n is a candidate within cap × reach[n] pixels."""
-    p, m = points.double(), c2w.double()
-    cam = (p - m[:3, 3]) @ m[:3, :3]
-    z = -cam[:, 2]
-    col = FOCAL * cam[:, 0] / z + 0.5 * W
-    row = -FOCAL * cam[:, 1] / z + 0.5 * H
-    keep = (z > 0) & (col >= -1) & (col <= W + 1) & (row >= -1) & (row <= H + 1) & ~_absent(points)
-    px = torch.stack([col, row], -1)
-    d = (query_px.double()[:, None, :] - px[None]).norm(dim=-1)
-    keep = keep[None] & (d <= cap * reach.double()[None])
-    if depth_factor:
-        d = d * (z / FOCAL)[None]
-    d = d.masked_fill(~keep | ~torch.isfinite(d), math.inf)
-    return _topk_ref(d, k)
+    return ref_screen(points, c2w, query_px, k, depth_factor, cap * reach.double()[None])
 
 
 @pytest.mark.skipif(not compiled.available(), reason="the per-point reach is applied by the compiled grid")
