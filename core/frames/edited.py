@@ -64,7 +64,7 @@ class EditConfig:
     f_depth: str = opt("nearest", "F-aware keys (f_attention): each neighbour's depth measured from the ray's "
                                   "nearest neighbour in the canonical frames (nearest: as the keys were trained, "
                                   "'depth behind the nearest point') | from the deformed ray's nearest neighbour "
-                                  "(ray: the earlier rule; a squash or bend reorders the canonical depths)",
+                                  "(ray; a squash or bend reorders the canonical depths along it)",
                        choices=DEPTH_REFS)
     f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
                                 "stretch (f_radius_rule)")
