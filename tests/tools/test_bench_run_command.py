@@ -19,3 +19,21 @@ def test_run_command_with_check_stops_on_failure_with_the_output_tail():
     assert lines[-1].startswith("  done in ")
     with pytest.raises(SystemExit, match=r"(?s)exit 2.*boom"):
         run_command([sys.executable, "-c", "import sys; print('boom'); sys.exit(2)"], lines.append, check=True)
+
+
+def test_write_json_keeps_a_backup_and_skips_without_a_path(tmp_path):
+    import json
+
+    import numpy as np
+
+    from tools.bench import write_json
+
+    write_json(None, {"a": 1})
+    write_json("", {"a": 1})
+    assert list(tmp_path.iterdir()) == []
+    out = tmp_path / "figures.json"
+    out.write_text("old")
+    write_json(str(out), {"psnr": np.float32(25.5), "rows": [1, 2]})
+    assert json.loads(out.read_text()) == {"psnr": 25.5, "rows": [1, 2]}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["figures.json", "figures.json.bak"]
+    assert (tmp_path / "figures.json.bak").read_text() == "old"

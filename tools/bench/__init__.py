@@ -29,6 +29,18 @@ def parse(ap: argparse.ArgumentParser, argv=None, threads: int = 1) -> argparse.
     return args
 
 
+def write_json(path, figures) -> None:
+    """Write `figures` (JSON-serialisable; numpy/torch scalars become floats) to `path` atomically, if a path
+    is given (the scripts' --json, whose default is none)."""
+    if not path:
+        return
+    import json
+
+    from core.util.atomic import atomic_write_text
+
+    atomic_write_text(path, json.dumps(figures, indent=1, default=float))
+
+
 def parse_with_config(ap: argparse.ArgumentParser, cls, argv=None):
     """Add the flags of the config dataclass `cls`, parse argv, build (and validate) the config and apply its
     `threads` field (> 0) to torch. Returns (args, config)."""

@@ -17,13 +17,12 @@ texture evaluated exactly at the surface points) and the decal, object PSNR on t
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 
 import numpy as np
 import torch
 
-from tools.bench import parse_with_config, parser
+from tools.bench import parse_with_config, parser, write_json
 
 
 def load_samples(args) -> tuple[torch.Tensor, torch.Tensor, str]:
@@ -216,9 +215,7 @@ def main(argv=None) -> int:
         print(markdown_rows(rows))
         print(f"machine: {machine}")
         rows = [dict(r, machine=machine) for r in rows]
-        if args.json:
-            from core.util.atomic import atomic_write_text
-            atomic_write_text(args.json, json.dumps(rows, indent=1))
+        write_json(args.json, rows)
         return 0
     xyz, rgb, source = load_samples(args)
     print(f"samples: {source}; config: steps={cfg.steps} batch={cfg.batch} width_map={cfg.width_map} "
@@ -227,9 +224,7 @@ def main(argv=None) -> int:
     run_one(xyz, rgb, cfg, "distortion on" if cfg.distortion else "distortion off", out, args.png)
     if args.compare_distortion and cfg.distortion:
         run_one(xyz, rgb, dataclasses.replace(cfg, distortion=False), "distortion off", out)
-    if args.json:
-        from core.util.atomic import atomic_write_text
-        atomic_write_text(args.json, json.dumps(out, indent=1))
+    write_json(args.json, out)
     return 0
 
 

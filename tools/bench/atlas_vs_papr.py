@@ -14,14 +14,13 @@ of x alone does on these samples, no atlas involved).
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 
 import numpy as np
 import torch
 
-from tools.bench import parse_with_config, parser
+from tools.bench import parse_with_config, parser, write_json
 
 
 def load_npz(path: str) -> tuple[torch.Tensor, torch.Tensor]:
@@ -180,9 +179,7 @@ def main(argv=None) -> int:
         a = np.asarray(s)
         table[name] = {"full": float(a[:, 0].mean()), "object": float(np.nanmean(a[:, 1]))}
         print(f"{name:34s} {table[name]['full']:10.2f} {table[name]['object']:12.2f}")
-    if args.json:
-        from core.util.atomic import atomic_write_text
-        atomic_write_text(args.json, json.dumps({"table": table, "fit": fit_info, "views": views}, indent=1))
+    write_json(args.json, {"table": table, "fit": fit_info, "views": views})
     if args.png:
         from core.images.png import write_png
         write_png(args.png, torch.cat(list(frames.values()) + [split.images[views[-1]]], 1).numpy())

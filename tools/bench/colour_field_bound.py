@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tools.bench import add_scene, parse, parser
+from tools.bench import add_scene, parse, parser, write_json
 from tools.machine import machine_line
 
 
@@ -155,8 +155,7 @@ def main(argv=None) -> int:
     e = result["x_error"]
     print(f"x_i against the true hit: median {e['median']:.4f}, p90 {e['p90']:.4f}, along the ray (median) "
           f"{e['along_ray_median']:.4f} world units; one pixel is {e['pixel_footprint']:.4f} at the camera distance")
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
+    write_json(args.json, result)
     return 0
 
 

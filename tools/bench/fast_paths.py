@@ -19,11 +19,10 @@ and the largest difference of their outputs:
 """
 from __future__ import annotations
 
-import json
 import statistics
 import time
 
-from tools.bench import parse, parser
+from tools.bench import parse, parser, write_json
 from tools.bench.frames import Case
 from tools.bench.render import add_model_args, bend, model_from_args, orbit_cameras, retexture
 from tools.machine import machine_line
@@ -160,13 +159,9 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|")
     for name, ta, tb, oa, ob in rows:
         print(f"| {name} | {ta:.4f} | {tb:.4f} | {ta / max(tb, 1e-12):.1f}× | {_maxdiff(oa, ob):.1e} |")
-    if args.json:
-        from core.util.atomic import atomic_write_text
-
-        atomic_write_text(args.json, json.dumps({"machine": machine_line(), "model": source, "size": args.size,
-                                                 "rows": [{"path": n, "torch_s": a, "fast_s": b,
-                                                           "max_abs_diff": _maxdiff(x, y)}
-                                                          for n, a, b, x, y in rows]}, indent=1))
+    write_json(args.json, {"machine": machine_line(), "model": source, "size": args.size,
+                           "rows": [{"path": n, "torch_s": a, "fast_s": b, "max_abs_diff": _maxdiff(x, y)}
+                                    for n, a, b, x, y in rows]})
     return 0
 
 

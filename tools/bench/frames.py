@@ -46,7 +46,7 @@ import sys
 import tempfile
 import time
 
-from tools.bench import parse, parser
+from tools.bench import parse, parser, write_json
 from tools.bench.render import bend, build_model, orbit_cameras, retexture, timed_parts, with_decoder
 from tools.machine import machine_line
 
@@ -183,11 +183,7 @@ def blend_main(args) -> int:
         print("\n".join(table(res)))
         print(f"where the first image's CPU time goes ({next(iter(res['runs']))} model, one run, warm-up off): " +
               ", ".join(f"{k} {v:.2f} s" for k, v in res["parts"].items()))
-        if args.json:
-            from core.util.atomic import atomic_write_text
-
-            atomic_write_text(args.json, json.dumps({"machine": machine_line(), "model": str(model), **res},
-                                                    indent=1, default=float))
+        write_json(args.json, {"machine": machine_line(), "model": str(model), **res})
     return 0
 
 
@@ -296,12 +292,9 @@ def main(argv=None) -> int:
             print(f"| {size}² | {label.split(':')[0]} | {tot:.3f} | " + " | ".join(cells) +
                   f" | {rest:.3f} ({100 * rest / tot:.0f} %) |")
 
-    if args.json:
-        from core.util.atomic import atomic_write_text
-
-        out = {"machine": machine_line(), "model": source, "frames": args.frames, "cold": cold, "rows": rows,
-               "profile": [{"size": s, "case": c, "stages": st} for (s, c), st in profiles.items()]}
-        atomic_write_text(args.json, json.dumps(out, indent=1, default=float))
+    write_json(args.json, {"machine": machine_line(), "model": source, "frames": args.frames, "cold": cold,
+                           "rows": rows,
+                           "profile": [{"size": s, "case": c, "stages": st} for (s, c), st in profiles.items()]})
     return 0
 
 

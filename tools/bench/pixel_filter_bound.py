@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tools.bench import add_scene, parse, parser
+from tools.bench import add_scene, parse, parser, write_json
 from tools.machine import machine_line
 
 
@@ -174,8 +174,7 @@ def main(argv=None) -> int:
     print("|---|---|")
     for k, v in result["object_psnr"].items():
         print(f"| {k} | {v:.2f} |")
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
+    write_json(args.json, result)
     return 0
 
 

@@ -116,9 +116,7 @@ def markdown(result: dict) -> str:
 
 
 def main(argv=None) -> int:
-    import json
-
-    from tools.bench import parse, parser
+    from tools.bench import parse, parser, write_json
     from tools.eval_edits import default_renderer
 
     ap = parser(__doc__)
@@ -139,10 +137,7 @@ def main(argv=None) -> int:
     res = run(args.model, args.scene, [p for p in args.poses.split(",") if p], args.views,
               [r for r in args.renderers.split(",") if r], footprints)
     print(markdown(res))
-    if args.json:
-        from core.util.atomic import atomic_write_text
-
-        atomic_write_text(args.json, json.dumps(res, indent=1))
+    write_json(args.json, res)
     return 0
 
 

@@ -29,13 +29,12 @@ import contextlib
 import copy
 import dataclasses
 import functools
-import json
 import math
 import statistics
 import time
 import types
 
-from tools.bench import parse, parser
+from tools.bench import parse, parser, write_json
 from tools.machine import machine_line
 
 
@@ -343,16 +342,12 @@ def main(argv=None) -> int:
 
     chunk_rows = compare_chunks(bundle, bent, painted, cams, args.size, focal, args.chunks)
 
-    if args.json:
-        from core.util.atomic import atomic_write_text
-
-        out = {"machine": machine_line(), "model": source, "size": args.size, "frames": args.frames,
-               "rows": {k: {kk: vv for kk, vv in v.items()} for k, v in rows.items()},
-               "skips": [{"skip": n, "skipped_s": a["median_s"], "forced_s": b["median_s"],
-                          "skipped_cpu_s": a["cpu_s"], "forced_cpu_s": b["cpu_s"],
-                          "skipped_stats": a["stats"], "forced_stats": b["stats"]} for n, a, b in skips],
-               "parts_s_per_frame": {k: v / len(cams) for k, v in acc.items()}, "chunks": chunk_rows}
-        atomic_write_text(args.json, json.dumps(out, indent=1, default=float))
+    write_json(args.json, {"machine": machine_line(), "model": source, "size": args.size, "frames": args.frames,
+                           "rows": {k: dict(v) for k, v in rows.items()},
+                           "skips": [{"skip": n, "skipped_s": a["median_s"], "forced_s": b["median_s"],
+                                      "skipped_cpu_s": a["cpu_s"], "forced_cpu_s": b["cpu_s"],
+                                      "skipped_stats": a["stats"], "forced_stats": b["stats"]} for n, a, b in skips],
+                           "parts_s_per_frame": {k: v / len(cams) for k, v in acc.items()}, "chunks": chunk_rows})
     return 0 if edited_s <= args.budget else 1
 
 

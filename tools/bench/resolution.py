@@ -45,7 +45,7 @@ import sys
 import time
 from pathlib import Path
 
-from tools.bench import run_command
+from tools.bench import run_command, write_json
 from tools.machine import machine_line
 
 DEFAULT_SCENES = "tube,crate,suzanne"
@@ -328,9 +328,7 @@ def main(argv=None) -> int:
                 print(f"{name}: seconds per step, {key} fit, min / median / max of {len(vals)}: "
                       f"{min(vals):.3f} / {statistics.median(vals):.3f} / {max(vals):.3f}", flush=True)
             timing[name] = times
-        if args.json:
-            Path(args.json).write_text(json.dumps({"machine": head, "rows": rows, "step_seconds": timing},
-                                                  indent=1))
+        write_json(args.json, {"machine": head, "rows": rows, "step_seconds": timing})
     table = markdown(rows, "```\n" + head + "\n```")
     print(table)
     for f in factors[1:]:

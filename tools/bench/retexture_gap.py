@@ -23,13 +23,12 @@ from that sample in space and in texels).
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 import time
 
 import torch
 
-from tools.bench import parse_with_config, parser
+from tools.bench import parse_with_config, parser, write_json
 
 
 def lookup_stats(bundle, gt, spacing: float) -> dict:
@@ -204,9 +203,7 @@ def main(argv=None) -> int:
                          [int(a) for a in floats(args.antialias)], keep=args.keep or None)
     machine = machine_info()
     print(f"machine: {machine}")
-    if args.json:
-        from core.util.atomic import atomic_write_text
-        atomic_write_text(args.json, json.dumps([dict(r, machine=machine) for r in rows], indent=1))
+    write_json(args.json, [dict(r, machine=machine) for r in rows])
     return 0
 
 

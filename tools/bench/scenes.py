@@ -17,12 +17,11 @@ seed other than 0 is in the name too (DIR/NAME.s1.default.pgt).
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 from pathlib import Path
 
-from tools.bench import run_command
+from tools.bench import run_command, write_json
 from tools.machine import machine_line
 
 
@@ -127,8 +126,7 @@ def main(argv=None) -> int:
             row["other"].append(fit_result(path))
         rows.append(row)
         print(markdown([row], "").strip().splitlines()[-1], flush=True)
-        if args.json:
-            Path(args.json).write_text(json.dumps({"machine": head, "rows": rows}, indent=1))
+        write_json(args.json, {"machine": head, "rows": rows})
     table = markdown(rows, "```\n" + head + "\n```")
     print(table)
     if args.markdown:

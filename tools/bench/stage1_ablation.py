@@ -13,12 +13,12 @@ both regularizer weights (the paper's γ = 0.002, η = 0.01 at 1) to show each o
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 
 from core.images.dataset import load_dataset
+from tools.bench import write_json
 from tools.machine import machine_line
 from core.points.geometry_stats import surface_stats
 from core.points.model import ModelConfig
@@ -79,9 +79,7 @@ def main(argv=None) -> int:
                      ([r["psnr_object"] for r in rs], [r["ray_distance"] for r in rs],
                       [r["neighbour_spread"] for r in rs])]
             print(f"| {name} | " + " | ".join(cells) + " |")
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(rows, fh, indent=1)
+    write_json(args.json, rows)
     return 0
 
 

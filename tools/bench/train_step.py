@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import itertools
-import json
 import statistics
 import time
 
@@ -127,7 +126,7 @@ def time_fit(train, test, model_cfg, cfg) -> dict:
 
 
 def main(argv=None) -> int:
-    from tools.bench import parse, parser
+    from tools.bench import parse, parser, write_json
 
     ap = parser(__doc__)
     ap.add_argument("--data", required=True, help="dataset folder (e.g. made by `pointgt make-scene cloth`)")
@@ -194,12 +193,8 @@ def main(argv=None) -> int:
             print(f"{p} vs {names[0]}: wall x {ref['wall_per_step'] / med[p]['wall_per_step']:.2f} faster, "
                   f"critical path x {ref['critical_per_step'] / med[p]['critical_per_step']:.2f}")
     print(machine_line())
-    if args.json:
-        from core.util.atomic import atomic_write_text
-
-        atomic_write_text(args.json, json.dumps({"machine": machine_info(), "data": args.data, "steps": args.steps,
-                                                 "threads": lists["threads"], "model": model_cfg.__dict__,
-                                                 "median": med, "runs": runs}, indent=1))
+    write_json(args.json, {"machine": machine_info(), "data": args.data, "steps": args.steps,
+                           "threads": lists["threads"], "model": model_cfg.__dict__, "median": med, "runs": runs})
     return 0
 
 

@@ -12,12 +12,11 @@ colour problem inside the object (both).
 """
 from __future__ import annotations
 
-import json
 import math
 
 import torch
 
-from tools.bench import parse, parser
+from tools.bench import parse, parser, write_json
 
 REGIONS = ("both", "missed", "spurious")
 
@@ -109,7 +108,7 @@ def main(argv=None) -> int:
     args = parse(ap, argv)
     from core.bundle import load_bundle
     from core.images.dataset import load_split
-    from core.util.atomic import atomic_write_text, check_output_file
+    from core.util.atomic import check_output_file
     from core.util.errors import InputError
 
     if args.json:
@@ -122,8 +121,7 @@ def main(argv=None) -> int:
         rows = split_rows(model, load_split(args.data, name), args.grazing)
         result["splits"][name] = {"summary": summarise(rows), "per_view": rows}
     print(markdown(result))
-    if args.json:
-        atomic_write_text(args.json, json.dumps(result, indent=1))
+    write_json(args.json, result)
     return 0
 
 
