@@ -452,21 +452,20 @@ def _budget_ratio(g: torch.Tensor, ratio: float, cap: int, limit: int, count) ->
     above r (at most cap), so the count at r is the number of steps above it and r is about the (limit + 1)-th
     largest step: taken from a partial sort and checked (it keeps the budget, the next smaller step does not);
     where the check fails (ties, rounding) a bisection over all distinct steps decides, as it always did."""
-    steps = (g[:, None] / torch.arange(1, cap + 1, dtype=g.dtype, device=g.device))
-    steps = steps[steps >= ratio]
+    steps = (g[:, None] / torch.arange(1, cap + 1, dtype=g.dtype, device=g.device)).reshape(-1)
     ok = lambda r: int(count(r).sum()) <= limit  # noqa: E731
     if limit + 1 <= steps.numel():
         top = torch.topk(steps, min(limit + 2, steps.numel())).values               # descending
         r = float(top[limit])
-        if limit + 1 == steps.numel():
-            below = None  # r is the smallest step
-        elif float(top[limit + 1]) < r:
-            below = float(top[limit + 1])
-        else:  # a tie at r: the largest step below it
+        below = float(top[limit + 1]) if limit + 1 < top.numel() else None
+        if below is not None and below >= r:  # a tie at r: the largest step below it
             low = steps[steps < r]
             below = float(low.max()) if low.numel() else None
-        if ok(r) and (below is None or not ok(below)):
+        if below is not None and below < ratio:
+            below = None  # r is the smallest step at or above the ratio
+        if r >= ratio and ok(r) and (below is None or not ok(below)):
             return r
+    steps = steps[steps >= ratio]
     cands = torch.unique(steps)                                                       # ascending; count(max) = 0
     lo, hi = 0, cands.numel() - 1
     while lo < hi:
