@@ -388,7 +388,13 @@ class DeformationField:
             return empty
         dc, dd, w, cid, own_ok, rows = gathered
         m = pts.shape[0]
-        lc, ld = dc.norm(dim=-1), dd.norm(dim=-1)                                   # [M, k]
+        if dc is self._dc:  # the canonical offsets' lengths, once per model
+            if getattr(self, "_dc_len", None) is None:
+                self._dc_len = self._dc.norm(dim=-1)
+            lc = self._dc_len
+        else:
+            lc = dc.norm(dim=-1)
+        ld = dd.norm(dim=-1)                                                         # [M, k]
         grow = ld / lc.clamp_min(1e-30)
         sel = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow > ratio) & (grow <= self.cfg.max_stretch)
         # each pair once: keep j -> l when j < l, or when l does not list j (one-sided neighbourhoods)
