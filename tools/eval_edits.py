@@ -37,7 +37,8 @@ EDITS = ("geometry", "retexture", "decal")
 # the paper's renderer and correspondence. f_compression also changes the deform-gradient correspondence.
 _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0,
           "f_depth": "ray",
-          "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap"}
+          "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
+          "f_reach_gate": False}
 RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-radius": {**_PAPER, "f_radius": True, "f_radius_rule": "frame"},
              "f-both": {**_PAPER, "f_attention": True, "f_radius": True, "f_radius_rule": "frame"},
@@ -65,7 +66,14 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
                                               "f_compression": "undo"},
              "f-fill-fold-blend-depth-auto": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
                                               "f_fill_features": "blend", "f_depth": "nearest",
-                                              "f_compression": "auto"}}
+                                              "f_compression": "auto"},
+             "f-fill-fold-blend-depth-auto-reach": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                                    "f_fill_features": "blend", "f_depth": "nearest",
+                                                    "f_compression": "auto", "f_radius": True},
+             "f-fill-fold-blend-depth-auto-reach-gate": {**_PAPER, "f_attention": True, "f_fill": True,
+                                                         "fold_radius": 2.0, "f_fill_features": "blend",
+                                                         "f_depth": "nearest", "f_compression": "auto",
+                                                         "f_radius": True, "f_reach_gate": True}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 

@@ -73,6 +73,10 @@ class EditConfig:
                                     "f_fill_ratio — the fill budget kept them sparse — else 1; without f_fill its "
                                     "largest local stretch above f_fill_ratio) | frame (the whole frame's cap × the "
                                     "90th percentile of the points' largest local stretch)", choices=RADIUS_RULES)
+    f_reach_gate: bool = opt(False, "f_radius with rule gap: a ray with no point within the plain pixel radius cap "
+                                    "stays empty, so the per-point reach adds far points only to rays that already "
+                                    "see the object (the silhouette does not widen; the empty rays around it stop "
+                                    "searching at the cap)")
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
@@ -374,7 +378,8 @@ class EditState:
         search = torch.where(torch.isfinite(pts).all(dim=1)[:, None], pts, torch.full_like(pts, float("nan")))
         radius_scale, reach = self.search_radius()
         return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
-                            model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach)
+                            model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach,
+                            reach_gate=bool(self.cfg.f_reach_gate and reach is not None))
 
     def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
@@ -538,6 +543,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                          rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
+                         reach_gate=bool(cfg.f_reach_gate and reach is not None),
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
     else:

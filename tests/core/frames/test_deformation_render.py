@@ -269,6 +269,42 @@ def test_gap_reach_only_where_the_fill_left_gaps_and_rest_unchanged(tiny):
             assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
 
 
+def test_reach_gate_adds_far_points_only_to_rays_the_plain_search_covers(tiny):
+    """f_reach_gate: with the gap reach, the rays that get neighbours are exactly those the plain search (no reach)
+    gives one, and each of them gets the ungated reach search's neighbours; rest frames are today's; extreme poses
+    stay finite."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    gate = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=True)
+    today = EditState(bundle)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**gate))
+    for i in range(len(test)):
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    s = torch.tensor([4.0, 1.0, 1.0])
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.5
+    states = {name: EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1, **over))
+              for name, over in (("plain", {}), ("reach", dict(f_radius=True, f_radius_rule="gap")), ("gate", gate))}
+    tr = {name: render_edited(st, c2w, test.height, test.width, test.focal)["trace"] for name, st in states.items()}
+    assert float(states["gate"].reach.max()) > 1.5
+    covered = tr["plain"].active
+    assert torch.equal(tr["gate"].active, covered)
+    assert bool((tr["reach"].active & ~covered).any())  # the ungated reach widens the covered rays
+    assert torch.equal(tr["gate"].idx[covered], tr["reach"].idx[covered])
+    assert torch.allclose(tr["gate"].weights[covered], tr["reach"].weights[covered], atol=1e-6)
+    assert int((tr["gate"].idx >= 0).sum()) > int((tr["plain"].idx >= 0).sum())  # the reach still adds points
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+        out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **gate)), c2w,
+                            test.height, test.width, test.focal)
+        assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+
+
 def test_occlusion_rule_hides_a_part_swung_behind(tiny):
     """Half of the card swung behind the other half: with the occlusion rule the frame is closer to the front half
     rendered alone (the hidden half's points removed by ids) where that half covers the pixels (alpha > 0.5)."""
