@@ -73,7 +73,12 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-fill-fold-blend-depth-auto-reach-gate": {**_PAPER, "f_attention": True, "f_fill": True,
                                                          "fold_radius": 2.0, "f_fill_features": "blend",
                                                          "f_depth": "nearest", "f_compression": "auto",
-                                                         "f_radius": True, "f_reach_gate": True}}
+                                                         "f_radius": True, "f_reach_gate": True},
+             "f-fill-fold-blend-depth-auto-budget-gate": {**_PAPER, "f_attention": True, "f_fill": True,
+                                                          "fold_radius": 2.0, "f_fill_features": "blend",
+                                                          "f_depth": "nearest", "f_compression": "auto",
+                                                          "f_radius": True, "f_radius_rule": "budget",
+                                                          "f_reach_gate": True}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 

@@ -255,20 +255,20 @@ class DeformationField:
     @torch.no_grad()
     def gradients_and_fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
                            max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False,
-                           with_gap: bool = False):
+                           with_gap: bool = False, gap_pairs: str = "all"):
         """`gradients` and `fill` of the same points, sharing their neighbour gathering: (F [M, 3, 3], (new [P, 3],
         canonical [P, 3], source [P])); with_partner: the fill's tuple also holds partner [P] and fraction [P]
-        (see `fill`); with_gap: it also ends with gap [M] (see `fill`)."""
+        (see `fill`); with_gap: it also ends with gap [M] (see `fill`, and gap_pairs)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         if pts.shape[0] == 0:
             return torch.zeros(0, 3, 3, device=self.device), self.fill(pts, ids, ratio, max_per_pair, budget,
-                                                                       with_partner, with_gap)
+                                                                       with_partner, with_gap, gap_pairs)
         gathered = self._gather_deformed(pts, ids, with_rows=True)
         return (self._fit(pts, *gathered[:5], ids),
                 self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap,
-                           canonical_rows=ids is None))
+                           canonical_rows=ids is None, gap_pairs=gap_pairs))
 
     def _fit(self, pts, dc, dd, w, cid, own_ok, ids):
         """The fit of `gradients` from gathered neighbour offsets (see _gather_deformed)."""
@@ -329,7 +329,7 @@ class DeformationField:
     @torch.no_grad()
     def fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
              max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False,
-             with_gap: bool = False) -> tuple:
+             with_gap: bool = False, gap_pairs: str = "all") -> tuple:
         """Extra points where the deformation pulled canonical neighbours apart (a stretched surface: a joint's
         blend band, a scaled part), so the deformed cloud keeps about its canonical density.
 
@@ -346,12 +346,15 @@ class DeformationField:
         the segment from the source towards the partner the point lies (to blend the two ends' features).
         with_gap: the tuple ends with gap [M] float32 >= 1, per given point the largest growth g / (n + 1) left
         between consecutive points on any of its pairs where that exceeds `ratio` (the budget or max_per_pair kept
-        a stretched pair sparser than the ratio; pairs beyond max_stretch are tears and count as closed), else 1."""
+        a stretched pair sparser than the ratio; pairs beyond max_stretch are tears and count as closed), else 1;
+        gap_pairs "budget": only pairs the budget kept sparse count (those that got max_per_pair points, grown
+        past max_per_pair + 1 times the ratio — a joint's near-tears — count as closed)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         gathered = self._gather_deformed(pts, ids, with_rows=True) if pts.shape[0] else None
-        return self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap, canonical_rows=ids is None)
+        return self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap,
+                          canonical_rows=ids is None, gap_pairs=gap_pairs)
 
     @property
     def reverse_slots(self) -> torch.Tensor:
@@ -370,7 +373,7 @@ class DeformationField:
         return self._reverse
 
     def _fill(self, pts, gathered, ratio, max_per_pair, budget, with_partner=False, with_gap=False,
-              canonical_rows=False):
+              canonical_rows=False, gap_pairs="all"):
         """The work of `fill` from gathered neighbour offsets (_gather_deformed with rows; None: no points).
         canonical_rows: the points are the canonical ones in order (no ids), so the rows gathered are the cached
         neighbour lists and whether a pair's other end lists it back is looked up (`reverse_slots`)."""
@@ -426,7 +429,10 @@ class DeformationField:
             n = count(_budget_ratio(g, ratio, cap, limit, count))
         if with_gap:  # growth left between consecutive points of each pair, at both ends
             left = (g / (n + 1).to(g.dtype)).to(torch.float32)
-            left = torch.where(left > ratio, left, torch.ones_like(left))
+            open_ = left > ratio
+            if gap_pairs == "budget":
+                open_ &= n < cap
+            left = torch.where(open_, left, torch.ones_like(left))
             gap = gap.scatter_reduce(0, j, left, "amax").scatter_reduce(0, rows[j, slot], left, "amax")
             empty = empty[:-1] + (gap,)
         keep = n > 0

@@ -38,7 +38,7 @@ COMPRESSION = ("tangent", "keep", "undo", "auto")
 DEPTH_REFS = ("nearest", "ray")
 FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
-RADIUS_RULES = ("gap", "frame")
+RADIUS_RULES = ("gap", "budget", "frame")
 RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
 
 
@@ -71,9 +71,12 @@ class EditConfig:
     f_radius_rule: str = opt("gap", "f_radius: gap (each point reaches the cap × the largest growth f_fill left "
                                     "between consecutive points on its canonical neighbour pairs where that exceeds "
                                     "f_fill_ratio — the fill budget kept them sparse — else 1; without f_fill its "
-                                    "largest local stretch above f_fill_ratio) | frame (the whole frame's cap × the "
-                                    "90th percentile of the points' largest local stretch)", choices=RADIUS_RULES)
-    f_reach_gate: bool = opt(False, "f_radius with rule gap: a ray with no point within the plain pixel radius cap "
+                                    "largest local stretch above f_fill_ratio) | budget (gap, counting only pairs "
+                                    "the fill budget kept sparse: pairs grown so far that they got f_fill's most "
+                                    "points per pair, a joint's near-tears, reach no farther) | frame (the whole "
+                                    "frame's cap × the 90th percentile of the points' largest local stretch)",
+                             choices=RADIUS_RULES)
+    f_reach_gate: bool = opt(False, "f_radius with rule gap or budget: a ray with no point within the plain pixel radius cap "
                                     "stays empty, so the per-point reach adds far points only to rays that already "
                                     "see the object (the silhouette does not widen; the empty rays around it stop "
                                     "searching at the cap)")
@@ -219,7 +222,7 @@ class EditState:
         fld = field_for(self.bundle.model, self.deformation_cfg)
         f, (new, can, src, partner, frac, gap) = self._timed(lambda: fld.gradients_and_fill(
             self.points, self.ids, ratio=self.cfg.f_fill_ratio, budget=self.cfg.f_fill_budget, with_partner=True,
-            with_gap=True))
+            with_gap=True, gap_pairs="budget" if self.cfg.f_radius_rule == "budget" else "all"))
         self._f = f
         self._gap = gap
         self.fit_seconds = self.deformation_seconds

@@ -182,6 +182,23 @@ def test_gap_is_what_the_budget_left_open():
     assert torch.equal(nan[-1], torch.ones(p.shape[0]))
 
 
+def test_budget_gap_counts_only_pairs_the_budget_kept_sparse():
+    """gap_pairs "budget": a pair grown past (max_per_pair + 1) × ratio (it got the most points a pair gets: a
+    joint's near-tear) leaves no gap, while a pair the budget kept sparse keeps the gap "all" gives it."""
+    p = _sheet(12)
+    fld = DeformationField(p)
+    q = p * torch.tensor([12.0, 1.0, 1.0])  # x pairs grow 12×: 7 points at ratio 1.5, capped at 2 → gap 4
+    full = fld.fill(q, ratio=1.5, budget=100.0, max_per_pair=2, with_gap=True)
+    near_tear = fld.fill(q, ratio=1.5, budget=100.0, max_per_pair=2, with_gap=True, gap_pairs="budget")
+    assert float(full[-1].max()) > 3.9 and torch.equal(near_tear[-1], torch.ones(p.shape[0]))
+    for a, b in zip(full[:-1], near_tear[:-1]):  # the points themselves do not depend on it
+        assert torch.equal(a, b)
+    q = p * torch.tensor([4.0, 1.0, 1.0])  # the budget, not the cap, keeps these sparse
+    tight = fld.fill(q, ratio=1.5, budget=0.2, with_gap=True)
+    tight_b = fld.fill(q, ratio=1.5, budget=0.2, with_gap=True, gap_pairs="budget")
+    assert float(tight[-1].max()) > 1.5 and torch.equal(tight[-1], tight_b[-1])
+
+
 def _plain_budget_ratio(g, ratio, cap, limit):
     """Reference: bisection over every distinct step g / i >= ratio for the smallest keeping the budget."""
     count = lambda r: (torch.ceil(g / r * (1.0 - 1e-12)) - 1.0).clamp(0, cap).long()  # noqa: E731

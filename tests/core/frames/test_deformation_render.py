@@ -263,7 +263,7 @@ def test_gap_reach_only_where_the_fill_left_gaps_and_rest_unchanged(tiny):
     wild[::13] = float("nan")
     wild[1::17] = 1e30
     for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
-        for rule in ("gap", "frame"):
+        for rule in ("gap", "budget", "frame"):
             st = EditState(bundle, points=pts, cfg=EditConfig(f_radius=True, f_radius_rule=rule, f_fill_budget=0.1))
             out = render_edited(st, c2w, test.height, test.width, test.focal)
             assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
