@@ -496,7 +496,9 @@ def markdown(result: dict) -> str:
               "f-fill-fold-blend-depth = f-fill-fold-blend whose keys take depths from the ray's nearest neighbour "
               "in the canonical frames (f_depth nearest), f-fill-fold-blend-depth-undo = both, "
               "f-fill-fold-blend-depth-auto = f-fill-fold-blend-depth undoing all compression on a model whose points "
-              "form a thick shell (f_compression auto); first "
+              "form a thick shell (f_compression auto), -reach = with f-fill-fold-blend-reach's reach, -reach-gate = "
+              "that reach only for rays the plain pixel cap gives a point (f_reach_gate), -budget-gate = the gated "
+              "reach from the pairs the fill budget kept sparse only (f_radius_rule budget); first "
               "temperature, soft blend; "
               "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]

@@ -359,6 +359,12 @@ class EditState:
             return self.radius_scale, None
         return 1.0, self.reach
 
+    @property
+    def reach_gate(self) -> bool:
+        """Whether the neighbour search's per-point reach is gated (f_reach_gate with a reach in use): a ray the
+        plain pixel cap gives no point stays empty (`trace_frame(reach_gate=...)`)."""
+        return bool(self.cfg.f_reach_gate and self.search_radius()[1] is not None)
+
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
         fit took; what this state derives from F is computed (and timed) here."""
@@ -382,7 +388,7 @@ class EditState:
         radius_scale, reach = self.search_radius()
         return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
                             model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach,
-                            reach_gate=bool(self.cfg.f_reach_gate and reach is not None))
+                            reach_gate=self.reach_gate)
 
     def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
@@ -546,7 +552,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                          rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
-                         reach_gate=bool(cfg.f_reach_gate and reach is not None),
+                         reach_gate=state.reach_gate,
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
     else:
