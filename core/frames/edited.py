@@ -66,20 +66,19 @@ class EditConfig:
                                   "'depth behind the nearest point') | from the deformed ray's nearest neighbour "
                                   "(ray; a squash or bend reorders the canonical depths along it)",
                        choices=DEPTH_REFS)
-    f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
-                                "stretch (f_radius_rule)")
-    f_radius_rule: str = opt("gap", "f_radius: gap (each point reaches the cap × the largest growth f_fill left "
-                                    "between consecutive points on its canonical neighbour pairs where that exceeds "
-                                    "f_fill_ratio — the fill budget kept them sparse — else 1; without f_fill its "
-                                    "largest local stretch above f_fill_ratio) | budget (gap, counting only pairs "
-                                    "the fill budget kept sparse: pairs grown so far that they got f_fill's most "
-                                    "points per pair, a joint's near-tears, reach no farther) | frame (the whole "
-                                    "frame's cap × the 90th percentile of the points' largest local stretch)",
-                             choices=RADIUS_RULES)
-    f_reach_gate: bool = opt(False, "f_radius with rule gap or budget: a ray with no point within the plain pixel radius cap "
-                                    "stays empty, so the per-point reach adds far points only to rays that already "
-                                    "see the object (the silhouette does not widen; the empty rays around it stop "
-                                    "searching at the cap)")
+    f_radius: bool = opt(True, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
+                               "stretch (f_radius_rule)")
+    f_radius_rule: str = opt("budget", "f_radius: gap (each point reaches the cap × the largest growth f_fill "
+                                       "left between consecutive points on its canonical neighbour pairs where that "
+                                       "exceeds f_fill_ratio, else 1; without f_fill its largest local stretch above "
+                                       "f_fill_ratio) | budget (gap, counting only the pairs the fill budget kept "
+                                       "sparse: pairs grown so far that they got f_fill's most points per pair, a "
+                                       "joint's near-tears, reach no farther) | frame (the whole frame's cap × the "
+                                       "90th percentile of the points' largest local stretch)", choices=RADIUS_RULES)
+    f_reach_gate: float = opt(1.0, "f_radius with rule gap or budget: a ray with no point within this many times "
+                                   "the plain pixel radius cap stays empty, so the per-point reach adds far points "
+                                   "only to rays near the object (1: rays that already see it; the empty rays around "
+                                   "it stop searching there); 0 = no gate", min=0.0, max=1e6)
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
@@ -360,10 +359,10 @@ class EditState:
         return 1.0, self.reach
 
     @property
-    def reach_gate(self) -> bool:
-        """Whether the neighbour search's per-point reach is gated (f_reach_gate with a reach in use): a ray the
-        plain pixel cap gives no point stays empty (`trace_frame(reach_gate=...)`)."""
-        return bool(self.cfg.f_reach_gate and self.search_radius()[1] is not None)
+    def reach_gate(self) -> float:
+        """The gate of the neighbour search's per-point reach (`trace_frame(reach_gate=...)`): f_reach_gate with a
+        reach in use, else 0 (none)."""
+        return float(self.cfg.f_reach_gate) if self.search_radius()[1] is not None else 0.0
 
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the

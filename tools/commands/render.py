@@ -58,9 +58,10 @@ def add_arguments(p):
                    help="--f-radius: gap (each point reaches farther by the growth the fill left on its neighbour "
                         "pairs) | budget (gap, only on pairs the fill budget kept sparse) | frame (the whole frame's "
                         "cap times the points' 90th-percentile stretch)")
-    p.add_argument("--f-reach-gate", action=argparse.BooleanOptionalAction, default=EditConfig.f_reach_gate,
-                   help="--f-radius gap / budget: a ray with no point within the plain pixel cap stays empty (the "
-                        "reach adds far points only to rays that already see the object)")
+    p.add_argument("--f-reach-gate", type=float, default=EditConfig.f_reach_gate,
+                   help="--f-radius gap / budget: a ray with no point within this many times the plain pixel cap "
+                        "stays empty (1: the reach adds far points only to rays that already see the object; 0 = "
+                        "no gate)")
     p.add_argument("--f-fill", action=argparse.BooleanOptionalAction, default=EditConfig.f_fill,
                    help="moved points: add points where the pose pulled canonical neighbours apart (a stretched "
                         "surface, a joint's blend band)")

@@ -43,11 +43,12 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
     xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
     weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
     pre-filled; values are ranked in float64 and stored in float32. rs [M] each point's reach factor (its cap is
-    cap × rs), rcell [ncx*ncy] the largest per cell, rs_max the largest of all (all ones: one cap). gate: a query
-    with no point within `cap` itself (reach 1) gets no neighbours (the reach adds points only to queries the plain
-    cap already gives one)."""
+    cap × rs), rcell [ncx*ncy] the largest per cell, rs_max the largest of all (all ones: one cap). gate > 0: a
+    query with no point within gate × cap gets no neighbours (gate 1: the reach adds points only to queries the
+    plain cap already gives one); 0: no gate."""
     reach = cap * rs_max  # no point is a candidate beyond this
-    rmax = int(math.ceil(reach / cell)) + 1
+    walk = max(reach, cap * gate)  # nor does the gate look farther
+    rmax = int(math.ceil(walk / cell)) + 1
     best = np.empty(k, dtype=np.float64)  # the query's K best values, ascending ...
     slot = np.empty(k, dtype=np.int64)  # ... and their slots
     for i in range(q.shape[0]):
@@ -55,20 +56,21 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
         qy = q[i, 1]
         if not (math.isfinite(qx) and math.isfinite(qy)):
             continue
-        if qx < -reach or qy < -reach or qx > ncx * cell + reach or qy > ncy * cell + reach:
+        if qx < -walk or qy < -walk or qx > ncx * cell + walk or qy > ncy * cell + walk:
             continue  # beyond the cap of every cell (and keeps the cell index arithmetic small)
         cx = int(math.floor(qx / cell))
         cy = int(math.floor(qy / cell))
         n = 0
-        near = not gate  # gate: whether a point lies within the plain cap (until then nothing is skipped there)
-        cap2 = cap * cap
+        near = gate <= 0.0  # gate: whether a point lies within gate × cap (until then nothing is skipped there)
+        gcap = cap * gate
+        gcap2 = gcap * gcap
         for r in range(rmax + 1):
             lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
-            if lb > reach:
+            if lb > reach and (near or lb > gcap):
                 break
-            if not near and lb > cap:
-                break  # gate: nothing within the plain cap, the query stays empty
-            if n == k and lb * wmin_all >= best[k - 1] and (near or lb > cap):
+            if not near and lb > gcap:
+                break  # gate: nothing within gate × cap, the query stays empty
+            if n == k and lb * wmin_all >= best[k - 1] and (near or lb > gcap):
                 break
             for dy in range(-r, r + 1):
                 y = cy + dy
@@ -91,15 +93,15 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                     ex = max(x * cell - qx, qx - (x + 1) * cell, 0.0)
                     ey = max(y * cell - qy, qy - (y + 1) * cell, 0.0)
                     md = math.sqrt(ex * ex + ey * ey)
-                    if md > cap * rcell[c]:
+                    if md > cap * rcell[c] and (near or md > gcap):
                         continue
-                    if n == k and md * wcell[c] >= best[k - 1] and (near or md > cap):
+                    if n == k and md * wcell[c] >= best[k - 1] and (near or md > gcap):
                         continue
                     for j in range(a, b):
                         ddx = xs[j] - qx
                         ddy = ys[j] - qy
                         d2 = ddx * ddx + ddy * ddy
-                        if not near and d2 <= cap2:
+                        if not near and d2 <= gcap2:
                             near = True
                         cj = cap * rs[j]
                         if d2 > cj * cj:
@@ -148,12 +150,12 @@ class CompiledGrid:
     height, width of the frame; reach [M] float64 >= 1 or None: point m is a candidate within cap × reach[m]
     pixels (cells are sized by `cap` × the square root of the median reach: a few far-reaching points do not make
     every query visit larger cells, and where most points reach far a query does not walk many small ones; the
-    answer does not depend on the cell size). gate: a query with no point within `cap` itself gets none."""
+    answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none."""
 
     def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
-                 width: int, reach: np.ndarray | None = None, gate: bool = False):
+                 width: int, reach: np.ndarray | None = None, gate: float = 0.0):
         self.cap = float(cap)
-        self.gate = bool(gate)
+        self.gate = float(gate) if gate and math.isfinite(float(gate)) and float(gate) > 0 else 0.0
         span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
         rs = np.ones(len(px)) if reach is None else np.maximum(np.nan_to_num(np.asarray(reach, dtype=np.float64),
                                                                              nan=1.0, posinf=1.0), 1.0)

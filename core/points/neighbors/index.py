@@ -62,14 +62,14 @@ class ScreenIndex:
     reach [N] (>= 1) or None: point n is a candidate within the cap × reach[n] pixels (a point whose surroundings a
     deformation stretched reaches farther). The compiled backend applies it per point, with cells still sized by
     the cap; the others, which have one cap per index, use the cap × the largest reach.
-    reach_gate: with reach, a query that has no point within the cap itself (reach 1) gets no neighbours: the reach
-    adds far points only to queries the plain cap already gives one (it does not widen the silhouette, and the
-    empty queries around the object stop at the cap).
+    reach_gate: with reach, a query that has no point within reach_gate × the cap gets no neighbours (1: the reach
+    adds far points only to queries the plain cap already gives one; the empty queries around the object stop
+    there instead of walking the largest reach); 0 (or False) = no gate.
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
                  depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto",
-                 reach: torch.Tensor | None = None, reach_gate: bool = False):
+                 reach: torch.Tensor | None = None, reach_gate: float = 0.0):
         check_matrix("points", points, 3)
         check_camera(c2w, height, width, focal)
         self.radius = check_radius(max_radius_px)
@@ -92,7 +92,8 @@ class ScreenIndex:
                                  f"{r.shape[0]}")
             r = torch.nan_to_num(r, nan=1.0, posinf=1.0).clamp_min(1.0)[keep]
             self.reach = r if bool((r > 1.0).any()) else None
-        self.reach_gate = bool(reach_gate) and self.reach is not None
+        g = float(reach_gate)
+        self.reach_gate = g if self.reach is not None and math.isfinite(g) and g > 0 else 0.0
         self.weight = depth[keep] / float(focal_scale(cam)) if depth_factor else None  # [M]
         self._density: float | None = None
         self._grids: dict[float, CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
@@ -141,7 +142,7 @@ class ScreenIndex:
         out = self._query_capped(query_px, k, self._uniform_cap(k))
         cap = self.radius_px(k)
         if self.reach_gate and math.isfinite(cap):  # the gate from a plain query of the nearest point
-            near = (self._query_capped(query_px, 1, cap).idx[:, 0] >= 0).to(out.idx.device)[:, None]
+            near = (self._query_capped(query_px, 1, cap * self.reach_gate).idx[:, 0] >= 0).to(out.idx.device)[:, None]
             out = Neighbors(torch.where(near, out.idx, -1), torch.where(near, out.dist, math.inf))
         return out
 

@@ -613,7 +613,7 @@ def test_reach_input_checks_and_hostile_values():
 
 
 def _gated(ref, plain):
-    """ref's rows emptied where the plain capped search (plain) found no candidate."""
+    """ref's rows emptied where the capped search `plain` (the gate's radius) found no candidate."""
     idx, dist = ref
     near = (plain[0] >= 0).any(1, keepdim=True)
     return torch.where(near, idx, -1), torch.where(near, dist, math.inf)
@@ -622,10 +622,11 @@ def _gated(ref, plain):
 @pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
 @pytest.mark.parametrize("depth_factor", [False, True])
 @pytest.mark.parametrize("most", [False, True])
-def test_reach_gate_keeps_rays_without_a_plain_candidate_empty(backend, depth_factor, most):
-    """reach_gate: a query with no point within the plain cap gets no neighbours, the others the reach search's
-    answer (compiled: per point; the one-cap backends: the cap × the largest reach). most: nearly every point
-    reaches far (the compiled grid then sizes its cells by the median reach; the answer must not change)."""
+@pytest.mark.parametrize("gate", [1.0, 2.5])
+def test_reach_gate_keeps_rays_without_a_plain_candidate_empty(backend, depth_factor, most, gate):
+    """reach_gate: a query with no point within gate × the plain cap gets no neighbours, the others the reach
+    search's answer (compiled: per point; the one-cap backends: the cap × the largest reach). most: nearly every
+    point reaches far (the compiled grid then sizes its cells by the median reach; the answer must not change)."""
     if backend == "compiled" and not compiled.available():
         pytest.skip("numba missing")
     pts = scene("blob", 800, 5)
@@ -637,11 +638,11 @@ def test_reach_gate_keeps_rays_without_a_plain_candidate_empty(backend, depth_fa
                         torch.ones(800))
     plain = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend)
     cap = plain.radius_px(12)
-    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_gate=True)
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_gate=gate)
     got = index.query(q, 12)
     per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
     ref = _gated(ref_screen(pts, c2w, q, 12, depth_factor, per_point.double()[None]),
-                 ref_screen(pts, c2w, q, 12, depth_factor, cap))
+                 ref_screen(pts, c2w, q, 12, depth_factor, cap * gate))
     assert_same(got, ref)
     open_ = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach).query(q, 12)
     assert_same(open_, ref_screen(pts, c2w, q, 12, depth_factor, per_point.double()[None]))
