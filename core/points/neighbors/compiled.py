@@ -60,11 +60,14 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
             continue  # beyond the cap of every cell (and keeps the cell index arithmetic small)
         cx = int(math.floor(qx / cell))
         cy = int(math.floor(qy / cell))
+        # rings nearer than the grid or beyond its far side hold no cell: walk only those that can
+        r0 = max(0, -cx, cx - (ncx - 1), -cy, cy - (ncy - 1))
+        rend = min(rmax, r0 + ncx + ncy)
         n = 0
         near = gate <= 0.0  # gate: whether a point lies within gate × cap (until then nothing is skipped there)
         gcap = cap * gate
         gcap2 = gcap * gcap
-        for r in range(rmax + 1):
+        for r in range(r0, rend + 1):
             lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
             if lb > reach and (near or lb > gcap):
                 break
@@ -72,10 +75,8 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                 break  # gate: nothing within gate × cap, the query stays empty
             if n == k and lb * wmin_all >= best[k - 1] and (near or lb > gcap):
                 break
-            for dy in range(-r, r + 1):
+            for dy in range(max(-r, -cy), min(r, ncy - 1 - cy) + 1):
                 y = cy + dy
-                if y < 0 or y >= ncy:
-                    continue
                 edge = dy == -r or dy == r
                 step = 1 if edge else 2 * r
                 dx = -r

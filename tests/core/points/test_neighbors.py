@@ -610,6 +610,19 @@ def test_reach_input_checks_and_hostile_values():
     assert index.reach is None  # nothing above 1 is left: the plain search
     got = index.query(random_px(50, 3), 8)
     assert torch.isfinite(got.dist[got.valid]).all()
+    far = torch.full((200,), 3.0)
+    q = random_px(50, 3)
+    open_ = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, reach=far).query(q, 8)
+    for gate in (float("nan"), float("inf"), -1.0, 0.0):  # no gate
+        idx = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, reach=far, reach_gate=gate)
+        assert idx.reach_gate == 0.0 and torch.equal(idx.query(q, 8).idx, open_.idx)
+    huge = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, reach=far, reach_gate=1e12).query(q, 8)
+    assert torch.equal(huge.idx, open_.idx)  # a gate wider than every reach gates nothing
+    corners = torch.tensor([[0.5, 0.5], [W - 0.5, H - 0.5], [-40.0, -40.0], [W + 40.0, 5.0]])
+    for r, g in ((1e6, 1e12), (1e12, 0.0)):  # empty queries stop at the grid's edge, however far the reach
+        got = nb.ScreenIndex(pts[:3], c2w, H, W, FOCAL, True, reach=torch.full((3,), r),
+                             reach_gate=g).query(corners, 4)
+        assert got.idx.shape == (4, 4) and torch.isfinite(got.dist[got.valid]).all()
 
 
 def _gated(ref, plain):
