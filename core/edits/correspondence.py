@@ -47,12 +47,15 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
         raise ValueError(f"correspondence must be one of {MODES}, got {mode!r}")
     w = fg_weights * (idx >= 0)
     safe = idx.clamp_min(0)
+    disp = None  # the neighbours' displacements p_can − p_def [R, K, 3], once gathered
     if fold_radius is not None and fold_radius < float("inf") and w.shape[1]:
         local = None
         if fold_inv_f is not None:  # each neighbour's estimate of the canonical point, through its local map
             off = project_on_ray(x_hat, origins, dirs)[:, None, :] - p_def[safe]
             local = p_can[safe] + (fold_inv_f[safe] @ off[..., None]).squeeze(-1)        # [R, K, 3]
-        w, x_hat = _fold_reject(w, idx, safe, x_hat, p_def, p_can, float(fold_radius), local)
+        else:
+            disp = (p_can - p_def)[safe]
+        w, x_hat = _fold_reject(w, idx, safe, x_hat, p_def, p_can, float(fold_radius), local, disp)
     if mode == "naive":
         return (w[..., None] * p_can[safe]).sum(1)
     x_def = project_on_ray(x_hat, origins, dirs)
@@ -63,8 +66,9 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
         back = (inv_f[safe] @ off[..., None]).squeeze(-1)
         # rows whose weights do not sum to one keep the rest at x_def, as the deform-aware sum does
         return (w[..., None] * (p_can[safe] + back)).sum(1) + (1.0 - w.sum(1, keepdim=True)) * x_def
-    disp = (w[..., None] * (p_can[safe] - p_def[safe])).sum(1)
-    return x_def + disp
+    if disp is None:
+        disp = p_can[safe] - p_def[safe]
+    return x_def + (w[..., None] * disp).sum(1)
 
 
 def ray_canonical_points(trace: Trace, sel: torch.Tensor | None = None, p_def: torch.Tensor | None = None,
@@ -95,25 +99,29 @@ def ray_canonical_points(trace: Trace, sel: torch.Tensor | None = None, p_def: t
 
 
 def _fold_reject(w: torch.Tensor, idx: torch.Tensor, safe: torch.Tensor, x_hat: torch.Tensor, p_def: torch.Tensor,
-                 p_can: torch.Tensor, radius: float, local: torch.Tensor | None = None
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+                 p_can: torch.Tensor, radius: float, local: torch.Tensor | None = None,
+                 disp: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Weights [R, K] over the neighbours whose displacement lies within `radius` of that of each ray's
     most-attended one, renormalised to the row's old sum, and x̂ [R, 3] recomputed from them (rows the rule left
     whole unchanged). local [R, K, 3]: compare these per-neighbour canonical estimates instead of the
     displacements (under any affine map of one part they agree exactly: a uniform stretch or a rotation drops
-    nothing; a part the pose brought there from elsewhere still disagrees by about its canonical distance)."""
+    nothing; a part the pose brought there from elsewhere still disagrees by about its canonical distance).
+    disp [R, K, 3]: the neighbours' displacements p_can − p_def when the caller has gathered them."""
     slot = w.argmax(1, keepdim=True)                                             # [R, 1]
     if local is not None:
         dist = (local - local.gather(1, slot[..., None].expand(-1, 1, 3))).norm(dim=-1)      # [R, K]
     else:
-        anchor = safe.gather(1, slot)                                            # [R, 1]
-        disp = p_can - p_def                                                     # [M, 3]
-        dist = (disp[safe] - disp[anchor]).norm(dim=-1)                          # [R, K]
+        if disp is None:
+            disp = (p_can - p_def)[safe]                                         # [R, K, 3]
+        dist = (disp - disp.gather(1, slot[..., None].expand(-1, 1, 3))).norm(dim=-1)  # [R, K]
     keep = (idx >= 0) & ~(dist > radius)  # NaN positions: kept, as without the rule
     kept = w * keep
     total, left = w.sum(1, keepdim=True), kept.sum(1, keepdim=True)
     ok = left > 0
     dropped = ok & (kept != w).any(1, keepdim=True)  # rows the rule changed; the others stay bit-identical
     kept = torch.where(dropped, kept * (total / left.clamp_min(1e-30)), w)
-    x_new = (kept[..., None] * p_def[safe]).sum(1) / kept.sum(1, keepdim=True).clamp_min(1e-30)
-    return kept, torch.where(dropped, x_new, x_hat)
+    rows = torch.nonzero(dropped.squeeze(1)).squeeze(1)
+    x_new = x_hat.clone()
+    kr = kept[rows]
+    x_new[rows] = (kr[..., None] * p_def[safe[rows]]).sum(1) / kr.sum(1, keepdim=True).clamp_min(1e-30)
+    return kept, x_new

@@ -255,19 +255,20 @@ class DeformationField:
     @torch.no_grad()
     def gradients_and_fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
                            max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False,
-                           with_gap: bool = False):
+                           with_gap: bool = False, gap_pairs: str = "all"):
         """`gradients` and `fill` of the same points, sharing their neighbour gathering: (F [M, 3, 3], (new [P, 3],
         canonical [P, 3], source [P])); with_partner: the fill's tuple also holds partner [P] and fraction [P]
-        (see `fill`); with_gap: it also ends with gap [M] (see `fill`)."""
+        (see `fill`); with_gap: it also ends with gap [M] (see `fill`, and gap_pairs)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         if pts.shape[0] == 0:
             return torch.zeros(0, 3, 3, device=self.device), self.fill(pts, ids, ratio, max_per_pair, budget,
-                                                                       with_partner, with_gap)
+                                                                       with_partner, with_gap, gap_pairs)
         gathered = self._gather_deformed(pts, ids, with_rows=True)
         return (self._fit(pts, *gathered[:5], ids),
-                self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap))
+                self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap,
+                           canonical_rows=ids is None, gap_pairs=gap_pairs))
 
     def _fit(self, pts, dc, dd, w, cid, own_ok, ids):
         """The fit of `gradients` from gathered neighbour offsets (see _gather_deformed)."""
@@ -328,7 +329,7 @@ class DeformationField:
     @torch.no_grad()
     def fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
              max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False,
-             with_gap: bool = False) -> tuple:
+             with_gap: bool = False, gap_pairs: str = "all") -> tuple:
         """Extra points where the deformation pulled canonical neighbours apart (a stretched surface: a joint's
         blend band, a scaled part), so the deformed cloud keeps about its canonical density.
 
@@ -345,15 +346,37 @@ class DeformationField:
         the segment from the source towards the partner the point lies (to blend the two ends' features).
         with_gap: the tuple ends with gap [M] float32 >= 1, per given point the largest growth g / (n + 1) left
         between consecutive points on any of its pairs where that exceeds `ratio` (the budget or max_per_pair kept
-        a stretched pair sparser than the ratio; pairs beyond max_stretch are tears and count as closed), else 1."""
+        a stretched pair sparser than the ratio; pairs beyond max_stretch are tears and count as closed), else 1;
+        gap_pairs "budget": only pairs the budget kept sparse count (those that got max_per_pair points, grown
+        past max_per_pair + 1 times the ratio — a joint's near-tears — count as closed)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         gathered = self._gather_deformed(pts, ids, with_rows=True) if pts.shape[0] else None
-        return self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap)
+        return self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap,
+                          canonical_rows=ids is None, gap_pairs=gap_pairs)
 
-    def _fill(self, pts, gathered, ratio, max_per_pair, budget, with_partner=False, with_gap=False):
-        """The work of `fill` from gathered neighbour offsets (_gather_deformed with rows; None: no points)."""
+    @property
+    def reverse_slots(self) -> torch.Tensor:
+        """[N, k] int64: for each canonical pair (j, l = nbr[j, s]) the slot of j in l's neighbour list, -1 where l
+        does not list j (or the slot is empty). Built on first use, once per model."""
+        if getattr(self, "_reverse", None) is None:
+            nb = self.nbr
+            rev = torch.full_like(nb, -1)
+            for s in range(0, nb.shape[0], 4096):  # [chunk, k, k] matches, bounded memory
+                part = nb[s:s + 4096]
+                hit = (nb[part.clamp_min(0)] == torch.arange(s, s + part.shape[0], device=nb.device)[:, None, None])
+                hit &= (part >= 0)[..., None]
+                first = hit.int().argmax(-1)
+                rev[s:s + part.shape[0]] = torch.where(hit.any(-1), first, -1)
+            self._reverse = rev
+        return self._reverse
+
+    def _fill(self, pts, gathered, ratio, max_per_pair, budget, with_partner=False, with_gap=False,
+              canonical_rows=False, gap_pairs="all"):
+        """The work of `fill` from gathered neighbour offsets (_gather_deformed with rows; None: no points).
+        canonical_rows: the points are the canonical ones in order (no ids), so the rows gathered are the cached
+        neighbour lists and whether a pair's other end lists it back is looked up (`reverse_slots`)."""
         gap = torch.ones(pts.shape[0], dtype=torch.float32, device=self.device)
         empty = (pts.new_zeros(0, 3), pts.new_zeros(0, 3), torch.zeros(0, dtype=torch.long, device=self.device))
         if with_partner:
@@ -368,17 +391,32 @@ class DeformationField:
             return empty
         dc, dd, w, cid, own_ok, rows = gathered
         m = pts.shape[0]
-        lc, ld = dc.norm(dim=-1), dd.norm(dim=-1)                                   # [M, k]
+        if dc is self._dc:  # the canonical offsets' lengths, once per model
+            if getattr(self, "_dc_len", None) is None:
+                self._dc_len = self._dc.norm(dim=-1)
+            lc = self._dc_len
+        else:
+            lc = dc.norm(dim=-1)
+        ld = dd.norm(dim=-1)                                                         # [M, k]
         grow = ld / lc.clamp_min(1e-30)
         sel = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow > ratio) & (grow <= self.cfg.max_stretch)
-        j, slot = torch.nonzero(sel, as_tuple=True)
-        if j.numel() == 0:
-            return empty
         # each pair once: keep j -> l when j < l, or when l does not list j (one-sided neighbourhoods)
-        other = rows[j, slot]
-        back = ((rows[other] == j[:, None]) & (w[other] > 0)).any(1)
-        once = (j < other) | ~back
-        j, slot = j[once], slot[once]
+        if canonical_rows and rows.shape == self.nbr.shape:  # the cached lists: look the other side up
+            rev = self.reverse_slots
+            k = rows.shape[1]
+            back = (rev >= 0) & (w.reshape(-1)[rows * k + rev.clamp_min(0)] > 0)
+            sel &= (torch.arange(m, device=rows.device)[:, None] < rows) | ~back
+            j, slot = torch.nonzero(sel, as_tuple=True)
+            if j.numel() == 0:
+                return empty
+        else:
+            j, slot = torch.nonzero(sel, as_tuple=True)
+            if j.numel() == 0:
+                return empty
+            other = rows[j, slot]
+            back = ((rows[other] == j[:, None]) & (w[other] > 0)).any(1)
+            once = (j < other) | ~back
+            j, slot = j[once], slot[once]
         g = grow[j, slot].double()
         cap = int(max_per_pair)
 
@@ -388,18 +426,13 @@ class DeformationField:
         n = count(ratio)
         limit = int(budget * m)
         if int(n.sum()) > limit:
-            # raise the ratio to the smallest that keeps the budget: the count only changes where the ratio
-            # crosses some g / i (i = 1 .. cap) and falls as the ratio grows, so bisect over those values
-            steps = g[:, None] / torch.arange(1, cap + 1, dtype=g.dtype, device=g.device)
-            cands = torch.unique(steps[steps >= ratio])                          # ascending; count(max) = 0
-            lo, hi = 0, cands.numel() - 1
-            while lo < hi:
-                mid = (lo + hi) // 2
-                lo, hi = (lo, mid) if int(count(float(cands[mid])).sum()) <= limit else (mid + 1, hi)
-            n = count(float(cands[lo]))
+            n = count(_budget_ratio(g, ratio, cap, limit, count))
         if with_gap:  # growth left between consecutive points of each pair, at both ends
             left = (g / (n + 1).to(g.dtype)).to(torch.float32)
-            left = torch.where(left > ratio, left, torch.ones_like(left))
+            open_ = left > ratio
+            if gap_pairs == "budget":
+                open_ &= n < cap
+            left = torch.where(open_, left, torch.ones_like(left))
             gap = gap.scatter_reduce(0, j, left, "amax").scatter_reduce(0, rows[j, slot], left, "amax")
             empty = empty[:-1] + (gap,)
         keep = n > 0
@@ -421,6 +454,36 @@ class DeformationField:
             fraction = torch.where(near_j, t[:, 0], 1.0 - t[:, 0])
             out = out + (partner, fraction)
         return out + (gap,) if with_gap else out
+
+
+def _budget_ratio(g: torch.Tensor, ratio: float, cap: int, limit: int, count) -> float:
+    """The smallest ratio r among the values g / i (i = 1 .. cap, r >= ratio) at which count(r).sum() <= limit:
+    g [P] float64 the pairs' growths, count(r) -> [P] the points per pair at ratio r (non-increasing in r).
+
+    The count only changes where r crosses some g / i, so r is one of those steps. A pair gets one point per step
+    above r (at most cap), so the count at r is the number of steps above it and r is about the (limit + 1)-th
+    largest step: taken from a partial sort and checked (it keeps the budget, the next smaller step does not);
+    where the check fails (ties, rounding) a bisection over all distinct steps decides, as it always did."""
+    steps = (g[:, None] / torch.arange(1, cap + 1, dtype=g.dtype, device=g.device)).reshape(-1)
+    ok = lambda r: int(count(r).sum()) <= limit  # noqa: E731
+    if limit + 1 <= steps.numel():
+        top = torch.topk(steps, min(limit + 2, steps.numel())).values               # descending
+        r = float(top[limit])
+        below = float(top[limit + 1]) if limit + 1 < top.numel() else None
+        if below is not None and below >= r:  # a tie at r: the largest step below it
+            low = steps[steps < r]
+            below = float(low.max()) if low.numel() else None
+        if below is not None and below < ratio:
+            below = None  # r is the smallest step at or above the ratio
+        if r >= ratio and ok(r) and (below is None or not ok(below)):
+            return r
+    steps = steps[steps >= ratio]
+    cands = torch.unique(steps)                                                       # ascending; count(max) = 0
+    lo, hi = 0, cands.numel() - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if ok(float(cands[mid])) else (mid + 1, hi)
+    return float(cands[lo])
 
 
 def _moments(w: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

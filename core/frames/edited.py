@@ -38,7 +38,7 @@ COMPRESSION = ("tangent", "keep", "undo", "auto")
 DEPTH_REFS = ("nearest", "ray")
 FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
-RADIUS_RULES = ("gap", "frame")
+RADIUS_RULES = ("gap", "budget", "frame")
 RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
 
 
@@ -66,13 +66,19 @@ class EditConfig:
                                   "'depth behind the nearest point') | from the deformed ray's nearest neighbour "
                                   "(ray; a squash or bend reorders the canonical depths along it)",
                        choices=DEPTH_REFS)
-    f_radius: bool = opt(False, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
-                                "stretch (f_radius_rule)")
-    f_radius_rule: str = opt("gap", "f_radius: gap (each point reaches the cap × the largest growth f_fill left "
-                                    "between consecutive points on its canonical neighbour pairs where that exceeds "
-                                    "f_fill_ratio — the fill budget kept them sparse — else 1; without f_fill its "
-                                    "largest local stretch above f_fill_ratio) | frame (the whole frame's cap × the "
-                                    "90th percentile of the points' largest local stretch)", choices=RADIUS_RULES)
+    f_radius: bool = opt(True, "moved points: scale the screen neighbour search's pixel radius cap by the points' "
+                               "stretch (f_radius_rule)")
+    f_radius_rule: str = opt("budget", "f_radius: gap (each point reaches the cap × the largest growth f_fill "
+                                       "left between consecutive points on its canonical neighbour pairs where that "
+                                       "exceeds f_fill_ratio, else 1; without f_fill its largest local stretch above "
+                                       "f_fill_ratio) | budget (gap, counting only the pairs the fill budget kept "
+                                       "sparse: pairs grown so far that they got f_fill's most points per pair, a "
+                                       "joint's near-tears, reach no farther) | frame (the whole frame's cap × the "
+                                       "90th percentile of the points' largest local stretch)", choices=RADIUS_RULES)
+    f_reach_gate: float = opt(1.0, "f_radius with rule gap or budget: a ray with no point within this many times "
+                                   "the plain pixel radius cap stays empty, so the per-point reach adds far points "
+                                   "only to rays near the object (1: rays that already see it; the empty rays around "
+                                   "it stop searching there); 0 = no gate", min=0.0, max=1e6)
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
@@ -215,7 +221,7 @@ class EditState:
         fld = field_for(self.bundle.model, self.deformation_cfg)
         f, (new, can, src, partner, frac, gap) = self._timed(lambda: fld.gradients_and_fill(
             self.points, self.ids, ratio=self.cfg.f_fill_ratio, budget=self.cfg.f_fill_budget, with_partner=True,
-            with_gap=True))
+            with_gap=True, gap_pairs="budget" if self.cfg.f_radius_rule == "budget" else "all"))
         self._f = f
         self._gap = gap
         self.fit_seconds = self.deformation_seconds
@@ -352,6 +358,12 @@ class EditState:
             return self.radius_scale, None
         return 1.0, self.reach
 
+    @property
+    def reach_gate(self) -> float:
+        """The gate of the neighbour search's per-point reach (`trace_frame(reach_gate=...)`): f_reach_gate with a
+        reach in use, else 0 (none)."""
+        return float(self.cfg.f_reach_gate) if self.search_radius()[1] is not None else 0.0
+
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
         fit took; what this state derives from F is computed (and timed) here."""
@@ -374,7 +386,8 @@ class EditState:
         search = torch.where(torch.isfinite(pts).all(dim=1)[:, None], pts, torch.full_like(pts, float("nan")))
         radius_scale, reach = self.search_radius()
         return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
-                            model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach)
+                            model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach,
+                            reach_gate=self.reach_gate)
 
     def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
@@ -538,6 +551,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                          rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
+                         reach_gate=state.reach_gate,
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
     else:

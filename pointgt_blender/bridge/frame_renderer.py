@@ -134,11 +134,12 @@ def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, foca
     c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float32))
     cfg = state.cfg  # the same keys and radius as render_edited's own trace (F-aware for moved points)
     index = state.search_index(c2w_t, height, width, focal, None if k is None else int(k))  # shared, as there
-    radius_scale, reach = state.search_radius()  # f_radius (off by default): the frame's factor or each point's
+    radius_scale, reach = state.search_radius()  # f_radius: the frame's factor or each point's reach
     tr = trace_frame(state.bundle.model, c2w_t, height, width, focal, points=state.points,
                      influence=state.influence, k=None if k is None else int(k),
                      temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
-                     rebase_depth=state.rebase_depth, radius_scale=radius_scale, reach=reach, index=index)
+                     rebase_depth=state.rebase_depth, radius_scale=radius_scale, reach=reach, index=index,
+                     reach_gate=state.reach_gate)
     return state.visible_layer(tr, c2w_t, focal, index=index)  # the occlusion rule, as render_edited applies it
 
 

@@ -8,6 +8,10 @@ into the atlas; every frame then builds a fresh EditState, as an animation does 
 so the F fit (canonical neighbourhoods cached per model, one O(N·k) least-squares fit per frame) is charged to
 every frame. Variants are interleaved per camera and repeat (the machine's load drifts alike for all), one torch
 thread; the table gives the median wall and CPU (process) seconds per frame and the CPU ratio to today's.
+`--profile`: a second table splits each variant's CPU milliseconds per frame (mean) into stages, by wrapping their
+functions (tools.bench.render's timed_parts): the F fit (neighbour gathering and least squares), the fill, the
+neighbour search, the attention, shading and decoder, the correspondence, the texture lookup; "other" is the rest
+(ray set-up, the inverse gradients, compositing, bookkeeping).
 """
 from __future__ import annotations
 
@@ -19,7 +23,7 @@ from pathlib import Path
 _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware",
         "f_depth": "ray",
         "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
-        "fold_test": "displacement", "f_radius_rule": "frame"}
+        "fold_test": "displacement", "f_radius_rule": "frame", "f_reach_gate": 0.0}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -51,13 +55,58 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, deform-aware": {
         **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
         "f_depth": "nearest", "f_compression": "auto"},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, gap reach, "
+    "deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "gap"},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, gated gap reach, "
+    "deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "gap",
+        "f_reach_gate": 1.0},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach, "
+    "deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget"},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1 cap, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.0},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 2 caps, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 2.0},
 }
 
 
+PROFILE_STAGES = ("F fit", "fill", "neighbour search", "attention", "shading + decoder", "correspondence",
+                  "texture lookup")
+
+
+def _stage_parts(bundle) -> list:
+    """(object, attribute, label) of the parts --profile times (the model's cached DeformationField included)."""
+    import core.frames.edited as edited_mod
+    import core.points.render as render_mod
+    from core.edits.deformation import field_for
+
+    fld = field_for(bundle.model)
+    return [(fld, "_gather_deformed", "F fit"), (fld, "_fit", "F fit"), (fld, "_fill", "fill"),
+            (render_mod, "select_neighbors", "neighbour search"), (render_mod, "attend_compiled", "attention"),
+            (bundle.model, "attend", "attention"), (edited_mod, "shade_frame", "shading + decoder"),
+            (edited_mod, "ray_canonical_points", "correspondence"), (edited_mod, "_filtered_lookup", "texture lookup")]
+
+
 def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats: int, size: int | None = None,
-        log=print, variants: list[str] | None = None) -> dict:
-    """variants: names of VARIANTS to time (default: all); today's renderer is always the first."""
+        log=print, variants: list[str] | None = None, profile: bool = False) -> dict:
+    """variants: names of VARIANTS to time (default: all); today's renderer is always the first. profile: also the
+    mean CPU seconds per frame of each stage (PROFILE_STAGES, and "other")."""
+    import contextlib
+
     import torch
+
+    from tools.bench.render import timed_parts
 
     from core.bundle import load_bundle
     from core.edits.bake import bake
@@ -88,20 +137,33 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
     wall = {v: [] for v in VARIANTS}
     cpu = {v: [] for v in VARIANTS}
     fit = {v: [] for v in VARIANTS}
+    stages = {v: {} for v in VARIANTS}
     for rep in range(repeats + 1):  # the first round warms up (caches the canonical neighbourhoods)
         for i in cams:
             for name, over in chosen.items():
+                acc = {}
+                timing = timed_parts(bundle, acc, _stage_parts(bundle), clock=time.process_time) if profile and rep \
+                    else contextlib.nullcontext()
                 t, tc = time.perf_counter(), time.process_time()
-                state = EditState(bundle, points=points, atlas=atlas, cfg=EditConfig(**over))
-                render_edited(state, test.c2w[i], hw, hw, focal)
+                with timing:
+                    state = EditState(bundle, points=points, atlas=atlas, cfg=EditConfig(**over))
+                    render_edited(state, test.c2w[i], hw, hw, focal)
                 if rep:
                     wall[name].append(time.perf_counter() - t)
                     cpu[name].append(time.process_time() - tc)
                     fit[name].append(state.deformation_seconds)
+                    acc["other"] = cpu[name][-1] - sum(acc.values())
+                    for key, sec in acc.items():
+                        stages[name][key] = stages[name].get(key, 0.0) + sec
     base = statistics.median(cpu[next(iter(VARIANTS))])
     rows = [{"variant": v, "wall": statistics.median(wall[v]), "cpu": statistics.median(cpu[v]),
              "cpu_ratio": statistics.median(cpu[v]) / base, "f_seconds": statistics.median(fit[v])}
             for v in chosen]
+    if profile:
+        frames = len(cams) * repeats
+        for r in rows:
+            r["stages_ms"] = {key: 1000 * stages[r["variant"]].get(key, 0.0) / frames
+                              for key in (*PROFILE_STAGES, "other")}
     return {"model": str(model_path), "scene": spec.get("name"), "pose": pose, "magnitude": magnitude,
             "size": f"{hw}x{hw}", "points": bundle.model.num_points, "frames": len(cams) * repeats,
             "machine": machine_info(), "rows": rows}
@@ -116,6 +178,12 @@ def markdown(res: dict) -> str:
     for r in res["rows"]:
         lines.append(f"| {r['variant']} | {r['wall']:.3f} | {r['cpu']:.3f} | {100 * (r['cpu_ratio'] - 1):+.0f} % | "
                      f"{r['f_seconds']:.3f} |")
+    if res["rows"] and "stages_ms" in res["rows"][0]:
+        keys = list(res["rows"][0]["stages_ms"])
+        lines += ["", "CPU ms per frame (mean) by stage:", "",
+                  "| variant | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
+        for r in res["rows"]:
+            lines.append(f"| {r['variant']} | " + " | ".join(f"{r['stages_ms'][k]:.1f}" for k in keys) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -128,12 +196,13 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=4, help="test cameras")
     ap.add_argument("--size", type=int, default=None, help="frame size in pixels (default: the scene's)")
     ap.add_argument("--repeats", type=int, default=3, help="timed rounds over the cameras (after one warm-up)")
+    ap.add_argument("--profile", action="store_true", help="also split each variant's CPU time into stages")
     ap.add_argument("--variants", default=None,
                     help="semicolon-separated variant names to time (default: all; today's is always timed first)")
     args = ap.parse_args(argv)
     variants = [v.strip() for v in args.variants.split(";") if v.strip()] if args.variants else None
     res = run(args.model, args.scene, args.pose, args.magnitude, args.views, args.repeats, args.size,
-              variants=variants)
+              variants=variants, profile=args.profile)
     print(markdown(res))
     return 0
 

@@ -36,7 +36,12 @@ def add_arguments(p):
                         "f-fill-fold-blend-depth (f-fill-fold-blend, the keys' depths from the ray's nearest "
                         "neighbour in the canonical frames, f_depth nearest) | f-fill-fold-blend-depth-undo (both) | "
                         "f-fill-fold-blend-depth-auto (f-fill-fold-blend-depth, undo on a model whose points form "
-                        "a thick shell, f_compression auto)")
+                        "a thick shell, f_compression auto) | f-fill-fold-blend-depth-auto-reach (it, with "
+                        "f-fill-fold-blend-reach's reach) | f-fill-fold-blend-depth-auto-budget (it, with the reach "
+                        "from the pairs the fill budget kept sparse only, f_radius_rule budget) | "
+                        "f-fill-fold-blend-depth-auto-budget-gate (that reach only for rays the plain pixel cap gives "
+                        "a point, f_reach_gate 1) | f-fill-fold-blend-depth-auto-budget-gate2 (the gate at twice the "
+                        "cap)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

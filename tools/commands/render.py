@@ -56,7 +56,12 @@ def add_arguments(p):
                    help="moved points: neighbour search radius cap scaled by the points' stretch")
     p.add_argument("--f-radius-rule", default=EditConfig.f_radius_rule, choices=RADIUS_RULES,
                    help="--f-radius: gap (each point reaches farther by the growth the fill left on its neighbour "
-                        "pairs) | frame (the whole frame's cap times the points' 90th-percentile stretch)")
+                        "pairs) | budget (gap, only on pairs the fill budget kept sparse) | frame (the whole frame's "
+                        "cap times the points' 90th-percentile stretch)")
+    p.add_argument("--f-reach-gate", type=float, default=EditConfig.f_reach_gate,
+                   help="--f-radius gap / budget: a ray with no point within this many times the plain pixel cap "
+                        "stays empty (1: the reach adds far points only to rays that already see the object; 0 = "
+                        "no gate)")
     p.add_argument("--f-fill", action=argparse.BooleanOptionalAction, default=EditConfig.f_fill,
                    help="moved points: add points where the pose pulled canonical neighbours apart (a stretched "
                         "surface, a joint's blend band)")
@@ -176,6 +181,7 @@ def run(args) -> int:
     cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
                               f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
                               f_depth=args.f_depth, f_thick_spread=args.f_thick_spread, f_radius_rule=args.f_radius_rule,
+                              f_reach_gate=args.f_reach_gate,
                               f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
                               f_fill_features=args.f_fill_features,
                               fold_radius=args.fold_radius, fold_test=args.fold_test, f_occlusion=args.f_occlusion,

@@ -38,14 +38,17 @@ def available() -> bool:
 
 
 def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val, rs, rcell,
-            rs_max):
+            rs_max, gate):
     """For each query q[i] = (col, row) relative to the grid origin: its K best (ids[slot], value) ascending.
     xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
     weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
     pre-filled; values are ranked in float64 and stored in float32. rs [M] each point's reach factor (its cap is
-    cap × rs), rcell [ncx*ncy] the largest per cell, rs_max the largest of all (all ones: one cap)."""
+    cap × rs), rcell [ncx*ncy] the largest per cell, rs_max the largest of all (all ones: one cap). gate > 0: a
+    query with no point within gate × cap gets no neighbours (gate 1: the reach adds points only to queries the
+    plain cap already gives one); 0: no gate."""
     reach = cap * rs_max  # no point is a candidate beyond this
-    rmax = int(math.ceil(reach / cell)) + 1
+    walk = max(reach, cap * gate)  # nor does the gate look farther
+    rmax = int(math.ceil(walk / cell)) + 1
     best = np.empty(k, dtype=np.float64)  # the query's K best values, ascending ...
     slot = np.empty(k, dtype=np.int64)  # ... and their slots
     for i in range(q.shape[0]):
@@ -53,21 +56,27 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
         qy = q[i, 1]
         if not (math.isfinite(qx) and math.isfinite(qy)):
             continue
-        if qx < -reach or qy < -reach or qx > ncx * cell + reach or qy > ncy * cell + reach:
+        if qx < -walk or qy < -walk or qx > ncx * cell + walk or qy > ncy * cell + walk:
             continue  # beyond the cap of every cell (and keeps the cell index arithmetic small)
         cx = int(math.floor(qx / cell))
         cy = int(math.floor(qy / cell))
+        # rings nearer than the grid or beyond its far side hold no cell: walk only those that can
+        r0 = max(0, -cx, cx - (ncx - 1), -cy, cy - (ncy - 1))
+        rend = min(rmax, r0 + ncx + ncy)
         n = 0
-        for r in range(rmax + 1):
+        near = gate <= 0.0  # gate: whether a point lies within gate × cap (until then nothing is skipped there)
+        gcap = cap * gate
+        gcap2 = gcap * gcap
+        for r in range(r0, rend + 1):
             lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
-            if lb > reach:
+            if lb > reach and (near or lb > gcap):
                 break
-            if n == k and lb * wmin_all >= best[k - 1]:
+            if not near and lb > gcap:
+                break  # gate: nothing within gate × cap, the query stays empty
+            if n == k and lb * wmin_all >= best[k - 1] and (near or lb > gcap):
                 break
-            for dy in range(-r, r + 1):
+            for dy in range(max(-r, -cy), min(r, ncy - 1 - cy) + 1):
                 y = cy + dy
-                if y < 0 or y >= ncy:
-                    continue
                 edge = dy == -r or dy == r
                 step = 1 if edge else 2 * r
                 dx = -r
@@ -85,14 +94,16 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                     ex = max(x * cell - qx, qx - (x + 1) * cell, 0.0)
                     ey = max(y * cell - qy, qy - (y + 1) * cell, 0.0)
                     md = math.sqrt(ex * ex + ey * ey)
-                    if md > cap * rcell[c]:
+                    if md > cap * rcell[c] and (near or md > gcap):
                         continue
-                    if n == k and md * wcell[c] >= best[k - 1]:
+                    if n == k and md * wcell[c] >= best[k - 1] and (near or md > gcap):
                         continue
                     for j in range(a, b):
                         ddx = xs[j] - qx
                         ddy = ys[j] - qy
                         d2 = ddx * ddx + ddy * ddy
+                        if not near and d2 <= gcap2:
+                            near = True
                         cj = cap * rs[j]
                         if d2 > cj * cj:
                             continue
@@ -109,6 +120,8 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                         slot[p] = j
                         if n < k:
                             n += 1
+        if not near:
+            continue
         for p in range(n):
             out_idx[i, p] = ids[slot[p]]
             out_val[i, p] = best[p]
@@ -136,13 +149,19 @@ class CompiledGrid:
     px [M, 2] float64 (col, row) pixel coords, already filtered (finite, in front, inside the frame ± 1 px);
     weight [M] float64 or None; ids [M] int64, what a query returns for each point; cap > 0 pixels (finite);
     height, width of the frame; reach [M] float64 >= 1 or None: point m is a candidate within cap × reach[m]
-    pixels (cells stay sized by `cap`, so a few far-reaching points do not make every query visit larger cells)."""
+    pixels (cells are sized by `cap` × the square root of the median reach: a few far-reaching points do not make
+    every query visit larger cells, and where most points reach far a query does not walk many small ones; the
+    answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none."""
 
     def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
-                 width: int, reach: np.ndarray | None = None):
+                 width: int, reach: np.ndarray | None = None, gate: float = 0.0):
         self.cap = float(cap)
+        self.gate = float(gate) if gate and math.isfinite(float(gate)) and float(gate) > 0 else 0.0
         span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
-        self.cell = max(_CELL_PER_CAP * self.cap, math.sqrt(span_x * span_y / _MAX_CELLS))
+        rs = np.ones(len(px)) if reach is None else np.maximum(np.nan_to_num(np.asarray(reach, dtype=np.float64),
+                                                                             nan=1.0, posinf=1.0), 1.0)
+        grow = math.sqrt(float(np.median(rs))) if len(rs) else 1.0
+        self.cell = max(_CELL_PER_CAP * self.cap * grow, math.sqrt(span_x * span_y / _MAX_CELLS))
         self.ncx = int(span_x // self.cell) + 1
         self.ncy = int(span_y // self.cell) + 1
         rel = np.asarray(px, dtype=np.float64) + 1.0  # grid origin at (-1, -1)
@@ -160,8 +179,6 @@ class CompiledGrid:
         self.wcell = np.full(self.ncx * self.ncy, np.inf)
         np.minimum.at(self.wcell, cell_id, w)
         self.wmin = float(w.min()) if len(w) else 1.0
-        rs = np.ones(len(rel)) if reach is None else np.maximum(np.nan_to_num(np.asarray(reach, dtype=np.float64),
-                                                                              nan=1.0, posinf=1.0), 1.0)
         self.rs = np.ascontiguousarray(rs[self.order])
         self.rcell = np.ones(self.ncx * self.ncy)
         np.maximum.at(self.rcell, cell_id, rs)
@@ -176,5 +193,5 @@ class CompiledGrid:
         if r and len(self.xs):
             qq = np.ascontiguousarray(np.asarray(q, dtype=np.float64) + 1.0)
             _get_kernel()(self.xs, self.ys, self.ws, self.ids, self.wcell, self.start, self.ncx, self.ncy, self.cell,
-                          self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max)
+                          self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max, self.gate)
         return idx, val

@@ -62,11 +62,14 @@ class ScreenIndex:
     reach [N] (>= 1) or None: point n is a candidate within the cap × reach[n] pixels (a point whose surroundings a
     deformation stretched reaches farther). The compiled backend applies it per point, with cells still sized by
     the cap; the others, which have one cap per index, use the cap × the largest reach.
+    reach_gate: with reach, a query that has no point within reach_gate × the cap gets no neighbours (1: the reach
+    adds far points only to queries the plain cap already gives one; the empty queries around the object stop
+    there instead of walking the largest reach); 0 (or False) = no gate.
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
                  depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto",
-                 reach: torch.Tensor | None = None):
+                 reach: torch.Tensor | None = None, reach_gate: float = 0.0):
         check_matrix("points", points, 3)
         check_camera(c2w, height, width, focal)
         self.radius = check_radius(max_radius_px)
@@ -89,6 +92,8 @@ class ScreenIndex:
                                  f"{r.shape[0]}")
             r = torch.nan_to_num(r, nan=1.0, posinf=1.0).clamp_min(1.0)[keep]
             self.reach = r if bool((r > 1.0).any()) else None
+        g = float(reach_gate)
+        self.reach_gate = g if self.reach is not None and math.isfinite(g) and g > 0 else 0.0
         self.weight = depth[keep] / float(focal_scale(cam)) if depth_factor else None  # [M]
         self._density: float | None = None
         self._grids: dict[float, CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
@@ -124,22 +129,31 @@ class ScreenIndex:
         r = query_px.shape[0]
         if r == 0 or self.ids.numel() == 0:
             return empty(r, k, self.device)
-        if self.backend == "grid":
-            with one_cpu_thread(self.device):
-                cap = self._uniform_cap(k)
-                if cap not in self._grids:
-                    self._grids[cap] = CellGrid(self.px, self.weight, self.ids, cap, self._median_density(),
-                                                 self.height, self.width)
-                return Neighbors(*self._grids[cap].query(query_px.detach().to(self.device, torch.float64), k))
         if self.backend == "compiled":  # already final: ids, -1 / inf padding, ascending, non-finite rows empty
             cap = self.radius_px(k)
             if cap not in self._compiled:
                 w = None if self.weight is None else self.weight.numpy()
                 reach = None if self.reach is None else self.reach.cpu().numpy()
                 self._compiled[cap] = compiled.CompiledGrid(self.px.numpy(), w, self.ids.numpy(), cap,
-                                                               self.height, self.width, reach=reach)
+                                                               self.height, self.width, reach=reach,
+                                                               gate=self.reach_gate)
             idx, dist = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
             return Neighbors(torch.from_numpy(idx), torch.from_numpy(dist))
+        out = self._query_capped(query_px, k, self._uniform_cap(k))
+        cap = self.radius_px(k)
+        if self.reach_gate and math.isfinite(cap):  # the gate from a plain query of the nearest point
+            near = (self._query_capped(query_px, 1, cap * self.reach_gate).idx[:, 0] >= 0).to(out.idx.device)[:, None]
+            out = Neighbors(torch.where(near, out.idx, -1), torch.where(near, out.dist, math.inf))
+        return out
+
+    def _query_capped(self, query_px: torch.Tensor, k: int, cap: float) -> Neighbors:
+        """query for the backends with one cap per query (grid, brute force; the k-d tree has none)."""
+        if self.backend == "grid":
+            with one_cpu_thread(self.device):
+                if cap not in self._grids:
+                    self._grids[cap] = CellGrid(self.px, self.weight, self.ids, cap, self._median_density(),
+                                                 self.height, self.width)
+                return Neighbors(*self._grids[cap].query(query_px.detach().to(self.device, torch.float64), k))
         ok = torch.isfinite(query_px).all(dim=1)
         if self._tree is not None:
             q = query_px.detach().to("cpu", torch.float64).numpy()
@@ -148,7 +162,7 @@ class ScreenIndex:
             li, ld = torch.from_numpy(li), torch.from_numpy(ld)
         else:
             q = torch.where(ok[:, None], query_px.detach().to(self.device, torch.float32), 0.0)
-            li, ld = screen_brute(self._px32, self._w32, q, k, self._uniform_cap(k))
+            li, ld = screen_brute(self._px32, self._w32, q, k, cap)
         ids = self.ids.to(li.device)
         idx = torch.where(li >= 0, ids[li.clamp(min=0)], -1)
         ld = ld.masked_fill(~ok.to(ld.device)[:, None], math.inf)

@@ -180,3 +180,67 @@ def test_gap_is_what_the_budget_left_open():
         assert torch.equal(out[-1], torch.ones(p.shape[0]))
     nan = fld.fill(torch.full_like(p, float("nan")), with_gap=True)
     assert torch.equal(nan[-1], torch.ones(p.shape[0]))
+
+
+def test_budget_gap_counts_only_pairs_the_budget_kept_sparse():
+    """gap_pairs "budget": a pair grown past (max_per_pair + 1) × ratio (it got the most points a pair gets: a
+    joint's near-tear) leaves no gap, while a pair the budget kept sparse keeps the gap "all" gives it."""
+    p = _sheet(12)
+    fld = DeformationField(p)
+    q = p * torch.tensor([12.0, 1.0, 1.0])  # x pairs grow 12×: 7 points at ratio 1.5, capped at 2 → gap 4
+    full = fld.fill(q, ratio=1.5, budget=100.0, max_per_pair=2, with_gap=True)
+    near_tear = fld.fill(q, ratio=1.5, budget=100.0, max_per_pair=2, with_gap=True, gap_pairs="budget")
+    assert float(full[-1].max()) > 3.9 and torch.equal(near_tear[-1], torch.ones(p.shape[0]))
+    for a, b in zip(full[:-1], near_tear[:-1]):  # the points themselves do not depend on it
+        assert torch.equal(a, b)
+    q = p * torch.tensor([4.0, 1.0, 1.0])  # the budget, not the cap, keeps these sparse
+    tight = fld.fill(q, ratio=1.5, budget=0.2, with_gap=True)
+    tight_b = fld.fill(q, ratio=1.5, budget=0.2, with_gap=True, gap_pairs="budget")
+    assert float(tight[-1].max()) > 1.5 and torch.equal(tight[-1], tight_b[-1])
+
+
+def _plain_budget_ratio(g, ratio, cap, limit):
+    """Reference: bisection over every distinct step g / i >= ratio for the smallest keeping the budget."""
+    count = lambda r: (torch.ceil(g / r * (1.0 - 1e-12)) - 1.0).clamp(0, cap).long()  # noqa: E731
+    steps = g[:, None] / torch.arange(1, cap + 1, dtype=g.dtype)
+    cands = sorted(set(steps[steps >= ratio].tolist()))
+    return next(c for c in cands if int(count(c).sum()) <= limit)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_budget_ratio_equals_the_plain_bisection(seed):
+    from core.edits.deformation import _budget_ratio
+
+    gen = torch.Generator().manual_seed(seed)
+    g = 1.0 + 9.0 * torch.rand(500, generator=gen, dtype=torch.float64)
+    g[:100] = 4.0  # ties: one growth shared by many pairs (a uniform stretch)
+    g[100:110] = 12.0 / 7.0
+    for cap in (1, 3, 8):
+        count = lambda r: (torch.ceil(g / r * (1.0 - 1e-12)) - 1.0).clamp(0, cap).long()  # noqa: E731
+        full = int(count(1.5).sum())
+        for limit in (0, 1, 7, 99, 100, 101, 350, full // 2, full - 1):
+            assert _budget_ratio(g, 1.5, cap, limit, count) == _plain_budget_ratio(g, 1.5, cap, limit)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_fill_with_cached_reverse_lists_equals_the_generic_pairing(seed):
+    """The canonical points' own neighbour lists (no ids) find each pair's other side in a cached table; the
+    generic pairing (any rows, as with ids) gives the same points, exactly, budget hit or not, with holes."""
+    gen = torch.Generator().manual_seed(seed)
+    p = _volume(600, seed)
+    q = p * torch.tensor([5.0, 1.0, 1.0]) + 0.3 * torch.sin(4 * p) * torch.rand(600, 1, generator=gen)
+    q[7] = float("nan")  # a missing point: its pairs carry no weight
+    fld = DeformationField(p)
+    g = fld._gather_deformed(q, None, with_rows=True)
+    for budget in (0.2, 1.0, 10.0):
+        fast = fld._fill(q, g, 1.5, 8, budget, True, True, canonical_rows=True)
+        plain = fld._fill(q, g, 1.5, 8, budget, True, True, canonical_rows=False)
+        assert fast[0].shape[0] > 0
+        for a, b in zip(fast, plain):
+            assert torch.equal(a, b)
+    # the table itself: l = nbr[j, s] lists j at slot reverse_slots[j, s]
+    rev, nb = fld.reverse_slots, fld.nbr
+    j, s = torch.nonzero(rev >= 0, as_tuple=True)
+    assert torch.equal(nb[nb[j, s], rev[j, s]], j)
+    j, s = torch.nonzero((rev < 0) & (nb >= 0), as_tuple=True)
+    assert not bool((nb[nb[j, s]] == j[:, None]).any())

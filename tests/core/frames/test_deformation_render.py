@@ -62,9 +62,11 @@ def test_canonical_frame_attention_undoes_a_uniform_scale(tiny):
     c2w[:3, 3] *= 3.0
     ref = render_frame(bundle.model, test.c2w[0], test.height, test.width, test.focal)["rgb"]
     exact = DeformationConfig(sheet_ratio=0.0)  # the card is thin: fit all three directions (affine: exact)
-    # the keys alone: no points added (a fill would make the scaled cloud denser than the canonical one)
-    on = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=True, f_fill=False), deformation=exact)
-    off = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=False, f_fill=False), deformation=exact)
+    # the keys alone: no points added (a fill would make the scaled cloud denser than the canonical one), no reach
+    on = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=True, f_fill=False, f_radius=False),
+                   deformation=exact)
+    off = EditState(bundle, points=xyz * 3.0, cfg=EditConfig(f_attention=False, f_fill=False, f_radius=False),
+                    deformation=exact)
     assert torch.allclose(on.inv_f, torch.eye(3).expand_as(on.inv_f) / 3.0, atol=1e-4)
     got = render_edited(on, c2w, test.height, test.width, test.focal)["rgb"]
     plain = render_edited(off, c2w, test.height, test.width, test.focal)["rgb"]
@@ -238,7 +240,7 @@ def test_gap_reach_only_where_the_fill_left_gaps_and_rest_unchanged(tiny):
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
     n = bundle.model.num_points
-    on = dict(f_radius=True, f_radius_rule="gap")
+    on = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=0.0)
     today = EditState(bundle)
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**on))
     assert forced.search_radius()[1] is not None and bool((forced.reach == 1).all())
@@ -250,7 +252,7 @@ def test_gap_reach_only_where_the_fill_left_gaps_and_rest_unchanged(tiny):
     closed = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=8.0, **on))
     assert bool((closed.reach == 1).all())
     sparse = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1, **on))
-    off = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1))
+    off = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1, f_radius=False))
     assert sparse.reach.shape[0] == sparse.points.shape[0] and float(sparse.reach.max()) > 1.5
     assert off.search_radius() == (1.0, None)
     c2w = test.c2w[0].clone()
@@ -263,10 +265,47 @@ def test_gap_reach_only_where_the_fill_left_gaps_and_rest_unchanged(tiny):
     wild[::13] = float("nan")
     wild[1::17] = 1e30
     for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
-        for rule in ("gap", "frame"):
+        for rule in ("gap", "budget", "frame"):
             st = EditState(bundle, points=pts, cfg=EditConfig(f_radius=True, f_radius_rule=rule, f_fill_budget=0.1))
             out = render_edited(st, c2w, test.height, test.width, test.focal)
             assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+
+
+def test_reach_gate_adds_far_points_only_to_rays_the_plain_search_covers(tiny):
+    """f_reach_gate: with the gap reach, the rays that get neighbours are exactly those the plain search (no reach)
+    gives one, and each of them gets the ungated reach search's neighbours; rest frames are today's; extreme poses
+    stay finite."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    gate = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0)
+    today = EditState(bundle)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**gate))
+    for i in range(len(test)):
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    s = torch.tensor([4.0, 1.0, 1.0])
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.5
+    states = {name: EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1, **over))
+              for name, over in (("plain", dict(f_radius=False)),
+                                 ("reach", dict(f_radius=True, f_radius_rule="gap", f_reach_gate=0.0)), ("gate", gate))}
+    tr = {name: render_edited(st, c2w, test.height, test.width, test.focal)["trace"] for name, st in states.items()}
+    assert float(states["gate"].reach.max()) > 1.5
+    covered = tr["plain"].active
+    assert torch.equal(tr["gate"].active, covered)
+    assert bool((tr["reach"].active & ~covered).any())  # the ungated reach widens the covered rays
+    assert torch.equal(tr["gate"].idx[covered], tr["reach"].idx[covered])
+    assert torch.allclose(tr["gate"].weights[covered], tr["reach"].weights[covered], atol=1e-6)
+    assert int((tr["gate"].idx >= 0).sum()) > int((tr["plain"].idx >= 0).sum())  # the reach still adds points
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+        out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **gate)), c2w,
+                            test.height, test.width, test.focal)
+        assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
 
 
 def test_occlusion_rule_hides_a_part_swung_behind(tiny):

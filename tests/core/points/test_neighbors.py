@@ -610,3 +610,56 @@ def test_reach_input_checks_and_hostile_values():
     assert index.reach is None  # nothing above 1 is left: the plain search
     got = index.query(random_px(50, 3), 8)
     assert torch.isfinite(got.dist[got.valid]).all()
+    far = torch.full((200,), 3.0)
+    q = random_px(50, 3)
+    open_ = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, reach=far).query(q, 8)
+    for gate in (float("nan"), float("inf"), -1.0, 0.0):  # no gate
+        idx = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, reach=far, reach_gate=gate)
+        assert idx.reach_gate == 0.0 and torch.equal(idx.query(q, 8).idx, open_.idx)
+    huge = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, reach=far, reach_gate=1e12).query(q, 8)
+    assert torch.equal(huge.idx, open_.idx)  # a gate wider than every reach gates nothing
+    corners = torch.tensor([[0.5, 0.5], [W - 0.5, H - 0.5], [-40.0, -40.0], [W + 40.0, 5.0]])
+    for r, g in ((1e6, 1e12), (1e12, 0.0)):  # empty queries stop at the grid's edge, however far the reach
+        got = nb.ScreenIndex(pts[:3], c2w, H, W, FOCAL, True, reach=torch.full((3,), r),
+                             reach_gate=g).query(corners, 4)
+        assert got.idx.shape == (4, 4) and torch.isfinite(got.dist[got.valid]).all()
+
+
+def _gated(ref, plain):
+    """ref's rows emptied where the capped search `plain` (the gate's radius) found no candidate."""
+    idx, dist = ref
+    near = (plain[0] >= 0).any(1, keepdim=True)
+    return torch.where(near, idx, -1), torch.where(near, dist, math.inf)
+
+
+@pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
+@pytest.mark.parametrize("depth_factor", [False, True])
+@pytest.mark.parametrize("most", [False, True])
+@pytest.mark.parametrize("gate", [1.0, 2.5])
+def test_reach_gate_keeps_rays_without_a_plain_candidate_empty(backend, depth_factor, most, gate):
+    """reach_gate: a query with no point within gate × the plain cap gets no neighbours, the others the reach
+    search's answer (compiled: per point; the one-cap backends: the cap × the largest reach). most: nearly every
+    point reaches far (the compiled grid then sizes its cells by the median reach; the answer must not change)."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("numba missing")
+    pts = scene("blob", 800, 5)
+    c2w = camera(5)
+    q = random_px(600, 5)
+    g = torch.Generator().manual_seed(15)
+    share = 0.95 if most else 0.3
+    reach = torch.where(torch.rand(800, generator=g) < share, 1.0 + 4.0 * torch.rand(800, generator=g),
+                        torch.ones(800))
+    plain = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend)
+    cap = plain.radius_px(12)
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_gate=gate)
+    got = index.query(q, 12)
+    per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
+    ref = _gated(ref_screen(pts, c2w, q, 12, depth_factor, per_point.double()[None]),
+                 ref_screen(pts, c2w, q, 12, depth_factor, cap * gate))
+    assert_same(got, ref)
+    open_ = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach).query(q, 12)
+    assert_same(open_, ref_screen(pts, c2w, q, 12, depth_factor, per_point.double()[None]))
+    shut = (got.idx < 0).all(1)
+    assert bool(shut.any()) and bool(((open_.idx >= 0).any(1) & shut).any())  # the gate emptied some rays
+    kept = ~shut
+    assert torch.equal(got.idx[kept], open_.idx[kept])  # the others are the plain reach search's
