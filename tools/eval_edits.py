@@ -37,7 +37,8 @@ EDITS = ("geometry", "retexture", "decal")
 # the paper's renderer and correspondence. f_compression also changes the deform-gradient correspondence.
 _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0,
           "f_depth": "ray",
-          "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap"}
+          "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
+          "f_key_stretch": "full"}
 RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-radius": {**_PAPER, "f_radius": True, "f_radius_rule": "frame"},
              "f-both": {**_PAPER, "f_attention": True, "f_radius": True, "f_radius_rule": "frame"},
@@ -65,7 +66,10 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
                                               "f_compression": "undo"},
              "f-fill-fold-blend-depth-auto": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
                                               "f_fill_features": "blend", "f_depth": "nearest",
-                                              "f_compression": "auto"}}
+                                              "f_compression": "auto"},
+             "f-fill-fold-blend-depth-auto-gap": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                                  "f_fill_features": "blend", "f_depth": "nearest",
+                                                  "f_compression": "auto", "f_key_stretch": "gap"}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
@@ -269,7 +273,10 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
                               state.cfg.correspondence == "deform-gradient")
     f_seconds = 0.0
     if f_used:  # what the frame needs of F, before the timed frames
-        if state.cfg.f_attention or state.cfg.correspondence == "deform-gradient":
+        if state.cfg.f_attention:
+            _ = state.inv_f_attention
+        if state.cfg.correspondence == "deform-gradient" or (state.cfg.fold_radius > 0
+                                                             and state.cfg.fold_test == "local-map"):
             _ = state.inv_f_keys
         if state.cfg.f_radius:
             _ = state.search_radius()
@@ -277,7 +284,8 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
 
     def render(i):
         c = state.cfg  # what the trace depends on (the correspondence and fold rule do not change it)
-        key = (i, c.temperature, c.f_attention, c.f_radius, (c.f_compression, c.f_thick_spread, c.f_depth) if c.f_attention else "-",
+        key = (i, c.temperature, c.f_attention, c.f_radius,
+               (c.f_compression, c.f_thick_spread, c.f_depth, c.f_key_stretch) if c.f_attention else "-",
                (c.f_fill_ratio, c.f_fill_budget, c.f_fill_features) if c.f_fill else None, c.f_occlusion,
                c.f_radius_rule if c.f_radius else None)
         cached = traces.get(key) if traces is not None else None
@@ -483,7 +491,8 @@ def markdown(result: dict) -> str:
               "f-fill-fold-blend-depth = f-fill-fold-blend whose keys take depths from the ray's nearest neighbour "
               "in the canonical frames (f_depth nearest), f-fill-fold-blend-depth-undo = both, "
               "f-fill-fold-blend-depth-auto = f-fill-fold-blend-depth undoing all compression on a model whose points "
-              "form a thick shell (f_compression auto); first "
+              "form a thick shell (f_compression auto), f-fill-fold-blend-depth-auto-gap = that with the keys "
+              "undoing at most the stretch the fill left between consecutive points (f_key_stretch gap); first "
               "temperature, soft blend; "
               "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]

@@ -343,9 +343,10 @@ class DeformationField:
         its features and F from: the nearer end of its segment). P = 0 where nothing stretched. with_partner: also
         partner [P] int64, the row of the segment's other end, and fraction [P] float32 in (0, 0.5], how far along
         the segment from the source towards the partner the point lies (to blend the two ends' features).
-        with_gap: the tuple ends with gap [M] float32 >= 1, per given point the largest growth g / (n + 1) left
-        between consecutive points on any of its pairs where that exceeds `ratio` (the budget or max_per_pair kept
-        a stretched pair sparser than the ratio; pairs beyond max_stretch are tears and count as closed), else 1."""
+        with_gap: the tuple ends with gap [M] float32 >= 1, per given point the largest growth left between
+        consecutive points on any of its pairs: g / (n + 1) on a filled pair (above `ratio` only where the budget
+        or max_per_pair kept it sparser), g on a pair left as it is (at most `ratio`), 1 for none grown (pairs
+        beyond max_stretch are tears and count as closed)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
@@ -370,7 +371,12 @@ class DeformationField:
         m = pts.shape[0]
         lc, ld = dc.norm(dim=-1), dd.norm(dim=-1)                                   # [M, k]
         grow = ld / lc.clamp_min(1e-30)
-        sel = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow > ratio) & (grow <= self.cfg.max_stretch)
+        pair = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow <= self.cfg.max_stretch)
+        sel = pair & (grow > ratio)
+        if with_gap:  # pairs left as they are (grown by at most the ratio, or shrunk): their own growth, both ends
+            keep = torch.where(pair & ~sel, grow, torch.ones_like(grow)).clamp_min(1.0).to(torch.float32)
+            gap = gap.scatter_reduce(0, rows.reshape(-1), keep.reshape(-1), "amax").maximum(keep.amax(1))
+            empty = empty[:-1] + (gap,)
         j, slot = torch.nonzero(sel, as_tuple=True)
         if j.numel() == 0:
             return empty
@@ -397,9 +403,8 @@ class DeformationField:
                 mid = (lo + hi) // 2
                 lo, hi = (lo, mid) if int(count(float(cands[mid])).sum()) <= limit else (mid + 1, hi)
             n = count(float(cands[lo]))
-        if with_gap:  # growth left between consecutive points of each pair, at both ends
+        if with_gap:  # growth left between consecutive points of each filled pair, at both ends
             left = (g / (n + 1).to(g.dtype)).to(torch.float32)
-            left = torch.where(left > ratio, left, torch.ones_like(left))
             gap = gap.scatter_reduce(0, j, left, "amax").scatter_reduce(0, rows[j, slot], left, "amax")
             empty = empty[:-1] + (gap,)
         keep = n > 0
@@ -556,6 +561,102 @@ def _expansion_inverse_torch(f: torch.Tensor) -> torch.Tensor:
         sv = lam.clamp_min(0.0).sqrt().clamp_min(1e-6)
         out[need] = v @ torch.diag_embed(1.0 / (sv * sv.clamp_min(1.0))) @ v.transpose(1, 2) @ fn.transpose(1, 2)
     return out.to(f.dtype)
+
+
+def _bound_above_loop(f, cap, out):
+    """The compiled path of bound_above: f [M, 3, 3] float64, cap [M] -> out [M, 3, 3]. Per row: F as it is when
+    ‖F‖_F ≤ cap (every singular value is then within it) or when FᵀF = V diag(σ²) Vᵀ (cyclic Jacobi rotations) has
+    σmax ≤ cap (cap² I − FᵀF positive definite, else by its eigenvalues), else F V diag(min(σ, cap) / σ) Vᵀ."""
+    a = np.empty((3, 3))
+    v = np.empty((3, 3))
+    h = np.empty(3)
+    for m in range(f.shape[0]):
+        c2 = cap[m] * cap[m]
+        fro = 0.0
+        for i in range(3):
+            for j in range(3):
+                out[m, i, j] = f[m, i, j]
+                fro += f[m, i, j] * f[m, i, j]
+        if fro <= c2:
+            continue
+        for i in range(3):
+            for j in range(3):
+                a[i, j] = f[m, 0, i] * f[m, 0, j] + f[m, 1, i] * f[m, 1, j] + f[m, 2, i] * f[m, 2, j]
+                v[i, j] = 1.0 if i == j else 0.0
+        # cap² I − FᵀF positive definite (its leading principal minors): every σ < cap, F stays
+        b00, b11, b22 = c2 - a[0, 0], c2 - a[1, 1], c2 - a[2, 2]
+        m2 = b00 * b11 - a[0, 1] * a[0, 1]
+        m3 = (b00 * (b11 * b22 - a[1, 2] * a[1, 2]) - a[0, 1] * (a[0, 1] * b22 + a[1, 2] * a[0, 2])
+              - a[0, 2] * (a[0, 1] * a[1, 2] + b11 * a[0, 2]))
+        if b00 > 0.0 and m2 > 0.0 and m3 > 0.0:
+            continue
+        for _sweep in range(16):
+            off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+            if off <= 1e-20 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:
+                break
+            for p, q in ((0, 1), (0, 2), (1, 2)):
+                if a[p, q] == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(3):
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
+                for k in range(3):
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
+                for k in range(3):
+                    vkp, vkq = v[k, p], v[k, q]
+                    v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+        if max(a[0, 0], a[1, 1], a[2, 2]) <= c2:
+            continue
+        for i in range(3):
+            sv = max(math.sqrt(max(a[i, i], 0.0)), 1e-30)
+            h[i] = min(sv, cap[m]) / sv
+        for i in range(3):
+            for j in range(3):  # (V diag(h) Vᵀ)[i, j], then F times it
+                a[i, j] = v[i, 0] * h[0] * v[j, 0] + v[i, 1] * h[1] * v[j, 1] + v[i, 2] * h[2] * v[j, 2]
+        for i in range(3):
+            for j in range(3):
+                out[m, i, j] = f[m, i, 0] * a[0, j] + f[m, i, 1] * a[1, j] + f[m, i, 2] * a[2, j]
+
+
+_compiled_bound_above = None
+
+
+def bound_above(f: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:
+    """F [M, 3, 3] with its singular values clamped to at most cap [M] (> 0) per row: F = U Σ Vᵀ -> U min(Σ, cap)
+    Vᵀ (directions, orientation and the smaller singular values kept; rows whose largest singular value is within
+    their cap unchanged). Compiled (numba) on CPU tensors, else torch."""
+    global _compiled_bound_above
+    if _compiled_bound_above is None and numba is not None and f.device.type == "cpu":
+        try:
+            _compiled_bound_above = numba.njit(cache=True, nogil=True)(_bound_above_loop)
+        except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
+            _compiled_bound_above = numba.njit(cache=False, nogil=True)(_bound_above_loop)
+    if _compiled_bound_above is not None and f.device.type == "cpu" and f.shape[0]:
+        fd = np.ascontiguousarray(torch.nan_to_num(f.detach(), 0.0, 0.0, 0.0).double().numpy())
+        cd = np.ascontiguousarray(cap.detach().double().numpy())
+        out = np.empty_like(fd)
+        _compiled_bound_above(fd, cd, out)
+        return torch.from_numpy(out).to(f.dtype)
+    return _bound_above_torch(f, cap)
+
+
+def _bound_above_torch(f: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:
+    """bound_above in torch (any device; the reference the compiled path is tested against)."""
+    need = stretch(f.double()) > cap.to(f.device, torch.float64)
+    if not bool(need.any()):
+        return f
+    out = f.clone()
+    u, sv, vh = torch.linalg.svd(f[need].double())
+    sv = torch.minimum(sv, cap.to(f.device, torch.float64)[need][:, None])
+    out[need] = (u @ torch.diag_embed(sv) @ vh).to(f.dtype)
+    return out
 
 
 def stretch(f: torch.Tensor) -> torch.Tensor:
