@@ -563,88 +563,160 @@ def _expansion_inverse_torch(f: torch.Tensor) -> torch.Tensor:
     return out.to(f.dtype)
 
 
-def _bound_above_loop(f, cap, out):
-    """The compiled path of bound_above: f [M, 3, 3] float64, cap [M] -> out [M, 3, 3]. Per row: F as it is when
-    ‖F‖_F ≤ cap (every singular value is then within it) or when FᵀF = V diag(σ²) Vᵀ (cyclic Jacobi rotations) has
-    σmax ≤ cap (cap² I − FᵀF positive definite, else by its eigenvalues), else F V diag(min(σ, cap) / σ) Vᵀ."""
+def _key_loop(f, cap, n, mode, out):
+    """The compiled path of bound_above and key_inverse: f [M, 3, 3] float64, cap [M], n [M, 3] unit normals (read
+    with mode 2) -> out [M, 3, 3]. Per row, first the capped F: F itself when ‖F‖_F ≤ cap or cap² I − FᵀF is
+    positive definite (every σ within the cap), else, with FᵀF = V diag(σ²) Vᵀ by cyclic Jacobi rotations, F V
+    diag(min(σ, cap) / σ) Vᵀ. mode 0: out = that; 1: its inverse; 2: the inverse of it with its column along n
+    raised to unit length where shorter (G = F + (1/|F n| − 1) F n nᵀ, the tangent rule)."""
     a = np.empty((3, 3))
     v = np.empty((3, 3))
     h = np.empty(3)
+    g = np.empty((3, 3))
     for m in range(f.shape[0]):
         c2 = cap[m] * cap[m]
         fro = 0.0
         for i in range(3):
             for j in range(3):
-                out[m, i, j] = f[m, i, j]
+                g[i, j] = f[m, i, j]
                 fro += f[m, i, j] * f[m, i, j]
-        if fro <= c2:
+        if fro > c2:
+            for i in range(3):
+                for j in range(3):
+                    a[i, j] = f[m, 0, i] * f[m, 0, j] + f[m, 1, i] * f[m, 1, j] + f[m, 2, i] * f[m, 2, j]
+                    v[i, j] = 1.0 if i == j else 0.0
+            # cap² I − FᵀF positive definite (its leading principal minors): every σ < cap, F stays
+            b00, b11, b22 = c2 - a[0, 0], c2 - a[1, 1], c2 - a[2, 2]
+            m2 = b00 * b11 - a[0, 1] * a[0, 1]
+            m3 = (b00 * (b11 * b22 - a[1, 2] * a[1, 2]) - a[0, 1] * (a[0, 1] * b22 + a[1, 2] * a[0, 2])
+                  - a[0, 2] * (a[0, 1] * a[1, 2] + b11 * a[0, 2]))
+            if not (b00 > 0.0 and m2 > 0.0 and m3 > 0.0):
+                for _sweep in range(16):
+                    off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+                    if off <= 1e-20 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:
+                        break
+                    for p, q in ((0, 1), (0, 2), (1, 2)):
+                        if a[p, q] == 0.0:
+                            continue
+                        theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+                        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                        if theta < 0.0:
+                            t = -t
+                        c = 1.0 / math.sqrt(t * t + 1.0)
+                        s = t * c
+                        for k in range(3):
+                            akp, akq = a[k, p], a[k, q]
+                            a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
+                        for k in range(3):
+                            apk, aqk = a[p, k], a[q, k]
+                            a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
+                        for k in range(3):
+                            vkp, vkq = v[k, p], v[k, q]
+                            v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+                if max(a[0, 0], a[1, 1], a[2, 2]) > c2:
+                    for i in range(3):
+                        sv = max(math.sqrt(max(a[i, i], 0.0)), 1e-30)
+                        h[i] = min(sv, cap[m]) / sv
+                    for i in range(3):
+                        for j in range(3):  # V diag(h) Vᵀ, then F times it
+                            a[i, j] = v[i, 0] * h[0] * v[j, 0] + v[i, 1] * h[1] * v[j, 1] + v[i, 2] * h[2] * v[j, 2]
+                    for i in range(3):
+                        for j in range(3):
+                            g[i, j] = f[m, i, 0] * a[0, j] + f[m, i, 1] * a[1, j] + f[m, i, 2] * a[2, j]
+        if mode == 2:  # the tangent rule: the column along n raised to unit length where shorter
+            fn0 = g[0, 0] * n[m, 0] + g[0, 1] * n[m, 1] + g[0, 2] * n[m, 2]
+            fn1 = g[1, 0] * n[m, 0] + g[1, 1] * n[m, 1] + g[1, 2] * n[m, 2]
+            fn2 = g[2, 0] * n[m, 0] + g[2, 1] * n[m, 1] + g[2, 2] * n[m, 2]
+            ln = max(math.sqrt(fn0 * fn0 + fn1 * fn1 + fn2 * fn2), 1e-12)
+            if ln < 1.0:
+                k = 1.0 / ln - 1.0
+                for j in range(3):
+                    g[0, j] += k * fn0 * n[m, j]
+                    g[1, j] += k * fn1 * n[m, j]
+                    g[2, j] += k * fn2 * n[m, j]
+        if mode == 0:
+            for i in range(3):
+                for j in range(3):
+                    out[m, i, j] = g[i, j]
             continue
-        for i in range(3):
-            for j in range(3):
-                a[i, j] = f[m, 0, i] * f[m, 0, j] + f[m, 1, i] * f[m, 1, j] + f[m, 2, i] * f[m, 2, j]
-                v[i, j] = 1.0 if i == j else 0.0
-        # cap² I − FᵀF positive definite (its leading principal minors): every σ < cap, F stays
-        b00, b11, b22 = c2 - a[0, 0], c2 - a[1, 1], c2 - a[2, 2]
-        m2 = b00 * b11 - a[0, 1] * a[0, 1]
-        m3 = (b00 * (b11 * b22 - a[1, 2] * a[1, 2]) - a[0, 1] * (a[0, 1] * b22 + a[1, 2] * a[0, 2])
-              - a[0, 2] * (a[0, 1] * a[1, 2] + b11 * a[0, 2]))
-        if b00 > 0.0 and m2 > 0.0 and m3 > 0.0:
+        # inverse by the adjugate
+        c00 = g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]
+        c01 = g[1, 2] * g[2, 0] - g[1, 0] * g[2, 2]
+        c02 = g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]
+        det = g[0, 0] * c00 + g[0, 1] * c01 + g[0, 2] * c02
+        if det == 0.0 or not math.isfinite(det):
+            for i in range(3):
+                for j in range(3):
+                    out[m, i, j] = 1.0 if i == j else 0.0
             continue
-        for _sweep in range(16):
-            off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
-            if off <= 1e-20 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:
-                break
-            for p, q in ((0, 1), (0, 2), (1, 2)):
-                if a[p, q] == 0.0:
-                    continue
-                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
-                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
-                for k in range(3):
-                    akp, akq = a[k, p], a[k, q]
-                    a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
-                for k in range(3):
-                    apk, aqk = a[p, k], a[q, k]
-                    a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
-                for k in range(3):
-                    vkp, vkq = v[k, p], v[k, q]
-                    v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
-        if max(a[0, 0], a[1, 1], a[2, 2]) <= c2:
-            continue
-        for i in range(3):
-            sv = max(math.sqrt(max(a[i, i], 0.0)), 1e-30)
-            h[i] = min(sv, cap[m]) / sv
-        for i in range(3):
-            for j in range(3):  # (V diag(h) Vᵀ)[i, j], then F times it
-                a[i, j] = v[i, 0] * h[0] * v[j, 0] + v[i, 1] * h[1] * v[j, 1] + v[i, 2] * h[2] * v[j, 2]
-        for i in range(3):
-            for j in range(3):
-                out[m, i, j] = f[m, i, 0] * a[0, j] + f[m, i, 1] * a[1, j] + f[m, i, 2] * a[2, j]
+        r = 1.0 / det
+        out[m, 0, 0] = c00 * r
+        out[m, 1, 0] = c01 * r
+        out[m, 2, 0] = c02 * r
+        out[m, 0, 1] = (g[0, 2] * g[2, 1] - g[0, 1] * g[2, 2]) * r
+        out[m, 1, 1] = (g[0, 0] * g[2, 2] - g[0, 2] * g[2, 0]) * r
+        out[m, 2, 1] = (g[0, 1] * g[2, 0] - g[0, 0] * g[2, 1]) * r
+        out[m, 0, 2] = (g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]) * r
+        out[m, 1, 2] = (g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]) * r
+        out[m, 2, 2] = (g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]) * r
 
 
-_compiled_bound_above = None
+_compiled_key_loop = None
+
+
+def _key_compiled(f: torch.Tensor):
+    global _compiled_key_loop
+    if _compiled_key_loop is None and numba is not None and f.device.type == "cpu":
+        try:
+            _compiled_key_loop = numba.njit(cache=True, nogil=True)(_key_loop)
+        except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
+            _compiled_key_loop = numba.njit(cache=False, nogil=True)(_key_loop)
+    return _compiled_key_loop if f.device.type == "cpu" and f.shape[0] else None
+
+
+def _run_key_loop(loop, f, cap, n, mode):
+    fd = np.ascontiguousarray(torch.nan_to_num(f.detach(), 0.0, 0.0, 0.0).double().numpy())
+    cd = np.ascontiguousarray(cap.detach().double().numpy())
+    nd = np.ascontiguousarray((torch.zeros(f.shape[0], 3) if n is None else n.detach()).double().numpy())
+    out = np.empty_like(fd)
+    loop(fd, cd, nd, mode, out)
+    return torch.from_numpy(out).to(f.dtype)
 
 
 def bound_above(f: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:
     """F [M, 3, 3] with its singular values clamped to at most cap [M] (> 0) per row: F = U Σ Vᵀ -> U min(Σ, cap)
     Vᵀ (directions, orientation and the smaller singular values kept; rows whose largest singular value is within
     their cap unchanged). Compiled (numba) on CPU tensors, else torch."""
-    global _compiled_bound_above
-    if _compiled_bound_above is None and numba is not None and f.device.type == "cpu":
-        try:
-            _compiled_bound_above = numba.njit(cache=True, nogil=True)(_bound_above_loop)
-        except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
-            _compiled_bound_above = numba.njit(cache=False, nogil=True)(_bound_above_loop)
-    if _compiled_bound_above is not None and f.device.type == "cpu" and f.shape[0]:
-        fd = np.ascontiguousarray(torch.nan_to_num(f.detach(), 0.0, 0.0, 0.0).double().numpy())
-        cd = np.ascontiguousarray(cap.detach().double().numpy())
-        out = np.empty_like(fd)
-        _compiled_bound_above(fd, cd, out)
-        return torch.from_numpy(out).to(f.dtype)
+    loop = _key_compiled(f)
+    if loop is not None:
+        return _run_key_loop(loop, f, cap, None, 0)
     return _bound_above_torch(f, cap)
+
+
+def key_inverse(f: torch.Tensor, cap: torch.Tensor | None = None, normals: torch.Tensor | None = None) -> torch.Tensor:
+    """Inverse [M, 3, 3] of F [M, 3, 3] (bounded: `bound`) with its singular values capped at cap [M] (None: no
+    cap) and, given normals [M, 3] (unit), its column along the normal raised to unit length where shorter: G = F' +
+    (1/|F' n| − 1) F' n nᵀ for |F' n| < 1, F' the capped F (the tangent compression rule: compression across the
+    surface not undone). Compiled (numba) on CPU tensors, else torch."""
+    if cap is None:
+        cap = torch.full((f.shape[0],), math.inf, dtype=torch.float64, device=f.device)
+    loop = _key_compiled(f)
+    if loop is not None:
+        return _run_key_loop(loop, f, cap, normals, 1 if normals is None else 2)
+    return _key_inverse_torch(f, cap, normals)
+
+
+def _key_inverse_torch(f: torch.Tensor, cap: torch.Tensor, normals: torch.Tensor | None) -> torch.Tensor:
+    """key_inverse in torch (any device; the reference the compiled path is tested against)."""
+    fk = _bound_above_torch(f, cap).double()
+    fi = torch.linalg.inv(fk)
+    if normals is None:
+        return fi.to(f.dtype)
+    n = normals.double()
+    fn = (fk @ n[..., None]).squeeze(-1).norm(dim=-1).clamp_min(1e-12)
+    k = fn / fn.clamp_min(1.0) - 1.0  # 1/scale − 1, scale = max(|F n|, 1) / |F n|
+    # G⁻¹ = (I + (1/scale − 1) n nᵀ) F⁻¹
+    return (fi + k[:, None, None] * n[..., None] @ (n[:, None, :] @ fi)).to(f.dtype)
 
 
 def _bound_above_torch(f: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:

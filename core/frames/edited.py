@@ -20,7 +20,8 @@ from core.atlas.packing import sample_charts, unpack
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
-from core.edits.deformation import DeformationConfig, bound_above, expansion_inverse, field_for, inverse, stretch
+from core.edits.deformation import (DeformationConfig, bound_above, expansion_inverse, field_for, inverse,
+                                     key_inverse, stretch)
 from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, unoccluded
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
@@ -280,39 +281,31 @@ class EditState:
         if self.compression == "undo":
             return self.inv_f
         if self._inv_f_keys is None:
-            self._inv_f_keys = self._timed(lambda: self._rule_inverse(self._f, self.inv_f))
+            self._inv_f_keys = self._timed(lambda: self._rule_inverse(None))
         return self._inv_f_keys
 
     @property
     def inv_f_attention(self) -> torch.Tensor | None:
         """The inverse gradients the attention keys use [M, 3, 3]: `inv_f_keys`, but with f_key_stretch gap (and
         f_fill) that of F with each point's singular values capped at the largest growth the fill left between
-        consecutive points on its canonical neighbour pairs (`bound_above(F, gap)`; 1 where nothing grew): the
-        keys undo the stretch the points' spacing still shows, not more. None when nothing moved."""
+        consecutive points on its canonical neighbour pairs (1 where nothing grew): the keys undo the stretch the
+        points' spacing still shows, not more. None when nothing moved."""
         if self.f is None:
             return None
         if self.cfg.f_key_stretch == "full" or self._gap is None:
             return self.inv_f_keys
         if self._inv_f_att is None:
-            def capped():
-                fk = bound_above(self._f, self._gap)
-                return self._rule_inverse(fk, inverse(fk))
-            self._inv_f_att = self._timed(capped)
+            self._inv_f_att = self._timed(lambda: self._rule_inverse(self._gap))
         return self._inv_f_att
 
-    def _rule_inverse(self, f: torch.Tensor, fi: torch.Tensor) -> torch.Tensor:
-        """The compression rule (`compression`) applied to gradients f [M, 3, 3] with inverse fi [M, 3, 3]."""
+    def _rule_inverse(self, cap: torch.Tensor | None) -> torch.Tensor:
+        """The compression rule (`compression`) applied to F with its singular values capped at cap [M] (None:
+        none): its inverse [M, 3, 3] (`key_inverse`, compiled)."""
         mode = self.compression
-        if mode == "undo":
-            return fi
         if mode == "keep":
-            return expansion_inverse(f)
-        n = field_for(self.bundle.model, self.deformation_cfg).normals(self.ids)      # [M, 3]
-        fi = fi.double()
-        fn = (f.double() @ n[..., None]).squeeze(-1).norm(dim=-1).clamp_min(1e-12)
-        k = fn / fn.clamp_min(1.0) - 1.0  # 1/scale − 1, scale = max(|F n|, 1) / |F n|
-        # G⁻¹ = (I + (1/scale − 1) n nᵀ) F⁻¹
-        return (fi + k[:, None, None] * n[..., None] @ (n[:, None, :] @ fi)).float()
+            return expansion_inverse(self._f if cap is None else bound_above(self._f, cap))
+        n = None if mode == "undo" else field_for(self.bundle.model, self.deformation_cfg).normals(self.ids)
+        return key_inverse(self._f, cap, n)
 
     @property
     def compression(self) -> str:

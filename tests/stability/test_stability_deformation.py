@@ -219,3 +219,28 @@ def test_bound_above_caps_the_stretch_only_and_matches_torch():
     assert torch.equal(torch.sign(torch.linalg.det(a)), torch.sign(torch.linalg.det(f)))
     tiny = bound_above(f, torch.full((400,), 1e-3))
     assert torch.isfinite(tiny).all() and float(torch.linalg.svdvals(tiny.double()).max()) <= 1e-3 * (1 + 1e-5)
+
+
+def test_key_inverse_is_the_capped_tangent_rule_and_matches_torch():
+    """key_inverse: F⁻¹ without cap or normals; with a cap the inverse of bound_above(F, cap); with normals the
+    tangent rule's inverse (a compression across the surface not undone, one along it undone); the compiled path
+    equals the torch reference on random bounded F, and stays finite for a singular F."""
+    from core.edits.deformation import _key_inverse_torch, bound_above, key_inverse
+
+    gen = torch.Generator().manual_seed(6)
+    f = bound(torch.randn(400, 3, 3, generator=gen) * 3, MAX)
+    n = torch.randn(400, 3, generator=gen, dtype=torch.float64)
+    n = n / n.norm(dim=1, keepdim=True)
+    cap = 0.5 + 4 * torch.rand(400, generator=gen)
+    assert torch.allclose(key_inverse(f), inverse(f), atol=1e-4)
+    assert torch.allclose(key_inverse(f, cap), inverse(bound_above(f, cap)), atol=1e-4)
+    inf = torch.full((400,), math.inf, dtype=torch.float64)
+    for c in (cap.double(), inf):
+        for nn in (None, n):
+            assert torch.allclose(key_inverse(f, c, nn), _key_inverse_torch(f, c, nn), atol=1e-4, rtol=1e-5)
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)[None]
+    squash = torch.diag(torch.tensor([1.0, 1.0, 0.2]))[None]      # across the sheet (normal z): not undone
+    thin = torch.diag(torch.tensor([0.2, 1.0, 1.0]))[None]        # along it: undone
+    assert torch.allclose(key_inverse(squash, None, z), torch.eye(3)[None], atol=1e-6)
+    assert torch.allclose(key_inverse(thin, None, z), torch.diag(torch.tensor([5.0, 1.0, 1.0]))[None], atol=1e-5)
+    assert torch.isfinite(key_inverse(torch.zeros(2, 3, 3), torch.ones(2), z.expand(2, 3))).all()
