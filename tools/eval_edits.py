@@ -69,7 +69,11 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
                                               "f_compression": "auto"},
              "f-fill-fold-blend-depth-auto-gap": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
                                                   "f_fill_features": "blend", "f_depth": "nearest",
-                                                  "f_compression": "auto", "f_key_stretch": "gap"}}
+                                                  "f_compression": "auto", "f_key_stretch": "gap"},
+             "f-fill-fold-blend-depth-auto-gap-occ": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                                      "f_fill_features": "blend", "f_depth": "nearest",
+                                                      "f_compression": "auto", "f_key_stretch": "gap",
+                                                      "f_occlusion": True}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
@@ -492,7 +496,8 @@ def markdown(result: dict) -> str:
               "in the canonical frames (f_depth nearest), f-fill-fold-blend-depth-undo = both, "
               "f-fill-fold-blend-depth-auto = f-fill-fold-blend-depth undoing all compression on a model whose points "
               "form a thick shell (f_compression auto), f-fill-fold-blend-depth-auto-gap = that with the keys "
-              "undoing at most the stretch the fill left between consecutive points (f_key_stretch gap); first "
+              "undoing at most the stretch the fill left between consecutive points (f_key_stretch gap), "
+              "f-fill-fold-blend-depth-auto-gap-occ = that with the occlusion rule; first "
               "temperature, soft blend; "
               "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]

@@ -37,7 +37,8 @@ def add_arguments(p):
                         "neighbour in the canonical frames, f_depth nearest) | f-fill-fold-blend-depth-undo (both) | "
                         "f-fill-fold-blend-depth-auto (f-fill-fold-blend-depth, undo on a model whose points form "
                         "a thick shell, f_compression auto) | f-fill-fold-blend-depth-auto-gap (that, the keys undoing "
-                        "at most the stretch the fill left between consecutive points, f_key_stretch gap)")
+                        "at most the stretch the fill left between consecutive points, f_key_stretch gap) | "
+                        "f-fill-fold-blend-depth-auto-gap-occ (that with the occlusion rule, f_occlusion)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")
