@@ -38,7 +38,7 @@ EDITS = ("geometry", "retexture", "decal")
 _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0,
           "f_depth": "ray",
           "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
-          "f_reach_gate": 0.0}
+          "f_reach_gate": 0.0, "f_key_stretch": "full"}
 RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-radius": {**_PAPER, "f_radius": True, "f_radius_rule": "frame"},
              "f-both": {**_PAPER, "f_attention": True, "f_radius": True, "f_radius_rule": "frame"},
@@ -83,13 +83,27 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
                                                            "fold_radius": 2.0, "f_fill_features": "blend",
                                                            "f_depth": "nearest", "f_compression": "auto",
                                                            "f_radius": True, "f_radius_rule": "budget",
-                                                           "f_reach_gate": 2.0}}
+                                                           "f_reach_gate": 2.0},
+             "f-fill-fold-blend-depth-auto-gap": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                                  "f_fill_features": "blend", "f_depth": "nearest",
+                                                  "f_compression": "auto", "f_key_stretch": "gap"},
+             "f-fill-fold-blend-depth-auto-gap-occ": {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0,
+                                                      "f_fill_features": "blend", "f_depth": "nearest",
+                                                      "f_compression": "auto", "f_key_stretch": "gap",
+                                                      "f_occlusion": True},
+             "f-fill-fold-blend-depth-auto-budget-gate-gap": {**_PAPER, "f_attention": True, "f_fill": True,
+                                                              "fold_radius": 2.0, "f_fill_features": "blend",
+                                                              "f_depth": "nearest", "f_compression": "auto",
+                                                              "f_radius": True, "f_radius_rule": "budget",
+                                                              "f_reach_gate": 1.0, "f_key_stretch": "gap"}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
 def default_renderer() -> str:
     """The RENDERERS key whose fields are all EditConfig's defaults (what `pointgt render` does by default)."""
     return next(k for k, v in RENDERERS.items() if all(getattr(EditConfig, f) == x for f, x in v.items()))
+
+
 GT_TEXTURE = {"geometry": None, "retexture": "retexture", "decal": "decal"}  # "retexture" = the chosen texture
 REST = ("rest", 0.0)
 
@@ -287,7 +301,10 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
                               state.cfg.correspondence == "deform-gradient")
     f_seconds = 0.0
     if f_used:  # what the frame needs of F, before the timed frames
-        if state.cfg.f_attention or state.cfg.correspondence == "deform-gradient":
+        if state.cfg.f_attention:
+            _ = state.inv_f_attention
+        if state.cfg.correspondence == "deform-gradient" or (state.cfg.fold_radius > 0
+                                                             and state.cfg.fold_test == "local-map"):
             _ = state.inv_f_keys
         if state.cfg.f_radius:
             _ = state.search_radius()
@@ -295,7 +312,8 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
 
     def render(i):
         c = state.cfg  # what the trace depends on (the correspondence and fold rule do not change it)
-        key = (i, c.temperature, c.f_attention, c.f_radius, (c.f_compression, c.f_thick_spread, c.f_depth) if c.f_attention else "-",
+        key = (i, c.temperature, c.f_attention, c.f_radius,
+               (c.f_compression, c.f_thick_spread, c.f_depth, c.f_key_stretch) if c.f_attention else "-",
                (c.f_fill_ratio, c.f_fill_budget, c.f_fill_features) if c.f_fill else None, c.f_occlusion,
                (c.f_radius_rule, c.f_reach_gate) if c.f_radius else None)
         cached = traces.get(key) if traces is not None else None
@@ -504,7 +522,9 @@ def markdown(result: dict) -> str:
               "form a thick shell (f_compression auto), -reach = with f-fill-fold-blend-reach's reach, -budget = "
               "with the reach from the pairs the fill budget kept sparse only (f_radius_rule budget), -budget-gate = "
               "that reach only for rays the plain pixel cap gives a point (f_reach_gate 1), -budget-gate2 = the gate "
-              "at twice the cap; first "
+              "at twice the cap, -gap = the keys undoing at most the stretch the fill left between consecutive "
+              "points (f_key_stretch gap), -gap-occ = -gap with the occlusion rule, -budget-gate-gap = both "
+              "-budget-gate and -gap; first "
               "temperature, soft blend; "
               "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]

@@ -258,7 +258,7 @@ class DeformationField:
                            with_gap: bool = False, gap_pairs: str = "all"):
         """`gradients` and `fill` of the same points, sharing their neighbour gathering: (F [M, 3, 3], (new [P, 3],
         canonical [P, 3], source [P])); with_partner: the fill's tuple also holds partner [P] and fraction [P]
-        (see `fill`); with_gap: it also ends with gap [M] (see `fill`, and gap_pairs)."""
+        (see `fill`); with_gap: it also ends with gap [M] and sparse [M] (see `fill`, and gap_pairs)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
@@ -344,11 +344,13 @@ class DeformationField:
         its features and F from: the nearer end of its segment). P = 0 where nothing stretched. with_partner: also
         partner [P] int64, the row of the segment's other end, and fraction [P] float32 in (0, 0.5], how far along
         the segment from the source towards the partner the point lies (to blend the two ends' features).
-        with_gap: the tuple ends with gap [M] float32 >= 1, per given point the largest growth g / (n + 1) left
-        between consecutive points on any of its pairs where that exceeds `ratio` (the budget or max_per_pair kept
-        a stretched pair sparser than the ratio; pairs beyond max_stretch are tears and count as closed), else 1;
-        gap_pairs "budget": only pairs the budget kept sparse count (those that got max_per_pair points, grown
-        past max_per_pair + 1 times the ratio — a joint's near-tears — count as closed)."""
+        with_gap: the tuple ends with gap [M] and sparse [M], float32 >= 1, per given point: gap = the largest
+        growth left between consecutive points on any of its pairs (g / (n + 1) on a filled pair, g on a pair left as
+        it is, at most `ratio`; 1 for none grown; pairs beyond max_stretch are tears and count as closed); sparse =
+        that growth only where it exceeds `ratio` (the budget or max_per_pair kept a stretched pair sparser than the
+        ratio), else 1; gap_pairs "budget": for sparse, only pairs the budget kept sparse count (those that got
+        max_per_pair points, grown past max_per_pair + 1 times the ratio — a joint's near-tears — count as
+        closed)."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
@@ -378,11 +380,12 @@ class DeformationField:
         canonical_rows: the points are the canonical ones in order (no ids), so the rows gathered are the cached
         neighbour lists and whether a pair's other end lists it back is looked up (`reverse_slots`)."""
         gap = torch.ones(pts.shape[0], dtype=torch.float32, device=self.device)
+        sparse = gap
         empty = (pts.new_zeros(0, 3), pts.new_zeros(0, 3), torch.zeros(0, dtype=torch.long, device=self.device))
         if with_partner:
             empty = empty + (torch.zeros(0, dtype=torch.long, device=self.device), pts.new_zeros(0))
         if with_gap:
-            empty = empty + (gap,)
+            empty = empty + (gap, sparse)
         if not (ratio > 1.0 and math.isfinite(ratio)):
             raise InputError(f"fill ratio must be a finite number > 1, got {ratio}")
         if not (budget >= 0 and math.isfinite(budget)):
@@ -399,7 +402,12 @@ class DeformationField:
             lc = dc.norm(dim=-1)
         ld = dd.norm(dim=-1)                                                         # [M, k]
         grow = ld / lc.clamp_min(1e-30)
-        sel = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow > ratio) & (grow <= self.cfg.max_stretch)
+        pair = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow <= self.cfg.max_stretch)
+        sel = pair & (grow > ratio)
+        if with_gap:  # pairs left as they are (grown by at most the ratio, or shrunk): their own growth, both ends
+            keep = torch.where(pair & ~sel, grow, torch.ones_like(grow)).clamp_min(1.0).to(torch.float32)
+            gap = gap.scatter_reduce(0, rows.reshape(-1), keep.reshape(-1), "amax").maximum(keep.amax(1))
+            empty = empty[:-2] + (gap, sparse)
         # each pair once: keep j -> l when j < l, or when l does not list j (one-sided neighbourhoods)
         if canonical_rows and rows.shape == self.nbr.shape:  # the cached lists: look the other side up
             rev = self.reverse_slots
@@ -427,14 +435,15 @@ class DeformationField:
         limit = int(budget * m)
         if int(n.sum()) > limit:
             n = count(_budget_ratio(g, ratio, cap, limit, count))
-        if with_gap:  # growth left between consecutive points of each pair, at both ends
+        if with_gap:  # growth left between consecutive points of each filled pair, at both ends
             left = (g / (n + 1).to(g.dtype)).to(torch.float32)
+            gap = gap.scatter_reduce(0, j, left, "amax").scatter_reduce(0, rows[j, slot], left, "amax")
             open_ = left > ratio
             if gap_pairs == "budget":
                 open_ &= n < cap
             left = torch.where(open_, left, torch.ones_like(left))
-            gap = gap.scatter_reduce(0, j, left, "amax").scatter_reduce(0, rows[j, slot], left, "amax")
-            empty = empty[:-1] + (gap,)
+            sparse = sparse.scatter_reduce(0, j, left, "amax").scatter_reduce(0, rows[j, slot], left, "amax")
+            empty = empty[:-2] + (gap, sparse)
         keep = n > 0
         j, slot, n = j[keep], slot[keep], n[keep]
         if j.numel() == 0:
@@ -453,7 +462,7 @@ class DeformationField:
             partner = torch.where(near_j, rows[jr, sr], jr)
             fraction = torch.where(near_j, t[:, 0], 1.0 - t[:, 0])
             out = out + (partner, fraction)
-        return out + (gap,) if with_gap else out
+        return out + (gap, sparse) if with_gap else out
 
 
 def _budget_ratio(g: torch.Tensor, ratio: float, cap: int, limit: int, count) -> float:
@@ -619,6 +628,174 @@ def _expansion_inverse_torch(f: torch.Tensor) -> torch.Tensor:
         sv = lam.clamp_min(0.0).sqrt().clamp_min(1e-6)
         out[need] = v @ torch.diag_embed(1.0 / (sv * sv.clamp_min(1.0))) @ v.transpose(1, 2) @ fn.transpose(1, 2)
     return out.to(f.dtype)
+
+
+def _key_loop(f, cap, n, mode, out):
+    """The compiled path of bound_above and key_inverse: f [M, 3, 3] float64, cap [M], n [M, 3] unit normals (read
+    with mode 2) -> out [M, 3, 3]. Per row, first the capped F: F itself when ‖F‖_F ≤ cap or cap² I − FᵀF is
+    positive definite (every σ within the cap), else, with FᵀF = V diag(σ²) Vᵀ by cyclic Jacobi rotations, F V
+    diag(min(σ, cap) / σ) Vᵀ. mode 0: out = that; 1: its inverse; 2: the inverse of it with its column along n
+    raised to unit length where shorter (G = F + (1/|F n| − 1) F n nᵀ, the tangent rule)."""
+    a = np.empty((3, 3))
+    v = np.empty((3, 3))
+    h = np.empty(3)
+    g = np.empty((3, 3))
+    for m in range(f.shape[0]):
+        c2 = cap[m] * cap[m]
+        fro = 0.0
+        for i in range(3):
+            for j in range(3):
+                g[i, j] = f[m, i, j]
+                fro += f[m, i, j] * f[m, i, j]
+        if fro > c2:
+            for i in range(3):
+                for j in range(3):
+                    a[i, j] = f[m, 0, i] * f[m, 0, j] + f[m, 1, i] * f[m, 1, j] + f[m, 2, i] * f[m, 2, j]
+                    v[i, j] = 1.0 if i == j else 0.0
+            # cap² I − FᵀF positive definite (its leading principal minors): every σ < cap, F stays
+            b00, b11, b22 = c2 - a[0, 0], c2 - a[1, 1], c2 - a[2, 2]
+            m2 = b00 * b11 - a[0, 1] * a[0, 1]
+            m3 = (b00 * (b11 * b22 - a[1, 2] * a[1, 2]) - a[0, 1] * (a[0, 1] * b22 + a[1, 2] * a[0, 2])
+                  - a[0, 2] * (a[0, 1] * a[1, 2] + b11 * a[0, 2]))
+            if not (b00 > 0.0 and m2 > 0.0 and m3 > 0.0):
+                for _sweep in range(16):
+                    off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+                    if off <= 1e-20 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:
+                        break
+                    for p, q in ((0, 1), (0, 2), (1, 2)):
+                        if a[p, q] == 0.0:
+                            continue
+                        theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+                        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                        if theta < 0.0:
+                            t = -t
+                        c = 1.0 / math.sqrt(t * t + 1.0)
+                        s = t * c
+                        for k in range(3):
+                            akp, akq = a[k, p], a[k, q]
+                            a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
+                        for k in range(3):
+                            apk, aqk = a[p, k], a[q, k]
+                            a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
+                        for k in range(3):
+                            vkp, vkq = v[k, p], v[k, q]
+                            v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+                if max(a[0, 0], a[1, 1], a[2, 2]) > c2:
+                    for i in range(3):
+                        sv = max(math.sqrt(max(a[i, i], 0.0)), 1e-30)
+                        h[i] = min(sv, cap[m]) / sv
+                    for i in range(3):
+                        for j in range(3):  # V diag(h) Vᵀ, then F times it
+                            a[i, j] = v[i, 0] * h[0] * v[j, 0] + v[i, 1] * h[1] * v[j, 1] + v[i, 2] * h[2] * v[j, 2]
+                    for i in range(3):
+                        for j in range(3):
+                            g[i, j] = f[m, i, 0] * a[0, j] + f[m, i, 1] * a[1, j] + f[m, i, 2] * a[2, j]
+        if mode == 2:  # the tangent rule: the column along n raised to unit length where shorter
+            fn0 = g[0, 0] * n[m, 0] + g[0, 1] * n[m, 1] + g[0, 2] * n[m, 2]
+            fn1 = g[1, 0] * n[m, 0] + g[1, 1] * n[m, 1] + g[1, 2] * n[m, 2]
+            fn2 = g[2, 0] * n[m, 0] + g[2, 1] * n[m, 1] + g[2, 2] * n[m, 2]
+            ln = max(math.sqrt(fn0 * fn0 + fn1 * fn1 + fn2 * fn2), 1e-12)
+            if ln < 1.0:
+                k = 1.0 / ln - 1.0
+                for j in range(3):
+                    g[0, j] += k * fn0 * n[m, j]
+                    g[1, j] += k * fn1 * n[m, j]
+                    g[2, j] += k * fn2 * n[m, j]
+        if mode == 0:
+            for i in range(3):
+                for j in range(3):
+                    out[m, i, j] = g[i, j]
+            continue
+        # inverse by the adjugate
+        c00 = g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]
+        c01 = g[1, 2] * g[2, 0] - g[1, 0] * g[2, 2]
+        c02 = g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]
+        det = g[0, 0] * c00 + g[0, 1] * c01 + g[0, 2] * c02
+        if det == 0.0 or not math.isfinite(det):
+            for i in range(3):
+                for j in range(3):
+                    out[m, i, j] = 1.0 if i == j else 0.0
+            continue
+        r = 1.0 / det
+        out[m, 0, 0] = c00 * r
+        out[m, 1, 0] = c01 * r
+        out[m, 2, 0] = c02 * r
+        out[m, 0, 1] = (g[0, 2] * g[2, 1] - g[0, 1] * g[2, 2]) * r
+        out[m, 1, 1] = (g[0, 0] * g[2, 2] - g[0, 2] * g[2, 0]) * r
+        out[m, 2, 1] = (g[0, 1] * g[2, 0] - g[0, 0] * g[2, 1]) * r
+        out[m, 0, 2] = (g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]) * r
+        out[m, 1, 2] = (g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]) * r
+        out[m, 2, 2] = (g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]) * r
+
+
+_compiled_key_loop = None
+
+
+def _key_compiled(f: torch.Tensor):
+    global _compiled_key_loop
+    if _compiled_key_loop is None and numba is not None and f.device.type == "cpu":
+        try:
+            _compiled_key_loop = numba.njit(cache=True, nogil=True)(_key_loop)
+        except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
+            _compiled_key_loop = numba.njit(cache=False, nogil=True)(_key_loop)
+    return _compiled_key_loop if f.device.type == "cpu" and f.shape[0] else None
+
+
+def _run_key_loop(loop, f, cap, n, mode):
+    fd = np.ascontiguousarray(torch.nan_to_num(f.detach(), 0.0, 0.0, 0.0).double().numpy())
+    cd = np.ascontiguousarray(cap.detach().double().numpy())
+    nd = np.ascontiguousarray((torch.zeros(f.shape[0], 3) if n is None else n.detach()).double().numpy())
+    out = np.empty_like(fd)
+    loop(fd, cd, nd, mode, out)
+    return torch.from_numpy(out).to(f.dtype)
+
+
+def bound_above(f: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:
+    """F [M, 3, 3] with its singular values clamped to at most cap [M] (> 0) per row: F = U Σ Vᵀ -> U min(Σ, cap)
+    Vᵀ (directions, orientation and the smaller singular values kept; rows whose largest singular value is within
+    their cap unchanged). Compiled (numba) on CPU tensors, else torch."""
+    loop = _key_compiled(f)
+    if loop is not None:
+        return _run_key_loop(loop, f, cap, None, 0)
+    return _bound_above_torch(f, cap)
+
+
+def key_inverse(f: torch.Tensor, cap: torch.Tensor | None = None, normals: torch.Tensor | None = None) -> torch.Tensor:
+    """Inverse [M, 3, 3] of F [M, 3, 3] (bounded: `bound`) with its singular values capped at cap [M] (None: no
+    cap) and, given normals [M, 3] (unit), its column along the normal raised to unit length where shorter: G = F' +
+    (1/|F' n| − 1) F' n nᵀ for |F' n| < 1, F' the capped F (the tangent compression rule: compression across the
+    surface not undone). Compiled (numba) on CPU tensors, else torch."""
+    if cap is None:
+        cap = torch.full((f.shape[0],), math.inf, dtype=torch.float64, device=f.device)
+    loop = _key_compiled(f)
+    if loop is not None:
+        return _run_key_loop(loop, f, cap, normals, 1 if normals is None else 2)
+    return _key_inverse_torch(f, cap, normals)
+
+
+def _key_inverse_torch(f: torch.Tensor, cap: torch.Tensor, normals: torch.Tensor | None) -> torch.Tensor:
+    """key_inverse in torch (any device; the reference the compiled path is tested against)."""
+    fk = _bound_above_torch(f, cap).double()
+    fi = torch.linalg.inv(fk)
+    if normals is None:
+        return fi.to(f.dtype)
+    n = normals.double()
+    fn = (fk @ n[..., None]).squeeze(-1).norm(dim=-1).clamp_min(1e-12)
+    k = fn / fn.clamp_min(1.0) - 1.0  # 1/scale − 1, scale = max(|F n|, 1) / |F n|
+    # G⁻¹ = (I + (1/scale − 1) n nᵀ) F⁻¹
+    return (fi + k[:, None, None] * n[..., None] @ (n[:, None, :] @ fi)).to(f.dtype)
+
+
+def _bound_above_torch(f: torch.Tensor, cap: torch.Tensor) -> torch.Tensor:
+    """bound_above in torch (any device; the reference the compiled path is tested against)."""
+    need = stretch(f.double()) > cap.to(f.device, torch.float64)
+    if not bool(need.any()):
+        return f
+    out = f.clone()
+    u, sv, vh = torch.linalg.svd(f[need].double())
+    sv = torch.minimum(sv, cap.to(f.device, torch.float64)[need][:, None])
+    out[need] = (u @ torch.diag_embed(sv) @ vh).to(f.dtype)
+    return out
 
 
 def stretch(f: torch.Tensor) -> torch.Tensor:

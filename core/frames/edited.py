@@ -20,7 +20,8 @@ from core.atlas.packing import sample_charts, unpack
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
-from core.edits.deformation import DeformationConfig, expansion_inverse, field_for, inverse, stretch
+from core.edits.deformation import (DeformationConfig, bound_above, expansion_inverse, field_for, inverse,
+                                     key_inverse, stretch)
 from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, unoccluded
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
@@ -35,6 +36,7 @@ from core.util.errors import InputError
 
 
 COMPRESSION = ("tangent", "keep", "undo", "auto")
+KEY_STRETCH = ("gap", "full")
 DEPTH_REFS = ("nearest", "ray")
 FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
@@ -99,6 +101,12 @@ class EditConfig:
                                         "ends' features and influence, mixed by where the point lies between them) | "
                                         "nearer (the features and influence of the nearer end)",
                                choices=FILL_FEATURES)
+    f_key_stretch: str = opt("gap", "F-aware keys (f_attention) with f_fill: how much of a point's stretch the keys "
+                                    "undo: gap (at most the largest growth the fill left between consecutive points "
+                                    "on its canonical neighbour pairs: where the fill restored the density, a point "
+                                    "reaches no farther than at rest; a neighbourhood the rig tore apart does not "
+                                    "spread its points' reach over the background) | full (all of F's stretch)",
+                             choices=KEY_STRETCH)
     f_occlusion: bool = opt(False, "moved points: each ray keeps the front one of the surface layers among its "
                                    "neighbours (layers told apart by the points' local deformation gradients: a "
                                    "joint's fold, a part swung behind another); rest frames are unchanged")
@@ -134,9 +142,10 @@ class EditState:
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
-        self._f = self._inv_f = self._inv_f_keys = self._radius_scale = self._reach = None
+        self._f = self._inv_f = self._inv_f_keys = self._inv_f_att = self._radius_scale = self._reach = None
         self._fill_blend = None  # f_fill_features = blend: (canonical ids of both ends [P], fraction [P])
-        self._gap = None  # f_fill: per point the growth the fill left on its pairs where above the ratio, else 1
+        self._gap = None  # f_fill: per point the largest growth left between consecutive points on its pairs
+        self._sparse = None  # f_fill: that growth where the budget kept a pair sparser than f_fill_ratio, else 1
         self.deformation_seconds = 0.0  # time spent on F and what derives from it (0 until it is needed)
         self.fit_seconds = 0.0  # of which the fit of F
         if not 1 <= int(self.cfg.antialias) <= 8:
@@ -219,11 +228,12 @@ class EditState:
         (DeformationField.fill) and extend points, ids and F with them. Returns their canonical positions [P, 3]
         (None when nothing was added)."""
         fld = field_for(self.bundle.model, self.deformation_cfg)
-        f, (new, can, src, partner, frac, gap) = self._timed(lambda: fld.gradients_and_fill(
+        f, (new, can, src, partner, frac, gap, sparse) = self._timed(lambda: fld.gradients_and_fill(
             self.points, self.ids, ratio=self.cfg.f_fill_ratio, budget=self.cfg.f_fill_budget, with_partner=True,
             with_gap=True, gap_pairs="budget" if self.cfg.f_radius_rule == "budget" else "all"))
         self._f = f
         self._gap = gap
+        self._sparse = sparse
         self.fit_seconds = self.deformation_seconds
         if new.shape[0] == 0:
             return None
@@ -233,6 +243,7 @@ class EditState:
         self.ids = torch.cat([ids, ids[src]])
         self._f = torch.cat([f, f[src]])
         self._gap = torch.cat([gap, torch.maximum(gap[src], gap[partner])])
+        self._sparse = torch.cat([sparse, torch.maximum(sparse[src], sparse[partner])])
         self.filled_points = int(new.shape[0])
         if self.cfg.f_fill_features == "blend":
             self._fill_blend = (ids[src], ids[partner], frac)
@@ -268,28 +279,42 @@ class EditState:
 
     @property
     def inv_f_keys(self) -> torch.Tensor | None:
-        """The inverse gradients the attention keys and the deform-gradient correspondence use [M, 3, 3], by
+        """The inverse gradients the deform-gradient correspondence (and the local-map fold test) use [M, 3, 3], by
         f_compression: undo = F⁻¹; keep = the inverse of F with its singular values raised to at least 1 (rotation
         and stretch undone, compression kept); tangent = the inverse of G = F + (max(|F n|, 1)/|F n| − 1) F n nᵀ,
         n the canonical neighbourhood's normal (least-spread direction): F as it is along the surface, its
         compression across it not undone; auto = one of tangent and undo by the model (`compression`). None when
         nothing moved."""
-        mode = self.compression
-        if mode == "undo" or self.f is None:
+        if self.f is None:
+            return None
+        if self.compression == "undo":
             return self.inv_f
         if self._inv_f_keys is None:
-            if mode == "keep":
-                self._inv_f_keys = self._timed(lambda: expansion_inverse(self._f))
-            else:
-                def tangent():
-                    n = field_for(self.bundle.model, self.deformation_cfg).normals(self.ids)     # [M, 3]
-                    fi = self.inv_f.double()
-                    fn = (self._f.double() @ n[..., None]).squeeze(-1).norm(dim=-1).clamp_min(1e-12)
-                    k = fn / fn.clamp_min(1.0) - 1.0  # 1/scale − 1, scale = max(|F n|, 1) / |F n|
-                    # G⁻¹ = (I + (1/scale − 1) n nᵀ) F⁻¹
-                    return (fi + k[:, None, None] * n[..., None] @ (n[:, None, :] @ fi)).float()
-                self._inv_f_keys = self._timed(tangent)
+            self._inv_f_keys = self._timed(lambda: self._rule_inverse(None))
         return self._inv_f_keys
+
+    @property
+    def inv_f_attention(self) -> torch.Tensor | None:
+        """The inverse gradients the attention keys use [M, 3, 3]: `inv_f_keys`, but with f_key_stretch gap (and
+        f_fill) that of F with each point's singular values capped at the largest growth the fill left between
+        consecutive points on its canonical neighbour pairs (1 where nothing grew): the keys undo the stretch the
+        points' spacing still shows, not more. None when nothing moved."""
+        if self.f is None:
+            return None
+        if self.cfg.f_key_stretch == "full" or self._gap is None:
+            return self.inv_f_keys
+        if self._inv_f_att is None:
+            self._inv_f_att = self._timed(lambda: self._rule_inverse(self._gap))
+        return self._inv_f_att
+
+    def _rule_inverse(self, cap: torch.Tensor | None) -> torch.Tensor:
+        """The compression rule (`compression`) applied to F with its singular values capped at cap [M] (None:
+        none): its inverse [M, 3, 3] (`key_inverse`, compiled)."""
+        mode = self.compression
+        if mode == "keep":
+            return expansion_inverse(self._f if cap is None else bound_above(self._f, cap))
+        n = None if mode == "undo" else field_for(self.bundle.model, self.deformation_cfg).normals(self.ids)
+        return key_inverse(self._f, cap, n)
 
     @property
     def compression(self) -> str:
@@ -342,8 +367,9 @@ class EditState:
             return None
         if self._reach is None:
             def reach():
-                if self._gap is not None:
-                    return self._gap.double()
+                if self._sparse is not None:
+                    g = self._sparse.double()
+                    return torch.where(g > self.cfg.f_fill_ratio, g, torch.ones_like(g))
                 st = torch.nan_to_num(stretch(self._f).double(), nan=1.0, posinf=1.0, neginf=1.0)
                 return torch.where(st > self.cfg.f_fill_ratio, st, torch.ones_like(st))
             self._reach = self._timed(reach)
@@ -425,7 +451,7 @@ class EditState:
         cand = select_neighbors(search, model.cfg.neighbors, 2 * k, c2w.to(pts.device, torch.float32), height, width,
                                 focal, pixel_grid(height, width, pts.device)[rows], o, d, index=index)
         idx = unoccluded(cand, anchor, depth, o, d, pts, self.p_can, self.inv_f, spacing, k)
-        keys = self.inv_f_keys if cfg.f_attention else None
+        keys = self.inv_f_attention if cfg.f_attention else None
         pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
         if cfg.attention != "torch" and supported(model, pts.device):  # as trace_frame chooses
             att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys,
@@ -548,7 +574,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         index = None if soft else state.search_index(c2w, height, width, focal)  # shared with the occlusion rule
         radius_scale, reach = state.search_radius()
         tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
-                         temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
+                         temperature=cfg.temperature, inv_f=state.inv_f_attention if cfg.f_attention else None,
                          rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
                          reach_gate=state.reach_gate,

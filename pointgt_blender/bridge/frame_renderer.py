@@ -137,7 +137,7 @@ def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, foca
     radius_scale, reach = state.search_radius()  # f_radius: the frame's factor or each point's reach
     tr = trace_frame(state.bundle.model, c2w_t, height, width, focal, points=state.points,
                      influence=state.influence, k=None if k is None else int(k),
-                     temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
+                     temperature=cfg.temperature, inv_f=state.inv_f_attention if cfg.f_attention else None,
                      rebase_depth=state.rebase_depth, radius_scale=radius_scale, reach=reach, index=index,
                      reach_gate=state.reach_gate)
     return state.visible_layer(tr, c2w_t, focal, index=index)  # the occlusion rule, as render_edited applies it

@@ -190,3 +190,57 @@ def test_spread_ratios_tell_a_sheet_from_a_thick_shell_and_stay_finite():
         assert r.shape == (pts.shape[0],) and torch.isfinite(r).all() and float(r.min()) >= 0 and float(r.max()) <= 1
         assert math.isfinite(fld.median_spread)
     assert torch.equal(cloud.spread_ratios(torch.tensor([3, 3, 0])), cloud.spread_ratios()[[3, 3, 0]])
+
+
+def test_bound_above_caps_the_stretch_only_and_matches_torch():
+    """bound_above clamps each row's singular values to at most its cap: a stretch beyond the cap is cut to it,
+    compression, directions and a mirror's orientation stay, rows within their cap are unchanged; the compiled
+    path equals the torch reference, and degenerate rows (a singular F, a cap below every singular value) stay
+    finite."""
+    from core.edits.deformation import _bound_above_torch, bound_above
+
+    r = _rot(0.6, 1)
+    f = torch.stack([r @ torch.diag(torch.tensor([5.0, 0.2, 1.0])), torch.diag(torch.tensor([3.0, 1.0, -1.0])),
+                     _rot(0.3, 0), torch.zeros(3, 3)])
+    cap = torch.tensor([2.0, 2.0, 1.5, 1.0])
+    for fn in (bound_above, _bound_above_torch):
+        g = fn(f, cap)
+        assert torch.allclose(g[0], r @ torch.diag(torch.tensor([2.0, 0.2, 1.0])), atol=1e-5)
+        assert torch.allclose(g[1], torch.diag(torch.tensor([2.0, 1.0, -1.0])), atol=1e-5)
+        assert torch.equal(g[2], f[2]) and torch.equal(g[3], f[3])
+    gen = torch.Generator().manual_seed(5)
+    f = bound(torch.randn(400, 3, 3, generator=gen) * 3, MAX)
+    cap = 0.5 + 4 * torch.rand(400, generator=gen)
+    a, b = bound_above(f, cap), _bound_above_torch(f, cap)
+    assert torch.allclose(a, b, atol=1e-5)
+    sv, sv0 = torch.linalg.svdvals(a.double()), torch.linalg.svdvals(f.double())
+    assert bool((sv[:, 0] <= cap.double() * (1 + 1e-5)).all())
+    assert torch.allclose(sv, torch.minimum(sv0, cap.double()[:, None]), atol=1e-4)
+    assert torch.equal(torch.sign(torch.linalg.det(a)), torch.sign(torch.linalg.det(f)))
+    tiny = bound_above(f, torch.full((400,), 1e-3))
+    assert torch.isfinite(tiny).all() and float(torch.linalg.svdvals(tiny.double()).max()) <= 1e-3 * (1 + 1e-5)
+
+
+def test_key_inverse_is_the_capped_tangent_rule_and_matches_torch():
+    """key_inverse: F⁻¹ without cap or normals; with a cap the inverse of bound_above(F, cap); with normals the
+    tangent rule's inverse (a compression across the surface not undone, one along it undone); the compiled path
+    equals the torch reference on random bounded F, and stays finite for a singular F."""
+    from core.edits.deformation import _key_inverse_torch, bound_above, key_inverse
+
+    gen = torch.Generator().manual_seed(6)
+    f = bound(torch.randn(400, 3, 3, generator=gen) * 3, MAX)
+    n = torch.randn(400, 3, generator=gen, dtype=torch.float64)
+    n = n / n.norm(dim=1, keepdim=True)
+    cap = 0.5 + 4 * torch.rand(400, generator=gen)
+    assert torch.allclose(key_inverse(f), inverse(f), atol=1e-4)
+    assert torch.allclose(key_inverse(f, cap), inverse(bound_above(f, cap)), atol=1e-4)
+    inf = torch.full((400,), math.inf, dtype=torch.float64)
+    for c in (cap.double(), inf):
+        for nn in (None, n):
+            assert torch.allclose(key_inverse(f, c, nn), _key_inverse_torch(f, c, nn), atol=1e-4, rtol=1e-5)
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)[None]
+    squash = torch.diag(torch.tensor([1.0, 1.0, 0.2]))[None]      # across the sheet (normal z): not undone
+    thin = torch.diag(torch.tensor([0.2, 1.0, 1.0]))[None]        # along it: undone
+    assert torch.allclose(key_inverse(squash, None, z), torch.eye(3)[None], atol=1e-6)
+    assert torch.allclose(key_inverse(thin, None, z), torch.diag(torch.tensor([5.0, 1.0, 1.0]))[None], atol=1e-5)
+    assert torch.isfinite(key_inverse(torch.zeros(2, 3, 3), torch.ones(2), z.expand(2, 3))).all()

@@ -79,7 +79,7 @@ def main(argv=None) -> int:
     tr = out["trace"]
     act = torch.nonzero(tr.active).squeeze(1)
     pts = torch.nan_to_num(state.points, nan=0.0)
-    fi = state.inv_f_keys
+    fi = state.inv_f_attention
     o, d, idx = tr.origins[act], tr.dirs[act], tr.idx[act]
     rows = []
 

@@ -41,7 +41,10 @@ def add_arguments(p):
                         "from the pairs the fill budget kept sparse only, f_radius_rule budget) | "
                         "f-fill-fold-blend-depth-auto-budget-gate (that reach only for rays the plain pixel cap gives "
                         "a point, f_reach_gate 1) | f-fill-fold-blend-depth-auto-budget-gate2 (the gate at twice the "
-                        "cap)")
+                        "cap) | f-fill-fold-blend-depth-auto-gap (f-fill-fold-blend-depth-auto, the keys undoing at "
+                        "most the stretch the fill left between consecutive points, f_key_stretch gap) | "
+                        "f-fill-fold-blend-depth-auto-gap-occ (that with the occlusion rule, f_occlusion) | "
+                        "f-fill-fold-blend-depth-auto-budget-gate-gap (both -budget-gate and -gap)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

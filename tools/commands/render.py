@@ -22,7 +22,8 @@ def add_arguments(p):
     from core.config import add_to_parser
     from core.edits.correspondence import MODES
     from core.edits.deformation import DeformationConfig
-    from core.frames.edited import COMPRESSION, DEPTH_REFS, FILL_FEATURES, FOLD_TESTS, RADIUS_RULES, EditConfig
+    from core.frames.edited import (COMPRESSION, DEPTH_REFS, FILL_FEATURES, FOLD_TESTS, KEY_STRETCH, RADIUS_RULES,
+                                     EditConfig)
 
     p.add_argument("model", help="model file (.pgt)")
     p.add_argument("--cameras", required=True, help="transforms JSON whose cameras to render (transforms_*.json, or "
@@ -72,6 +73,9 @@ def add_arguments(p):
     p.add_argument("--f-fill-features", default=EditConfig.f_fill_features, choices=FILL_FEATURES,
                    help="--f-fill: an added point carries both ends' features of its pair, mixed by where it lies "
                         "between them (blend), or those of the nearer end (nearer)")
+    p.add_argument("--f-key-stretch", default=EditConfig.f_key_stretch, choices=KEY_STRETCH,
+                   help="--f-attention with --f-fill: the keys undo a point's stretch only up to the largest growth "
+                        "the fill left between consecutive points on its neighbour pairs (gap), or all of it (full)")
     p.add_argument("--fold-radius", type=float, default=EditConfig.fold_radius,
                    help="moved points: the correspondence keeps a ray's neighbours whose displacement lies within "
                         "this many point spacings of its most-attended one's, dropping the other side of a fold "
@@ -183,7 +187,7 @@ def run(args) -> int:
                               f_depth=args.f_depth, f_thick_spread=args.f_thick_spread, f_radius_rule=args.f_radius_rule,
                               f_reach_gate=args.f_reach_gate,
                               f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
-                              f_fill_features=args.f_fill_features,
+                              f_fill_features=args.f_fill_features, f_key_stretch=args.f_key_stretch,
                               fold_radius=args.fold_radius, fold_test=args.fold_test, f_occlusion=args.f_occlusion,
                               render_mode=args.render_mode,
                               **({} if args.temperature is None else {"temperature": args.temperature})))

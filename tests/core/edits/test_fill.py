@@ -160,26 +160,31 @@ def test_partner_outputs_are_empty_where_nothing_stretched():
 
 
 def test_gap_is_what_the_budget_left_open():
-    """with_gap: per point the largest growth g / (n + 1) left between consecutive points on its pairs where that
-    exceeds the ratio, else 1. A generous budget closes every pair (all 1); a tight one leaves the 4×-stretched
-    x pairs sparse; rest, a compression and a tear (beyond max_stretch) leave nothing open."""
+    """with_gap: per point the largest growth left between consecutive points on its pairs: g / (n + 1) on a filled
+    pair, g on one left as it is. A generous budget closes every pair to within the ratio (the 4×-stretched x
+    pairs get 2 points each: 4 / 3 left, a diagonal pair one: 2.92 / 2); a tight one leaves them sparse; rest, a compression and a tear (beyond
+    max_stretch) leave nothing grown."""
     p = _sheet(12)
     fld = DeformationField(p)
     q = p * torch.tensor([4.0, 1.0, 1.0])
     full = fld.fill(q, ratio=1.5, budget=100.0, with_gap=True)
-    assert len(full) == 4 and torch.equal(full[3], torch.ones(p.shape[0]))
+    assert len(full) == 5 and bool((full[3] >= 1).all()) and float(full[3].max()) <= 1.5 + 1e-5
+    assert float(full[3].min()) >= 4.0 / 3.0 - 1e-5  # every point has an x pair: 4 / 3 left on it at least
+    half = fld.fill(p * torch.tensor([1.3, 1.0, 1.0]), ratio=1.5, budget=100.0, with_gap=True)
+    assert half[0].shape[0] == 0 and math.isclose(float(half[3].max()), 1.3, rel_tol=1e-4)  # unfilled: its growth
     tight = fld.fill(q, ratio=1.5, budget=0.2, with_gap=True)
     gap = tight[3]
     assert tight[0].shape[0] <= 0.2 * p.shape[0]
     assert bool((gap >= 1).all()) and float(gap.max()) > 1.5 and float(gap.max()) <= 4.0 + 1e-5
-    assert bool(((gap == 1) | (gap > 1.5)).all())
+    assert bool(((gap <= 1.5 + 1e-5) | (gap > 4.0 / 3.0)).all())
     _, both = fld.gradients_and_fill(q, ratio=1.5, budget=0.2, with_partner=True, with_gap=True)
-    assert len(both) == 6 and torch.equal(both[5], gap)
+    assert len(both) == 7 and torch.equal(both[5], gap) and torch.equal(both[6], tight[4])
+    assert torch.equal(tight[4], torch.where(gap > 1.5, gap, torch.ones_like(gap)))  # sparse: above the ratio only
     for r in (p, p * 0.5, p * torch.tensor([100.0, 1.0, 1.0])):  # 100×: every x-offset pair tears
         out = fld.fill(r, ratio=1.5, budget=0.2, with_gap=True)
-        assert torch.equal(out[-1], torch.ones(p.shape[0]))
+        assert torch.equal(out[-2], torch.ones(p.shape[0])) and torch.equal(out[-1], torch.ones(p.shape[0]))
     nan = fld.fill(torch.full_like(p, float("nan")), with_gap=True)
-    assert torch.equal(nan[-1], torch.ones(p.shape[0]))
+    assert torch.equal(nan[-2], torch.ones(p.shape[0])) and torch.equal(nan[-1], torch.ones(p.shape[0]))
 
 
 def test_budget_gap_counts_only_pairs_the_budget_kept_sparse():

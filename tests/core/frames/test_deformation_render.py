@@ -354,3 +354,47 @@ def test_auto_compression_picks_tangent_for_a_sheet_and_undo_for_a_thick_shell(t
     a = render_edited(today, test.c2w[0], test.height, test.width, test.focal)
     b = render_edited(forced, test.c2w[0], test.height, test.width, test.focal)
     assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+
+
+def test_key_stretch_gap_undoes_only_the_stretch_the_fill_left_open(tiny):
+    """f_key_stretch gap: the attention keys take F with each point's stretch capped at the largest growth the fill
+    left between consecutive points on its pairs. A 4× stretch the fill closes (a generous budget) leaves the keys
+    undoing at most the fill ratio; one the budget leaves sparse undoes up to that growth; the correspondence's
+    local maps are not capped; at rest (forced through the moved path) the frame is today's; extreme poses stay
+    finite."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    today = EditState(bundle)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(f_key_stretch="gap"))
+    for i in range(len(test)):
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    s = torch.tensor([4.0, 1.0, 1.0])
+    closed = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="gap", f_fill_budget=8.0))
+    full = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="full", f_fill_budget=8.0))
+    ratio = closed.cfg.f_fill_ratio
+    assert closed.filled_points > 0 and float(closed._gap.max()) <= ratio + 1e-5
+    low_closed = torch.linalg.svdvals(closed.inv_f_attention.double()).min(-1).values
+    low_full = torch.linalg.svdvals(full.inv_f_attention.double()).min(-1).values
+    assert float(low_closed.min()) >= 1 / ratio - 1e-4  # no key shrinks an offset by more than the ratio
+    assert float(low_full.median()) < 0.4                # the full F⁻¹ undoes the 4× stretch
+    assert torch.equal(closed.inv_f_keys, full.inv_f_keys)  # the correspondence keeps the whole local map
+    sparse = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="gap", f_fill_budget=0.1))
+    gap = sparse._gap.double()
+    assert float(gap.max()) > 2.0
+    low = torch.linalg.svdvals(sparse.inv_f_attention.double()).min(-1).values
+    assert bool((low >= 1 / gap - 1e-4).all())
+    assert float(low[gap > 2.0].median()) < 0.6          # where the budget left gaps, more of the stretch is undone
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.5
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+        for mode in ("tangent", "undo", "keep"):
+            st = EditState(bundle, points=pts, cfg=EditConfig(f_key_stretch="gap", f_compression=mode,
+                                                              f_fill_budget=0.5))
+            out = render_edited(st, c2w, test.height, test.width, test.focal)
+            assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
