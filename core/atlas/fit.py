@@ -184,9 +184,24 @@ def choose_chart_count(xyz: torch.Tensor, cfg: AtlasConfig) -> tuple[int, float]
     return (forced if forced is not None else (8 if f > cfg.auto_flatness else 4)), f
 
 
+def tangent_jacobian(J: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """The part of J [G, n, 2, 3] along the surfaces with unit normals [G, 3]: J (I - n n^T), so its singular values
+    are those of the map restricted to the surface (a fold there: sigma2 -> 0). Zero or non-finite normals leave J
+    as it is. Returns [G, n, 2, 3]."""
+    nrm = normals.to(J.dtype)
+    ok = torch.isfinite(nrm).all(-1, keepdim=True)
+    nrm = torch.where(ok, nrm, torch.zeros_like(nrm))
+    nrm = nrm * (nrm.norm(dim=-1, keepdim=True) > 0.5)  # a unit normal or none
+    jn = (J * nrm[:, None, None, :]).sum(-1, keepdim=True)  # [G, n, 2, 1]
+    return J - jn * nrm[:, None, None, :]
+
+
 def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasConfig, jac_scale: float,
-                 gen: torch.Generator, normals: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """All loss terms on one batch. xb [B, 3] normalised points, rgb [B, 3], normals [B, 3] (w_normal > 0)."""
+                 gen: torch.Generator, normals: torch.Tensor | None = None,
+                 tangent: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """All loss terms on one batch. xb [B, 3] normalised points, rgb [B, 3], normals [B, 3] (w_normal > 0);
+    tangent [B, 3]: the mid-surface's normals when the maps are fitted on it (the distortion then measures the
+    map along the surface only), else None."""
     n, dev = atlas.n, xb.device
     probs = torch.softmax(atlas.chart(xb), -1)  # [B, n]
     uv = atlas.tex(xb)  # [B, n, 2]
@@ -214,7 +229,8 @@ def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasCo
         J, _ = uv_jacobian(atlas.tex, xb[:d])
         w = probs[:d] if cfg.distortion_weighting == "prob" else None
         if use_distortion:
-            out["scaling"], out["area"] = distortion_terms(J * jac_scale, w)
+            Jd = J if tangent is None else tangent_jacobian(J, tangent[:d])
+            out["scaling"], out["area"] = distortion_terms(Jd * jac_scale, w)
         if use_normal:
             out["normal"] = losses.normal_flatness(J * jac_scale, normals[:d], probs[:d])
     return out
@@ -301,6 +317,12 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         hist["phase"].append(phase)
         return p
 
+    tangent = None
+    if cfg.mid_surface_maps and not cfg.mid_surface:
+        raise InputError("AtlasConfig.mid_surface_maps needs mid_surface (--atlas-mid-surface)")
+    if cfg.mid_surface_maps:  # the maps learn the surface the lookups will read (mid_surface below)
+        xn = mid_surface(atlas, xyz, cfg, spacing, hist).to(dev)
+        tangent = atlas.surface.normals_at(atlas.denormalise(xn)).to(dev)
     normals = torch.from_numpy(sample_normals(xyz.numpy().astype(np.float64))).float().to(dev) \
         if cfg.w_normal > 0 else None
     nets = [p for name, p in atlas.named_parameters() if name != "textures"]
@@ -312,7 +334,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     for step in range(cfg.steps):
         idx = torch.randint(len(xn), (min(cfg.batch, len(xn)),), generator=gen).to(dev)
         terms = _step_losses(atlas, xn[idx], rgb[idx], cfg, jac_scale, gen,
-                             None if normals is None else normals[idx])
+                             None if normals is None else normals[idx], None if tangent is None else tangent[idx])
         opt.zero_grad(set_to_none=True)
         _total(terms, cfg).backward()
         opt.step()
@@ -322,7 +344,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         bar.update(1, psnr=p)
 
     # Final texture with the maps frozen: chart probabilities and uv of every sample are fixed.
-    if cfg.mid_surface:  # from here on every point reads the maps on the mid-surface (surface.py)
+    if cfg.mid_surface and not cfg.mid_surface_maps:  # from here on every point reads the maps on the mid-surface
         xn = mid_surface(atlas, xyz, cfg, spacing, hist).to(dev)
     probs_all, uv_all = _predict(atlas, xn)
     if cfg.layout == "islands":

@@ -231,3 +231,55 @@ def test_the_adaptive_flag_reaches_the_fits_projection():
     ref = SurfaceProjection.from_samples(x.numpy(), neighbours=512, adaptive=True)
     assert np.array_equal(got[True].centres, ref.centres) and np.array_equal(got[True].normals, ref.normals)
     assert not np.array_equal(got[False].centres, got[True].centres)
+
+
+def test_mid_surface_normals_follow_the_surface_and_stay_finite():
+    """normals_at: on a noisy sphere the mid-surface's normals are radial (either sign); far, extreme and
+    degenerate inputs give finite unit-or-zero normals, zero where no anchor defines a plane."""
+    xyz = _noisy_sphere(n=8000)
+    proj = SurfaceProjection.from_samples(xyz.numpy(), neighbours=256)
+    x = proj.project(xyz[:500])
+    n = proj.normals_at(x)
+    assert n.shape == (500, 3) and n.dtype == torch.float32
+    cos = torch.nn.functional.cosine_similarity(n.double(), x, dim=-1).abs()
+    assert float(cos.median()) > 0.99 and float(cos.min()) > 0.9, (float(cos.median()), float(cos.min()))
+    far = proj.normals_at(torch.tensor([[1e6, 0.0, 0.0], [0.0, -1e30, 3.0], [1e-30, 1e-30, 1e-30], [0.0, 0.0, 0.0]]))
+    length = far.norm(dim=-1)
+    assert torch.isfinite(far).all() and bool(((length - 1).abs() < 1e-4).logical_or(length == 0).all())
+    assert proj.normals_at(torch.zeros(0, 3)).shape == (0, 3)
+    ball = SurfaceProjection.from_samples(np.random.default_rng(4).normal(size=(3000, 3)), neighbours=256)
+    assert float((ball.normals_at(torch.zeros(50, 3)).norm(dim=-1) == 0).float().mean()) > 0.9
+    for samples in (np.zeros((2, 3)), np.ones((40, 3))):
+        assert torch.equal(SurfaceProjection.from_samples(samples).normals_at(torch.ones(3, 3)), torch.zeros(3, 3))
+
+
+def test_the_tangent_jacobian_sees_the_fold_the_full_jacobian_hides():
+    """A map of the plane z = 0 that reads (x, z): in 3-D its Jacobian has two unit singular values (no distortion
+    at all for the normal-free loss), but on the plane it is constant along y — folded flat. Its part along the
+    surface has sigma2 = 0, and the distortion's log-area term, taken on it, is at its ceiling. A map whose rows
+    are tangent is left alone; zero and NaN normals leave J as it is; extreme Jacobians stay finite."""
+    from core.atlas.distortion import distortion_terms
+    from core.atlas.fit import tangent_jacobian
+
+    z = torch.tensor([[0.0, 0.0, 1.0]])
+    flat = torch.tensor([[[[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]]])           # [1, 1, 2, 3]: u = x, v = z
+    good = torch.tensor([[[[1.0, 0.0, 0.3], [0.0, 1.0, -0.2]]]])           # tangent rows plus a normal part
+    assert float(distortion_terms(flat)[1]) < 1e-10
+    assert float(distortion_terms(tangent_jacobian(flat, z))[1]) > 150     # (log 1e-6)^2 = 191: the floor
+    assert torch.allclose(tangent_jacobian(good, z), torch.tensor([[[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]]]))
+    assert float(distortion_terms(tangent_jacobian(good, z))[1]) < 1e-10
+    for nrm in (torch.zeros(1, 3), torch.tensor([[float("nan"), 0.0, 1.0]])):
+        assert torch.equal(tangent_jacobian(flat, nrm), flat)
+    J = torch.tensor([[[[1e30, -1e30, 3.0], [1e-30, 0.0, 0.0]]]], requires_grad=True)
+    s, a = distortion_terms(tangent_jacobian(J, z))
+    (s + a).backward()
+    assert torch.isfinite(s) and torch.isfinite(a) and torch.isfinite(J.grad).all()
+
+
+def test_mid_surface_maps_need_the_mid_surface():
+    from core.atlas.config import AtlasConfig
+    from core.atlas.fit import fit_atlas
+
+    xyz, rgb = synthetic_samples("strip", 500, seed=4)
+    with pytest.raises(InputError, match="mid_surface"):
+        fit_atlas(xyz, rgb, AtlasConfig(mid_surface_maps=True, steps=1), quiet=True)
