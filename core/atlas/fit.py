@@ -224,7 +224,8 @@ def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasCo
     }
     use_distortion = cfg.distortion and cfg.w_distortion > 0
     use_normal = cfg.w_normal > 0 and normals is not None
-    if use_distortion or use_normal:
+    use_fold = cfg.w_fold > 0 and tangent is not None
+    if use_distortion or use_normal or use_fold:
         d = min(cfg.distortion_batch, len(xb))
         J, _ = uv_jacobian(atlas.tex, xb[:d])
         w = probs[:d] if cfg.distortion_weighting == "prob" else None
@@ -233,13 +234,15 @@ def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasCo
             out["scaling"], out["area"] = distortion_terms(Jd * jac_scale, w)
         if use_normal:
             out["normal"] = losses.normal_flatness(J * jac_scale, normals[:d], probs[:d])
+        if use_fold:
+            out["fold"] = losses.fold_barrier(J, tangent[:d], probs[:d])
     return out
 
 
 def _total(terms: dict[str, torch.Tensor], cfg: AtlasConfig) -> torch.Tensor:
     w = {"cycle3d": cfg.w_cycle3d, "cycle2d": cfg.w_cycle2d, "consistency": cfg.w_consistency,
          "surface": cfg.w_surface, "compact": cfg.w_compact, "range": cfg.w_range, "texture": cfg.w_texture,
-         "scaling": cfg.w_distortion, "area": cfg.w_distortion, "normal": cfg.w_normal}
+         "scaling": cfg.w_distortion, "area": cfg.w_distortion, "normal": cfg.w_normal, "fold": cfg.w_fold}
     return sum(w[k] * v for k, v in terms.items())
 
 
@@ -322,7 +325,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         raise InputError("AtlasConfig.mid_surface_maps needs mid_surface (--atlas-mid-surface)")
     if cfg.mid_surface_maps:  # the maps learn the surface the lookups will read (mid_surface below)
         xn = mid_surface(atlas, xyz, cfg, spacing, hist).to(dev)
-        tangent = atlas.surface.normals_at(atlas.denormalise(xn)).to(dev)
+        tangent = atlas.surface.orient().normals_at(atlas.denormalise(xn)).to(dev)  # one side per part
     normals = torch.from_numpy(sample_normals(xyz.numpy().astype(np.float64))).float().to(dev) \
         if cfg.w_normal > 0 else None
     nets = [p for name, p in atlas.named_parameters() if name != "textures"]

@@ -152,6 +152,34 @@ class SurfaceProjection:
             h = max(float(np.ptp(x, axis=0).max()), 1e-6)
         return cls(centres, normals, h, k)
 
+    def orient(self, neighbours: int = 8) -> "SurfaceProjection":
+        """Give the anchors' normals one side (in place; the projection does not change, it is even in n): along a
+        minimum spanning tree of the anchors' `neighbours`-nearest graph weighted by 1 - |cos| of their normals
+        (smooth parts first), each anchor's normal is turned to agree with its parent's. Each connected part of the
+        surface gets its own side (arbitrary); anchors without a plane are left out. Returns self."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+
+        have = np.nonzero(np.linalg.norm(self.normals, axis=1) > 0.5)[0]
+        if len(have) < 2:
+            return self
+        c, nrm = self.centres[have], self.normals[have]
+        k = min(int(neighbours), len(have) - 1)
+        _, nb = cKDTree(c).query(c, k=k + 1)
+        rows, cols = np.repeat(np.arange(len(have)), k), nb[:, 1:].reshape(-1)
+        w = 1.0 - np.abs(np.einsum("ij,ij->i", nrm[rows], nrm[cols])) + 1e-6  # > 0: a stored edge
+        tree = minimum_spanning_tree(coo_matrix((w, (rows, cols)), shape=(len(have),) * 2).tocsr())
+        tree = tree + tree.T
+        n_parts, part = connected_components(tree, directed=False)
+        flip = np.ones(len(have))
+        for root in np.unique(part, return_index=True)[1]:
+            order, parent = breadth_first_order(tree, int(root), directed=False)
+            for i in order[1:]:  # parents come first in breadth-first order
+                j = parent[i]
+                flip[i] = flip[j] * (1.0 if nrm[i] @ nrm[j] >= 0 else -1.0)
+        self.normals[have] = nrm * flip[:, None]
+        return self
+
     def __len__(self) -> int:
         return len(self.centres)
 

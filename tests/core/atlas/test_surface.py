@@ -283,3 +283,55 @@ def test_mid_surface_maps_need_the_mid_surface():
     xyz, rgb = synthetic_samples("strip", 500, seed=4)
     with pytest.raises(InputError, match="mid_surface"):
         fit_atlas(xyz, rgb, AtlasConfig(mid_surface_maps=True, steps=1), quiet=True)
+
+
+def test_orient_gives_a_closed_surface_one_side():
+    """PCA normals have random signs; after orient() the anchors of a noisy sphere all face out or all face in, the
+    projection is unchanged, and degenerate anchors (no plane) stay zero."""
+    xyz = _noisy_sphere(n=8000)
+    proj = SurfaceProjection.from_samples(xyz.numpy(), neighbours=256)
+    before = proj.project(xyz[:300])
+    side = np.sign(np.einsum("ij,ij->i", proj.normals, proj.centres))
+    assert 0.1 < float((side > 0).mean()) < 0.9        # random signs to begin with
+    proj.orient()
+    side = np.sign(np.einsum("ij,ij->i", proj.normals, proj.centres))
+    assert max(float((side > 0).mean()), float((side < 0).mean())) > 0.999
+    assert torch.allclose(proj.project(xyz[:300]), before, atol=1e-9)
+    cos = torch.nn.functional.cosine_similarity(proj.normals_at(proj.project(xyz[:300])).double(), xyz[:300], dim=-1)
+    assert max(float((cos > 0).float().mean()), float((cos < 0).float().mean())) == 1.0
+    for samples in (np.zeros((2, 3)), np.ones((40, 3))):
+        p = SurfaceProjection.from_samples(samples).orient()
+        assert np.isfinite(p.normals).all() and not p.normals.any()
+
+
+def test_the_fold_barrier_sees_two_sheets_laid_over_each_other():
+    """A chart that maps a flattened tube: its front (u = x, v = y against normal +z) and its back (the normal -z,
+    read the same way) land on the same texels, each locally without distortion — the distortion loss sees nothing,
+    the fold barrier sees the back reversed. One orientation everywhere costs nothing; creases (rank-1 along the
+    surface) cost margin^2; zero, huge and NaN inputs stay finite."""
+    from core.atlas.distortion import distortion_terms
+    from core.atlas.losses import fold_barrier
+
+    J = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]).expand(8, 1, 2, 3).clone()
+    up, down = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.0, -1.0])
+    probs = torch.ones(8, 1)
+    one_side = torch.stack([up] * 8)
+    two_sheets = torch.stack([up] * 5 + [down] * 3)
+    assert float(distortion_terms(J)[0] + distortion_terms(J)[1]) < 1e-10
+    assert float(fold_barrier(J, one_side, probs)) == 0.0
+    got = float(fold_barrier(J, two_sheets, probs))
+    assert abs(got - 3 / 8 * 1.25 ** 2) < 1e-5, got          # the 3 reversed samples: (0.25 + 1)^2 each
+    # a second chart holding the back costs nothing (the barrier pushes the back out of the first chart)
+    probs2 = torch.tensor([[1.0, 0.0]] * 5 + [[0.0, 1.0]] * 3)
+    J2 = J.expand(8, 2, 2, 3).clone()
+    assert float(fold_barrier(J2, two_sheets, probs2)) == 0.0
+    crease = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]).expand(8, 1, 2, 3)
+    assert abs(float(fold_barrier(crease, one_side, probs)) - 0.25 ** 2) < 1e-6
+    nan_normals = torch.full((8, 3), float("nan"))
+    assert float(fold_barrier(J, nan_normals, probs)) == 0.0
+    wild = torch.tensor([[1e30, -1e30, 3.0], [1e-30, 0.0, 0.0]]).expand(8, 1, 2, 3).clone().requires_grad_(True)
+    zero = torch.zeros(8, 1, 2, 3, requires_grad=True)
+    for j in (wild, zero):
+        loss = fold_barrier(j, two_sheets, probs)
+        loss.backward()
+        assert torch.isfinite(loss) and torch.isfinite(j.grad).all()
