@@ -460,3 +460,37 @@ def quality_report(atlas: Atlas, xyz, rgb, area: float, chart_fill: float = 0.5,
         "area_p5": float(np.percentile(areas, 5)),
         "chart_share": torch.bincount(chart, minlength=atlas.n).float().div(len(chart)).tolist(),
     }
+
+
+def fold_report(atlas: Atlas, xyz, max_points: int = 20000, seed: int = 0) -> dict:
+    """How much the chart maps fold where the lookups read them, on samples xyz [S, 3] (at most max_points):
+    each sample's chart map restricted to the surface (the mid-surface when the atlas has one), its orientation
+    rho = det / (|du| |dv|) against the surface's normals given one side (`SurfaceProjection.orient`; without a
+    mid-surface the planes are built from xyz for the measurement only). Returns {"reversed": share of the
+    samples whose rho has the sign opposite to their chart's P-weighted majority — a chart laying two parts of the
+    surface over each other, "crease": share with |rho| < 0.2, "charts": per chart [reversed share, samples]}."""
+    x = check_points(xyz, "samples")
+    g = torch.Generator().manual_seed(seed)
+    x = x[torch.randperm(len(x), generator=g)[:max_points]].to(atlas.device)
+    surf = atlas.surface if atlas.surface is not None else SurfaceProjection.from_samples(x.cpu().numpy())
+    surf = SurfaceProjection(surf.centres, surf.normals, surf.bandwidth, surf.k).orient()  # a copy: atlas untouched
+    pts = atlas.on_surface(x)
+    nrm = surf.normals_at(pts).to(atlas.device).double()
+    probs, _ = atlas.chart_uv(x)
+    chart = probs.argmax(-1)
+    with torch.enable_grad():
+        J, _ = uv_jacobian(atlas.tex, atlas.normalise(pts))
+    J = J.detach()[torch.arange(len(x), device=atlas.device), chart].double()
+    du, dv = J[:, 0], J[:, 1]
+    rho = (torch.linalg.cross(du, dv) * nrm).sum(-1) / (du.norm(dim=-1) * dv.norm(dim=-1)).clamp_min(1e-300)
+    ok = (nrm.norm(dim=-1) > 0.5) & torch.isfinite(rho)
+    rev = torch.zeros(len(x), dtype=torch.bool, device=atlas.device)
+    per = []
+    for c in range(atlas.n):
+        m = (chart == c) & ok
+        if bool(m.any()):
+            rev[m] = (rho[m] < 0) if float(rho[m].sum()) >= 0 else (rho[m] > 0)
+        per.append([float(rev[m].float().mean()) if bool(m.any()) else 0.0, int(m.sum())])
+    n_ok = max(int(ok.sum()), 1)
+    return {"reversed": float(rev[ok].sum()) / n_ok, "crease": float((rho[ok].abs() < 0.2).sum()) / n_ok,
+            "charts": per}

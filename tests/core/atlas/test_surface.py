@@ -335,3 +335,32 @@ def test_the_fold_barrier_sees_two_sheets_laid_over_each_other():
         loss = fold_barrier(j, two_sheets, probs)
         loss.backward()
         assert torch.isfinite(loss) and torch.isfinite(j.grad).all()
+
+
+class _PlanarMap(torch.nn.Module):
+    """t(x) = (x, y) / 2 + 1/2 for one chart: [M, 3] -> [M, 1, 2]; on a sphere the front (z > 0) and the back are
+    laid over each other with opposite orientations."""
+
+    def forward(self, xn):
+        return (0.5 * xn[:, None, :2] + 0.5).contiguous()
+
+
+def test_fold_report_finds_the_back_of_a_flattened_sphere():
+    """fold_report on a one-chart atlas that flattens the sphere along z: about half of the samples (the minority
+    side) are reversed when the chart covers the whole sphere, none when it covers the cap z > 0.3 only; finite
+    with a projection or without one, and the atlas's own planes are not reoriented."""
+    from core.atlas.fit import fold_report
+
+    xyz = _noisy_sphere(n=8000, noise=0.003).float()
+    atlas = Atlas(1, 16, 2, torch.zeros(3), 1.0)
+    atlas.tex = _PlanarMap()
+    whole = fold_report(atlas, xyz, max_points=4000)
+    assert 0.4 < whole["reversed"] <= 0.5 and whole["charts"][0][1] > 3900, whole
+    cap = xyz[xyz[:, 2] > 0.3]
+    assert fold_report(atlas, cap, max_points=4000)["reversed"] < 0.01
+    atlas.surface = SurfaceProjection.from_samples(xyz.numpy(), neighbours=256)
+    stored = atlas.surface.normals.copy()
+    projected = fold_report(atlas, xyz, max_points=4000)
+    assert 0.4 < projected["reversed"] <= 0.5
+    assert 0.15 < projected["crease"] < 0.25, projected   # |rho| = |n_z|: the band |z| < 0.2, a fifth of the sphere
+    assert np.array_equal(atlas.surface.normals, stored)
