@@ -323,6 +323,8 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     tangent = None
     if cfg.mid_surface_maps and not cfg.mid_surface:
         raise InputError("AtlasConfig.mid_surface_maps needs mid_surface (--atlas-mid-surface)")
+    if cfg.w_fold > 0 and not cfg.mid_surface_maps:
+        raise InputError("AtlasConfig.w_fold needs mid_surface_maps (--atlas-mid-surface --atlas-mid-surface-maps)")
     if cfg.mid_surface_maps:  # the maps learn the surface the lookups will read (mid_surface below)
         xn = mid_surface(atlas, xyz, cfg, spacing, hist).to(dev)
         tangent = atlas.surface.orient().normals_at(atlas.denormalise(xn)).to(dev)  # one side per part

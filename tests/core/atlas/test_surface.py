@@ -283,6 +283,8 @@ def test_mid_surface_maps_need_the_mid_surface():
     xyz, rgb = synthetic_samples("strip", 500, seed=4)
     with pytest.raises(InputError, match="mid_surface"):
         fit_atlas(xyz, rgb, AtlasConfig(mid_surface_maps=True, steps=1), quiet=True)
+    with pytest.raises(InputError, match="mid_surface_maps"):
+        fit_atlas(xyz, rgb, AtlasConfig(mid_surface=True, w_fold=1.0, steps=1), quiet=True)
 
 
 def test_orient_gives_a_closed_surface_one_side():
@@ -364,3 +366,33 @@ def test_fold_report_finds_the_back_of_a_flattened_sphere():
     assert 0.4 < projected["reversed"] <= 0.5
     assert 0.15 < projected["crease"] < 0.25, projected   # |rho| = |n_z|: the band |z| < 0.2, a fifth of the sphere
     assert np.array_equal(atlas.surface.normals, stored)
+
+
+def test_a_fit_with_maps_on_the_mid_surface_and_the_fold_barrier_runs_end_to_end():
+    """A quick island fit to samples 1 cm off the strip with mid_surface_maps and w_fold: the projection is built
+    before the maps (its normals given one side), the fit stays finite, and the kept texels map back within 1
+    texel."""
+    from core.atlas.config import AtlasConfig
+    from core.atlas.fit import fit_atlas
+
+    xyz, rgb = synthetic_samples("strip", 3000, seed=4)
+    noisy = xyz + 0.01 * torch.randn(xyz.shape, generator=torch.Generator().manual_seed(1))
+    quick = dict(steps=150, batch=256, uv_batch=32, distortion_batch=64, width_map=32, depth_map=2, width_chart=16,
+                 depth_chart=1, log_every=1000, eval_samples=256, charts="4", layout="islands", image_size=96,
+                 mid_surface_neighbours=128)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        atlas, hist = fit_atlas(noisy, rgb, AtlasConfig(mid_surface=True, mid_surface_maps=True, w_fold=1.0, **quick),
+                                quiet=True)
+    finally:
+        torch.set_num_threads(threads)
+    assert hist["mid_surface"]["anchors"] == 3000 and all(np.isfinite(hist["psnr"]))
+    nrm = atlas.surface.normals[np.linalg.norm(atlas.surface.normals, axis=1) > 0.5]
+    assert float(np.mean(nrm @ nrm.mean(0) > 0)) > 0.99      # the strip's anchors face one side
+    tp = atlas.texel_points()
+    ok = torch.isfinite(tp).all(-1)
+    assert int(ok.sum()) > 500                                # of 96² (a short fit: utilisation is not the point)
+    _, pix = atlas.atlas_pixel_coords(tp[ok])
+    rows, cols = torch.nonzero(ok, as_tuple=True)
+    assert float(((pix - torch.stack([cols + 0.5, rows + 0.5], -1)).norm(dim=-1) <= 1).float().mean()) == 1.0
