@@ -68,6 +68,13 @@ class AtlasConfig:
                                             "mid_surface_neighbours, 1/2, 1/4 or 1/8 of it that is flattest (spread "
                                             "across / along), so it stops growing at a bend, an edge or a thin part's "
                                             "other face (docs/atlas.md)")
+    mid_surface_maps: bool = opt(False, "mid-surface: build it before the maps and fit the maps on the projected "
+                                        "samples, with the distortion loss on the Jacobian's part along the "
+                                        "mid-surface (its log-area term keeps the map the lookups read from "
+                                        "folding); needs mid_surface (docs/atlas.md)")
+    w_fold: float = opt(0.0, "mid_surface_maps: weight of the fold barrier — each chart's map keeps one orientation "
+                             "against the mid-surface's oriented normals, so no chart lays two parts of the surface "
+                             "over each other (0 = off; docs/atlas.md)", min=0.0)
     mid_surface_max_ratio: float = opt(0.7, "mid-surface: an anchor whose neighbourhood's spread across exceeds this "
                                             "share of its spread along the surface (no clear plane: a slab as thick "
                                             "as wide, an edge) leaves points where they are", above=0.0)

@@ -184,9 +184,24 @@ def choose_chart_count(xyz: torch.Tensor, cfg: AtlasConfig) -> tuple[int, float]
     return (forced if forced is not None else (8 if f > cfg.auto_flatness else 4)), f
 
 
+def tangent_jacobian(J: torch.Tensor, normals: torch.Tensor) -> torch.Tensor:
+    """The part of J [G, n, 2, 3] along the surfaces with unit normals [G, 3]: J (I - n n^T), so its singular values
+    are those of the map restricted to the surface (a fold there: sigma2 -> 0). Zero or non-finite normals leave J
+    as it is. Returns [G, n, 2, 3]."""
+    nrm = normals.to(J.dtype)
+    ok = torch.isfinite(nrm).all(-1, keepdim=True)
+    nrm = torch.where(ok, nrm, torch.zeros_like(nrm))
+    nrm = nrm * (nrm.norm(dim=-1, keepdim=True) > 0.5)  # a unit normal or none
+    jn = (J * nrm[:, None, None, :]).sum(-1, keepdim=True)  # [G, n, 2, 1]
+    return J - jn * nrm[:, None, None, :]
+
+
 def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasConfig, jac_scale: float,
-                 gen: torch.Generator, normals: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """All loss terms on one batch. xb [B, 3] normalised points, rgb [B, 3], normals [B, 3] (w_normal > 0)."""
+                 gen: torch.Generator, normals: torch.Tensor | None = None,
+                 tangent: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """All loss terms on one batch. xb [B, 3] normalised points, rgb [B, 3], normals [B, 3] (w_normal > 0);
+    tangent [B, 3]: the mid-surface's normals when the maps are fitted on it (the distortion then measures the
+    map along the surface only), else None."""
     n, dev = atlas.n, xb.device
     probs = torch.softmax(atlas.chart(xb), -1)  # [B, n]
     uv = atlas.tex(xb)  # [B, n, 2]
@@ -209,21 +224,25 @@ def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasCo
     }
     use_distortion = cfg.distortion and cfg.w_distortion > 0
     use_normal = cfg.w_normal > 0 and normals is not None
-    if use_distortion or use_normal:
+    use_fold = cfg.w_fold > 0 and tangent is not None
+    if use_distortion or use_normal or use_fold:
         d = min(cfg.distortion_batch, len(xb))
         J, _ = uv_jacobian(atlas.tex, xb[:d])
         w = probs[:d] if cfg.distortion_weighting == "prob" else None
         if use_distortion:
-            out["scaling"], out["area"] = distortion_terms(J * jac_scale, w)
+            Jd = J if tangent is None else tangent_jacobian(J, tangent[:d])
+            out["scaling"], out["area"] = distortion_terms(Jd * jac_scale, w)
         if use_normal:
             out["normal"] = losses.normal_flatness(J * jac_scale, normals[:d], probs[:d])
+        if use_fold:
+            out["fold"] = losses.fold_barrier(J, tangent[:d], probs[:d])
     return out
 
 
 def _total(terms: dict[str, torch.Tensor], cfg: AtlasConfig) -> torch.Tensor:
     w = {"cycle3d": cfg.w_cycle3d, "cycle2d": cfg.w_cycle2d, "consistency": cfg.w_consistency,
          "surface": cfg.w_surface, "compact": cfg.w_compact, "range": cfg.w_range, "texture": cfg.w_texture,
-         "scaling": cfg.w_distortion, "area": cfg.w_distortion, "normal": cfg.w_normal}
+         "scaling": cfg.w_distortion, "area": cfg.w_distortion, "normal": cfg.w_normal, "fold": cfg.w_fold}
     return sum(w[k] * v for k, v in terms.items())
 
 
@@ -301,6 +320,14 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         hist["phase"].append(phase)
         return p
 
+    tangent = None
+    if cfg.mid_surface_maps and not cfg.mid_surface:
+        raise InputError("AtlasConfig.mid_surface_maps needs mid_surface (--atlas-mid-surface)")
+    if cfg.w_fold > 0 and not cfg.mid_surface_maps:
+        raise InputError("AtlasConfig.w_fold needs mid_surface_maps (--atlas-mid-surface --atlas-mid-surface-maps)")
+    if cfg.mid_surface_maps:  # the maps learn the surface the lookups will read (mid_surface below)
+        xn = mid_surface(atlas, xyz, cfg, spacing, hist).to(dev)
+        tangent = atlas.surface.orient().normals_at(atlas.denormalise(xn)).to(dev)  # one side per part
     normals = torch.from_numpy(sample_normals(xyz.numpy().astype(np.float64))).float().to(dev) \
         if cfg.w_normal > 0 else None
     nets = [p for name, p in atlas.named_parameters() if name != "textures"]
@@ -312,7 +339,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     for step in range(cfg.steps):
         idx = torch.randint(len(xn), (min(cfg.batch, len(xn)),), generator=gen).to(dev)
         terms = _step_losses(atlas, xn[idx], rgb[idx], cfg, jac_scale, gen,
-                             None if normals is None else normals[idx])
+                             None if normals is None else normals[idx], None if tangent is None else tangent[idx])
         opt.zero_grad(set_to_none=True)
         _total(terms, cfg).backward()
         opt.step()
@@ -322,7 +349,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         bar.update(1, psnr=p)
 
     # Final texture with the maps frozen: chart probabilities and uv of every sample are fixed.
-    if cfg.mid_surface:  # from here on every point reads the maps on the mid-surface (surface.py)
+    if cfg.mid_surface and not cfg.mid_surface_maps:  # from here on every point reads the maps on the mid-surface
         xn = mid_surface(atlas, xyz, cfg, spacing, hist).to(dev)
     probs_all, uv_all = _predict(atlas, xn)
     if cfg.layout == "islands":
@@ -435,3 +462,37 @@ def quality_report(atlas: Atlas, xyz, rgb, area: float, chart_fill: float = 0.5,
         "area_p5": float(np.percentile(areas, 5)),
         "chart_share": torch.bincount(chart, minlength=atlas.n).float().div(len(chart)).tolist(),
     }
+
+
+def fold_report(atlas: Atlas, xyz, max_points: int = 20000, seed: int = 0) -> dict:
+    """How much the chart maps fold where the lookups read them, on samples xyz [S, 3] (at most max_points):
+    each sample's chart map restricted to the surface (the mid-surface when the atlas has one), its orientation
+    rho = det / (|du| |dv|) against the surface's normals given one side (`SurfaceProjection.orient`; without a
+    mid-surface the planes are built from xyz for the measurement only). Returns {"reversed": share of the
+    samples whose rho has the sign opposite to their chart's P-weighted majority — a chart laying two parts of the
+    surface over each other, "crease": share with |rho| < 0.2, "charts": per chart [reversed share, samples]}."""
+    x = check_points(xyz, "samples")
+    g = torch.Generator().manual_seed(seed)
+    x = x[torch.randperm(len(x), generator=g)[:max_points]].to(atlas.device)
+    surf = atlas.surface if atlas.surface is not None else SurfaceProjection.from_samples(x.cpu().numpy())
+    surf = SurfaceProjection(surf.centres, surf.normals, surf.bandwidth, surf.k).orient()  # a copy: atlas untouched
+    pts = atlas.on_surface(x)
+    nrm = surf.normals_at(pts).to(atlas.device).double()
+    probs, _ = atlas.chart_uv(x)
+    chart = probs.argmax(-1)
+    with torch.enable_grad():
+        J, _ = uv_jacobian(atlas.tex, atlas.normalise(pts))
+    J = J.detach()[torch.arange(len(x), device=atlas.device), chart].double()
+    du, dv = J[:, 0], J[:, 1]
+    rho = (torch.linalg.cross(du, dv) * nrm).sum(-1) / (du.norm(dim=-1) * dv.norm(dim=-1)).clamp_min(1e-300)
+    ok = (nrm.norm(dim=-1) > 0.5) & torch.isfinite(rho)
+    rev = torch.zeros(len(x), dtype=torch.bool, device=atlas.device)
+    per = []
+    for c in range(atlas.n):
+        m = (chart == c) & ok
+        if bool(m.any()):
+            rev[m] = (rho[m] < 0) if float(rho[m].sum()) >= 0 else (rho[m] > 0)
+        per.append([float(rev[m].float().mean()) if bool(m.any()) else 0.0, int(m.sum())])
+    n_ok = max(int(ok.sum()), 1)
+    return {"reversed": float(rev[ok].sum()) / n_ok, "crease": float((rho[ok].abs() < 0.2).sum()) / n_ok,
+            "charts": per}

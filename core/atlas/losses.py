@@ -56,3 +56,25 @@ def normal_flatness(J: torch.Tensor, normals: torch.Tensor, weights: torch.Tenso
     if weights is None:
         return jn.mean()
     return (weights * jn).sum(-1).mean()
+
+
+def fold_barrier(J: torch.Tensor, normals: torch.Tensor, probs: torch.Tensor, margin: float = 0.25) -> torch.Tensor:
+    """Folds of the texture coordinates along the surface: rho = det of J restricted to the surface / (|du| |dv|),
+    in [-1, 1] (its sign: the map's orientation against the oriented normal; 0: the map is singular along the
+    surface, a crease). Each chart's side is the sign of its P-weighted mean rho (no gradient); samples whose rho is
+    below margin on that side are penalised: mean_i sum_c P_ic relu(margin - side_c rho_ic)^2. A chart that lays a
+    tube's front and back over each other (locally fine, globally two-to-one) has the back reversed, so the term
+    pushes those samples' maps to turn or their chart probability down.
+    J [G, n, 2, 3] (du/dx), normals [G, 3] (unit and consistently oriented; zero or non-finite: not counted),
+    probs [G, n]. Finite for zero and huge Jacobians."""
+    nrm = normals.to(J.dtype)
+    use = (torch.isfinite(nrm).all(-1) & (nrm.norm(dim=-1) > 0.5)).to(J.dtype)            # [G]
+    nrm = torch.where(use[:, None] > 0, nrm, torch.zeros_like(nrm))
+    m = J.detach().abs().amax(dim=(-2, -1), keepdim=True).clamp_min(1e-12)                # scale-free: no overflow
+    Jn = J / m
+    du, dv = Jn[..., 0, :], Jn[..., 1, :]
+    det = (torch.linalg.cross(du, dv) * nrm[:, None, :]).sum(-1)                          # [G, n]
+    rho = det / (du.norm(dim=-1) * dv.norm(dim=-1)).clamp_min(1e-12)
+    w = probs * use[:, None]
+    side = torch.where((w * rho).sum(0).detach() >= 0, 1.0, -1.0).to(J.dtype)             # [n]
+    return (w * F.relu(margin - side * rho).pow(2)).sum(-1).mean()

@@ -152,6 +152,34 @@ class SurfaceProjection:
             h = max(float(np.ptp(x, axis=0).max()), 1e-6)
         return cls(centres, normals, h, k)
 
+    def orient(self, neighbours: int = 8) -> "SurfaceProjection":
+        """Give the anchors' normals one side (in place; the projection does not change, it is even in n): along a
+        minimum spanning tree of the anchors' `neighbours`-nearest graph weighted by 1 - |cos| of their normals
+        (smooth parts first), each anchor's normal is turned to agree with its parent's. Each connected part of the
+        surface gets its own side (arbitrary); anchors without a plane are left out. Returns self."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+
+        have = np.nonzero(np.linalg.norm(self.normals, axis=1) > 0.5)[0]
+        if len(have) < 2:
+            return self
+        c, nrm = self.centres[have], self.normals[have]
+        k = min(int(neighbours), len(have) - 1)
+        _, nb = cKDTree(c).query(c, k=k + 1)
+        rows, cols = np.repeat(np.arange(len(have)), k), nb[:, 1:].reshape(-1)
+        w = 1.0 - np.abs(np.einsum("ij,ij->i", nrm[rows], nrm[cols])) + 1e-6  # > 0: a stored edge
+        tree = minimum_spanning_tree(coo_matrix((w, (rows, cols)), shape=(len(have),) * 2).tocsr())
+        tree = tree + tree.T
+        n_parts, part = connected_components(tree, directed=False)
+        flip = np.ones(len(have))
+        for root in np.unique(part, return_index=True)[1]:
+            order, parent = breadth_first_order(tree, int(root), directed=False)
+            for i in order[1:]:  # parents come first in breadth-first order
+                j = parent[i]
+                flip[i] = flip[j] * (1.0 if nrm[i] @ nrm[j] >= 0 else -1.0)
+        self.normals[have] = nrm * flip[:, None]
+        return self
+
     def __len__(self) -> int:
         return len(self.centres)
 
@@ -175,6 +203,31 @@ class SurfaceProjection:
         moved = q - np.einsum("mk,mk,mki->mi", w, off, n)
         out = torch.from_numpy(moved).to(dtype=xt.dtype if xt.is_floating_point() else torch.float32)
         return out.to(xt.device)
+
+    def normals_at(self, x) -> torch.Tensor:
+        """Unit normals of the mid-surface at points x [M, 3] (torch or numpy, finite) -> [M, 3] float32 tensor on
+        x's device: the anchors' normals under the projection's weights, each turned to agree with the nearest
+        anchor's (PCA normals have no sign); zero where no nearby anchor defines a plane (or there are no anchors).
+        The sign is arbitrary; what uses it (the tangent part of a Jacobian) is even in n."""
+        xt = torch.as_tensor(x)
+        if xt.dim() != 2 or xt.shape[-1] != 3:
+            raise InputError(f"surface projection: expected points [M, 3], got {tuple(xt.shape)}")
+        if self._tree is None or xt.shape[0] == 0:
+            return torch.zeros(xt.shape[0], 3, dtype=torch.float32, device=xt.device)
+        q = xt.detach().cpu().double().numpy()
+        k = min(self.k, len(self.centres))
+        dist, idx = self._tree.query(q, k=k)
+        dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
+        w = np.exp(-0.5 * (dist ** 2 - dist[:, :1] ** 2) / self.bandwidth ** 2)
+        n = self.normals[idx]                                             # [M, k, 3]
+        ref = n[np.arange(len(q)), np.argmax(np.linalg.norm(n, axis=2) > 0.5, axis=1)]  # nearest anchor with a plane
+        sign = np.where(np.einsum("mki,mi->mk", n, ref) < 0, -1.0, 1.0)
+        mean = np.einsum("mk,mk,mki->mi", w, sign, n)
+        length = np.linalg.norm(mean, axis=1, keepdims=True)
+        # a plane's weight must dominate: where the anchors with planes are far (their weight tiny) or cancel, none
+        ok = length > 0.1 * w.sum(1, keepdims=True)
+        out = np.where(ok, mean / np.maximum(length, 1e-300), 0.0)
+        return torch.from_numpy(out.astype(np.float32)).to(xt.device)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {"atlas/surface/centres": self.centres.astype(np.float32),

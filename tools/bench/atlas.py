@@ -120,9 +120,10 @@ def scene_model(root, name: str):
 
 
 def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=None, log=print,
-               scores: bool = True) -> list[dict]:
+               scores: bool = True, folds: bool = False) -> list[dict]:
     """The per-scene figures (module doc) for every scene of the library found under root (or those in only);
-    scores False: the layout figures only (utilisation, round trip, islands, seconds), no renders."""
+    scores False: the layout figures only (utilisation, round trip, islands, seconds), no renders; folds: also
+    `core.atlas.fit.fold_report` on the atlas's stored samples (reversed, crease)."""
     import time
     from pathlib import Path
 
@@ -162,6 +163,11 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                    "round_trip_all": hist.get("texel_stats", {}).get("round_trip_1", float("nan")),
                    "islands": hist.get("islands", 0),
                    "island_share": float(atlas.layout.island_pixels.float().mean()) if atlas.islands else float("nan")}
+            if folds and atlas.bake_samples is not None:
+                from core.atlas.fit import fold_report
+
+                rep = fold_report(atlas, atlas.bake_samples)
+                row["reversed"], row["crease"] = rep["reversed"], rep["crease"]
             if scores:
                 row["atlas_colour"] = score_frames(EditState(bundle, cfg=EditConfig(colour="atlas")),
                                                    test)["psnr_object"]
@@ -205,13 +211,16 @@ def main(argv=None) -> int:
     ap.add_argument("--views", type=int, default=4, help="per-scene mode: test views scored")
     ap.add_argument("--scenes", default="", help="per-scene mode: only these scenes (comma-separated)")
     ap.add_argument("--no-scores", action="store_true", help="per-scene mode: layout figures only, no renders")
+    ap.add_argument("--folds", action="store_true", help="per-scene mode: also the share of samples whose chart map "
+                    "is reversed on the surface (core.atlas.fit.fold_report)")
     args, cfg = parse_with_config(ap, AtlasConfig, argv)  # AtlasConfig.threads: the fit and everything else
     if args.scene_root:
         from tools.machine import machine_info
 
         machine = machine_info()
         rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
-                          only=[x for x in args.scenes.split(",") if x], scores=not args.no_scores)
+                          only=[x for x in args.scenes.split(",") if x], scores=not args.no_scores,
+                          folds=args.folds)
         print(markdown_rows(rows))
         print(f"machine: {machine}")
         rows = [dict(r, machine=machine) for r in rows]

@@ -231,3 +231,168 @@ def test_the_adaptive_flag_reaches_the_fits_projection():
     ref = SurfaceProjection.from_samples(x.numpy(), neighbours=512, adaptive=True)
     assert np.array_equal(got[True].centres, ref.centres) and np.array_equal(got[True].normals, ref.normals)
     assert not np.array_equal(got[False].centres, got[True].centres)
+
+
+def test_mid_surface_normals_follow_the_surface_and_stay_finite():
+    """normals_at: on a noisy sphere the mid-surface's normals are radial (either sign); far, extreme and
+    degenerate inputs give finite unit-or-zero normals, zero where no anchor defines a plane."""
+    xyz = _noisy_sphere(n=8000)
+    proj = SurfaceProjection.from_samples(xyz.numpy(), neighbours=256)
+    x = proj.project(xyz[:500])
+    n = proj.normals_at(x)
+    assert n.shape == (500, 3) and n.dtype == torch.float32
+    cos = torch.nn.functional.cosine_similarity(n.double(), x, dim=-1).abs()
+    assert float(cos.median()) > 0.99 and float(cos.min()) > 0.9, (float(cos.median()), float(cos.min()))
+    far = proj.normals_at(torch.tensor([[1e6, 0.0, 0.0], [0.0, -1e30, 3.0], [1e-30, 1e-30, 1e-30], [0.0, 0.0, 0.0]]))
+    length = far.norm(dim=-1)
+    assert torch.isfinite(far).all() and bool(((length - 1).abs() < 1e-4).logical_or(length == 0).all())
+    assert proj.normals_at(torch.zeros(0, 3)).shape == (0, 3)
+    ball = SurfaceProjection.from_samples(np.random.default_rng(4).normal(size=(3000, 3)), neighbours=256)
+    assert float((ball.normals_at(torch.zeros(50, 3)).norm(dim=-1) == 0).float().mean()) > 0.9
+    for samples in (np.zeros((2, 3)), np.ones((40, 3))):
+        assert torch.equal(SurfaceProjection.from_samples(samples).normals_at(torch.ones(3, 3)), torch.zeros(3, 3))
+
+
+def test_the_tangent_jacobian_sees_the_fold_the_full_jacobian_hides():
+    """A map of the plane z = 0 that reads (x, z): in 3-D its Jacobian has two unit singular values (no distortion
+    at all for the normal-free loss), but on the plane it is constant along y — folded flat. Its part along the
+    surface has sigma2 = 0, and the distortion's log-area term, taken on it, is at its ceiling. A map whose rows
+    are tangent is left alone; zero and NaN normals leave J as it is; extreme Jacobians stay finite."""
+    from core.atlas.distortion import distortion_terms
+    from core.atlas.fit import tangent_jacobian
+
+    z = torch.tensor([[0.0, 0.0, 1.0]])
+    flat = torch.tensor([[[[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]]])           # [1, 1, 2, 3]: u = x, v = z
+    good = torch.tensor([[[[1.0, 0.0, 0.3], [0.0, 1.0, -0.2]]]])           # tangent rows plus a normal part
+    assert float(distortion_terms(flat)[1]) < 1e-10
+    assert float(distortion_terms(tangent_jacobian(flat, z))[1]) > 150     # (log 1e-6)^2 = 191: the floor
+    assert torch.allclose(tangent_jacobian(good, z), torch.tensor([[[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]]]))
+    assert float(distortion_terms(tangent_jacobian(good, z))[1]) < 1e-10
+    for nrm in (torch.zeros(1, 3), torch.tensor([[float("nan"), 0.0, 1.0]])):
+        assert torch.equal(tangent_jacobian(flat, nrm), flat)
+    J = torch.tensor([[[[1e30, -1e30, 3.0], [1e-30, 0.0, 0.0]]]], requires_grad=True)
+    s, a = distortion_terms(tangent_jacobian(J, z))
+    (s + a).backward()
+    assert torch.isfinite(s) and torch.isfinite(a) and torch.isfinite(J.grad).all()
+
+
+def test_mid_surface_maps_need_the_mid_surface():
+    from core.atlas.config import AtlasConfig
+    from core.atlas.fit import fit_atlas
+
+    xyz, rgb = synthetic_samples("strip", 500, seed=4)
+    with pytest.raises(InputError, match="mid_surface"):
+        fit_atlas(xyz, rgb, AtlasConfig(mid_surface_maps=True, steps=1), quiet=True)
+    with pytest.raises(InputError, match="mid_surface_maps"):
+        fit_atlas(xyz, rgb, AtlasConfig(mid_surface=True, w_fold=1.0, steps=1), quiet=True)
+
+
+def test_orient_gives_a_closed_surface_one_side():
+    """PCA normals have random signs; after orient() the anchors of a noisy sphere all face out or all face in, the
+    projection is unchanged, and degenerate anchors (no plane) stay zero."""
+    xyz = _noisy_sphere(n=8000)
+    proj = SurfaceProjection.from_samples(xyz.numpy(), neighbours=256)
+    before = proj.project(xyz[:300])
+    side = np.sign(np.einsum("ij,ij->i", proj.normals, proj.centres))
+    assert 0.1 < float((side > 0).mean()) < 0.9        # random signs to begin with
+    proj.orient()
+    side = np.sign(np.einsum("ij,ij->i", proj.normals, proj.centres))
+    assert max(float((side > 0).mean()), float((side < 0).mean())) > 0.999
+    assert torch.allclose(proj.project(xyz[:300]), before, atol=1e-9)
+    cos = torch.nn.functional.cosine_similarity(proj.normals_at(proj.project(xyz[:300])).double(), xyz[:300], dim=-1)
+    assert max(float((cos > 0).float().mean()), float((cos < 0).float().mean())) == 1.0
+    for samples in (np.zeros((2, 3)), np.ones((40, 3))):
+        p = SurfaceProjection.from_samples(samples).orient()
+        assert np.isfinite(p.normals).all() and not p.normals.any()
+
+
+def test_the_fold_barrier_sees_two_sheets_laid_over_each_other():
+    """A chart that maps a flattened tube: its front (u = x, v = y against normal +z) and its back (the normal -z,
+    read the same way) land on the same texels, each locally without distortion — the distortion loss sees nothing,
+    the fold barrier sees the back reversed. One orientation everywhere costs nothing; creases (rank-1 along the
+    surface) cost margin^2; zero, huge and NaN inputs stay finite."""
+    from core.atlas.distortion import distortion_terms
+    from core.atlas.losses import fold_barrier
+
+    J = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]).expand(8, 1, 2, 3).clone()
+    up, down = torch.tensor([0.0, 0.0, 1.0]), torch.tensor([0.0, 0.0, -1.0])
+    probs = torch.ones(8, 1)
+    one_side = torch.stack([up] * 8)
+    two_sheets = torch.stack([up] * 5 + [down] * 3)
+    assert float(distortion_terms(J)[0] + distortion_terms(J)[1]) < 1e-10
+    assert float(fold_barrier(J, one_side, probs)) == 0.0
+    got = float(fold_barrier(J, two_sheets, probs))
+    assert abs(got - 3 / 8 * 1.25 ** 2) < 1e-5, got          # the 3 reversed samples: (0.25 + 1)^2 each
+    # a second chart holding the back costs nothing (the barrier pushes the back out of the first chart)
+    probs2 = torch.tensor([[1.0, 0.0]] * 5 + [[0.0, 1.0]] * 3)
+    J2 = J.expand(8, 2, 2, 3).clone()
+    assert float(fold_barrier(J2, two_sheets, probs2)) == 0.0
+    crease = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]).expand(8, 1, 2, 3)
+    assert abs(float(fold_barrier(crease, one_side, probs)) - 0.25 ** 2) < 1e-6
+    nan_normals = torch.full((8, 3), float("nan"))
+    assert float(fold_barrier(J, nan_normals, probs)) == 0.0
+    wild = torch.tensor([[1e30, -1e30, 3.0], [1e-30, 0.0, 0.0]]).expand(8, 1, 2, 3).clone().requires_grad_(True)
+    zero = torch.zeros(8, 1, 2, 3, requires_grad=True)
+    for j in (wild, zero):
+        loss = fold_barrier(j, two_sheets, probs)
+        loss.backward()
+        assert torch.isfinite(loss) and torch.isfinite(j.grad).all()
+
+
+class _PlanarMap(torch.nn.Module):
+    """t(x) = (x, y) / 2 + 1/2 for one chart: [M, 3] -> [M, 1, 2]; on a sphere the front (z > 0) and the back are
+    laid over each other with opposite orientations."""
+
+    def forward(self, xn):
+        return (0.5 * xn[:, None, :2] + 0.5).contiguous()
+
+
+def test_fold_report_finds_the_back_of_a_flattened_sphere():
+    """fold_report on a one-chart atlas that flattens the sphere along z: about half of the samples (the minority
+    side) are reversed when the chart covers the whole sphere, none when it covers the cap z > 0.3 only; finite
+    with a projection or without one, and the atlas's own planes are not reoriented."""
+    from core.atlas.fit import fold_report
+
+    xyz = _noisy_sphere(n=8000, noise=0.003).float()
+    atlas = Atlas(1, 16, 2, torch.zeros(3), 1.0)
+    atlas.tex = _PlanarMap()
+    whole = fold_report(atlas, xyz, max_points=4000)
+    assert 0.4 < whole["reversed"] <= 0.5 and whole["charts"][0][1] > 3900, whole
+    cap = xyz[xyz[:, 2] > 0.3]
+    assert fold_report(atlas, cap, max_points=4000)["reversed"] < 0.01
+    atlas.surface = SurfaceProjection.from_samples(xyz.numpy(), neighbours=256)
+    stored = atlas.surface.normals.copy()
+    projected = fold_report(atlas, xyz, max_points=4000)
+    assert 0.4 < projected["reversed"] <= 0.5
+    assert 0.15 < projected["crease"] < 0.25, projected   # |rho| = |n_z|: the band |z| < 0.2, a fifth of the sphere
+    assert np.array_equal(atlas.surface.normals, stored)
+
+
+def test_a_fit_with_maps_on_the_mid_surface_and_the_fold_barrier_runs_end_to_end():
+    """A quick island fit to samples 1 cm off the strip with mid_surface_maps and w_fold: the projection is built
+    before the maps (its normals given one side), the fit stays finite, and the kept texels map back within 1
+    texel."""
+    from core.atlas.config import AtlasConfig
+    from core.atlas.fit import fit_atlas
+
+    xyz, rgb = synthetic_samples("strip", 3000, seed=4)
+    noisy = xyz + 0.01 * torch.randn(xyz.shape, generator=torch.Generator().manual_seed(1))
+    quick = dict(steps=150, batch=256, uv_batch=32, distortion_batch=64, width_map=32, depth_map=2, width_chart=16,
+                 depth_chart=1, log_every=1000, eval_samples=256, charts="4", layout="islands", image_size=96,
+                 mid_surface_neighbours=128)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        atlas, hist = fit_atlas(noisy, rgb, AtlasConfig(mid_surface=True, mid_surface_maps=True, w_fold=1.0, **quick),
+                                quiet=True)
+    finally:
+        torch.set_num_threads(threads)
+    assert hist["mid_surface"]["anchors"] == 3000 and all(np.isfinite(hist["psnr"]))
+    nrm = atlas.surface.normals[np.linalg.norm(atlas.surface.normals, axis=1) > 0.5]
+    assert float(np.mean(nrm @ nrm.mean(0) > 0)) > 0.99      # the strip's anchors face one side
+    tp = atlas.texel_points()
+    ok = torch.isfinite(tp).all(-1)
+    assert int(ok.sum()) > 500                                # of 96² (a short fit: utilisation is not the point)
+    _, pix = atlas.atlas_pixel_coords(tp[ok])
+    rows, cols = torch.nonzero(ok, as_tuple=True)
+    assert float(((pix - torch.stack([cols + 0.5, rows + 0.5], -1)).norm(dim=-1) <= 1).float().mean()) == 1.0
