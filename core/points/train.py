@@ -353,6 +353,37 @@ def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, j
                               for k, v in state.items()}
 
 
+INTERIOR_VIEWS = 6  # training views the fit renders both ways to pick the `auto` render mode
+INTERIOR_MAGNIFY = 2  # single-scale fits: those views rendered at this factor and area-averaged back
+
+
+@torch.no_grad()
+def interior_gain(model: PointModel, split, magnify: int, views: int = INTERIOR_VIEWS,
+                  background=(1.0, 1.0, 1.0)) -> float:
+    """What the `interior` decode gains inside the object, in dB of object PSNR: `interior+filtered` minus
+    `filtered` (core/points/resolution.py) on `views` evenly spaced views of split (images [V, H, W, 3]), each
+    rendered at `magnify` times its size (focal scaled with it) and area-averaged back to it. A single-scale fit
+    measures its training views at 2x (no finer images: the magnified render must average to what was seen); a
+    multi-scale fit its finest level as it is (magnify 1: scale factor 1, the decoder's F_dec the levels' ratio).
+    NaN for models without a residual UNet decoder (both modes are the same frame)."""
+    if model.decoder is None or not model.cfg.decoder_residual or views < 1:
+        return float("nan")
+    m = max(int(magnify), 1)
+    n = split.images.shape[0]
+    ids = sorted({int(i) for i in torch.linspace(0, n - 1, min(views, n)).round().tolist()})
+    focal = split.focal.scaled(m) if isinstance(split.focal, Intrinsics) else split.focal * m
+    scores = {}
+    for mode in ("filtered", "interior+filtered"):
+        def render(i, mode=mode):
+            out = render_frame(model, split.c2w[i], split.height * m, split.width * m, focal, background=background,
+                               mode=mode)
+            rgb = F.avg_pool2d(out["rgb"].permute(2, 0, 1)[None], m)[0].permute(1, 2, 0)
+            return {"rgb": rgb, "alpha": F.avg_pool2d(out["alpha"][None, None], m)[0, 0]}
+        scores[mode] = mean_scores(score_views(render, split.images, split.alphas, ids))["psnr_object"]
+    gain = scores["interior+filtered"] - scores["filtered"]
+    return gain if math.isfinite(gain) else float("nan")
+
+
 @torch.no_grad()
 def evaluate(model: PointModel, split, views, background) -> dict:
     """Mean PSNR (full frame and object pixels) and SSIM over the given view indices of a split (the evaluation
@@ -487,6 +518,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     def start(mcfg):
         m = PointModel(mcfg, xyz, mean_spacing(xyz)).to(dev)
         m.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, xyz))
+        m.decoder_footprint.fill_(training_footprint(coarse.c2w, coarse.focal, xyz))
         o = build_optimizer(m, cfg)
         return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev)
 
@@ -654,9 +686,14 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     torch.set_num_threads(threads)
     # the training pixel's world size at the final points (what renders at other sizes are scaled against)
     model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
+    model.decoder_footprint.fill_(training_footprint(coarse.c2w, coarse.focal, model.xyz.detach()))
+    # which decode the render mode `auto` uses inside the object beyond the training size (measured, not guessed)
+    gain = interior_gain(model, fine, 1 if len(levels) > 1 else INTERIOR_MAGNIFY, background=background)
+    model.interior_gain.fill_(gain if math.isfinite(gain) else 0.0)  # 0: no decoder, nothing to choose
     scores = evaluate(model, test, eval_ids, background)
     reason = collapse_reason(scores, guard.floor, cfg.guard_margin)
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,
+                    "interior_gain": gain if math.isfinite(gain) else None,
                     "guard": {**guard.summary(), "collapsed": reason}})
     if scales:  # steps per level, finest first: {"1": n, "2": n, ...}
         history[-1]["train_levels"] = {str(s): n for s, n in zip(scales, level_steps)}
