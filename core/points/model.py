@@ -99,9 +99,9 @@ class PointModel(nn.Module):
         # the coarsest level of a multi-scale fit (its train_footprint is the finest level's), where
         # `--train-scales auto` gives the decoder most of its steps; 0 = train_footprint (older files).
         self.register_buffer("decoder_footprint", torch.tensor(0.0))
-        # dB the `interior` blend gained over the full-size decode on the training views, magnified (measured by
-        # the fit, core/points/train.py `interior_gain`; 0 = no gain or not measured: no decoder, older files):
-        # the render mode `auto` follows it.
+        # dB the `interior` blend gained over the full-size decode on a multi-scale fit's finest level (measured
+        # by the fit, core/points/train.py `interior_gain`; 0 = no gain or not measured: single-scale fits, no
+        # decoder, older files): the render mode `auto` follows it.
         self.register_buffer("interior_gain", torch.tensor(0.0))
         key_in = 2 * (1 + 2 * cfg.key_freqs)
         self.key_mlp = _mlp(key_in, cfg.key_width, 1)

@@ -39,8 +39,9 @@ renders its finest level with F = 1 (nothing filtered) and F_dec = the ratio of 
 `python -m tools.bench.resolution` measures them against Cycles at 2x and 4x (docs/results.md, "Resolution"). The
 mode `auto` is per model (`auto_mode`): which of the two decodes is better inside the object depends on the
 model (the full-size decoder adds detail where it learned some and mottles smooth interiors where it did not), so
-a fit measures it on its training views (`core.points.train.interior_gain`) and `auto` renders
-`interior+filtered` where that gained, DEFAULT_RENDER_MODE (`filtered`) elsewhere.
+a multi-scale fit measures it on its finest level's images (`core.points.train.interior_gain`) and `auto`
+renders `interior+filtered` where that gained, DEFAULT_RENDER_MODE (`filtered`) elsewhere — for every
+single-scale fit, which has no finer images to measure it on.
 """
 from __future__ import annotations
 
@@ -71,9 +72,10 @@ def check_mode(mode: str, model=None) -> str:
 
 
 def auto_mode(model) -> str:
-    """The render mode `auto` picks for a model: `interior+filtered` when its fit measured the interior blend
-    better than the full-size decode (`PointModel.interior_gain` > 0 dB, `core.points.train.interior_gain`),
-    else DEFAULT_RENDER_MODE (also for models without that measurement: no decoder, older files)."""
+    """The render mode `auto` picks for a model: `interior+filtered` when its (multi-scale) fit measured the
+    interior blend better than the full-size decode (`PointModel.interior_gain` > 0 dB,
+    `core.points.train.interior_gain`), else DEFAULT_RENDER_MODE (also for models without that measurement:
+    single-scale fits, no decoder, older files)."""
     gain = float(getattr(model, "interior_gain", torch.tensor(0.0)))
     return "interior+filtered" if math.isfinite(gain) and gain > 0.0 else DEFAULT_RENDER_MODE
 

@@ -33,8 +33,9 @@ upsampled 1x ground truth (the most a 1x fit can hold) is the detail it learned 
 training footprint is the finest level's, so it renders at H x S as it was trained (scale factor 1); its decoder
 footprint is the coarsest level's (the training size S, filled in as H x the training footprint for model files
 from before it), which the `decoder` and `interior` modes decode at. The mode `auto` is the model's
-(`core.points.resolution.auto_mode`, from the interior gain its fit measured; for model files from before that
-measurement the bench makes it on the fit's training images, `core.points.train.interior_gain`, and prints it).
+(`core.points.resolution.auto_mode`, from the interior gain a multi-scale fit measures on its finest level; for
+such model files from before that measurement the bench makes it on the H x training images,
+`core.points.train.interior_gain`, and prints it).
 --time-steps N (with --train-hires) also times stage-1 steps: per scene, 3 pairs of N-step `fit_points` runs in
 this process, the fit from the 1x images and the multi-scale one from the H x images alternating (the settings of
 --fit-args, the decoder and K of the fitted model, evaluation excluded): seconds per step, min / median / max.
@@ -314,11 +315,11 @@ def main(argv=None) -> int:
             model.train_footprint.fill_(training_footprint(low.c2w, low.focal, model.xyz.detach()))
         if hires and not float(model.decoder_footprint) > 0:  # a multi-scale model file from before the decoder's
             model.decoder_footprint.fill_(hires * float(model.train_footprint))  # footprint: its coarsest level's
-        if float(model.interior_gain) == 0.0:  # a model file from before the fit measured it (or 0 dB): the
-            from core.points.train import INTERIOR_MAGNIFY, interior_gain  # same measurement on its training views
+        if hires and float(model.interior_gain) == 0.0:  # a multi-scale model file from before the fit measured
+            from core.points.train import interior_gain  # it: the same measurement on its finest training images
 
-            model.interior_gain.fill_(interior_gain(model, load_split(work / name / f"x{hires or 1}", "train"),
-                                                    1 if hires else INTERIOR_MAGNIFY))
+            gain = interior_gain(model, load_split(work / name / f"x{hires}", "train"))
+            model.interior_gain.fill_(gain if math.isfinite(gain) else 0.0)
         print(f"{name}: auto = {check_mode('auto', model)} (interior gain {float(model.interior_gain):+.2f} dB)",
               flush=True)
         cache: dict = {}

@@ -278,28 +278,29 @@ def test_a_multi_scale_model_runs_its_decoder_at_the_training_size(unet_scene):
 
 
 def test_the_fit_measures_which_decode_auto_uses(unet_scene, scene):
-    """`auto` follows the interior gain the fit stored (core.points.train.interior_gain: `interior+filtered` −
-    `filtered` in object PSNR on training views rendered at 2x and area-averaged back): `interior+filtered` when
-    it is positive, `filtered` otherwise and for models without a decoder (no gain to measure)."""
+    """`auto` follows the interior gain a multi-scale fit stores (core.points.train.interior_gain:
+    `interior+filtered` − `filtered` in object PSNR on views finer than the decoder's training size):
+    `interior+filtered` when it is positive, `filtered` otherwise, for single-scale fits (nothing measured) and
+    for models without a decoder."""
     import copy
-
-    import torch.nn.functional as tF
 
     from core.images.metrics import mean_scores, score_views
     from core.points.resolution import auto_mode
     from core.points.train import INTERIOR_VIEWS, interior_gain
 
     model, train, test = unet_scene
-    gain = interior_gain(model, train, 2)
-    assert math.isfinite(gain) and float(model.interior_gain) == pytest.approx(gain, abs=1e-4)  # the fit's
+    assert float(model.interior_gain) == 0.0 and auto_mode(model) == "filtered"  # one scale: nothing measured
+    assert math.isnan(interior_gain(model, train))  # the decoder runs at these views' size: nothing to compare
+    multi = copy.deepcopy(model)  # as if its decoder had trained at half these views' size (a coarser level)
+    multi.decoder_footprint.fill_(2 * float(model.train_footprint))
+    gain = interior_gain(multi, train)
     ids = sorted({int(i) for i in torch.linspace(0, len(train.c2w) - 1, INTERIOR_VIEWS).round().tolist()})
 
     def score(mode):
         def render(i):
-            out = render_frame(model, train.c2w[i], 2 * train.height, 2 * train.width, 2 * train.focal, mode=mode)
-            return {"rgb": tF.avg_pool2d(out["rgb"].permute(2, 0, 1)[None], 2)[0].permute(1, 2, 0),
-                    "alpha": tF.avg_pool2d(out["alpha"][None, None], 2)[0, 0]}
+            return render_frame(multi, train.c2w[i], train.height, train.width, train.focal, mode=mode)
         return mean_scores(score_views(render, train.images, train.alphas, ids))["psnr_object"]
+    assert math.isfinite(gain) and abs(gain) > 1e-4
     assert gain == pytest.approx(score("interior+filtered") - score("filtered"), abs=1e-6)
     c2w, h, w, f = test.c2w[0], 3 * test.height, 3 * test.width, 3 * test.focal
     for g, mode in ((0.3, "interior+filtered"), (-0.3, "filtered"), (0.0, "filtered")):
@@ -308,7 +309,7 @@ def test_the_fit_measures_which_decode_auto_uses(unet_scene, scene):
         assert auto_mode(m) == check_mode("auto", m) == mode
         assert torch.equal(render_frame(m, c2w, h, w, f)["rgb"], render_frame(m, c2w, h, w, f, mode=mode)["rgb"])
     plain, ptrain, _ = scene
-    assert math.isnan(interior_gain(plain, ptrain, 2)) and float(plain.interior_gain) == 0.0
+    assert math.isnan(interior_gain(plain, ptrain)) and float(plain.interior_gain) == 0.0
     assert auto_mode(plain) == "filtered"
 
 
