@@ -198,22 +198,28 @@ def training_scale_coverage(model, feature: torch.Tensor, scale: float) -> torch
     return decode_at_scale(model, feature, scale)[1]
 
 
+GATE_SURFACE = 0.5  # training-scale coverage from which a pixel counts as near the object's surface
+
+
 def gate_coverage(alpha: torch.Tensor, low_alpha: torch.Tensor, scale: float) -> torch.Tensor:
     """The `filtered` mode's coverage gate: alpha [..., H, W] (the decoder's mask head run on the full-size frame)
-    limited by the largest training-scale coverage low_alpha [..., H, W] (`training_scale_coverage`) within
-    ⌈F⌉ pixels — about one training pixel — of each pixel. Silhouettes and interiors, covered at the training
-    scale too, keep their full-size coverage (the window reaches past the upsampled edge's blur); specks the
-    decoder hides at the training scale fade to what it gives them there. F <= 1 returns alpha itself; the result
-    is in [0, 1] and finite (non-finite inputs count as 0)."""
+    limited by the training-scale coverage low_alpha [..., H, W] (`training_scale_coverage`). Near the object —
+    where the training-scale coverage reaches GATE_SURFACE within ⌈F⌉ pixels, about one training pixel — the limit
+    is the largest training-scale coverage within those ⌈F⌉ pixels, so silhouettes and interiors keep their
+    full-size coverage (the window reaches past the upsampled edge's blur); away from it, the limit is the
+    training-scale coverage of the pixel itself, so a speck the decoder hides at the training scale fades to what
+    it gives it there, in that blip's own (upsampled) shape rather than a disc ⌈F⌉ pixels wide. F <= 1 returns
+    alpha itself; the result is in [0, 1] and finite (non-finite inputs count as 0)."""
     if not scale > 1.0:
         return alpha
     r = int(min(math.ceil(min(float(scale), 1e6)), max(low_alpha.shape[-2:])))
     lo = torch.nan_to_num(low_alpha, nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
     shape = lo.shape
-    lo = lo.reshape(-1, 1, *shape[-2:])
-    near = F.max_pool2d(F.pad(lo, (r, r, r, r), value=0.0), 2 * r + 1, stride=1).reshape(shape)
+    flat = lo.reshape(-1, 1, *shape[-2:])
+    near = F.max_pool2d(F.pad(flat, (r, r, r, r), value=0.0), 2 * r + 1, stride=1).reshape(shape)
+    limit = torch.where(near >= GATE_SURFACE, near, lo)
     a = torch.nan_to_num(alpha, nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
-    return torch.minimum(a, near)
+    return torch.minimum(a, limit)
 
 
 def interior_weight(coverage: torch.Tensor, scale: float) -> torch.Tensor:

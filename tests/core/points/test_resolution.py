@@ -145,6 +145,18 @@ def test_the_coverage_gate_hides_specks_the_training_scale_hides_and_keeps_the_o
         assert float(out.min()) >= 0 and float(out.max()) <= 1
     batch = gate_coverage(alpha[None], low[None], f)  # leading dimensions are kept
     assert batch.shape == (1, 40, 40) and torch.equal(batch[0], gate_coverage(alpha, low, f))
+    # a faint blip at the training scale (one pixel of 0.3, its upsampled neighbours fading) under a speck the
+    # full size covers 3x3: the speck keeps the blip's own shape, not 0.3 over the whole 3x3
+    blip = torch.zeros(40, 40)
+    blip[34, 34], blip[33, 34], blip[35, 34] = 0.3, 0.1, 0.1
+    out = gate_coverage(alpha, blip, f)
+    assert torch.allclose(out[33:36, 33:36], torch.minimum(alpha[33:36, 33:36], blip[33:36, 33:36]))
+    assert float(out[33, 33]) == 0.0 and float(out[34, 34]) == pytest.approx(0.3)
+    near = low.clone()  # ... while the same blip within a training pixel of the object keeps the window's maximum
+    near[26:28, 8:24] = 0.6
+    speck = alpha.clone()
+    speck[29:32, 12:15] = 0.9
+    assert float(gate_coverage(speck, near, f)[29:32, 12:15].min()) == pytest.approx(0.6)
 
 
 def test_filtered_frames_gate_the_decoder_coverage(unet_scene, scene):
