@@ -111,8 +111,8 @@ class EditConfig:
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
-                                   "filtered | footprint | decoder | interior | their '+' pairs; auto = the model's (filtered or "
-                                   "interior+filtered, measured by its fit)",
+                                   "filtered | footprint | decoder | interior | their '+' pairs; auto = the "
+                                   "model's (filtered, or interior+filtered where its fit measured a gain)",
                            choices=("auto", *RENDER_MODES))
 
 

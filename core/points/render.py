@@ -236,9 +236,10 @@ def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, 
     alpha: the decoder's mask head when the model has one (the coverage its colours were composited with), else
     the attention's foreground weight 1 − bg.
     mode: how frames finer than the training pixels are rendered, one of RENDER_MODES or "auto" (the model's
-    mode, `core.points.resolution.auto_mode`), see core/points/resolution.py; scale: the frame's scale factor F (default: from the model's training
-    footprint and this camera, points= taken at their world size — `core.frames.edited.render_edited` corrects
-    for scaled points; 1 for models without a footprint). F <= 1 renders the same in every mode."""
+    mode, `core.points.resolution.auto_mode`), see core/points/resolution.py; scale: the frame's scale factor F
+    (default: from the model's training footprint and this camera, points= taken at their world size —
+    `core.frames.edited.render_edited` corrects for scaled points; 1 for models without a footprint). F <= 1
+    renders the same in every mode."""
     parts = set(check_mode(mode, model).split("+"))
     pts = model.xyz if kw.get("points") is None else kw["points"]
     fd = decoder_scale(model, scale, c2w, focal, pts.detach())  # the decoder's (a multi-scale fit's coarsest level)

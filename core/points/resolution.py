@@ -226,9 +226,8 @@ def interior_weight(coverage: torch.Tensor, scale: float) -> torch.Tensor:
     """The `interior` mode's per-pixel weight of the training-scale decode: coverage [..., H, W] (the training
     scale's, at the full size) eroded by ⌈F⌉ pixels — one training pixel — so it is 0 on the band of one training
     pixel inside the silhouette and outside the object, and the coverage itself well inside (the frame's border
-    is no silhouette: the coverage is extended past it). F <= 1 gives zeros
-    (the full-size decode, which is the training scale's there); the result is in [0, 1] and finite (non-finite
-    coverage counts as 0)."""
+    is no silhouette: the coverage is extended past it). F <= 1 gives zeros (the full-size decode, which is the
+    training scale's there); the result is in [0, 1] and finite (non-finite coverage counts as 0)."""
     c = torch.nan_to_num(coverage.float(), nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
     if not scale > 1.0 or c.numel() == 0:
         return torch.zeros_like(c)
