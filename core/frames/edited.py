@@ -549,7 +549,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
     rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,
                                  decoder_scale=dscale if "decoder" in parts else 1.0,
-                                 coverage_scale=scale if "filtered" in parts else 1.0,
+                                 coverage_scale=dscale if "filtered" in parts else 1.0,
                                  interior_scale=dscale if "interior" in parts else 1.0)
     rgb = rgb.reshape(-1, 3)
     fg = tr.fg

@@ -178,9 +178,9 @@ def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chu
     with_alpha: return (rgb, alpha [H, W] from the decoder's mask head, or None without one).
     decoder_scale: the frame's scale factor F for a UNet decoder run at the training scale
     (core/points/resolution.py `decode_at_scale`; 1 = decode the frame as it is, only around the object).
-    coverage_scale: the frame's scale factor F for the `filtered` mode's coverage gate (`gate_coverage`: the mask
-    head's coverage of the full-size frame limited by the one it gives at the training scale; 1 = none; only with
-    a frame decoded as it is, decoder_scale 1).
+    coverage_scale: the decoder's scale factor F_dec for the `filtered` mode's coverage gate (`gate_coverage`: the
+    mask head's coverage of the full-size frame limited by the one it gives at its training size; 1 = none; only
+    with a frame decoded as it is, decoder_scale 1).
     interior_scale: the frame's scale factor F for the `interior` mode: the frame decoded as it is and at the
     training scale, blended per pixel by `interior_weight` of the training scale's coverage (1 = none; only with
     decoder_scale 1 and a residual UNet)."""
@@ -248,7 +248,7 @@ def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, 
     tr = trace_frame(model, c2w, height, width, focal, soft_scale=f if "footprint" in parts else 1.0, **kw)
     rgb, alpha = shade_frame(model, tr, background, with_alpha=True,
                              decoder_scale=fd if "decoder" in parts else 1.0,
-                             coverage_scale=f if "filtered" in parts else 1.0,
+                             coverage_scale=fd if "filtered" in parts else 1.0,  # the decoder's own size
                              interior_scale=fd if "interior" in parts else 1.0)
     h, w = tr.shape
     if alpha is None:

@@ -15,9 +15,10 @@ training size is pixel-identical in every mode); above, the modes of `RENDER_MOD
 - pixels: nothing changes (every size rendered as if it were the training size);
 - filtered: the frame (colour and coverage) is low-passed by a Gaussian of FILTER_PER_SCALE·(F − 1) output pixels —
   zero at F = 1 and growing towards a fixed fraction of a training pixel — which anti-aliases the disc rims; with a
-  UNet decoder that has a mask head its coverage is first gated by the coverage it gives at the training scale
-  (`gate_coverage`): isolated faint points that the decoder hides in a training-size frame (one pixel there)
-  would otherwise show as opaque specks a few pixels wide, since its 3×3 kernels see them magnified F times;
+  UNet decoder that has a mask head its coverage is first gated by the coverage it gives at its training size
+  (`gate_coverage`, at the decoder's scale factor F_dec below: a multi-scale fit's finest level is gated too):
+  isolated faint points that the decoder hides in a training-size frame (one pixel there) would otherwise show as
+  opaque specks a few pixels wide, since its 3×3 kernels see them magnified F times;
 - footprint: anti-aliased neighbour footprints: a point's share of a ray fades out over F − 1 output pixels (one
   training pixel at large F) where it leaves the ray's K nearest or the pixel-radius cap, instead of stopping at a
   hard edge (`core.points.neighbors.select.select_neighbors_soft`; 2K neighbour slots);

@@ -276,9 +276,13 @@ def test_a_multi_scale_model_runs_its_decoder_at_the_training_size(unet_scene):
         assert torch.equal(out["rgb"], legacy), mode
     big = {m: render_frame(multi, c2w, 4 * h, 4 * w, 4 * f, mode=m) for m in ("pixels", "filtered", "interior")}
     assert all(o["scale"] == 1.0 for o in big.values())
-    assert torch.equal(big["pixels"]["rgb"], big["filtered"]["rgb"])  # the finest level: no filter
     tr = trace_frame(multi, c2w, 4 * h, 4 * w, 4 * f)
     fd = decoder_scale(multi, None, c2w, 4 * f, pts)
+    # the finest level: no blur, the mask head's coverage gated by the one it gives at the decoder's size
+    gated, gated_alpha = shade_frame(multi, tr, with_alpha=True, coverage_scale=fd)
+    assert torch.allclose(big["filtered"]["rgb"], gated, atol=1e-6)
+    assert torch.allclose(big["filtered"]["alpha"], gated_alpha, atol=1e-6)
+    assert torch.equal(big["pixels"]["rgb"], shade_frame(multi, tr))
     assert torch.allclose(big["interior"]["rgb"], shade_frame(multi, tr, interior_scale=fd), atol=1e-6)
     assert not torch.allclose(big["interior"]["rgb"], big["pixels"]["rgb"], atol=1e-3)
     arrays, meta = model_to_arrays(multi)  # the model file keeps it; older files load with 0 (= train_footprint)
