@@ -30,7 +30,8 @@ from core.images.cameras import focal_scale
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
 from core.points.render import pixel_grid, shade_frame, trace_frame
-from core.points.resolution import RENDER_MODES, check_mode, filter_sigma, gaussian_blur, scale_factor
+from core.points.resolution import (RENDER_MODES, check_mode, decoder_scale, filter_sigma, gaussian_blur,
+                                    scale_factor)
 from core.points.trace import Trace
 from core.util.errors import InputError
 
@@ -124,7 +125,8 @@ class EditConfig:
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
-                                   "filtered | footprint | decoder | their '+' pairs; auto = the default mode",
+                                   "filtered | footprint | decoder | interior | their '+' pairs; auto = the "
+                                   "model's (filtered, or interior+filtered where its fit measured a gain)",
                            choices=("auto", *RENDER_MODES))
 
 
@@ -564,11 +566,13 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     t0 = time.perf_counter()
     bundle, cfg = state.bundle, state.cfg
     model = bundle.model
-    parts = set(check_mode(cfg.render_mode).split("+"))
+    parts = set(check_mode(cfg.render_mode, model).split("+"))
     if state.points is None:
         scale = scale_factor(float(model.train_footprint), c2w, focal, model.xyz.detach())
+        dscale = decoder_scale(model, None, c2w, focal, model.xyz.detach())
     else:  # moved points: the training pixel in their own size (an object scaled by s has s times larger pixels)
         scale = scale_factor(float(model.train_footprint) * state.local_scale, c2w, focal, state.points.detach())
+        dscale = decoder_scale(model, None, c2w, focal, state.points.detach(), size_scale=state.local_scale)
     if trace is None:
         soft = "footprint" in parts and scale > 1.0  # footprint windows: keep them, drop hidden weights only
         index = None if soft else state.search_index(c2w, height, width, focal)  # shared with the occlusion rule
@@ -584,8 +588,9 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         tr = trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
     rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,
-                                 decoder_scale=scale if "decoder" in parts else 1.0,
-                                 coverage_scale=scale if "filtered" in parts else 1.0)
+                                 decoder_scale=dscale if "decoder" in parts else 1.0,
+                                 coverage_scale=dscale if "filtered" in parts else 1.0,
+                                 interior_scale=dscale if "interior" in parts else 1.0)
     rgb = rgb.reshape(-1, 3)
     fg = tr.fg
     # Coverage of painted rays: the decoder's mask head when it has one (sharp silhouettes, opaque interior),

@@ -13,7 +13,8 @@ from core.points.model import ModelConfig, PointModel
 from core.util.errors import ModelFileError
 
 _POINT_ARRAYS = {"xyz": "points/xyz", "features": "points/features", "influence": "points/influence"}
-_OPTIONAL = {"train_footprint"}  # buffers files from before them lack: the model's default value stays
+# buffers files from before them lack: the model's default value stays
+_OPTIONAL = {"train_footprint", "decoder_footprint", "interior_gain"}
 
 
 def model_to_arrays(model: PointModel) -> tuple[dict[str, np.ndarray], dict]:

@@ -95,6 +95,14 @@ class PointModel(nn.Module):
         # World size of one training pixel at the object (core/points/resolution.py; 0 = unknown, older files):
         # frames with finer pixels than this are rendered by the resolution mode of core/points/render.py.
         self.register_buffer("train_footprint", torch.tensor(0.0))
+        # World size of one pixel of the training size, which the decoder is run at (core/points/resolution.py):
+        # the coarsest level of a multi-scale fit (its train_footprint is the finest level's), where
+        # `--train-scales auto` gives the decoder most of its steps; 0 = train_footprint (older files).
+        self.register_buffer("decoder_footprint", torch.tensor(0.0))
+        # dB the `interior` blend gained over the full-size decode on a multi-scale fit's finest level (measured
+        # by the fit, core/points/train.py `interior_gain`; 0 = no gain or not measured: single-scale fits, no
+        # decoder, older files): the render mode `auto` follows it.
+        self.register_buffer("interior_gain", torch.tensor(0.0))
         key_in = 2 * (1 + 2 * cfg.key_freqs)
         self.key_mlp = _mlp(key_in, cfg.key_width, 1)
         self.bg_logit = nn.Parameter(torch.tensor(0.0))

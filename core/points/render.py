@@ -13,7 +13,7 @@ from core.points.attention_compiled import BACKENDS as ATTENTION_BACKENDS
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import select_neighbors, select_neighbors_soft
 from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_at_scale, filter_sigma,
-                                    gate_coverage, gaussian_blur, scale_factor, training_scale_coverage)
+                                    decoder_scale, gate_coverage, gaussian_blur, interior_weight, scale_factor)
 from core.points.trace import Trace
 from core.util.errors import InputError
 
@@ -174,15 +174,18 @@ def decode_where_active(model: PointModel, feat: torch.Tensor, active: torch.Ten
 @torch.no_grad()
 def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chunk: int = 16384,
                 features: torch.Tensor | None = None, with_alpha: bool = False, decoder_scale: float = 1.0,
-                coverage_scale: float = 1.0):
+                coverage_scale: float = 1.0, interior_scale: float = 1.0):
     """Colours of a traced frame from the point values: rgb [H, W, 3] in [0, 1].
     features [M, h]: per-point features of the traced points when they are not the model's own (ids).
     with_alpha: return (rgb, alpha [H, W] from the decoder's mask head, or None without one).
     decoder_scale: the frame's scale factor F for a UNet decoder run at the training scale
     (core/points/resolution.py `decode_at_scale`; 1 = decode the frame as it is, only around the object).
-    coverage_scale: the frame's scale factor F for the `filtered` mode's coverage gate (`gate_coverage`: the mask
-    head's coverage of the full-size frame limited by the one it gives at the training scale; 1 = none; only with
-    a frame decoded as it is, decoder_scale 1)."""
+    coverage_scale: the decoder's scale factor F_dec for the `filtered` mode's coverage gate (`gate_coverage`: the
+    mask head's coverage of the full-size frame limited by the one it gives at its training size; 1 = none; only
+    with a frame decoded as it is, decoder_scale 1).
+    interior_scale: the frame's scale factor F for the `interior` mode: the frame decoded as it is and at the
+    training scale, blended per pixel by `interior_weight` of the training scale's coverage (1 = none; only with
+    decoder_scale 1 and a residual UNet)."""
     h, w = trace.shape
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
@@ -198,6 +201,17 @@ def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chu
         feat = torch.cat([p["feature"] for p in parts]).reshape(h, w, -1).permute(2, 0, 1)[None]
         rgb, alpha = decode_at_scale(model, feat, decoder_scale) if decoder_scale > 1.0 \
             else decode_where_active(model, feat, trace.active.reshape(h, w))
+        both = not decoder_scale > 1.0 and model.cfg.decoder_residual  # the frame was decoded as it is
+        low = {}  # training-scale decodes by scale factor, shared by the interior blend and the coverage gate
+        for sc in (interior_scale, coverage_scale):
+            if both and sc > 1.0 and sc not in low:
+                low[sc] = decode_at_scale(model, feat, sc)
+        if interior_scale in low:  # the training scale's decode inside the object
+            low_rgb, low_a = low[interior_scale]
+            wgt = interior_weight(low_a if low_a is not None else feat[:, 3], interior_scale)  # [1, H, W]
+            rgb = wgt[:, None] * low_rgb + (1.0 - wgt[:, None]) * rgb
+            if alpha is not None and low_a is not None:
+                alpha = wgt * low_a + (1.0 - wgt) * alpha
         rgb = rgb[0].permute(1, 2, 0)
         alpha = None if alpha is None else alpha[0]
         # The decoder paints the background it was trained on: its frame is a·c + (1 − a)·white, a the mask head
@@ -208,11 +222,10 @@ def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chu
         cover = (alpha if alpha is not None else (1.0 - trace.bg).reshape(h, w)).clamp(0, 1)[..., None]
         white = torch.as_tensor(TRAIN_BACKGROUND, dtype=torch.float32, device=bg.device)
         c = ((rgb - (1.0 - cover) * white) / cover.clamp_min(1e-4)).clamp(0.0, 1.0)
-        if alpha is not None and coverage_scale > 1.0 and not decoder_scale > 1.0:
-            low = training_scale_coverage(model, feat, coverage_scale)
-            if low is not None:  # the object colour c stays; only its coverage is gated
-                alpha = gate_coverage(alpha, low[0], coverage_scale)
-                cover = alpha[..., None]
+        if alpha is not None and coverage_scale in low and low[coverage_scale][1] is not None:
+            # the object colour c stays; only its coverage is gated (`training_scale_coverage`'s)
+            alpha = gate_coverage(alpha, low[coverage_scale][1][0], coverage_scale)
+            cover = alpha[..., None]
         rgb = cover * c + (1.0 - cover) * bg
     rgb = rgb.clamp(0.0, 1.0)
     return (rgb, alpha) if with_alpha else rgb
@@ -224,18 +237,21 @@ def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, 
     """Canonical (or re-posed, via points=) render: dict(rgb [H, W, 3], alpha [H, W], x [H, W, 3], scale).
     alpha: the decoder's mask head when the model has one (the coverage its colours were composited with), else
     the attention's foreground weight 1 − bg.
-    mode: how frames finer than the training pixels are rendered, one of RENDER_MODES or "auto" (the default
-    mode), see core/points/resolution.py; scale: the frame's scale factor F (default: from the model's training
-    footprint and this camera, points= taken at their world size — `core.frames.edited.render_edited` corrects
-    for scaled points; 1 for models without a footprint). F <= 1 renders the same in every mode."""
-    parts = set(check_mode(mode).split("+"))
+    mode: how frames finer than the training pixels are rendered, one of RENDER_MODES or "auto" (the model's
+    mode, `core.points.resolution.auto_mode`), see core/points/resolution.py; scale: the frame's scale factor F
+    (default: from the model's training footprint and this camera, points= taken at their world size —
+    `core.frames.edited.render_edited` corrects for scaled points; 1 for models without a footprint). F <= 1
+    renders the same in every mode."""
+    parts = set(check_mode(mode, model).split("+"))
     pts = model.xyz if kw.get("points") is None else kw["points"]
+    fd = decoder_scale(model, scale, c2w, focal, pts.detach())  # the decoder's (a multi-scale fit's coarsest level)
     f = scale_factor(float(model.train_footprint), c2w, focal, pts.detach()) if scale is None else float(scale)
     f = min(f, MAX_SCALE) if f == f and f > 1.0 else 1.0  # NaN or F <= 1: the training scale
     tr = trace_frame(model, c2w, height, width, focal, soft_scale=f if "footprint" in parts else 1.0, **kw)
-    dec_scale = f if "decoder" in parts else 1.0
-    rgb, alpha = shade_frame(model, tr, background, with_alpha=True, decoder_scale=dec_scale,
-                             coverage_scale=f if "filtered" in parts else 1.0)
+    rgb, alpha = shade_frame(model, tr, background, with_alpha=True,
+                             decoder_scale=fd if "decoder" in parts else 1.0,
+                             coverage_scale=fd if "filtered" in parts else 1.0,  # the decoder's own size
+                             interior_scale=fd if "interior" in parts else 1.0)
     h, w = tr.shape
     if alpha is None:
         alpha = (1.0 - tr.bg).reshape(h, w)

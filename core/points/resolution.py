@@ -15,18 +15,34 @@ training size is pixel-identical in every mode); above, the modes of `RENDER_MOD
 - pixels: nothing changes (every size rendered as if it were the training size);
 - filtered: the frame (colour and coverage) is low-passed by a Gaussian of FILTER_PER_SCALE·(F − 1) output pixels —
   zero at F = 1 and growing towards a fixed fraction of a training pixel — which anti-aliases the disc rims; with a
-  UNet decoder that has a mask head its coverage is first gated by the coverage it gives at the training scale
-  (`gate_coverage`): isolated faint points that the decoder hides in a training-size frame (one pixel there)
-  would otherwise show as opaque specks a few pixels wide, since its 3×3 kernels see them magnified F times;
+  UNet decoder that has a mask head its coverage is first gated by the coverage it gives at its training size
+  (`gate_coverage`, at the decoder's scale factor F_dec below: a multi-scale fit's finest level is gated too):
+  isolated faint points that the decoder hides in a training-size frame (one pixel there) would otherwise show as
+  opaque specks a few pixels wide, since its 3×3 kernels see them magnified F times;
 - footprint: anti-aliased neighbour footprints: a point's share of a ray fades out over F − 1 output pixels (one
   training pixel at large F) where it leaves the ray's K nearest or the pixel-radius cap, instead of stopping at a
   hard edge (`core.points.neighbors.select.select_neighbors_soft`; 2K neighbour slots);
 - decoder: a UNet decoder runs at the training scale: the feature image is area-averaged down by F, decoded, and
   the decoder's correction (colour and coverage logit) is upsampled bicubically onto the full-size base (the
   points' own colours and coverage, rendered at the full size); models without a decoder render as `pixels`;
-- decoder+filtered, footprint+decoder: both.
-`python -m tools.bench.resolution` measures them against Cycles at 2x and 4x; DEFAULT_RENDER_MODE is what measured
-best across its scenes (docs/results.md, "Resolution").
+- decoder+filtered, footprint+decoder: both;
+- interior: a UNet decoder runs at both scales and the frame takes the training scale's decode inside the object
+  and the full size's at its silhouette: per pixel, the weight of the training-scale decode is its coverage
+  eroded by one training pixel (`interior_weight`), so the band of one training pixel around the silhouette
+  (where the full-size decoder draws the sharper edge) and the background keep the full-size decode, and the
+  interior (where the full-size decoder, its 3×3 kernels on a frame magnified F times, mottles what it learned
+  to smooth) gets the one the decoder was trained for; models without a decoder render as `pixels`;
+- interior+filtered: both (the filter's coverage gate applies to the full-size share).
+The decoder's scale factor (`decoder_scale`, used by `decoder` and `interior`) counts in the pixel of the training
+size (`PointModel.decoder_footprint`): for a multi-scale fit (`pointgt fit --train-scales`) that is its coarsest
+level, where the decoder had most of its steps, while its train_footprint is the finest level's — such a model
+renders its finest level with F = 1 (nothing filtered) and F_dec = the ratio of the levels.
+`python -m tools.bench.resolution` measures them against Cycles at 2x and 4x (docs/results.md, "Resolution"). The
+mode `auto` is per model (`auto_mode`): which of the two decodes is better inside the object depends on the
+model (the full-size decoder adds detail where it learned some and mottles smooth interiors where it did not), so
+a multi-scale fit measures it on its finest level's images (`core.points.train.interior_gain`) and `auto`
+renders `interior+filtered` where that gained, DEFAULT_RENDER_MODE (`filtered`) elsewhere — for every
+single-scale fit, which has no finer images to measure it on.
 """
 from __future__ import annotations
 
@@ -38,20 +54,31 @@ import torch.nn.functional as F
 from core.images.cameras import focal_scale
 from core.util.errors import InputError
 
-RENDER_MODES = ("pixels", "filtered", "footprint", "decoder", "decoder+filtered", "footprint+decoder")
+RENDER_MODES = ("pixels", "filtered", "footprint", "decoder", "decoder+filtered", "footprint+decoder", "interior",
+                "interior+filtered")
 DEFAULT_RENDER_MODE = "filtered"
 FILTER_PER_SCALE = 0.25  # Gaussian sigma in output pixels per (F − 1): ~ a box of one training pixel at large F
 _SCALE_TOL = 0.05  # F within this of 1 is the training scale (cameras a few % closer than the training median)
 MAX_SCALE = 1e6  # larger scale factors are clamped (a camera inside the object): the filter covers the frame anyway
 
 
-def check_mode(mode: str) -> str:
-    """"auto" -> DEFAULT_RENDER_MODE; an unknown mode raises InputError naming the choices."""
+def check_mode(mode: str, model=None) -> str:
+    """"auto" -> the model's `auto_mode` (DEFAULT_RENDER_MODE without a model); an unknown mode raises InputError
+    naming the choices."""
     if mode == "auto":
-        return DEFAULT_RENDER_MODE
+        return DEFAULT_RENDER_MODE if model is None else auto_mode(model)
     if mode not in RENDER_MODES:
         raise InputError(f"render mode must be 'auto' or one of {', '.join(RENDER_MODES)}, got {mode!r}")
     return mode
+
+
+def auto_mode(model) -> str:
+    """The render mode `auto` picks for a model: `interior+filtered` when its (multi-scale) fit measured the
+    interior blend better than the full-size decode (`PointModel.interior_gain` > 0 dB,
+    `core.points.train.interior_gain`), else DEFAULT_RENDER_MODE (also for models without that measurement:
+    single-scale fits, no decoder, older files)."""
+    gain = float(getattr(model, "interior_gain", torch.tensor(0.0)))
+    return "interior+filtered" if math.isfinite(gain) and gain > 0.0 else DEFAULT_RENDER_MODE
 
 
 def pixel_footprint(c2w: torch.Tensor, focal, centre: torch.Tensor) -> float:
@@ -90,6 +117,30 @@ def scale_factor(train_footprint: float, c2w: torch.Tensor, focal, points: torch
     if not math.isfinite(f):
         return MAX_SCALE
     return 1.0 if abs(f - 1.0) <= _SCALE_TOL else min(f, MAX_SCALE)
+
+
+def decoder_footprint(model) -> float:
+    """World size of the pixel a model's decoder is run at in the `decoder` and `interior` modes: its
+    `decoder_footprint` (the training size's: the coarsest level of a multi-scale fit), else (0 or not finite:
+    older files, single-scale fits) its `train_footprint`."""
+    fp = float(getattr(model, "decoder_footprint", torch.tensor(0.0)))
+    return fp if math.isfinite(fp) and fp > 0 else float(model.train_footprint)
+
+
+def decoder_scale(model, scale: float | None, c2w: torch.Tensor, focal, points: torch.Tensor,
+                  size_scale: float = 1.0) -> float:
+    """The scale factor of a frame for the decoder (`decoder_footprint` / the frame's pixel footprint): from the
+    camera c2w [4, 4], focal and points [N, 3] like `scale_factor` (the footprint times size_scale: moved points in
+    their own size), or, when the caller gives the frame's scale factor `scale` (against train_footprint), that
+    times decoder_footprint / train_footprint. 1 for F_dec <= 1 or not finite; at most MAX_SCALE."""
+    if scale is None:
+        f = scale_factor(decoder_footprint(model) * size_scale, c2w, focal, points)
+    else:
+        tf, df = float(model.train_footprint), decoder_footprint(model)
+        ratio = df / tf if math.isfinite(tf) and tf > 0 and math.isfinite(df) and df > 0 else 1.0
+        f = float(scale) * ratio
+        f = 1.0 if abs(f - 1.0) <= _SCALE_TOL else f
+    return min(f, MAX_SCALE) if f == f and f > 1.0 else 1.0
 
 
 def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -148,22 +199,44 @@ def training_scale_coverage(model, feature: torch.Tensor, scale: float) -> torch
     return decode_at_scale(model, feature, scale)[1]
 
 
+GATE_SURFACE = 0.5  # training-scale coverage from which a pixel counts as near the object's surface
+
+
 def gate_coverage(alpha: torch.Tensor, low_alpha: torch.Tensor, scale: float) -> torch.Tensor:
     """The `filtered` mode's coverage gate: alpha [..., H, W] (the decoder's mask head run on the full-size frame)
-    limited by the largest training-scale coverage low_alpha [..., H, W] (`training_scale_coverage`) within
-    ⌈F⌉ pixels — about one training pixel — of each pixel. Silhouettes and interiors, covered at the training
-    scale too, keep their full-size coverage (the window reaches past the upsampled edge's blur); specks the
-    decoder hides at the training scale fade to what it gives them there. F <= 1 returns alpha itself; the result
-    is in [0, 1] and finite (non-finite inputs count as 0)."""
+    limited by the training-scale coverage low_alpha [..., H, W] (`training_scale_coverage`). Near the object —
+    where the training-scale coverage reaches GATE_SURFACE within ⌈F⌉ pixels, about one training pixel — the limit
+    is the largest training-scale coverage within those ⌈F⌉ pixels, so silhouettes and interiors keep their
+    full-size coverage (the window reaches past the upsampled edge's blur); away from it, the limit is the
+    training-scale coverage of the pixel itself, so a speck the decoder hides at the training scale fades to what
+    it gives it there, in that blip's own (upsampled) shape rather than a disc ⌈F⌉ pixels wide. F <= 1 returns
+    alpha itself; the result is in [0, 1] and finite (non-finite inputs count as 0)."""
     if not scale > 1.0:
         return alpha
     r = int(min(math.ceil(min(float(scale), 1e6)), max(low_alpha.shape[-2:])))
     lo = torch.nan_to_num(low_alpha, nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
     shape = lo.shape
-    lo = lo.reshape(-1, 1, *shape[-2:])
-    near = F.max_pool2d(F.pad(lo, (r, r, r, r), value=0.0), 2 * r + 1, stride=1).reshape(shape)
+    flat = lo.reshape(-1, 1, *shape[-2:])
+    near = F.max_pool2d(F.pad(flat, (r, r, r, r), value=0.0), 2 * r + 1, stride=1).reshape(shape)
+    limit = torch.where(near >= GATE_SURFACE, near, lo)
     a = torch.nan_to_num(alpha, nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
-    return torch.minimum(a, near)
+    return torch.minimum(a, limit)
+
+
+def interior_weight(coverage: torch.Tensor, scale: float) -> torch.Tensor:
+    """The `interior` mode's per-pixel weight of the training-scale decode: coverage [..., H, W] (the training
+    scale's, at the full size) eroded by ⌈F⌉ pixels — one training pixel — so it is 0 on the band of one training
+    pixel inside the silhouette and outside the object, and the coverage itself well inside (the frame's border
+    is no silhouette: the coverage is extended past it). F <= 1 gives zeros (the full-size decode, which is the
+    training scale's there); the result is in [0, 1] and finite (non-finite coverage counts as 0)."""
+    c = torch.nan_to_num(coverage.float(), nan=0.0, posinf=1.0, neginf=0.0).clamp(0.0, 1.0)
+    if not scale > 1.0 or c.numel() == 0:
+        return torch.zeros_like(c)
+    r = int(min(math.ceil(min(float(scale), 1e6)), max(c.shape[-2:])))
+    shape = c.shape
+    x = c.reshape(-1, 1, *shape[-2:])
+    eroded = -F.max_pool2d(F.pad(-x, (r, r, r, r), mode="replicate"), 2 * r + 1, stride=1)  # frame edge: no rim
+    return eroded.reshape(shape).clamp(0.0, 1.0)
 
 
 def _upsample(x: torch.Tensor, h: int, w: int) -> torch.Tensor:

@@ -23,7 +23,7 @@ from core.images.intrinsics import Intrinsics
 from core.images.metrics import blank_floor, mean_scores, score_views, ssim
 from core.images.pyramid import parse_scales, parse_weights, pyramid
 from core.points.render import render_frame
-from core.points.resolution import training_footprint
+from core.points.resolution import decoder_scale, training_footprint
 from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
 from core.points.key_mlp import KEY_PATHS
@@ -353,6 +353,35 @@ def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, j
                               for k, v in state.items()}
 
 
+INTERIOR_VIEWS = 6  # finest-level training views a multi-scale fit renders both ways to pick the `auto` mode
+
+
+@torch.no_grad()
+def interior_gain(model: PointModel, split, views: int = INTERIOR_VIEWS, background=(1.0, 1.0, 1.0)) -> float:
+    """What the `interior` decode gains inside the object, in dB of object PSNR: `interior+filtered` minus
+    `filtered` (core/points/resolution.py) on `views` evenly spaced views of split (images [V, H, W, 3]) rendered
+    at their size. A multi-scale fit measures its finest level, where the model's scale factor is 1 and the
+    decoder's F_dec the ratio of the levels: real images finer than the decoder's training size. (A single-scale
+    fit has none: its training views rendered at 2x and area-averaged back predicted the wrong sign on a
+    ten-minute suzanne, docs/results.md "Resolution", so it measures nothing.) NaN for models without a residual
+    UNet decoder or whose decoder runs at this size (both modes are the same frame)."""
+    if model.decoder is None or not model.cfg.decoder_residual or views < 1:
+        return float("nan")
+    n = split.images.shape[0]
+    ids = sorted({int(i) for i in torch.linspace(0, n - 1, min(views, n)).round().tolist()})
+    if decoder_scale(model, None, split.c2w[ids[0]], split.focal, model.xyz.detach()) <= 1.0:
+        return float("nan")
+    scores = {}
+    for mode in ("filtered", "interior+filtered"):
+        def render(i, mode=mode):
+            out = render_frame(model, split.c2w[i], split.height, split.width, split.focal, background=background,
+                               mode=mode)
+            return {"rgb": out["rgb"], "alpha": out["alpha"]}
+        scores[mode] = mean_scores(score_views(render, split.images, split.alphas, ids))["psnr_object"]
+    gain = scores["interior+filtered"] - scores["filtered"]
+    return gain if math.isfinite(gain) else float("nan")
+
+
 @torch.no_grad()
 def evaluate(model: PointModel, split, views, background) -> dict:
     """Mean PSNR (full frame and object pixels) and SSIM over the given view indices of a split (the evaluation
@@ -487,6 +516,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     def start(mcfg):
         m = PointModel(mcfg, xyz, mean_spacing(xyz)).to(dev)
         m.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, xyz))
+        m.decoder_footprint.fill_(training_footprint(coarse.c2w, coarse.focal, xyz))
         o = build_optimizer(m, cfg)
         return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev)
 
@@ -654,9 +684,14 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     torch.set_num_threads(threads)
     # the training pixel's world size at the final points (what renders at other sizes are scaled against)
     model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
+    model.decoder_footprint.fill_(training_footprint(coarse.c2w, coarse.focal, model.xyz.detach()))
+    # which decode the render mode `auto` uses inside the object beyond the training size (measured, not guessed)
+    gain = interior_gain(model, fine, background=background) if len(levels) > 1 else float("nan")
+    model.interior_gain.fill_(gain if math.isfinite(gain) else 0.0)  # 0: nothing measured, `filtered`
     scores = evaluate(model, test, eval_ids, background)
     reason = collapse_reason(scores, guard.floor, cfg.guard_margin)
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,
+                    "interior_gain": gain if math.isfinite(gain) else None,
                     "guard": {**guard.summary(), "collapsed": reason}})
     if scales:  # steps per level, finest first: {"1": n, "2": n, ...}
         history[-1]["train_levels"] = {str(s): n for s, n in zip(scales, level_steps)}

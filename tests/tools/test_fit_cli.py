@@ -109,6 +109,10 @@ def test_fit_multi_scale_trains_from_the_loaded_size_at_the_coarsest(tmp_path, c
     native = load_split(root, "train")
     fp = training_footprint(native.c2w, native.focal, bundle.model.xyz.detach())
     assert float(bundle.model.train_footprint) == pytest.approx(fp, rel=1e-5)
+    # the decoder's pixel is the training size's (the coarsest level, 12²): twice the finest level's
+    assert float(bundle.model.decoder_footprint) == pytest.approx(2 * fp, rel=1e-5)
+    gain = bundle.meta["train"]["final"]["interior_gain"]  # measured on the 24² level (the card: no decoder)
+    assert (gain is None) == (bundle.model.decoder is None)
 
 
 def test_fit_train_scales_auto_trains_from_the_finer_images_down_to_the_downscale(tmp_path, capsys):

@@ -30,7 +30,12 @@ views too: `make-scene --size H*S` renders the same training cameras) with multi
 bicubic rows and the evaluation are those of the 1x fit, and the fit column says `hiresH`. Such a model has seen
 the H x data: at H x its ceiling is the ground truth itself, and how far its native render rises above the
 upsampled 1x ground truth (the most a 1x fit can hold) is the detail it learned from the finer images. Its
-training footprint is the finest level's, so it renders at H x S as it was trained (scale factor 1).
+training footprint is the finest level's, so it renders at H x S as it was trained (scale factor 1); its decoder
+footprint is the coarsest level's (the training size S, filled in as H x the training footprint for model files
+from before it), which the `decoder` and `interior` modes decode at. The mode `auto` is the model's
+(`core.points.resolution.auto_mode`, from the interior gain a multi-scale fit measures on its finest level; for
+such model files from before that measurement the bench makes it on the H x training images,
+`core.points.train.interior_gain`, and prints it).
 --time-steps N (with --train-hires) also times stage-1 steps: per scene, 3 pairs of N-step `fit_points` runs in
 this process, the fit from the 1x images and the multi-scale one from the H x images alternating (the settings of
 --fit-args, the decoder and K of the fitted model, evaluation excluded): seconds per step, min / median / max.
@@ -214,7 +219,7 @@ def main(argv=None) -> int:
     from core.bundle import load_bundle
     from core.images.dataset import load_split
     from core.points.render import RENDER_MODES
-    from core.points.resolution import training_footprint
+    from core.points.resolution import check_mode, training_footprint
     from tools.scenes.library import scene_names
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -237,7 +242,7 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default=None, help="a model fitted at --size on the one scene of --scenes "
                                                   "(instead of fitting)")
     ap.add_argument("--render-mode", default="auto",
-                    help=f"comma-separated rendering modes to score: auto (the default mode), "
+                    help=f"comma-separated rendering modes to score: auto (the model's mode), "
                          f"{', '.join(RENDER_MODES)}")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (fits and renders)")
     ap.add_argument("--seed", type=int, default=0)
@@ -308,6 +313,15 @@ def main(argv=None) -> int:
         low = load_split(work / name / "x1", "test")
         if not float(model.train_footprint) > 0:  # a model file from before the footprint: the 1x test cameras'
             model.train_footprint.fill_(training_footprint(low.c2w, low.focal, model.xyz.detach()))
+        if hires and not float(model.decoder_footprint) > 0:  # a multi-scale model file from before the decoder's
+            model.decoder_footprint.fill_(hires * float(model.train_footprint))  # footprint: its coarsest level's
+        if hires and float(model.interior_gain) == 0.0:  # a multi-scale model file from before the fit measured
+            from core.points.train import interior_gain  # it: the same measurement on its finest training images
+
+            gain = interior_gain(model, load_split(work / name / f"x{hires}", "train"))
+            model.interior_gain.fill_(gain if math.isfinite(gain) else 0.0)
+        print(f"{name}: auto = {check_mode('auto', model)} (interior gain {float(model.interior_gain):+.2f} dB)",
+              flush=True)
         cache: dict = {}
         for f in factors:
             high = low if f == 1 else load_split(work / name / f"x{f}", "test")

@@ -96,8 +96,11 @@ def add_arguments(p):
     p.add_argument("--render-mode", default="auto", choices=("auto", *RENDER_MODES),
                    help="frames finer than the training pixels (a larger --size, a closer camera): pixels (as at "
                         "the training size) | filtered (low-passed by a fraction of a training pixel: no point "
-                        "discs) | decoder (UNet decoder at the training scale) | decoder+filtered; "
-                        f"auto = {DEFAULT_RENDER_MODE}")
+                        "discs) | decoder (UNet decoder at the training scale) | decoder+filtered | interior (UNet "
+                        "decoder at the training scale inside the object, at the full size at its silhouette) | "
+                        "interior+filtered | footprint | footprint+decoder; "
+                        f"auto = {DEFAULT_RENDER_MODE}, or interior+filtered for a multi-scale fit that "
+                        "measured it better")
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side, pixel-filtered (1 = one per ray, no filter)")
 

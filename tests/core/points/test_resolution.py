@@ -9,9 +9,10 @@ import torch
 from core.images.cameras import look_at
 from core.points.checkpoint import model_from_arrays, model_to_arrays
 from core.points.render import RENDER_MODES, render_frame, shade_frame, trace_frame
-from core.points.resolution import (MAX_SCALE, check_mode, decode_at_scale, filter_sigma, gate_coverage,
-                                    gaussian_blur, pixel_footprint, scale_factor, training_footprint,
-                                    training_scale_coverage)
+from core.points.resolution import (MAX_SCALE, check_mode, decode_at_scale, decoder_scale, filter_sigma,
+                                    gate_coverage,
+                                    gaussian_blur, interior_weight, pixel_footprint, scale_factor,
+                                    training_footprint, training_scale_coverage)
 from core.util.errors import InputError
 from tests.helpers.tiny import tiny_bundle
 
@@ -144,6 +145,18 @@ def test_the_coverage_gate_hides_specks_the_training_scale_hides_and_keeps_the_o
         assert float(out.min()) >= 0 and float(out.max()) <= 1
     batch = gate_coverage(alpha[None], low[None], f)  # leading dimensions are kept
     assert batch.shape == (1, 40, 40) and torch.equal(batch[0], gate_coverage(alpha, low, f))
+    # a faint blip at the training scale (one pixel of 0.3, its upsampled neighbours fading) under a speck the
+    # full size covers 3x3: the speck keeps the blip's own shape, not 0.3 over the whole 3x3
+    blip = torch.zeros(40, 40)
+    blip[34, 34], blip[33, 34], blip[35, 34] = 0.3, 0.1, 0.1
+    out = gate_coverage(alpha, blip, f)
+    assert torch.allclose(out[33:36, 33:36], torch.minimum(alpha[33:36, 33:36], blip[33:36, 33:36]))
+    assert float(out[33, 33]) == 0.0 and float(out[34, 34]) == pytest.approx(0.3)
+    near = low.clone()  # ... while the same blip within a training pixel of the object keeps the window's maximum
+    near[26:28, 8:24] = 0.6
+    speck = alpha.clone()
+    speck[29:32, 12:15] = 0.9
+    assert float(gate_coverage(speck, near, f)[29:32, 12:15].min()) == pytest.approx(0.6)
 
 
 def test_filtered_frames_gate_the_decoder_coverage(unet_scene, scene):
@@ -176,6 +189,144 @@ def test_filtered_frames_gate_the_decoder_coverage(unet_scene, scene):
     assert not torch.allclose(gaussian_blur(a0, sigma), gaussian_blur(a1, sigma), atol=1e-5)
     assert torch.allclose(out["alpha"], gaussian_blur(a1, sigma).clamp(0, 1), atol=1e-5)
     assert torch.allclose(out["rgb"], gaussian_blur(rgb1, sigma).clamp(0, 1), atol=1e-5)
+
+
+def test_interior_weight_is_the_coverage_eroded_by_one_training_pixel():
+    """interior_weight: 1 deep inside a covered region, 0 within ⌈F⌉ pixels of its silhouette and outside, the
+    coverage itself where it is partial, no rim at the frame's border, zeros for F <= 1, finite in [0, 1]."""
+    cov = torch.zeros(30, 30)
+    cov[5:25, 5:25] = 1.0
+    cov[12:18, 12:18] = 0.6          # a partially covered patch well inside
+    w = interior_weight(cov, 3.0)   # erosion by 3 pixels
+    assert float(w[8:22, 8:22].min()) == pytest.approx(0.6) and float(w[8, 8:22].min()) == 1.0
+    assert float(w[:8].max()) == 0.0 and float(w[:, 22:].max()) == 0.0  # the silhouette band and outside
+    assert float(w[8, 8]) == 1.0 and float(w[7, 10]) == 0.0
+    assert torch.equal(interior_weight(cov, 2.5), w)  # ⌈F⌉ pixels
+    full = torch.ones(6, 8)          # an object filling the frame: its border is no silhouette
+    assert torch.equal(interior_weight(full, 4.0), full)
+    assert torch.equal(interior_weight(cov, 1.0), torch.zeros_like(cov))
+    assert torch.equal(interior_weight(cov, 0.5), torch.zeros_like(cov))
+    bad = cov.clone()
+    bad[0, 0], bad[1, 1], bad[20, 20] = float("nan"), float("inf"), -float("inf")
+    for scale in (1.5, 4.0, 1e9, float("inf"), float("nan")):
+        out = interior_weight(bad, scale)
+        assert out.shape == cov.shape and bool(torch.isfinite(out).all())
+        assert float(out.min()) >= 0 and float(out.max()) <= 1
+    assert float(interior_weight(bad, 4.0)[16:25, 16:25].max()) == 0.0  # -inf counts as uncovered
+    assert interior_weight(cov[None], 3.0).shape == (1, 30, 30)
+
+
+def test_interior_mode_decodes_the_inside_at_the_training_scale_and_the_silhouette_at_the_full_size(unet_scene):
+    """shade_frame with interior_scale F: the full-size decode and the training-scale one (`decode_at_scale`)
+    mixed per pixel by interior_weight of the training scale's coverage, colour and coverage, then composited over
+    the background — the full-size frame where the weight is 0 (the silhouette band, the background); the render
+    mode `interior` is that frame."""
+    from core.points.render import decode_where_active
+
+    model, _, test = unet_scene
+    c2w, h, w, f = test.c2w[0], 4 * test.height, 4 * test.width, 4 * test.focal
+    tr = trace_frame(model, c2w, h, w, f)
+    scale = render_frame(model, c2w, h, w, f, mode="pixels")["scale"]
+    full, a_full = shade_frame(model, tr, with_alpha=True)
+    mixed, a_mix = shade_frame(model, tr, with_alpha=True, interior_scale=scale)
+    parts = model.shade({"weights": tr.weights, "bg": tr.bg}, tr.dirs, tr.idx, torch.ones(3))
+    feat = parts["feature"].reshape(h, w, -1).permute(2, 0, 1)[None]
+    with torch.no_grad():
+        rgb_lo, alpha_lo = decode_at_scale(model, feat, scale)
+        rgb_hi, alpha_hi = decode_where_active(model, feat, tr.active.reshape(h, w))
+    wgt = interior_weight(alpha_lo[0], scale)
+    assert float(wgt.max()) > 0.3 and float(wgt.min()) < 1e-5  # the tiny model's interior is partly covered
+    rgb = wgt[..., None] * rgb_lo[0].permute(1, 2, 0) + (1 - wgt[..., None]) * rgb_hi[0].permute(1, 2, 0)
+    cover = (wgt * alpha_lo[0] + (1 - wgt) * alpha_hi[0])[..., None]
+    c = ((rgb - (1 - cover)) / cover.clamp_min(1e-4)).clamp(0, 1)  # over white, composited over white again
+    ref = (cover * c + (1 - cover)).clamp(0, 1)
+    assert torch.allclose(mixed, ref, atol=1e-5) and torch.allclose(a_mix, cover[..., 0], atol=1e-6)
+    zero = wgt < 1e-5
+    assert torch.allclose(mixed[zero], full[zero], atol=1e-4) and torch.allclose(a_mix[zero], a_full[zero], atol=1e-5)
+    assert not torch.allclose(mixed, full, atol=1e-3)  # the interior differs
+    out = render_frame(model, c2w, h, w, f, mode="interior")
+    assert torch.allclose(out["rgb"], mixed, atol=1e-6) and torch.allclose(out["alpha"], a_mix, atol=1e-6)
+    plain = render_frame(model, c2w, h, w, f, mode="pixels")  # `pixels` is the full-size frame
+    assert torch.allclose(plain["rgb"], full, atol=1e-6)
+
+
+def test_a_multi_scale_model_runs_its_decoder_at_the_training_size(unet_scene):
+    """A model whose decoder_footprint is 4x its train_footprint (a multi-scale fit from 4x images: the
+    footprint is the finest level's, the decoder's the training size's) renders the training size in every mode
+    as it is, and at 4x that size (its finest level: scale factor 1, nothing filtered) the `interior` and
+    `decoder` modes decode at the training size; without a decoder_footprint (older files, single-scale fits) the
+    decoder's scale factor is the frame's."""
+    import copy
+
+    model, _, test = unet_scene
+    c2w, h, w, f, pts = test.c2w[0], test.height, test.width, test.focal, model.xyz.detach()
+    assert float(model.decoder_footprint) == float(model.train_footprint)  # the fit's own, one scale
+    for times in (0.5, 1.0, 4.0):
+        assert decoder_scale(model, None, c2w, times * f, pts) == max(1.0, scale_factor(
+            float(model.train_footprint), c2w, times * f, pts))  # F <= 1: the training scale
+    multi = copy.deepcopy(model)
+    multi.train_footprint.fill_(float(model.train_footprint) / 4)
+    assert decoder_scale(multi, None, c2w, f, pts) == 1.0
+    assert decoder_scale(multi, None, c2w, 4 * f, pts) == pytest.approx(4.0, rel=0.06)
+    assert decoder_scale(multi, 1.0, c2w, 4 * f, pts) == pytest.approx(4.0, rel=1e-5)  # the caller's F, scaled
+    assert decoder_scale(multi, 0.25, c2w, f, pts) == 1.0
+    legacy = shade_frame(multi, trace_frame(multi, c2w, h, w, f))
+    for mode in RENDER_MODES:
+        out = render_frame(multi, c2w, h, w, f, mode=mode)
+        assert torch.equal(out["rgb"], legacy), mode
+    big = {m: render_frame(multi, c2w, 4 * h, 4 * w, 4 * f, mode=m) for m in ("pixels", "filtered", "interior")}
+    assert all(o["scale"] == 1.0 for o in big.values())
+    tr = trace_frame(multi, c2w, 4 * h, 4 * w, 4 * f)
+    fd = decoder_scale(multi, None, c2w, 4 * f, pts)
+    # the finest level: no blur, the mask head's coverage gated by the one it gives at the decoder's size
+    gated, gated_alpha = shade_frame(multi, tr, with_alpha=True, coverage_scale=fd)
+    assert torch.allclose(big["filtered"]["rgb"], gated, atol=1e-6)
+    assert torch.allclose(big["filtered"]["alpha"], gated_alpha, atol=1e-6)
+    assert torch.equal(big["pixels"]["rgb"], shade_frame(multi, tr))
+    assert torch.allclose(big["interior"]["rgb"], shade_frame(multi, tr, interior_scale=fd), atol=1e-6)
+    assert not torch.allclose(big["interior"]["rgb"], big["pixels"]["rgb"], atol=1e-3)
+    arrays, meta = model_to_arrays(multi)  # the model file keeps it; older files load with 0 (= train_footprint)
+    assert float(model_from_arrays(arrays, meta).decoder_footprint) == pytest.approx(float(model.train_footprint))
+    old = model_from_arrays({k: v for k, v in arrays.items() if k != "net/decoder_footprint"}, meta)
+    assert float(old.decoder_footprint) == 0.0 and decoder_scale(old, 1.0, c2w, 4 * f, pts) == 1.0
+    multi.decoder_footprint.fill_(float("nan"))  # not finite: the frame's own scale factor
+    assert decoder_scale(multi, 3.0, c2w, f, pts) == 3.0
+
+
+def test_the_fit_measures_which_decode_auto_uses(unet_scene, scene):
+    """`auto` follows the interior gain a multi-scale fit stores (core.points.train.interior_gain:
+    `interior+filtered` − `filtered` in object PSNR on views finer than the decoder's training size):
+    `interior+filtered` when it is positive, `filtered` otherwise, for single-scale fits (nothing measured) and
+    for models without a decoder."""
+    import copy
+
+    from core.images.metrics import mean_scores, score_views
+    from core.points.resolution import auto_mode
+    from core.points.train import INTERIOR_VIEWS, interior_gain
+
+    model, train, test = unet_scene
+    assert float(model.interior_gain) == 0.0 and auto_mode(model) == "filtered"  # one scale: nothing measured
+    assert math.isnan(interior_gain(model, train))  # the decoder runs at these views' size: nothing to compare
+    multi = copy.deepcopy(model)  # as if its decoder had trained at half these views' size (a coarser level)
+    multi.decoder_footprint.fill_(2 * float(model.train_footprint))
+    gain = interior_gain(multi, train)
+    ids = sorted({int(i) for i in torch.linspace(0, len(train.c2w) - 1, INTERIOR_VIEWS).round().tolist()})
+
+    def score(mode):
+        def render(i):
+            return render_frame(multi, train.c2w[i], train.height, train.width, train.focal, mode=mode)
+        return mean_scores(score_views(render, train.images, train.alphas, ids))["psnr_object"]
+    assert math.isfinite(gain) and abs(gain) > 1e-4
+    assert gain == pytest.approx(score("interior+filtered") - score("filtered"), abs=1e-6)
+    c2w, h, w, f = test.c2w[0], 3 * test.height, 3 * test.width, 3 * test.focal
+    for g, mode in ((0.3, "interior+filtered"), (-0.3, "filtered"), (0.0, "filtered")):
+        m = copy.deepcopy(model)
+        m.interior_gain.fill_(g)
+        assert auto_mode(m) == check_mode("auto", m) == mode
+        assert torch.equal(render_frame(m, c2w, h, w, f)["rgb"], render_frame(m, c2w, h, w, f, mode=mode)["rgb"])
+    plain, ptrain, _ = scene
+    assert math.isnan(interior_gain(plain, ptrain)) and float(plain.interior_gain) == 0.0
+    assert auto_mode(plain) == "filtered"
 
 
 @pytest.mark.parametrize("mode", RENDER_MODES)

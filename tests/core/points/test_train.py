@@ -85,6 +85,7 @@ def test_zoomed_steps_train_both_decoders_and_stay_finite():
             assert torch.isfinite(p).all()
         assert hist[-1]["psnr"] > hist[0]["psnr"] + 5, (decoder, hist[0]["psnr"], hist[-1]["psnr"])
         assert float(model.train_footprint) > 0
+        assert float(model.decoder_footprint) == float(model.train_footprint)  # one scale: the same pixel
 
 
 def test_step_cap_follows_the_budget_given():

@@ -6,7 +6,7 @@ import torch
 from core.images.pyramid import downscale_split
 from core.points.render import trace_frame
 from core.points.resolution import training_footprint
-from core.points.train import TrainConfig, fit_points, patch_neighbors, sample_patches
+from core.points.train import TrainConfig, fit_points, interior_gain, patch_neighbors, sample_patches
 from core.util.errors import DataError, InputError
 from tests.helpers.synthetic import fibonacci_cameras, render_split
 from tests.helpers.tiny import model_config
@@ -80,6 +80,15 @@ def test_every_level_trains_and_the_footprint_is_the_finest_levels():
         assert float(model.train_footprint) == pytest.approx(fine, rel=1e-6)
         # the finest level's pixel is a quarter of the coarsest's: renders at the native size are at scale 1
         assert fine == pytest.approx(training_footprint(native.c2w, native.focal / 4, model.xyz.detach()) / 4)
+        # the decoder's pixel is the coarsest level's (the training size), and the fit measured on the finest
+        # level which decode `auto` uses inside the object (stored in the model and its last history row)
+        assert float(model.decoder_footprint) == pytest.approx(4 * fine, rel=1e-6)
+        gain = hist[-1]["interior_gain"]
+        if decoder == "none":
+            assert gain is None and float(model.interior_gain) == 0.0
+        else:
+            assert gain == pytest.approx(interior_gain(model, native), abs=1e-5)
+            assert float(model.interior_gain) == pytest.approx(gain, abs=1e-6)
 
 
 def test_level_weights_pick_the_levels():
