@@ -79,6 +79,10 @@ class EditConfig:
                                    "the plain pixel radius cap stays empty, so the per-point reach adds far points "
                                    "only to rays near the object (1: rays that already see it; the empty rays around "
                                    "it stop searching there); 0 = no gate", min=0.0, max=1e6)
+    f_reach_surround: bool = opt(False, "f_reach_gate > 0: a ray with no point within the gate is still reached "
+                                        "when its neighbours surround it (no half-plane through the ray holds "
+                                        "them all: a hole in a sparse stretched surface, not a ray beside the "
+                                        "object's outline)")
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
@@ -364,6 +368,11 @@ class EditState:
         reach in use, else 0 (none)."""
         return float(self.cfg.f_reach_gate) if self.search_radius()[1] is not None else 0.0
 
+    @property
+    def reach_surround(self) -> bool:
+        """Whether the gate lets rays its neighbours surround through (`trace_frame(reach_surround=...)`)."""
+        return bool(self.cfg.f_reach_surround) and self.reach_gate > 0
+
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
         fit took; what this state derives from F is computed (and timed) here."""
@@ -387,7 +396,7 @@ class EditState:
         radius_scale, reach = self.search_radius()
         return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
                             model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach,
-                            reach_gate=self.reach_gate)
+                            reach_gate=self.reach_gate, reach_surround=self.reach_surround)
 
     def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
@@ -551,7 +560,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                          temperature=cfg.temperature, inv_f=state.inv_f_keys if cfg.f_attention else None,
                          rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
-                         reach_gate=state.reach_gate,
+                         reach_gate=state.reach_gate, reach_surround=state.reach_surround,
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
     else:

@@ -23,7 +23,7 @@ from pathlib import Path
 _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware",
         "f_depth": "ray",
         "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
-        "fold_test": "displacement", "f_radius_rule": "frame", "f_reach_gate": 0.0}
+        "fold_test": "displacement", "f_radius_rule": "frame", "f_reach_gate": 0.0, "f_reach_surround": False}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -78,6 +78,11 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
         **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
         "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
         "f_reach_gate": 2.0},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1 cap or surrounded, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.0, "f_reach_surround": True},
 }
 
 

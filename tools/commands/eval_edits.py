@@ -41,7 +41,8 @@ def add_arguments(p):
                         "from the pairs the fill budget kept sparse only, f_radius_rule budget) | "
                         "f-fill-fold-blend-depth-auto-budget-gate (that reach only for rays the plain pixel cap gives "
                         "a point, f_reach_gate 1) | f-fill-fold-blend-depth-auto-budget-gate2 (the gate at twice the "
-                        "cap)")
+                        "cap) | f-fill-fold-blend-depth-auto-budget-surround (the gate at 1 cap, letting through "
+                        "rays their neighbours surround, f_reach_surround)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

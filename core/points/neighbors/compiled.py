@@ -38,14 +38,16 @@ def available() -> bool:
 
 
 def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val, rs, rcell,
-            rs_max, gate):
+            rs_max, gate, surround):
     """For each query q[i] = (col, row) relative to the grid origin: its K best (ids[slot], value) ascending.
     xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
     weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
     pre-filled; values are ranked in float64 and stored in float32. rs [M] each point's reach factor (its cap is
     cap × rs), rcell [ncx*ncy] the largest per cell, rs_max the largest of all (all ones: one cap). gate > 0: a
     query with no point within gate × cap gets no neighbours (gate 1: the reach adds points only to queries the
-    plain cap already gives one); 0: no gate."""
+    plain cap already gives one); 0: no gate. surround (with a gate): such a query keeps its K best all the same
+    when they surround it (`_surrounds`: no half-plane through the query holds them all), a hole inside the
+    object's screen outline rather than a ray beside it."""
     reach = cap * rs_max  # no point is a candidate beyond this
     walk = max(reach, cap * gate)  # nor does the gate look farther
     rmax = int(math.ceil(walk / cell)) + 1
@@ -71,7 +73,7 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
             lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
             if lb > reach and (near or lb > gcap):
                 break
-            if not near and lb > gcap:
+            if not near and lb > gcap and not surround:
                 break  # gate: nothing within gate × cap, the query stays empty
             if n == k and lb * wmin_all >= best[k - 1] and (near or lb > gcap):
                 break
@@ -120,11 +122,35 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                         slot[p] = j
                         if n < k:
                             n += 1
-        if not near:
+        if not near and not (surround and _surrounds(xs, ys, slot, n, qx, qy)):
             continue
         for p in range(n):
             out_idx[i, p] = ids[slot[p]]
             out_val[i, p] = best[p]
+
+
+def _surrounds(xs, ys, slot, n, qx, qy):
+    """Whether the points xs/ys[slot[:n]] surround (qx, qy): the largest angle between consecutive directions from
+    it to them, around the full turn, is below π (no half-plane through the query holds them all; fewer than 3
+    points never surround). A point at the query itself counts as surrounding."""
+    if n < 3:
+        return False
+    ang = np.empty(n, dtype=np.float64)
+    for p in range(n):
+        dx = xs[slot[p]] - qx
+        dy = ys[slot[p]] - qy
+        if dx == 0.0 and dy == 0.0:
+            return True
+        a = math.atan2(dy, dx)
+        j = p  # insertion sort (n = K, a handful)
+        while j > 0 and ang[j - 1] > a:
+            ang[j] = ang[j - 1]
+            j -= 1
+        ang[j] = a
+    gap = ang[0] + 2.0 * math.pi - ang[n - 1]
+    for p in range(1, n):
+        gap = max(gap, ang[p] - ang[p - 1])
+    return gap < math.pi
 
 
 _compiled = None
@@ -136,9 +162,12 @@ def _get_kernel():
         if numba is None:
             raise RuntimeError(f"the compiled neighbour search needs numba ({_NUMBA_ERROR}); "
                                "install it (pip install numba) or use backend='grid'")
+        global _surrounds
         try:  # cached next to the module (or numba's user cache) so later processes skip the ~2 s compile
+            _surrounds = numba.njit(cache=True, nogil=True, fastmath=False)(_surrounds)
             _compiled = numba.njit(cache=True, nogil=True, fastmath=False)(_kernel)
         except RuntimeError:  # no writable cache location (read-only install): compile per process
+            _surrounds = numba.njit(cache=False, nogil=True, fastmath=False)(_surrounds)
             _compiled = numba.njit(cache=False, nogil=True, fastmath=False)(_kernel)
     return _compiled
 
@@ -151,12 +180,14 @@ class CompiledGrid:
     height, width of the frame; reach [M] float64 >= 1 or None: point m is a candidate within cap × reach[m]
     pixels (cells are sized by `cap` × the square root of the median reach: a few far-reaching points do not make
     every query visit larger cells, and where most points reach far a query does not walk many small ones; the
-    answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none."""
+    answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none, unless
+    surround and its K best surround it (no half-plane through the query holds them all)."""
 
     def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
-                 width: int, reach: np.ndarray | None = None, gate: float = 0.0):
+                 width: int, reach: np.ndarray | None = None, gate: float = 0.0, surround: bool = False):
         self.cap = float(cap)
         self.gate = float(gate) if gate and math.isfinite(float(gate)) and float(gate) > 0 else 0.0
+        self.surround = bool(surround) and self.gate > 0
         span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
         rs = np.ones(len(px)) if reach is None else np.maximum(np.nan_to_num(np.asarray(reach, dtype=np.float64),
                                                                              nan=1.0, posinf=1.0), 1.0)
@@ -193,5 +224,6 @@ class CompiledGrid:
         if r and len(self.xs):
             qq = np.ascontiguousarray(np.asarray(q, dtype=np.float64) + 1.0)
             _get_kernel()(self.xs, self.ys, self.ws, self.ids, self.wcell, self.start, self.ncx, self.ncy, self.cell,
-                          self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max, self.gate)
+                          self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max, self.gate,
+                          self.surround)
         return idx, val

@@ -51,6 +51,22 @@ def check_backend(backend: str, device: torch.device, capped: bool = False) -> s
     return backend
 
 
+def surrounds(offsets: torch.Tensor) -> torch.Tensor:
+    """offsets [R, K, 2] from each query to its neighbours (non-finite rows = none) -> [R] bool: the neighbours
+    surround the query — the largest angle between consecutive directions, around the full turn, is below π (no
+    half-plane through the query holds them all); fewer than 3 never do, one at the query itself always does."""
+    ok = torch.isfinite(offsets).all(dim=-1)
+    n = ok.sum(dim=1)
+    zero = (ok & (offsets == 0).all(dim=-1)).any(dim=1)
+    ang = torch.atan2(offsets[..., 1], offsets[..., 0])
+    ang = torch.where(ok, ang, math.inf).sort(dim=1).values
+    last = torch.where(ok.any(dim=1), ang.gather(1, (n - 1).clamp_min(0)[:, None])[:, 0], 0.0)
+    gap = torch.nan_to_num(ang[:, 1:] - ang[:, :-1], nan=0.0, posinf=0.0)
+    wrap = ang[:, 0].nan_to_num(posinf=0.0) + 2 * math.pi - last
+    big = torch.maximum(gap.max(dim=1).values if gap.shape[1] else torch.zeros_like(wrap), wrap)
+    return zero | ((n >= 3) & (big < math.pi))
+
+
 class ScreenIndex:
     """Projected points of one camera, built once and queried many times (e.g. every chunk of a frame).
 
@@ -64,12 +80,14 @@ class ScreenIndex:
     the cap; the others, which have one cap per index, use the cap × the largest reach.
     reach_gate: with reach, a query that has no point within reach_gate × the cap gets no neighbours (1: the reach
     adds far points only to queries the plain cap already gives one; the empty queries around the object stop
-    there instead of walking the largest reach); 0 (or False) = no gate.
+    there instead of walking the largest reach); 0 (or False) = no gate. reach_surround (with a gate): such a query
+    keeps its K neighbours all the same when they surround it (`surrounds`: no half-plane through the query holds
+    them all) — a hole inside the object's screen outline, not a ray beside it.
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
                  depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto",
-                 reach: torch.Tensor | None = None, reach_gate: float = 0.0):
+                 reach: torch.Tensor | None = None, reach_gate: float = 0.0, reach_surround: bool = False):
         check_matrix("points", points, 3)
         check_camera(c2w, height, width, focal)
         self.radius = check_radius(max_radius_px)
@@ -94,6 +112,7 @@ class ScreenIndex:
             self.reach = r if bool((r > 1.0).any()) else None
         g = float(reach_gate)
         self.reach_gate = g if self.reach is not None and math.isfinite(g) and g > 0 else 0.0
+        self.reach_surround = bool(reach_surround) and self.reach_gate > 0
         self.weight = depth[keep] / float(focal_scale(cam)) if depth_factor else None  # [M]
         self._density: float | None = None
         self._grids: dict[float, CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
@@ -136,13 +155,20 @@ class ScreenIndex:
                 reach = None if self.reach is None else self.reach.cpu().numpy()
                 self._compiled[cap] = compiled.CompiledGrid(self.px.numpy(), w, self.ids.numpy(), cap,
                                                                self.height, self.width, reach=reach,
-                                                               gate=self.reach_gate)
+                                                               gate=self.reach_gate,
+                                                               surround=self.reach_surround)
             idx, dist = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
             return Neighbors(torch.from_numpy(idx), torch.from_numpy(dist))
         out = self._query_capped(query_px, k, self._uniform_cap(k))
         cap = self.radius_px(k)
         if self.reach_gate and math.isfinite(cap):  # the gate from a plain query of the nearest point
             near = (self._query_capped(query_px, 1, cap * self.reach_gate).idx[:, 0] >= 0).to(out.idx.device)[:, None]
+            if self.reach_surround:
+                pos = torch.full((int(self.ids.max()) + 1, 2), math.nan, dtype=torch.float64, device=self.px.device)
+                pos[self.ids] = self.px
+                off = pos[out.idx.clamp_min(0).to(pos.device)] - query_px.detach().to(pos)[:, None, :]
+                off = torch.where((out.idx >= 0).to(pos.device)[..., None], off, math.nan)
+                near = near | surrounds(off).to(near.device)[:, None]
             out = Neighbors(torch.where(near, out.idx, -1), torch.where(near, out.dist, math.inf))
         return out
 

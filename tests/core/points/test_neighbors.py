@@ -663,3 +663,82 @@ def test_reach_gate_keeps_rays_without_a_plain_candidate_empty(backend, depth_fa
     assert bool(shut.any()) and bool(((open_.idx >= 0).any(1) & shut).any())  # the gate emptied some rays
     kept = ~shut
     assert torch.equal(got.idx[kept], open_.idx[kept])  # the others are the plain reach search's
+
+
+def _surrounded_ref(offsets, valid):
+    """Brute force: the offsets [R, K, 2] (valid [R, K]) surround the query unless a closed half-plane through it
+    holds them all; such a half-plane can be turned until its edge meets one of them, so trying the normals at ±90°
+    to each offset is exhaustive."""
+    out = torch.zeros(offsets.shape[0], dtype=torch.bool)
+    for r in range(offsets.shape[0]):
+        o = offsets[r][valid[r]].double()
+        if o.shape[0] < 3:
+            continue
+        normals = torch.cat([torch.stack([-o[:, 1], o[:, 0]], 1), torch.stack([o[:, 1], -o[:, 0]], 1)])
+        held = ((o @ normals.T) >= -1e-9 * (1 + o.norm(dim=1).max() ** 2)).all(dim=0)
+        out[r] = not bool(held.any())
+    return out
+
+
+def _projected(pts, c2w):
+    p, m = pts.double(), c2w.double()
+    cam = (p - m[:3, 3]) @ m[:3, :3]
+    z = -cam[:, 2]
+    return torch.stack([FOCAL * cam[:, 0] / z + 0.5 * W, -FOCAL * cam[:, 1] / z + 0.5 * H], -1)
+
+
+@pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
+@pytest.mark.parametrize("depth_factor", [False, True])
+def test_reach_surround_lets_through_rays_their_neighbours_surround(backend, depth_factor):
+    """reach_surround: of the rays the gate empties, those whose K reach neighbours surround them (no half-plane
+    through the ray holds them all; brute force here) keep them; every other row is the gated search's."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("numba missing")
+    pts = scene("blob", 800, 5)
+    c2w = camera(5)
+    q = random_px(600, 5)
+    g = torch.Generator().manual_seed(16)
+    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 4.0 * torch.rand(800, generator=g), torch.ones(800))
+    cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend).radius_px(8)
+    per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
+    open_ = ref_screen(pts, c2w, q, 8, depth_factor, per_point.double()[None])
+    near = (ref_screen(pts, c2w, q, 8, depth_factor, cap)[0] >= 0).any(1)
+    px = _projected(pts, c2w)
+    inside = _surrounded_ref(px[open_[0].clamp_min(0)] - q.double()[:, None], open_[0] >= 0)
+    keep = (near | inside)[:, None]
+    ref = torch.where(keep, open_[0], -1), torch.where(keep, open_[1], math.inf)
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_gate=1.0,
+                           reach_surround=True)
+    assert_same(index.query(q, 8), ref)
+    assert bool((inside & ~near).any()) and bool(((open_[0] >= 0).any(1) & ~near & ~inside).any())
+    ungated = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_surround=True)
+    assert not ungated.reach_surround  # without a gate the switch does nothing: the open search
+    assert_same(ungated.query(q, 8), open_)
+
+
+def test_reach_surround_fills_a_hole_but_not_the_outline():
+    """A sheet facing the camera, points 2 px apart, with a hole of radius 3 px; cap 1.5 px, reach 4: the gate
+    empties the hole's centre and a ray 3 px outside the sheet's edge; surround gives the hole its neighbours (all
+    around it), never the ray outside; hostile positions stay finite."""
+    c2w = torch.eye(4)
+    col, row = torch.meshgrid(torch.arange(4.0, 21.0, 2.0), torch.arange(4.0, 21.0, 2.0), indexing="xy")
+    keep = ((col - 12) ** 2 + (row - 12) ** 2) > 9
+    col, row = col[keep], row[keep]
+    z = 2.0
+    pts = torch.stack([(col - 0.5 * W) * z / FOCAL, -(row - 0.5 * H) * z / FOCAL, torch.full_like(col, -z)], 1)
+    reach = torch.full((pts.shape[0],), 4.0)
+    q = torch.tensor([[12.0, 12.0], [12.0, 1.0], [23.5, 12.0], [8.0, 8.0]])  # hole, above, right edge, on the sheet
+    out = {}
+    for surround in (False, True):
+        index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, max_radius_px=1.5, reach=reach, reach_gate=1.0,
+                               reach_surround=surround)
+        out[surround] = index.query(q, 8)
+    assert bool((out[False].idx[:3] < 0).all()) and bool((out[False].idx[3] >= 0).all())
+    assert bool((out[True].idx[0] >= 0).all()) and bool((out[True].idx[1:3] < 0).all())
+    assert torch.equal(out[True].idx[3], out[False].idx[3])
+    wild = pts.clone()
+    wild[::5] = float("nan")
+    wild[1::7] = 1e30
+    got = nb.ScreenIndex(wild, c2w, H, W, FOCAL, True, max_radius_px=1.5, reach=torch.full((pts.shape[0],), 1e9),
+                         reach_gate=1.0, reach_surround=True).query(random_px(50, 3), 8)
+    assert torch.isfinite(got.dist[got.valid]).all()
