@@ -46,8 +46,9 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
     cap × rs), rcell [ncx*ncy] the largest per cell, rs_max the largest of all (all ones: one cap). gate > 0: a
     query with no point within gate × cap gets no neighbours (gate 1: the reach adds points only to queries the
     plain cap already gives one); 0: no gate. surround (with a gate): such a query keeps its K best all the same
-    when they surround it (`_surrounds`: no half-plane through the query holds them all), a hole inside the
-    object's screen outline rather than a ray beside it."""
+    when its candidates (every point within its own reach of the query) surround it: no 3 consecutive of the 8
+    45° sectors around the query lack one (`_ringed`) — a hole inside the object's screen outline rather than a
+    ray beside it. Until that is known, such a query walks its whole reach (no cell is skipped for the K best)."""
     reach = cap * rs_max  # no point is a candidate beyond this
     walk = max(reach, cap * gate)  # nor does the gate look farther
     rmax = int(math.ceil(walk / cell)) + 1
@@ -69,13 +70,15 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
         near = gate <= 0.0  # gate: whether a point lies within gate × cap (until then nothing is skipped there)
         gcap = cap * gate
         gcap2 = gcap * gcap
+        mask = 0  # surround: the sectors that hold a candidate
+        ringed = not surround  # surround: whether they surround the query (nothing is skipped until then)
         for r in range(r0, rend + 1):
             lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
             if lb > reach and (near or lb > gcap):
                 break
             if not near and lb > gcap and not surround:
                 break  # gate: nothing within gate × cap, the query stays empty
-            if n == k and lb * wmin_all >= best[k - 1] and (near or lb > gcap):
+            if n == k and lb * wmin_all >= best[k - 1] and (near or (lb > gcap and ringed)):
                 break
             for dy in range(max(-r, -cy), min(r, ncy - 1 - cy) + 1):
                 y = cy + dy
@@ -98,7 +101,7 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                     md = math.sqrt(ex * ex + ey * ey)
                     if md > cap * rcell[c] and (near or md > gcap):
                         continue
-                    if n == k and md * wcell[c] >= best[k - 1] and (near or md > gcap):
+                    if n == k and md * wcell[c] >= best[k - 1] and (near or (md > gcap and ringed)):
                         continue
                     for j in range(a, b):
                         ddx = xs[j] - qx
@@ -109,6 +112,9 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                         cj = cap * rs[j]
                         if d2 > cj * cj:
                             continue
+                        if not ringed and not near and d2 > 0.0:
+                            mask |= 1 << _sector(ddx, ddy)
+                            ringed = _ringed(mask)
                         v = math.sqrt(d2) * ws[j]
                         if n == k and v >= best[k - 1]:
                             continue
@@ -122,35 +128,34 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                         slot[p] = j
                         if n < k:
                             n += 1
-        if not near and not (surround and _surrounds(xs, ys, slot, n, qx, qy)):
+        if not near and not (surround and ringed):
             continue
         for p in range(n):
             out_idx[i, p] = ids[slot[p]]
             out_val[i, p] = best[p]
 
 
-def _surrounds(xs, ys, slot, n, qx, qy):
-    """Whether the points xs/ys[slot[:n]] surround (qx, qy): the largest angle between consecutive directions from
-    it to them, around the full turn, is below π (no half-plane through the query holds them all; fewer than 3
-    points never surround). A point at the query itself counts as surrounding."""
-    if n < 3:
-        return False
-    ang = np.empty(n, dtype=np.float64)
-    for p in range(n):
-        dx = xs[slot[p]] - qx
-        dy = ys[slot[p]] - qy
-        if dx == 0.0 and dy == 0.0:
-            return True
-        a = math.atan2(dy, dx)
-        j = p  # insertion sort (n = K, a handful)
-        while j > 0 and ang[j - 1] > a:
-            ang[j] = ang[j - 1]
-            j -= 1
-        ang[j] = a
-    gap = ang[0] + 2.0 * math.pi - ang[n - 1]
-    for p in range(1, n):
-        gap = max(gap, ang[p] - ang[p - 1])
-    return gap < math.pi
+_SECTORS = 8  # surround: the turn around a query in 45° sectors
+_SECTOR_RUN = 3  # ... surrounded when no this many consecutive sectors lack a candidate
+
+
+def _sector(dx, dy):
+    """The 45° sector (0..7, counter-clockwise from +x) of the direction (dx, dy) != 0."""
+    s = int(math.floor(math.atan2(dy, dx) / (0.25 * math.pi))) % _SECTORS
+    return s
+
+
+def _ringed(mask):
+    """Whether a bit mask of occupied sectors leaves no _SECTOR_RUN consecutive sectors (around the turn) empty."""
+    for s in range(_SECTORS):
+        empty = True
+        for t in range(_SECTOR_RUN):
+            if mask & (1 << ((s + t) % _SECTORS)):
+                empty = False
+                break
+        if empty:
+            return False
+    return True
 
 
 _compiled = None
@@ -162,12 +167,14 @@ def _get_kernel():
         if numba is None:
             raise RuntimeError(f"the compiled neighbour search needs numba ({_NUMBA_ERROR}); "
                                "install it (pip install numba) or use backend='grid'")
-        global _surrounds
+        global _sector, _ringed
         try:  # cached next to the module (or numba's user cache) so later processes skip the ~2 s compile
-            _surrounds = numba.njit(cache=True, nogil=True, fastmath=False)(_surrounds)
+            _sector = numba.njit(cache=True, nogil=True, fastmath=False)(_sector)
+            _ringed = numba.njit(cache=True, nogil=True, fastmath=False)(_ringed)
             _compiled = numba.njit(cache=True, nogil=True, fastmath=False)(_kernel)
         except RuntimeError:  # no writable cache location (read-only install): compile per process
-            _surrounds = numba.njit(cache=False, nogil=True, fastmath=False)(_surrounds)
+            _sector = numba.njit(cache=False, nogil=True, fastmath=False)(_sector)
+            _ringed = numba.njit(cache=False, nogil=True, fastmath=False)(_ringed)
             _compiled = numba.njit(cache=False, nogil=True, fastmath=False)(_kernel)
     return _compiled
 
@@ -181,7 +188,7 @@ class CompiledGrid:
     pixels (cells are sized by `cap` × the square root of the median reach: a few far-reaching points do not make
     every query visit larger cells, and where most points reach far a query does not walk many small ones; the
     answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none, unless
-    surround and its K best surround it (no half-plane through the query holds them all)."""
+    surround and its candidates surround it (`_kernel`)."""
 
     def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
                  width: int, reach: np.ndarray | None = None, gate: float = 0.0, surround: bool = False):

@@ -51,20 +51,18 @@ def check_backend(backend: str, device: torch.device, capped: bool = False) -> s
     return backend
 
 
-def surrounds(offsets: torch.Tensor) -> torch.Tensor:
-    """offsets [R, K, 2] from each query to its neighbours (non-finite rows = none) -> [R] bool: the neighbours
-    surround the query — the largest angle between consecutive directions, around the full turn, is below π (no
-    half-plane through the query holds them all); fewer than 3 never do, one at the query itself always does."""
-    ok = torch.isfinite(offsets).all(dim=-1)
-    n = ok.sum(dim=1)
-    zero = (ok & (offsets == 0).all(dim=-1)).any(dim=1)
-    ang = torch.atan2(offsets[..., 1], offsets[..., 0])
-    ang = torch.where(ok, ang, math.inf).sort(dim=1).values
-    last = torch.where(ok.any(dim=1), ang.gather(1, (n - 1).clamp_min(0)[:, None])[:, 0], 0.0)
-    gap = torch.nan_to_num(ang[:, 1:] - ang[:, :-1], nan=0.0, posinf=0.0)
-    wrap = ang[:, 0].nan_to_num(posinf=0.0) + 2 * math.pi - last
-    big = torch.maximum(gap.max(dim=1).values if gap.shape[1] else torch.zeros_like(wrap), wrap)
-    return zero | ((n >= 3) & (big < math.pi))
+def surrounded(offsets: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """offsets [R, M, 2] from each query to candidate points, valid [R, M] bool (which count) -> [R] bool: the
+    candidates surround the query — of the 8 45° sectors around it (counter-clockwise from +x), no 3 consecutive
+    ones (around the turn) lack a candidate (the compiled kernel's rule, `compiled._ringed`). A candidate at the
+    query itself is in no sector."""
+    sector = torch.floor(torch.atan2(offsets[..., 1], offsets[..., 0]) / (0.25 * math.pi)).long() % 8
+    use = valid & (offsets != 0).any(dim=-1) & torch.isfinite(offsets).all(dim=-1)
+    occupied = torch.zeros(offsets.shape[0], 8, dtype=torch.bool, device=offsets.device)
+    for t in range(8):
+        occupied[:, t] = (use & (sector == t)).any(dim=1)
+    gap = ~occupied & ~occupied.roll(-1, dims=1) & ~occupied.roll(-2, dims=1)
+    return ~gap.any(dim=1)
 
 
 class ScreenIndex:
@@ -81,8 +79,9 @@ class ScreenIndex:
     reach_gate: with reach, a query that has no point within reach_gate × the cap gets no neighbours (1: the reach
     adds far points only to queries the plain cap already gives one; the empty queries around the object stop
     there instead of walking the largest reach); 0 (or False) = no gate. reach_surround (with a gate): such a query
-    keeps its K neighbours all the same when they surround it (`surrounds`: no half-plane through the query holds
-    them all) — a hole inside the object's screen outline, not a ray beside it.
+    keeps its K neighbours all the same when its candidates (the points whose reach covers it) surround it
+    (`surrounded`: no 3 consecutive of 8 45° sectors around it lack one) — a hole inside the object's screen
+    outline, not a ray beside it (such a query then walks its whole reach).
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
@@ -163,12 +162,15 @@ class ScreenIndex:
         cap = self.radius_px(k)
         if self.reach_gate and math.isfinite(cap):  # the gate from a plain query of the nearest point
             near = (self._query_capped(query_px, 1, cap * self.reach_gate).idx[:, 0] >= 0).to(out.idx.device)[:, None]
-            if self.reach_surround:
-                pos = torch.full((int(self.ids.max()) + 1, 2), math.nan, dtype=torch.float64, device=self.px.device)
-                pos[self.ids] = self.px
-                off = pos[out.idx.clamp_min(0).to(pos.device)] - query_px.detach().to(pos)[:, None, :]
-                off = torch.where((out.idx >= 0).to(pos.device)[..., None], off, math.nan)
-                near = near | surrounds(off).to(near.device)[:, None]
+            if self.reach_surround:  # brute force over the candidates of the rays the gate would empty
+                ask = torch.nonzero(~near[:, 0] & (out.idx[:, 0] >= 0).to(near.device)).squeeze(1)
+                reach = self._uniform_cap(k)
+                qd = query_px.detach().to(self.px)
+                for a in range(0, ask.numel(), 256):
+                    rows = ask[a:a + 256].to(self.px.device)
+                    off = self.px[None] - qd[rows][:, None]
+                    ring = surrounded(off, off.norm(dim=-1) <= reach)
+                    near[rows.to(near.device), 0] = ring.to(near.device)
             out = Neighbors(torch.where(near, out.idx, -1), torch.where(near, out.dist, math.inf))
         return out
 

@@ -6,7 +6,8 @@ import torch
 from core.edits.bake import bake
 from core.edits.deformation import DeformationConfig
 from core.frames.edited import EditConfig, EditState, render_edited
-from core.points.render import render_frame, trace_frame
+from core.points.neighbors.select import screen_index
+from core.points.render import pixel_grid, render_frame, trace_frame
 from core.images.rays import project_on_ray
 from tests.helpers.tiny import card_half_swung_behind, tiny_bundle
 
@@ -304,6 +305,48 @@ def test_reach_gate_adds_far_points_only_to_rays_the_plain_search_covers(tiny):
     wild[1::17] = 1e30
     for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
         out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **gate)), c2w,
+                            test.height, test.width, test.focal)
+        assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+
+
+def test_reach_surround_adds_only_rays_the_reach_candidates_surround(tiny):
+    """f_reach_surround: the gated frame's rays keep their neighbours; of the rays the gate emptied, those the
+    screen index finds surrounded by candidates (tested against brute force in tests/core/points/test_neighbors.py)
+    get the ungated reach search's neighbours — here the rays over a hole cut into the stretched card; rest frames
+    are today's; extreme poses stay finite."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    inside = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0, f_reach_surround=True)
+    today = EditState(bundle)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**inside))
+    for i in range(len(test)):
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    keep = torch.nonzero((xyz[:, :2] - xyz[:, :2].mean(0)).norm(dim=1) > 0.45).squeeze(1)  # a hole in the card
+    pts = xyz[keep] * torch.tensor([4.0, 1.0, 1.0])
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 1.5
+    states = {name: EditState(bundle, points=pts, ids=keep, cfg=EditConfig(f_fill=False, f_occlusion=False, **over))
+              for name, over in (("reach", dict(inside, f_reach_gate=0.0)),
+                                 ("gate", dict(inside, f_reach_surround=False)), ("inside", inside))}
+    assert states["inside"].reach_surround and not states["reach"].reach_surround
+    tr = {name: render_edited(st, c2w, test.height, test.width, test.focal)["trace"] for name, st in states.items()}
+    gated, got, open_ = tr["gate"].active, tr["inside"].active, tr["reach"].active
+    assert torch.equal(tr["inside"].idx[gated], tr["gate"].idx[gated])
+    assert torch.equal(tr["inside"].idx[got], tr["reach"].idx[got])
+    assert bool((got & ~gated).any()) and not bool((got & ~open_).any()) and bool((open_ & ~got).any())
+    st, model = states["inside"], bundle.model
+    index = screen_index(st.points, model.cfg.neighbors, model.cfg.k, c2w, test.height, test.width, test.focal,
+                         model.cfg.neighbor_radius_px, reach=st.reach, reach_gate=1.0, reach_surround=True)
+    want = (index.query(pixel_grid(test.height, test.width, "cpu"), model.cfg.k).idx >= 0).any(1)
+    assert torch.equal(got, want)
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+        out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **inside)), c2w,
                             test.height, test.width, test.focal)
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
 

@@ -666,32 +666,32 @@ def test_reach_gate_keeps_rays_without_a_plain_candidate_empty(backend, depth_fa
 
 
 def _surrounded_ref(offsets, valid):
-    """Brute force: the offsets [R, K, 2] (valid [R, K]) surround the query unless a closed half-plane through it
-    holds them all; such a half-plane can be turned until its edge meets one of them, so trying the normals at ±90°
-    to each offset is exhaustive."""
+    """Brute force: offsets [R, M, 2] to the candidates (valid [R, M]) surround the query when, of the 45° sectors
+    around it, no three in a row (around the turn) are empty."""
+    deg = torch.rad2deg(torch.atan2(offsets[..., 1].double(), offsets[..., 0].double()))
+    sector = torch.floor(deg / 45.0).long() % 8
     out = torch.zeros(offsets.shape[0], dtype=torch.bool)
     for r in range(offsets.shape[0]):
-        o = offsets[r][valid[r]].double()
-        if o.shape[0] < 3:
-            continue
-        normals = torch.cat([torch.stack([-o[:, 1], o[:, 0]], 1), torch.stack([o[:, 1], -o[:, 0]], 1)])
-        held = ((o @ normals.T) >= -1e-9 * (1 + o.norm(dim=1).max() ** 2)).all(dim=0)
-        out[r] = not bool(held.any())
+        full = set(sector[r][valid[r]].tolist())
+        out[r] = all(any((s + t) % 8 in full for t in range(3)) for s in range(8))
     return out
 
 
 def _projected(pts, c2w):
+    """pixel positions [N, 2] of the points, NaN for those the search leaves out (as ref_screen)."""
     p, m = pts.double(), c2w.double()
     cam = (p - m[:3, 3]) @ m[:3, :3]
     z = -cam[:, 2]
-    return torch.stack([FOCAL * cam[:, 0] / z + 0.5 * W, -FOCAL * cam[:, 1] / z + 0.5 * H], -1)
+    px = torch.stack([FOCAL * cam[:, 0] / z + 0.5 * W, -FOCAL * cam[:, 1] / z + 0.5 * H], -1)
+    keep = (z > 0) & (px[:, 0] >= -1) & (px[:, 0] <= W + 1) & (px[:, 1] >= -1) & (px[:, 1] <= H + 1) & ~_absent(pts)
+    return torch.where(keep[:, None], px, math.nan)
 
 
 @pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
 @pytest.mark.parametrize("depth_factor", [False, True])
 def test_reach_surround_lets_through_rays_their_neighbours_surround(backend, depth_factor):
-    """reach_surround: of the rays the gate empties, those whose K reach neighbours surround them (no half-plane
-    through the ray holds them all; brute force here) keep them; every other row is the gated search's."""
+    """reach_surround: of the rays the gate empties, those whose candidates (every point within its reach of the
+    ray) surround them (brute force here) keep their K reach neighbours; every other row is the gated search's."""
     if backend == "compiled" and not compiled.available():
         pytest.skip("numba missing")
     pts = scene("blob", 800, 5)
@@ -704,7 +704,8 @@ def test_reach_surround_lets_through_rays_their_neighbours_surround(backend, dep
     open_ = ref_screen(pts, c2w, q, 8, depth_factor, per_point.double()[None])
     near = (ref_screen(pts, c2w, q, 8, depth_factor, cap)[0] >= 0).any(1)
     px = _projected(pts, c2w)
-    inside = _surrounded_ref(px[open_[0].clamp_min(0)] - q.double()[:, None], open_[0] >= 0)
+    off = px[None] - q.double()[:, None]
+    inside = _surrounded_ref(off, (off.norm(dim=-1) <= per_point.double()[None]) & torch.isfinite(off).all(-1))
     keep = (near | inside)[:, None]
     ref = torch.where(keep, open_[0], -1), torch.where(keep, open_[1], math.inf)
     index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_gate=1.0,
@@ -718,8 +719,8 @@ def test_reach_surround_lets_through_rays_their_neighbours_surround(backend, dep
 
 def test_reach_surround_fills_a_hole_but_not_the_outline():
     """A sheet facing the camera, points 2 px apart, with a hole of radius 3 px; cap 1.5 px, reach 4: the gate
-    empties the hole's centre and a ray 3 px outside the sheet's edge; surround gives the hole its neighbours (all
-    around it), never the ray outside; hostile positions stay finite."""
+    empties the hole's centre and rays 3 px outside the sheet's edge; surround gives the hole its neighbours
+    (candidates all around it), never the rays outside; hostile positions stay finite."""
     c2w = torch.eye(4)
     col, row = torch.meshgrid(torch.arange(4.0, 21.0, 2.0), torch.arange(4.0, 21.0, 2.0), indexing="xy")
     keep = ((col - 12) ** 2 + (row - 12) ** 2) > 9
