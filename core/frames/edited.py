@@ -83,6 +83,9 @@ class EditConfig:
                                         "when its neighbours surround it (no half-plane through the ray holds "
                                         "them all: a hole in a sparse stretched surface, not a ray beside the "
                                         "object's outline)")
+    f_reach_gate_own: bool = opt(False, "f_reach_gate > 1: each point gates at f_reach_gate × the plain cap but "
+                                        "at most at its own reach (the wider gate only around points whose "
+                                        "neighbours were pulled that far apart)")
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
@@ -373,6 +376,11 @@ class EditState:
         """Whether the gate lets rays its neighbours surround through (`trace_frame(reach_surround=...)`)."""
         return bool(self.cfg.f_reach_surround) and self.reach_gate > 0
 
+    @property
+    def reach_gate_own(self) -> bool:
+        """Whether each point's gate is at most its own reach (`trace_frame(reach_gate_own=...)`)."""
+        return bool(self.cfg.f_reach_gate_own) and self.reach_gate > 0
+
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
         fit took; what this state derives from F is computed (and timed) here."""
@@ -396,7 +404,8 @@ class EditState:
         radius_scale, reach = self.search_radius()
         return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
                             model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach,
-                            reach_gate=self.reach_gate, reach_surround=self.reach_surround)
+                            reach_gate=self.reach_gate, reach_surround=self.reach_surround,
+                            reach_gate_own=self.reach_gate_own)
 
     def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
@@ -561,6 +570,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                          rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
                          reach_gate=state.reach_gate, reach_surround=state.reach_surround,
+                         reach_gate_own=state.reach_gate_own,
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
     else:

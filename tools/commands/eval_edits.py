@@ -42,7 +42,10 @@ def add_arguments(p):
                         "f-fill-fold-blend-depth-auto-budget-gate (that reach only for rays the plain pixel cap gives "
                         "a point, f_reach_gate 1) | f-fill-fold-blend-depth-auto-budget-gate2 (the gate at twice the "
                         "cap) | f-fill-fold-blend-depth-auto-budget-surround (the gate at 1 cap, letting through "
-                        "rays their neighbours surround, f_reach_surround)")
+                        "rays their neighbours surround, f_reach_surround) | "
+                        "f-fill-fold-blend-depth-auto-budget-gate15 (the gate at 1.5 caps) | "
+                        "f-fill-fold-blend-depth-auto-budget-gate15-own (each point's gate at most its own reach, "
+                        "f_reach_gate_own)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

@@ -38,7 +38,7 @@ def available() -> bool:
 
 
 def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val, rs, rcell,
-            rs_max, gate, surround):
+            rs_max, gate, surround, gate_own):
     """For each query q[i] = (col, row) relative to the grid origin: its K best (ids[slot], value) ascending.
     xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
     weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
@@ -48,7 +48,8 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
     plain cap already gives one); 0: no gate. surround (with a gate): such a query keeps its K best all the same
     when its candidates (every point within its own reach of the query) surround it: no 3 consecutive of the 8
     45° sectors around the query lack one (`_ringed`) — a hole inside the object's screen outline rather than a
-    ray beside it. Until that is known, such a query walks its whole reach (no cell is skipped for the K best)."""
+    ray beside it. Until that is known, such a query walks its whole reach (no cell is skipped for the K best).
+    gate_own: point j gates at cap × min(gate, rs[j]) (a wider gate only around points that reach that far)."""
     reach = cap * rs_max  # no point is a candidate beyond this
     walk = max(reach, cap * gate)  # nor does the gate look farther
     rmax = int(math.ceil(walk / cell)) + 1
@@ -108,7 +109,11 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                         ddy = ys[j] - qy
                         d2 = ddx * ddx + ddy * ddy
                         if not near and d2 <= gcap2:
-                            near = True
+                            if gate_own:
+                                gj = cap * min(gate, rs[j])
+                                near = d2 <= gj * gj
+                            else:
+                                near = True
                         cj = cap * rs[j]
                         if d2 > cj * cj:
                             continue
@@ -188,13 +193,15 @@ class CompiledGrid:
     pixels (cells are sized by `cap` × the square root of the median reach: a few far-reaching points do not make
     every query visit larger cells, and where most points reach far a query does not walk many small ones; the
     answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none, unless
-    surround and its candidates surround it (`_kernel`)."""
+    surround and its candidates surround it (`_kernel`); gate_own: point j's gate is cap × min(gate, reach[j])."""
 
     def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
-                 width: int, reach: np.ndarray | None = None, gate: float = 0.0, surround: bool = False):
+                 width: int, reach: np.ndarray | None = None, gate: float = 0.0, surround: bool = False,
+                 gate_own: bool = False):
         self.cap = float(cap)
         self.gate = float(gate) if gate and math.isfinite(float(gate)) and float(gate) > 0 else 0.0
         self.surround = bool(surround) and self.gate > 0
+        self.gate_own = bool(gate_own) and self.gate > 0
         span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
         rs = np.ones(len(px)) if reach is None else np.maximum(np.nan_to_num(np.asarray(reach, dtype=np.float64),
                                                                              nan=1.0, posinf=1.0), 1.0)
@@ -232,5 +239,5 @@ class CompiledGrid:
             qq = np.ascontiguousarray(np.asarray(q, dtype=np.float64) + 1.0)
             _get_kernel()(self.xs, self.ys, self.ws, self.ids, self.wcell, self.start, self.ncx, self.ncy, self.cell,
                           self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max, self.gate,
-                          self.surround)
+                          self.surround, self.gate_own)
         return idx, val

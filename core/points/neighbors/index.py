@@ -81,12 +81,15 @@ class ScreenIndex:
     there instead of walking the largest reach); 0 (or False) = no gate. reach_surround (with a gate): such a query
     keeps its K neighbours all the same when its candidates (the points whose reach covers it) surround it
     (`surrounded`: no 3 consecutive of 8 45° sectors around it lack one) — a hole inside the object's screen
-    outline, not a ray beside it (such a query then walks its whole reach).
+    outline, not a ray beside it (such a query then walks its whole reach). reach_gate_own: each point gates at
+    reach_gate × the cap but at most its own reach × the cap (a wider gate only where the points were pulled
+    that far apart).
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
                  depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto",
-                 reach: torch.Tensor | None = None, reach_gate: float = 0.0, reach_surround: bool = False):
+                 reach: torch.Tensor | None = None, reach_gate: float = 0.0, reach_surround: bool = False,
+                 reach_gate_own: bool = False):
         check_matrix("points", points, 3)
         check_camera(c2w, height, width, focal)
         self.radius = check_radius(max_radius_px)
@@ -112,6 +115,7 @@ class ScreenIndex:
         g = float(reach_gate)
         self.reach_gate = g if self.reach is not None and math.isfinite(g) and g > 0 else 0.0
         self.reach_surround = bool(reach_surround) and self.reach_gate > 0
+        self.reach_gate_own = bool(reach_gate_own) and self.reach_gate > 0
         self.weight = depth[keep] / float(focal_scale(cam)) if depth_factor else None  # [M]
         self._density: float | None = None
         self._grids: dict[float, CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
@@ -155,13 +159,23 @@ class ScreenIndex:
                 self._compiled[cap] = compiled.CompiledGrid(self.px.numpy(), w, self.ids.numpy(), cap,
                                                                self.height, self.width, reach=reach,
                                                                gate=self.reach_gate,
-                                                               surround=self.reach_surround)
+                                                               surround=self.reach_surround,
+                                                               gate_own=self.reach_gate_own)
             idx, dist = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
             return Neighbors(torch.from_numpy(idx), torch.from_numpy(dist))
         out = self._query_capped(query_px, k, self._uniform_cap(k))
         cap = self.radius_px(k)
         if self.reach_gate and math.isfinite(cap):  # the gate from a plain query of the nearest point
             near = (self._query_capped(query_px, 1, cap * self.reach_gate).idx[:, 0] >= 0).to(out.idx.device)[:, None]
+            if self.reach_gate_own and self.reach_gate > 1:  # per point: within cap × min(gate, its reach)
+                plain = (self._query_capped(query_px, 1, cap).idx[:, 0] >= 0).to(near.device)
+                ask = torch.nonzero(near[:, 0] & ~plain).squeeze(1)
+                own = cap * self.reach.clamp_max(self.reach_gate)  # [M]
+                qd = query_px.detach().to(self.px)
+                for a in range(0, ask.numel(), 256):
+                    rows = ask[a:a + 256].to(self.px.device)
+                    d = (self.px[None] - qd[rows][:, None]).norm(dim=-1)
+                    near[rows.to(near.device), 0] = (d <= own[None]).any(dim=1).to(near.device)
             if self.reach_surround:  # brute force over the candidates of the rays the gate would empty
                 ask = torch.nonzero(~near[:, 0] & (out.idx[:, 0] >= 0).to(near.device)).squeeze(1)
                 reach = self._uniform_cap(k)

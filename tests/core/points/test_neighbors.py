@@ -740,6 +740,37 @@ def test_reach_surround_fills_a_hole_but_not_the_outline():
     wild = pts.clone()
     wild[::5] = float("nan")
     wild[1::7] = 1e30
-    got = nb.ScreenIndex(wild, c2w, H, W, FOCAL, True, max_radius_px=1.5, reach=torch.full((pts.shape[0],), 1e9),
-                         reach_gate=1.0, reach_surround=True).query(random_px(50, 3), 8)
-    assert torch.isfinite(got.dist[got.valid]).all()
+    far = torch.full((pts.shape[0],), 1e9)
+    far[::3] = float("nan")
+    for gate, own in ((1.0, False), (1e12, True), (2.0, True)):
+        got = nb.ScreenIndex(wild, c2w, H, W, FOCAL, True, max_radius_px=1.5, reach=far, reach_gate=gate,
+                             reach_surround=True, reach_gate_own=own).query(random_px(50, 3), 8)
+        assert torch.isfinite(got.dist[got.valid]).all()
+
+
+@pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
+@pytest.mark.parametrize("depth_factor", [False, True])
+@pytest.mark.parametrize("gate", [1.5, 2.5])
+def test_reach_gate_own_gates_each_point_at_most_at_its_reach(backend, depth_factor, gate):
+    """reach_gate_own: a query keeps the reach search's neighbours when some point lies within the cap × min(gate,
+    that point's reach) of it (brute force here), else none; points of reach 1 gate at the plain cap."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("numba missing")
+    pts = scene("blob", 800, 6)
+    c2w = camera(6)
+    q = random_px(600, 6)
+    g = torch.Generator().manual_seed(17)
+    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 3.0 * torch.rand(800, generator=g), torch.ones(800))
+    cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend).radius_px(8)
+    per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
+    open_ = ref_screen(pts, c2w, q, 8, depth_factor, per_point.double()[None])
+    d = (_projected(pts, c2w)[None] - q.double()[:, None]).norm(dim=-1)
+    near = (d <= (cap * reach.clamp_max(gate)).double()[None]).any(1, keepdim=True)
+    ref = torch.where(near, open_[0], -1), torch.where(near, open_[1], math.inf)
+    got = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_gate=gate,
+                         reach_gate_own=True).query(q, 8)
+    assert_same(got, ref)
+    wide = ref_screen(pts, c2w, q, 8, depth_factor, cap * gate)
+    plain = ref_screen(pts, c2w, q, 8, depth_factor, cap)
+    assert bool(((wide[0] >= 0).any(1) & ~near[:, 0]).any())  # the own-reach gate is narrower than gate × cap ...
+    assert bool((near[:, 0] & ~(plain[0] >= 0).any(1)).any())  # ... and wider than the plain cap
