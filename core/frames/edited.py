@@ -86,6 +86,9 @@ class EditConfig:
     f_reach_gate_own: bool = opt(False, "f_reach_gate > 1: each point gates at f_reach_gate × the plain cap but "
                                         "at most at its own reach (the wider gate only around points whose "
                                         "neighbours were pulled that far apart)")
+    f_reach_between: bool = opt(False, "f_reach_gate > 1: beyond the plain cap the gate opens only for two points "
+                                       "within it more than 120° apart as seen from the ray (between the points of "
+                                       "a sparse stretched surface, not beside the object's outline)")
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
@@ -381,6 +384,11 @@ class EditState:
         """Whether each point's gate is at most its own reach (`trace_frame(reach_gate_own=...)`)."""
         return bool(self.cfg.f_reach_gate_own) and self.reach_gate > 0
 
+    @property
+    def reach_between(self) -> bool:
+        """Whether beyond the plain cap the gate opens only between points (`trace_frame(reach_between=...)`)."""
+        return bool(self.cfg.f_reach_between) and self.reach_gate > 0
+
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
         fit took; what this state derives from F is computed (and timed) here."""
@@ -405,7 +413,7 @@ class EditState:
         return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
                             model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach,
                             reach_gate=self.reach_gate, reach_surround=self.reach_surround,
-                            reach_gate_own=self.reach_gate_own)
+                            reach_gate_own=self.reach_gate_own, reach_between=self.reach_between)
 
     def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
@@ -570,7 +578,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                          rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
                          reach_gate=state.reach_gate, reach_surround=state.reach_surround,
-                         reach_gate_own=state.reach_gate_own,
+                         reach_gate_own=state.reach_gate_own, reach_between=state.reach_between,
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
     else:

@@ -24,7 +24,7 @@ _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "co
         "f_depth": "ray",
         "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
         "fold_test": "displacement", "f_radius_rule": "frame", "f_reach_gate": 0.0, "f_reach_surround": False,
-        "f_reach_gate_own": False}
+        "f_reach_gate_own": False, "f_reach_between": False}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -94,6 +94,16 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
         **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
         "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
         "f_reach_gate": 1.5, "f_reach_gate_own": True},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1.5 caps between points, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.5, "f_reach_between": True},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 2 caps between points, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 2.0, "f_reach_between": True},
 }
 
 

@@ -38,7 +38,7 @@ def available() -> bool:
 
 
 def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val, rs, rcell,
-            rs_max, gate, surround, gate_own):
+            rs_max, gate, surround, gate_own, between, dirs):
     """For each query q[i] = (col, row) relative to the grid origin: its K best (ids[slot], value) ascending.
     xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
     weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
@@ -49,7 +49,11 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
     when its candidates (every point within its own reach of the query) surround it: no 3 consecutive of the 8
     45° sectors around the query lack one (`_ringed`) — a hole inside the object's screen outline rather than a
     ray beside it. Until that is known, such a query walks its whole reach (no cell is skipped for the K best).
-    gate_own: point j gates at cap × min(gate, rs[j]) (a wider gate only around points that reach that far)."""
+    gate_own: point j gates at cap × min(gate, rs[j]) (a wider gate only around points that reach that far).
+    between (gate > 1): a point within the gate but beyond the plain cap opens it only together with another such
+    point whose direction from the query is more than 120° away (_BETWEEN_COS): the query lies between the points
+    of a sparse surface, not beside a dense outline (seen from outside a straight edge, the points within
+    gate × cap span at most 2·acos(1 / gate) ≤ 120° for gate ≤ 2). dirs [M, 2] float64 scratch space."""
     reach = cap * rs_max  # no point is a candidate beyond this
     walk = max(reach, cap * gate)  # nor does the gate look farther
     rmax = int(math.ceil(walk / cell)) + 1
@@ -73,6 +77,7 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
         gcap2 = gcap * gcap
         mask = 0  # surround: the sectors that hold a candidate
         ringed = not surround  # surround: whether they surround the query (nothing is skipped until then)
+        nd = 0  # between: directions held in dirs
         for r in range(r0, rend + 1):
             lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
             if lb > reach and (near or lb > gcap):
@@ -109,11 +114,21 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                         ddy = ys[j] - qy
                         d2 = ddx * ddx + ddy * ddy
                         if not near and d2 <= gcap2:
-                            if gate_own:
-                                gj = cap * min(gate, rs[j])
-                                near = d2 <= gj * gj
-                            else:
-                                near = True
+                            gj = cap * min(gate, rs[j]) if gate_own else gcap
+                            if d2 <= gj * gj:
+                                if not between or d2 <= cap * cap:
+                                    near = True
+                                else:
+                                    dd = math.sqrt(d2)
+                                    ux = ddx / dd
+                                    uy = ddy / dd
+                                    for t in range(nd):
+                                        if dirs[t, 0] * ux + dirs[t, 1] * uy < _BETWEEN_COS:
+                                            near = True
+                                            break
+                                    dirs[nd, 0] = ux
+                                    dirs[nd, 1] = uy
+                                    nd += 1
                         cj = cap * rs[j]
                         if d2 > cj * cj:
                             continue
@@ -140,6 +155,7 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
             out_val[i, p] = best[p]
 
 
+_BETWEEN_COS = -0.5  # between: cos 120°
 _SECTORS = 8  # surround: the turn around a query in 45° sectors
 _SECTOR_RUN = 3  # ... surrounded when no this many consecutive sectors lack a candidate
 
@@ -193,15 +209,17 @@ class CompiledGrid:
     pixels (cells are sized by `cap` × the square root of the median reach: a few far-reaching points do not make
     every query visit larger cells, and where most points reach far a query does not walk many small ones; the
     answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none, unless
-    surround and its candidates surround it (`_kernel`); gate_own: point j's gate is cap × min(gate, reach[j])."""
+    surround and its candidates surround it (`_kernel`); gate_own: point j's gate is cap × min(gate, reach[j]);
+    between: beyond the plain cap the gate opens only for points on opposite sides of the query (`_kernel`)."""
 
     def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
                  width: int, reach: np.ndarray | None = None, gate: float = 0.0, surround: bool = False,
-                 gate_own: bool = False):
+                 gate_own: bool = False, between: bool = False):
         self.cap = float(cap)
         self.gate = float(gate) if gate and math.isfinite(float(gate)) and float(gate) > 0 else 0.0
         self.surround = bool(surround) and self.gate > 0
         self.gate_own = bool(gate_own) and self.gate > 0
+        self.between = bool(between) and self.gate > 0
         span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
         rs = np.ones(len(px)) if reach is None else np.maximum(np.nan_to_num(np.asarray(reach, dtype=np.float64),
                                                                              nan=1.0, posinf=1.0), 1.0)
@@ -239,5 +257,5 @@ class CompiledGrid:
             qq = np.ascontiguousarray(np.asarray(q, dtype=np.float64) + 1.0)
             _get_kernel()(self.xs, self.ys, self.ws, self.ids, self.wcell, self.start, self.ncx, self.ncy, self.cell,
                           self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max, self.gate,
-                          self.surround, self.gate_own)
+                          self.surround, self.gate_own, self.between, np.empty((len(self.xs), 2)))
         return idx, val

@@ -351,14 +351,16 @@ def test_reach_surround_adds_only_rays_the_reach_candidates_surround(tiny):
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
 
 
-def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny):
-    """f_reach_gate_own with a gate of 1.5 caps: rest frames are today's; on a stretched card the rays that get
-    neighbours include the 1-cap gate's and lie within the 1.5-cap gate's, each with the ungated reach search's
-    neighbours, and equal the screen index's answer; extreme poses stay finite."""
+@pytest.mark.parametrize("rule", ["own", "between"])
+def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny, rule):
+    """f_reach_gate_own / f_reach_between with a gate of 1.5 caps: rest frames are today's; on a stretched card the
+    rays that get neighbours include the 1-cap gate's and lie within the 1.5-cap gate's, each with the ungated
+    reach search's neighbours, and equal the screen index's answer; extreme poses stay finite."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
     n = bundle.model.num_points
-    own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, f_reach_gate_own=True)
+    flag = dict(f_reach_gate_own=True) if rule == "own" else dict(f_reach_between=True)
+    own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, **flag)
     today = EditState(bundle)
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**own))
     for i in range(len(test)):
@@ -370,8 +372,9 @@ def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny):
     states = {name: EditState(bundle, points=xyz * torch.tensor([4.0, 1.0, 1.0]),
                               cfg=EditConfig(f_fill_budget=0.1, f_occlusion=False, **over))
               for name, over in (("reach", dict(own, f_reach_gate=0.0)), ("one", dict(own, f_reach_gate=1.0)),
-                                 ("wide", dict(own, f_reach_gate_own=False)), ("own", own))}
-    assert states["own"].reach_gate_own and not states["reach"].reach_gate_own
+                                 ("wide", dict(own, f_reach_gate_own=False, f_reach_between=False)), ("own", own))}
+    assert states["own"].reach_gate_own == (rule == "own") and states["own"].reach_between == (rule == "between")
+    assert not (states["reach"].reach_gate_own or states["reach"].reach_between)
     tr = {name: render_edited(st, c2w, test.height, test.width, test.focal)["trace"] for name, st in states.items()}
     got = tr["own"].active
     assert not bool((tr["one"].active & ~got).any()) and not bool((got & ~tr["wide"].active).any())
@@ -379,7 +382,8 @@ def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny):
     assert torch.equal(tr["own"].idx[got], tr["reach"].idx[got])
     st, model = states["own"], bundle.model
     index = screen_index(st.points, model.cfg.neighbors, model.cfg.k, c2w, test.height, test.width, test.focal,
-                         model.cfg.neighbor_radius_px, reach=st.reach, reach_gate=1.5, reach_gate_own=True)
+                         model.cfg.neighbor_radius_px, reach=st.reach, reach_gate=1.5, reach_gate_own=rule == "own",
+                         reach_between=rule == "between")
     assert torch.equal(got, (index.query(pixel_grid(test.height, test.width, "cpu"), model.cfg.k).idx >= 0).any(1))
     wild = xyz.clone()
     wild[::13] = float("nan")

@@ -774,3 +774,37 @@ def test_reach_gate_own_gates_each_point_at_most_at_its_reach(backend, depth_fac
     plain = ref_screen(pts, c2w, q, 8, depth_factor, cap)
     assert bool(((wide[0] >= 0).any(1) & ~near[:, 0]).any())  # the own-reach gate is narrower than gate × cap ...
     assert bool((near[:, 0] & ~(plain[0] >= 0).any(1)).any())  # ... and wider than the plain cap
+
+
+@pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
+@pytest.mark.parametrize("own", [False, True])
+@pytest.mark.parametrize("gate", [1.5, 2.0])
+def test_reach_between_opens_the_gate_only_between_points(backend, own, gate):
+    """reach_between: a query keeps the reach search's neighbours when a point lies within the plain cap, or two
+    points within the gate (gate × cap; with own at most each one's reach) lie more than 120° apart as seen from
+    it (brute force here); else none."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("numba missing")
+    pts = scene("blob", 800, 7)
+    c2w = camera(7)
+    q = random_px(600, 7)
+    g = torch.Generator().manual_seed(18)
+    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 3.0 * torch.rand(800, generator=g), torch.ones(800))
+    cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, backend=backend).radius_px(8)
+    per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
+    open_ = ref_screen(pts, c2w, q, 8, True, per_point.double()[None])
+    off = _projected(pts, c2w)[None] - q.double()[:, None]
+    d = off.norm(dim=-1)
+    radius = cap * (reach.clamp_max(gate) if own else torch.full_like(reach, gate))
+    within = d <= radius.double()[None]
+    near = (d <= cap).any(1)
+    for r in range(q.shape[0]):
+        u = off[r][within[r]] / d[r][within[r]][:, None]
+        near[r] |= bool(((u @ u.T) < -0.5).any())
+    ref = torch.where(near[:, None], open_[0], -1), torch.where(near[:, None], open_[1], math.inf)
+    got = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, backend=backend, reach=reach, reach_gate=gate,
+                         reach_gate_own=own, reach_between=True).query(q, 8)
+    assert_same(got, ref)
+    plain = (ref_screen(pts, c2w, q, 8, True, cap)[0] >= 0).any(1)
+    assert bool((within.any(1) & ~near).any())  # the gate kept some rays with points within it shut ...
+    assert own or bool((near & ~plain).any())  # ... and opened some beyond the plain cap
