@@ -75,20 +75,21 @@ class EditConfig:
                                        "sparse: pairs grown so far that they got f_fill's most points per pair, a "
                                        "joint's near-tears, reach no farther) | frame (the whole frame's cap × the "
                                        "90th percentile of the points' largest local stretch)", choices=RADIUS_RULES)
-    f_reach_gate: float = opt(1.0, "f_radius with rule gap or budget: a ray with no point within this many times "
+    f_reach_gate: float = opt(1.5, "f_radius with rule gap or budget: a ray with no point within this many times "
                                    "the plain pixel radius cap stays empty, so the per-point reach adds far points "
                                    "only to rays near the object (1: rays that already see it; the empty rays around "
-                                   "it stop searching there); 0 = no gate", min=0.0, max=1e6)
+                                   "it stop searching there; beyond 1 see f_reach_between); 0 = no gate",
+                              min=0.0, max=1e6)
     f_reach_surround: bool = opt(False, "f_reach_gate > 0: a ray with no point within the gate is still reached "
-                                        "when its neighbours surround it (no half-plane through the ray holds "
-                                        "them all: a hole in a sparse stretched surface, not a ray beside the "
-                                        "object's outline)")
+                                        "when the points whose reach covers it surround it (no 3 consecutive of 8 "
+                                        "45° sectors around it empty: a hole in a sparse stretched surface, not a "
+                                        "ray beside the object's outline; such rays search their whole reach)")
     f_reach_gate_own: bool = opt(False, "f_reach_gate > 1: each point gates at f_reach_gate × the plain cap but "
                                         "at most at its own reach (the wider gate only around points whose "
                                         "neighbours were pulled that far apart)")
-    f_reach_between: bool = opt(False, "f_reach_gate > 1: beyond the plain cap the gate opens only for two points "
-                                       "within it more than 120° apart as seen from the ray (between the points of "
-                                       "a sparse stretched surface, not beside the object's outline)")
+    f_reach_between: bool = opt(True, "f_reach_gate > 1: beyond the plain cap the gate opens only for two points "
+                                      "within it more than 120° apart as seen from the ray (between the points of "
+                                      "a sparse stretched surface, not beside the object's outline)")
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "

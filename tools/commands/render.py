@@ -60,8 +60,8 @@ def add_arguments(p):
                         "cap times the points' 90th-percentile stretch)")
     p.add_argument("--f-reach-gate", type=float, default=EditConfig.f_reach_gate,
                    help="--f-radius gap / budget: a ray with no point within this many times the plain pixel cap "
-                        "stays empty (1: the reach adds far points only to rays that already see the object; 0 = "
-                        "no gate)")
+                        "stays empty (1: the reach adds far points only to rays that already see the object; "
+                        "beyond 1 see --f-reach-between; 0 = no gate)")
     p.add_argument("--f-reach-surround", action=argparse.BooleanOptionalAction,
                    default=EditConfig.f_reach_surround,
                    help="--f-reach-gate > 0: a ray with no point within the gate is still reached when its "

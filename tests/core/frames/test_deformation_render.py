@@ -359,7 +359,7 @@ def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny, rule)
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
     n = bundle.model.num_points
-    flag = dict(f_reach_gate_own=True) if rule == "own" else dict(f_reach_between=True)
+    flag = dict(f_reach_gate_own=True, f_reach_between=False) if rule == "own" else dict(f_reach_between=True)
     own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, **flag)
     today = EditState(bundle)
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**own))
