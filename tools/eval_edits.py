@@ -38,7 +38,8 @@ EDITS = ("geometry", "retexture", "decal")
 _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0,
           "f_depth": "ray",
           "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
-          "f_reach_gate": 0.0, "f_key_stretch": "full"}
+          "f_reach_gate": 0.0, "f_key_stretch": "full", "f_reach_surround": False, "f_reach_gate_own": False,
+          "f_reach_between": False}
 RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-radius": {**_PAPER, "f_radius": True, "f_radius_rule": "frame"},
              "f-both": {**_PAPER, "f_attention": True, "f_radius": True, "f_radius_rule": "frame"},
@@ -95,7 +96,38 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
                                                               "fold_radius": 2.0, "f_fill_features": "blend",
                                                               "f_depth": "nearest", "f_compression": "auto",
                                                               "f_radius": True, "f_radius_rule": "budget",
-                                                              "f_reach_gate": 1.0, "f_key_stretch": "gap"}}
+                                                              "f_reach_gate": 1.0, "f_key_stretch": "gap"},
+             "f-fill-fold-blend-depth-auto-budget-surround": {**_PAPER, "f_attention": True, "f_fill": True,
+                                                              "fold_radius": 2.0, "f_fill_features": "blend",
+                                                              "f_depth": "nearest", "f_compression": "auto",
+                                                              "f_radius": True, "f_radius_rule": "budget",
+                                                              "f_reach_gate": 1.0, "f_reach_surround": True},
+             "f-fill-fold-blend-depth-auto-budget-gate15": {**_PAPER, "f_attention": True, "f_fill": True,
+                                                              "fold_radius": 2.0, "f_fill_features": "blend",
+                                                              "f_depth": "nearest", "f_compression": "auto",
+                                                              "f_radius": True, "f_radius_rule": "budget",
+                                                              "f_reach_gate": 1.5},
+             "f-fill-fold-blend-depth-auto-budget-gate15-own": {**_PAPER, "f_attention": True, "f_fill": True,
+                                                              "fold_radius": 2.0, "f_fill_features": "blend",
+                                                              "f_depth": "nearest", "f_compression": "auto",
+                                                              "f_radius": True, "f_radius_rule": "budget",
+                                                              "f_reach_gate": 1.5, "f_reach_gate_own": True},
+             "f-fill-fold-blend-depth-auto-budget-between": {**_PAPER, "f_attention": True, "f_fill": True,
+                                                              "fold_radius": 2.0, "f_fill_features": "blend",
+                                                              "f_depth": "nearest", "f_compression": "auto",
+                                                              "f_radius": True, "f_radius_rule": "budget",
+                                                              "f_reach_gate": 1.5, "f_reach_between": True},
+             "f-fill-fold-blend-depth-auto-budget-between2": {**_PAPER, "f_attention": True, "f_fill": True,
+                                                              "fold_radius": 2.0, "f_fill_features": "blend",
+                                                              "f_depth": "nearest", "f_compression": "auto",
+                                                              "f_radius": True, "f_radius_rule": "budget",
+                                                              "f_reach_gate": 2.0, "f_reach_between": True},
+             "f-fill-fold-blend-depth-auto-budget-between-gap": {**_PAPER, "f_attention": True, "f_fill": True,
+                                                                 "fold_radius": 2.0, "f_fill_features": "blend",
+                                                                 "f_depth": "nearest", "f_compression": "auto",
+                                                                 "f_radius": True, "f_radius_rule": "budget",
+                                                                 "f_reach_gate": 1.5, "f_reach_between": True,
+                                                                 "f_key_stretch": "gap"}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
@@ -315,7 +347,8 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
         key = (i, c.temperature, c.f_attention, c.f_radius,
                (c.f_compression, c.f_thick_spread, c.f_depth, c.f_key_stretch) if c.f_attention else "-",
                (c.f_fill_ratio, c.f_fill_budget, c.f_fill_features) if c.f_fill else None, c.f_occlusion,
-               (c.f_radius_rule, c.f_reach_gate) if c.f_radius else None)
+               (c.f_radius_rule, c.f_reach_gate, c.f_reach_surround, c.f_reach_gate_own, c.f_reach_between)
+               if c.f_radius else None)
         cached = traces.get(key) if traces is not None else None
         view = (gt.c2w[i], gt.height, gt.width, gt.focal)
         out = render_edited(state, *view, background, trace=cached[0] if cached else None)
@@ -524,7 +557,11 @@ def markdown(result: dict) -> str:
               "that reach only for rays the plain pixel cap gives a point (f_reach_gate 1), -budget-gate2 = the gate "
               "at twice the cap, -gap = the keys undoing at most the stretch the fill left between consecutive "
               "points (f_key_stretch gap), -gap-occ = -gap with the occlusion rule, -budget-gate-gap = both "
-              "-budget-gate and -gap; first "
+              "-budget-gate and -gap, -budget-surround = the gate at 1 cap letting through rays their neighbours "
+              "surround (f_reach_surround), -budget-gate15 = the gate at 1.5 caps, -gate15-own = each point's gate at "
+              "most its own reach (f_reach_gate_own), -budget-between = the gate at 1.5 caps opening beyond the cap only "
+              "between points more than 120° apart (f_reach_between), -between2 = that at 2 caps, "
+              "-budget-between-gap = both -budget-between and -gap; first "
               "temperature, soft blend; "
               "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]

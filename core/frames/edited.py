@@ -78,10 +78,21 @@ class EditConfig:
                                        "sparse: pairs grown so far that they got f_fill's most points per pair, a "
                                        "joint's near-tears, reach no farther) | frame (the whole frame's cap × the "
                                        "90th percentile of the points' largest local stretch)", choices=RADIUS_RULES)
-    f_reach_gate: float = opt(1.0, "f_radius with rule gap or budget: a ray with no point within this many times "
+    f_reach_gate: float = opt(1.5, "f_radius with rule gap or budget: a ray with no point within this many times "
                                    "the plain pixel radius cap stays empty, so the per-point reach adds far points "
                                    "only to rays near the object (1: rays that already see it; the empty rays around "
-                                   "it stop searching there); 0 = no gate", min=0.0, max=1e6)
+                                   "it stop searching there; beyond 1 see f_reach_between); 0 = no gate",
+                              min=0.0, max=1e6)
+    f_reach_surround: bool = opt(False, "f_reach_gate > 0: a ray with no point within the gate is still reached "
+                                        "when the points whose reach covers it surround it (no 3 consecutive of 8 "
+                                        "45° sectors around it empty: a hole in a sparse stretched surface, not a "
+                                        "ray beside the object's outline; such rays search their whole reach)")
+    f_reach_gate_own: bool = opt(False, "f_reach_gate > 1: each point gates at f_reach_gate × the plain cap but "
+                                        "at most at its own reach (the wider gate only around points whose "
+                                        "neighbours were pulled that far apart)")
+    f_reach_between: bool = opt(True, "f_reach_gate > 1: beyond the plain cap the gate opens only for two points "
+                                      "within it more than 120° apart as seen from the ray (between the points of "
+                                      "a sparse stretched surface, not beside the object's outline)")
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
@@ -392,6 +403,21 @@ class EditState:
         reach in use, else 0 (none)."""
         return float(self.cfg.f_reach_gate) if self.search_radius()[1] is not None else 0.0
 
+    @property
+    def reach_surround(self) -> bool:
+        """Whether the gate lets rays its neighbours surround through (`trace_frame(reach_surround=...)`)."""
+        return bool(self.cfg.f_reach_surround) and self.reach_gate > 0
+
+    @property
+    def reach_gate_own(self) -> bool:
+        """Whether each point's gate is at most its own reach (`trace_frame(reach_gate_own=...)`)."""
+        return bool(self.cfg.f_reach_gate_own) and self.reach_gate > 0
+
+    @property
+    def reach_between(self) -> bool:
+        """Whether beyond the plain cap the gate opens only between points (`trace_frame(reach_between=...)`)."""
+        return bool(self.cfg.f_reach_between) and self.reach_gate > 0
+
     def share_deformation(self, other: "EditState") -> None:
         """Reuse `other`'s fitted F (same model, points and ids: e.g. several edits of one pose) and the time the
         fit took; what this state derives from F is computed (and timed) here."""
@@ -415,7 +441,8 @@ class EditState:
         radius_scale, reach = self.search_radius()
         return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
                             model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach,
-                            reach_gate=self.reach_gate)
+                            reach_gate=self.reach_gate, reach_surround=self.reach_surround,
+                            reach_gate_own=self.reach_gate_own, reach_between=self.reach_between)
 
     def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
@@ -581,7 +608,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                          temperature=cfg.temperature, inv_f=state.inv_f_attention if cfg.f_attention else None,
                          rebase_depth=state.rebase_depth,
                          radius_scale=radius_scale, reach=reach, attention=cfg.attention,
-                         reach_gate=state.reach_gate,
+                         reach_gate=state.reach_gate, reach_surround=state.reach_surround,
+                         reach_gate_own=state.reach_gate_own, reach_between=state.reach_between,
                          soft_scale=scale if soft else 1.0, index=index)
         tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
     else:

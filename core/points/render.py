@@ -33,7 +33,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
                 inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto",
                 soft_scale: float = 1.0, index=None, reach: torch.Tensor | None = None,
-                rebase_depth: bool = False, reach_gate: float = 0.0) -> Trace:
+                rebase_depth: bool = False, reach_gate: float = 0.0, reach_surround: bool = False,
+                reach_gate_own: bool = False, reach_between: bool = False) -> Trace:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -55,7 +56,9 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     surroundings a deformation stretched; core/points/neighbors/index.py `ScreenIndex`; footprint mode uses the
     largest reach for every point); reach_gate > 0: with reach, a ray with no point within reach_gate × the plain
     cap gets no neighbours (1: the reach adds far points only to rays the plain cap already gives one; not in
-    footprint mode).
+    footprint mode), unless reach_surround and its candidates surround it (a hole inside the object's outline);
+    reach_gate_own: each point's gate is at most its own reach; reach_between: beyond the plain cap the gate
+    opens only for two points more than 120° apart as seen from the ray (`ScreenIndex`).
     Returns a Trace of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], active [R], plus shape (H, W) and depth [R] on demand.
     """
@@ -83,7 +86,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     else:
         idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
                                model.cfg.neighbor_radius_px, radius_scale=radius_scale, index=index,
-                               reach=reach, reach_gate=reach_gate)
+                               reach=reach, reach_gate=reach_gate, reach_surround=reach_surround,
+                               reach_gate_own=reach_gate_own, reach_between=reach_between)
     fi = None if inv_f is None else inv_f.to(dev, torch.float32)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.

@@ -139,7 +139,8 @@ def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, foca
                      influence=state.influence, k=None if k is None else int(k),
                      temperature=cfg.temperature, inv_f=state.inv_f_attention if cfg.f_attention else None,
                      rebase_depth=state.rebase_depth, radius_scale=radius_scale, reach=reach, index=index,
-                     reach_gate=state.reach_gate)
+                     reach_gate=state.reach_gate, reach_surround=state.reach_surround,
+                     reach_gate_own=state.reach_gate_own, reach_between=state.reach_between)
     return state.visible_layer(tr, c2w_t, focal, index=index)  # the occlusion rule, as render_edited applies it
 
 

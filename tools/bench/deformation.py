@@ -23,7 +23,8 @@ from pathlib import Path
 _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware",
         "f_depth": "ray",
         "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
-        "fold_test": "displacement", "f_radius_rule": "frame", "f_reach_gate": 0.0, "f_key_stretch": "full"}
+        "fold_test": "displacement", "f_radius_rule": "frame", "f_reach_gate": 0.0, "f_key_stretch": "full",
+        "f_reach_surround": False, "f_reach_gate_own": False, "f_reach_between": False}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -86,6 +87,36 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     "capped at the fill's gap, occlusion, deform-aware": {
         **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
         "f_depth": "nearest", "f_compression": "auto", "f_key_stretch": "gap", "f_occlusion": True},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1 cap or surrounded, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.0, "f_reach_surround": True},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1.5 caps, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.5},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1.5 caps or its own reach, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.5, "f_reach_gate_own": True},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1.5 caps between points, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.5, "f_reach_between": True},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 2 caps between points, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 2.0, "f_reach_between": True},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1.5 caps between points, keys' stretch capped at the fill's gap, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap"},
 }
 
 

@@ -44,7 +44,15 @@ def add_arguments(p):
                         "cap) | f-fill-fold-blend-depth-auto-gap (f-fill-fold-blend-depth-auto, the keys undoing at "
                         "most the stretch the fill left between consecutive points, f_key_stretch gap) | "
                         "f-fill-fold-blend-depth-auto-gap-occ (that with the occlusion rule, f_occlusion) | "
-                        "f-fill-fold-blend-depth-auto-budget-gate-gap (both -budget-gate and -gap)")
+                        "f-fill-fold-blend-depth-auto-budget-gate-gap (both -budget-gate and -gap) | "
+                        "f-fill-fold-blend-depth-auto-budget-surround (the gate at 1 cap, letting through "
+                        "rays their neighbours surround, f_reach_surround) | "
+                        "f-fill-fold-blend-depth-auto-budget-gate15 (the gate at 1.5 caps) | "
+                        "f-fill-fold-blend-depth-auto-budget-gate15-own (each point's gate at most its own reach, "
+                        "f_reach_gate_own) | f-fill-fold-blend-depth-auto-budget-between (the gate at 1.5 caps "
+                        "opening beyond the cap only between points more than 120° apart, f_reach_between) | "
+                        "f-fill-fold-blend-depth-auto-budget-between2 (that at 2 caps) | "
+                        "f-fill-fold-blend-depth-auto-budget-between-gap (both -budget-between and -gap)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

@@ -61,8 +61,22 @@ def add_arguments(p):
                         "cap times the points' 90th-percentile stretch)")
     p.add_argument("--f-reach-gate", type=float, default=EditConfig.f_reach_gate,
                    help="--f-radius gap / budget: a ray with no point within this many times the plain pixel cap "
-                        "stays empty (1: the reach adds far points only to rays that already see the object; 0 = "
-                        "no gate)")
+                        "stays empty (1: the reach adds far points only to rays that already see the object; "
+                        "beyond 1 see --f-reach-between; 0 = no gate)")
+    p.add_argument("--f-reach-surround", action=argparse.BooleanOptionalAction,
+                   default=EditConfig.f_reach_surround,
+                   help="--f-reach-gate > 0: a ray with no point within the gate is still reached when its "
+                        "neighbours surround it (a hole in a sparse stretched surface, not a ray beside the "
+                        "object's outline)")
+    p.add_argument("--f-reach-gate-own", action=argparse.BooleanOptionalAction,
+                   default=EditConfig.f_reach_gate_own,
+                   help="--f-reach-gate > 1: each point gates at that many plain caps but at most at its own "
+                        "reach (the wider gate only around points whose neighbours were pulled that far apart)")
+    p.add_argument("--f-reach-between", action=argparse.BooleanOptionalAction,
+                   default=EditConfig.f_reach_between,
+                   help="--f-reach-gate > 1: beyond the plain cap the gate opens only for two points within it "
+                        "more than 120° apart as seen from the ray (between the points of a sparse stretched "
+                        "surface, not beside the object's outline)")
     p.add_argument("--f-fill", action=argparse.BooleanOptionalAction, default=EditConfig.f_fill,
                    help="moved points: add points where the pose pulled canonical neighbours apart (a stretched "
                         "surface, a joint's blend band)")
@@ -188,7 +202,8 @@ def run(args) -> int:
     cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
                               f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
                               f_depth=args.f_depth, f_thick_spread=args.f_thick_spread, f_radius_rule=args.f_radius_rule,
-                              f_reach_gate=args.f_reach_gate,
+                              f_reach_gate=args.f_reach_gate, f_reach_surround=args.f_reach_surround,
+                              f_reach_gate_own=args.f_reach_gate_own, f_reach_between=args.f_reach_between,
                               f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
                               f_fill_features=args.f_fill_features, f_key_stretch=args.f_key_stretch,
                               fold_radius=args.fold_radius, fold_test=args.fold_test, f_occlusion=args.f_occlusion,

@@ -38,14 +38,22 @@ def available() -> bool:
 
 
 def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val, rs, rcell,
-            rs_max, gate):
+            rs_max, gate, surround, gate_own, between, dirs):
     """For each query q[i] = (col, row) relative to the grid origin: its K best (ids[slot], value) ascending.
     xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
     weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
     pre-filled; values are ranked in float64 and stored in float32. rs [M] each point's reach factor (its cap is
     cap × rs), rcell [ncx*ncy] the largest per cell, rs_max the largest of all (all ones: one cap). gate > 0: a
     query with no point within gate × cap gets no neighbours (gate 1: the reach adds points only to queries the
-    plain cap already gives one); 0: no gate."""
+    plain cap already gives one); 0: no gate. surround (with a gate): such a query keeps its K best all the same
+    when its candidates (every point within its own reach of the query) surround it: no 3 consecutive of the 8
+    45° sectors around the query lack one (`_ringed`) — a hole inside the object's screen outline rather than a
+    ray beside it. Until that is known, such a query walks its whole reach (no cell is skipped for the K best).
+    gate_own: point j gates at cap × min(gate, rs[j]) (a wider gate only around points that reach that far).
+    between (gate > 1): a point within the gate but beyond the plain cap opens it only together with another such
+    point whose direction from the query is more than 120° away (_BETWEEN_COS): the query lies between the points
+    of a sparse surface, not beside a dense outline (seen from outside a straight edge, the points within
+    gate × cap span at most 2·acos(1 / gate) ≤ 120° for gate ≤ 2). dirs [M, 2] float64 scratch space."""
     reach = cap * rs_max  # no point is a candidate beyond this
     walk = max(reach, cap * gate)  # nor does the gate look farther
     rmax = int(math.ceil(walk / cell)) + 1
@@ -67,13 +75,16 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
         near = gate <= 0.0  # gate: whether a point lies within gate × cap (until then nothing is skipped there)
         gcap = cap * gate
         gcap2 = gcap * gcap
+        mask = 0  # surround: the sectors that hold a candidate
+        ringed = not surround  # surround: whether they surround the query (nothing is skipped until then)
+        nd = 0  # between: directions held in dirs
         for r in range(r0, rend + 1):
             lb = (r - 1) * cell if r > 0 else 0.0  # every point of ring r is at least this far from the query
             if lb > reach and (near or lb > gcap):
                 break
-            if not near and lb > gcap:
+            if not near and lb > gcap and not surround:
                 break  # gate: nothing within gate × cap, the query stays empty
-            if n == k and lb * wmin_all >= best[k - 1] and (near or lb > gcap):
+            if n == k and lb * wmin_all >= best[k - 1] and (near or (lb > gcap and ringed)):
                 break
             for dy in range(max(-r, -cy), min(r, ncy - 1 - cy) + 1):
                 y = cy + dy
@@ -96,17 +107,34 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                     md = math.sqrt(ex * ex + ey * ey)
                     if md > cap * rcell[c] and (near or md > gcap):
                         continue
-                    if n == k and md * wcell[c] >= best[k - 1] and (near or md > gcap):
+                    if n == k and md * wcell[c] >= best[k - 1] and (near or (md > gcap and ringed)):
                         continue
                     for j in range(a, b):
                         ddx = xs[j] - qx
                         ddy = ys[j] - qy
                         d2 = ddx * ddx + ddy * ddy
                         if not near and d2 <= gcap2:
-                            near = True
+                            gj = cap * min(gate, rs[j]) if gate_own else gcap
+                            if d2 <= gj * gj:
+                                if not between or d2 <= cap * cap:
+                                    near = True
+                                else:
+                                    dd = math.sqrt(d2)
+                                    ux = ddx / dd
+                                    uy = ddy / dd
+                                    for t in range(nd):
+                                        if dirs[t, 0] * ux + dirs[t, 1] * uy < _BETWEEN_COS:
+                                            near = True
+                                            break
+                                    dirs[nd, 0] = ux
+                                    dirs[nd, 1] = uy
+                                    nd += 1
                         cj = cap * rs[j]
                         if d2 > cj * cj:
                             continue
+                        if not ringed and not near and d2 > 0.0:
+                            mask |= 1 << _sector(ddx, ddy)
+                            ringed = _ringed(mask)
                         v = math.sqrt(d2) * ws[j]
                         if n == k and v >= best[k - 1]:
                             continue
@@ -120,11 +148,35 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                         slot[p] = j
                         if n < k:
                             n += 1
-        if not near:
+        if not near and not (surround and ringed):
             continue
         for p in range(n):
             out_idx[i, p] = ids[slot[p]]
             out_val[i, p] = best[p]
+
+
+_BETWEEN_COS = -0.5  # between: cos 120°
+_SECTORS = 8  # surround: the turn around a query in 45° sectors
+_SECTOR_RUN = 3  # ... surrounded when no this many consecutive sectors lack a candidate
+
+
+def _sector(dx, dy):
+    """The 45° sector (0..7, counter-clockwise from +x) of the direction (dx, dy) != 0."""
+    s = int(math.floor(math.atan2(dy, dx) / (0.25 * math.pi))) % _SECTORS
+    return s
+
+
+def _ringed(mask):
+    """Whether a bit mask of occupied sectors leaves no _SECTOR_RUN consecutive sectors (around the turn) empty."""
+    for s in range(_SECTORS):
+        empty = True
+        for t in range(_SECTOR_RUN):
+            if mask & (1 << ((s + t) % _SECTORS)):
+                empty = False
+                break
+        if empty:
+            return False
+    return True
 
 
 _compiled = None
@@ -136,9 +188,14 @@ def _get_kernel():
         if numba is None:
             raise RuntimeError(f"the compiled neighbour search needs numba ({_NUMBA_ERROR}); "
                                "install it (pip install numba) or use backend='grid'")
+        global _sector, _ringed
         try:  # cached next to the module (or numba's user cache) so later processes skip the ~2 s compile
+            _sector = numba.njit(cache=True, nogil=True, fastmath=False)(_sector)
+            _ringed = numba.njit(cache=True, nogil=True, fastmath=False)(_ringed)
             _compiled = numba.njit(cache=True, nogil=True, fastmath=False)(_kernel)
         except RuntimeError:  # no writable cache location (read-only install): compile per process
+            _sector = numba.njit(cache=False, nogil=True, fastmath=False)(_sector)
+            _ringed = numba.njit(cache=False, nogil=True, fastmath=False)(_ringed)
             _compiled = numba.njit(cache=False, nogil=True, fastmath=False)(_kernel)
     return _compiled
 
@@ -151,12 +208,18 @@ class CompiledGrid:
     height, width of the frame; reach [M] float64 >= 1 or None: point m is a candidate within cap × reach[m]
     pixels (cells are sized by `cap` × the square root of the median reach: a few far-reaching points do not make
     every query visit larger cells, and where most points reach far a query does not walk many small ones; the
-    answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none."""
+    answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none, unless
+    surround and its candidates surround it (`_kernel`); gate_own: point j's gate is cap × min(gate, reach[j]);
+    between: beyond the plain cap the gate opens only for points on opposite sides of the query (`_kernel`)."""
 
     def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
-                 width: int, reach: np.ndarray | None = None, gate: float = 0.0):
+                 width: int, reach: np.ndarray | None = None, gate: float = 0.0, surround: bool = False,
+                 gate_own: bool = False, between: bool = False):
         self.cap = float(cap)
         self.gate = float(gate) if gate and math.isfinite(float(gate)) and float(gate) > 0 else 0.0
+        self.surround = bool(surround) and self.gate > 0
+        self.gate_own = bool(gate_own) and self.gate > 0
+        self.between = bool(between) and self.gate > 0
         span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
         rs = np.ones(len(px)) if reach is None else np.maximum(np.nan_to_num(np.asarray(reach, dtype=np.float64),
                                                                              nan=1.0, posinf=1.0), 1.0)
@@ -193,5 +256,6 @@ class CompiledGrid:
         if r and len(self.xs):
             qq = np.ascontiguousarray(np.asarray(q, dtype=np.float64) + 1.0)
             _get_kernel()(self.xs, self.ys, self.ws, self.ids, self.wcell, self.start, self.ncx, self.ncy, self.cell,
-                          self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max, self.gate)
+                          self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max, self.gate,
+                          self.surround, self.gate_own, self.between, np.empty((len(self.xs), 2)))
         return idx, val

@@ -51,6 +51,20 @@ def check_backend(backend: str, device: torch.device, capped: bool = False) -> s
     return backend
 
 
+def surrounded(offsets: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """offsets [R, M, 2] from each query to candidate points, valid [R, M] bool (which count) -> [R] bool: the
+    candidates surround the query — of the 8 45° sectors around it (counter-clockwise from +x), no 3 consecutive
+    ones (around the turn) lack a candidate (the compiled kernel's rule, `compiled._ringed`). A candidate at the
+    query itself is in no sector."""
+    sector = torch.floor(torch.atan2(offsets[..., 1], offsets[..., 0]) / (0.25 * math.pi)).long() % 8
+    use = valid & (offsets != 0).any(dim=-1) & torch.isfinite(offsets).all(dim=-1)
+    occupied = torch.zeros(offsets.shape[0], 8, dtype=torch.bool, device=offsets.device)
+    for t in range(8):
+        occupied[:, t] = (use & (sector == t)).any(dim=1)
+    gap = ~occupied & ~occupied.roll(-1, dims=1) & ~occupied.roll(-2, dims=1)
+    return ~gap.any(dim=1)
+
+
 class ScreenIndex:
     """Projected points of one camera, built once and queried many times (e.g. every chunk of a frame).
 
@@ -64,12 +78,20 @@ class ScreenIndex:
     the cap; the others, which have one cap per index, use the cap × the largest reach.
     reach_gate: with reach, a query that has no point within reach_gate × the cap gets no neighbours (1: the reach
     adds far points only to queries the plain cap already gives one; the empty queries around the object stop
-    there instead of walking the largest reach); 0 (or False) = no gate.
+    there instead of walking the largest reach); 0 (or False) = no gate. reach_surround (with a gate): such a query
+    keeps its K neighbours all the same when its candidates (the points whose reach covers it) surround it
+    (`surrounded`: no 3 consecutive of 8 45° sectors around it lack one) — a hole inside the object's screen
+    outline, not a ray beside it (such a query then walks its whole reach). reach_gate_own: each point gates at
+    reach_gate × the cap but at most its own reach × the cap (a wider gate only where the points were pulled
+    that far apart). reach_between (reach_gate > 1): beyond the plain cap, the gate opens only for two points
+    within it whose directions from the query are more than 120° apart (the query lies between the points of a
+    sparse surface, not beside an outline).
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
                  depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto",
-                 reach: torch.Tensor | None = None, reach_gate: float = 0.0):
+                 reach: torch.Tensor | None = None, reach_gate: float = 0.0, reach_surround: bool = False,
+                 reach_gate_own: bool = False, reach_between: bool = False):
         check_matrix("points", points, 3)
         check_camera(c2w, height, width, focal)
         self.radius = check_radius(max_radius_px)
@@ -94,6 +116,9 @@ class ScreenIndex:
             self.reach = r if bool((r > 1.0).any()) else None
         g = float(reach_gate)
         self.reach_gate = g if self.reach is not None and math.isfinite(g) and g > 0 else 0.0
+        self.reach_surround = bool(reach_surround) and self.reach_gate > 0
+        self.reach_gate_own = bool(reach_gate_own) and self.reach_gate > 0
+        self.reach_between = bool(reach_between) and self.reach_gate > 0
         self.weight = depth[keep] / float(focal_scale(cam)) if depth_factor else None  # [M]
         self._density: float | None = None
         self._grids: dict[float, CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
@@ -136,13 +161,42 @@ class ScreenIndex:
                 reach = None if self.reach is None else self.reach.cpu().numpy()
                 self._compiled[cap] = compiled.CompiledGrid(self.px.numpy(), w, self.ids.numpy(), cap,
                                                                self.height, self.width, reach=reach,
-                                                               gate=self.reach_gate)
+                                                               gate=self.reach_gate,
+                                                               surround=self.reach_surround,
+                                                               gate_own=self.reach_gate_own,
+                                                               between=self.reach_between)
             idx, dist = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
             return Neighbors(torch.from_numpy(idx), torch.from_numpy(dist))
         out = self._query_capped(query_px, k, self._uniform_cap(k))
         cap = self.radius_px(k)
         if self.reach_gate and math.isfinite(cap):  # the gate from a plain query of the nearest point
             near = (self._query_capped(query_px, 1, cap * self.reach_gate).idx[:, 0] >= 0).to(out.idx.device)[:, None]
+            if (self.reach_gate_own or self.reach_between) and self.reach_gate > 1:  # brute force beyond the cap
+                plain = (self._query_capped(query_px, 1, cap).idx[:, 0] >= 0).to(near.device)
+                ask = torch.nonzero(near[:, 0] & ~plain).squeeze(1)
+                gate = cap * (self.reach.clamp_max(self.reach_gate) if self.reach_gate_own
+                              else torch.full_like(self.reach, self.reach_gate))  # [M] each point's gate
+                qd = query_px.detach().to(self.px)
+                for a in range(0, ask.numel(), 256):
+                    rows = ask[a:a + 256].to(self.px.device)
+                    off = self.px[None] - qd[rows][:, None]
+                    d = off.norm(dim=-1)
+                    inside = d <= gate[None]
+                    ok = inside.any(dim=1)
+                    if self.reach_between:  # two of them more than 120° apart, seen from the query
+                        for i in torch.nonzero(ok).squeeze(1).tolist():
+                            u = off[i][inside[i]] / d[i][inside[i]][:, None]
+                            ok[i] = bool(((u @ u.T) < -0.5).any())
+                    near[rows.to(near.device), 0] = ok.to(near.device)
+            if self.reach_surround:  # brute force over the candidates of the rays the gate would empty
+                ask = torch.nonzero(~near[:, 0] & (out.idx[:, 0] >= 0).to(near.device)).squeeze(1)
+                reach = self._uniform_cap(k)
+                qd = query_px.detach().to(self.px)
+                for a in range(0, ask.numel(), 256):
+                    rows = ask[a:a + 256].to(self.px.device)
+                    off = self.px[None] - qd[rows][:, None]
+                    ring = surrounded(off, off.norm(dim=-1) <= reach)
+                    near[rows.to(near.device), 0] = ring.to(near.device)
             out = Neighbors(torch.where(near, out.idx, -1), torch.where(near, out.dist, math.inf))
         return out
 

@@ -6,7 +6,8 @@ import torch
 from core.edits.bake import bake
 from core.edits.deformation import DeformationConfig
 from core.frames.edited import EditConfig, EditState, render_edited
-from core.points.render import render_frame, trace_frame
+from core.points.neighbors.select import screen_index
+from core.points.render import pixel_grid, render_frame, trace_frame
 from core.images.rays import project_on_ray
 from tests.helpers.tiny import card_half_swung_behind, tiny_bundle
 
@@ -304,6 +305,91 @@ def test_reach_gate_adds_far_points_only_to_rays_the_plain_search_covers(tiny):
     wild[1::17] = 1e30
     for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
         out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **gate)), c2w,
+                            test.height, test.width, test.focal)
+        assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+
+
+def test_reach_surround_adds_only_rays_the_reach_candidates_surround(tiny):
+    """f_reach_surround: the gated frame's rays keep their neighbours; of the rays the gate emptied, those the
+    screen index finds surrounded by candidates (tested against brute force in tests/core/points/test_neighbors.py)
+    get the ungated reach search's neighbours — here the rays over a hole cut into the stretched card; rest frames
+    are today's; extreme poses stay finite."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    inside = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0, f_reach_surround=True)
+    today = EditState(bundle)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**inside))
+    for i in range(len(test)):
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    keep = torch.nonzero((xyz[:, :2] - xyz[:, :2].mean(0)).norm(dim=1) > 0.45).squeeze(1)  # a hole in the card
+    pts = xyz[keep] * torch.tensor([4.0, 1.0, 1.0])
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 1.5
+    states = {name: EditState(bundle, points=pts, ids=keep, cfg=EditConfig(f_fill=False, f_occlusion=False, **over))
+              for name, over in (("reach", dict(inside, f_reach_gate=0.0)),
+                                 ("gate", dict(inside, f_reach_surround=False)), ("inside", inside))}
+    assert states["inside"].reach_surround and not states["reach"].reach_surround
+    tr = {name: render_edited(st, c2w, test.height, test.width, test.focal)["trace"] for name, st in states.items()}
+    gated, got, open_ = tr["gate"].active, tr["inside"].active, tr["reach"].active
+    assert torch.equal(tr["inside"].idx[gated], tr["gate"].idx[gated])
+    assert torch.equal(tr["inside"].idx[got], tr["reach"].idx[got])
+    assert bool((got & ~gated).any()) and not bool((got & ~open_).any()) and bool((open_ & ~got).any())
+    st, model = states["inside"], bundle.model
+    index = screen_index(st.points, model.cfg.neighbors, model.cfg.k, c2w, test.height, test.width, test.focal,
+                         model.cfg.neighbor_radius_px, reach=st.reach, reach_gate=1.0, reach_surround=True)
+    want = (index.query(pixel_grid(test.height, test.width, "cpu"), model.cfg.k).idx >= 0).any(1)
+    assert torch.equal(got, want)
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+        out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **inside)), c2w,
+                            test.height, test.width, test.focal)
+        assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+
+
+@pytest.mark.parametrize("rule", ["own", "between"])
+def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny, rule):
+    """f_reach_gate_own / f_reach_between with a gate of 1.5 caps: rest frames are today's; on a stretched card the
+    rays that get neighbours include the 1-cap gate's and lie within the 1.5-cap gate's, each with the ungated
+    reach search's neighbours, and equal the screen index's answer; extreme poses stay finite."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    flag = dict(f_reach_gate_own=True, f_reach_between=False) if rule == "own" else dict(f_reach_between=True)
+    own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, **flag)
+    today = EditState(bundle)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**own))
+    for i in range(len(test)):
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.5
+    states = {name: EditState(bundle, points=xyz * torch.tensor([4.0, 1.0, 1.0]),
+                              cfg=EditConfig(f_fill_budget=0.1, f_occlusion=False, **over))
+              for name, over in (("reach", dict(own, f_reach_gate=0.0)), ("one", dict(own, f_reach_gate=1.0)),
+                                 ("wide", dict(own, f_reach_gate_own=False, f_reach_between=False)), ("own", own))}
+    assert states["own"].reach_gate_own == (rule == "own") and states["own"].reach_between == (rule == "between")
+    assert not (states["reach"].reach_gate_own or states["reach"].reach_between)
+    tr = {name: render_edited(st, c2w, test.height, test.width, test.focal)["trace"] for name, st in states.items()}
+    got = tr["own"].active
+    assert not bool((tr["one"].active & ~got).any()) and not bool((got & ~tr["wide"].active).any())
+    assert bool((got & ~tr["one"].active).any())
+    assert torch.equal(tr["own"].idx[got], tr["reach"].idx[got])
+    st, model = states["own"], bundle.model
+    index = screen_index(st.points, model.cfg.neighbors, model.cfg.k, c2w, test.height, test.width, test.focal,
+                         model.cfg.neighbor_radius_px, reach=st.reach, reach_gate=1.5, reach_gate_own=rule == "own",
+                         reach_between=rule == "between")
+    assert torch.equal(got, (index.query(pixel_grid(test.height, test.width, "cpu"), model.cfg.k).idx >= 0).any(1))
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+        out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **own)), c2w,
                             test.height, test.width, test.focal)
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
 

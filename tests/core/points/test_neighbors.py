@@ -663,3 +663,148 @@ def test_reach_gate_keeps_rays_without_a_plain_candidate_empty(backend, depth_fa
     assert bool(shut.any()) and bool(((open_.idx >= 0).any(1) & shut).any())  # the gate emptied some rays
     kept = ~shut
     assert torch.equal(got.idx[kept], open_.idx[kept])  # the others are the plain reach search's
+
+
+def _surrounded_ref(offsets, valid):
+    """Brute force: offsets [R, M, 2] to the candidates (valid [R, M]) surround the query when, of the 45° sectors
+    around it, no three in a row (around the turn) are empty."""
+    deg = torch.rad2deg(torch.atan2(offsets[..., 1].double(), offsets[..., 0].double()))
+    sector = torch.floor(deg / 45.0).long() % 8
+    out = torch.zeros(offsets.shape[0], dtype=torch.bool)
+    for r in range(offsets.shape[0]):
+        full = set(sector[r][valid[r]].tolist())
+        out[r] = all(any((s + t) % 8 in full for t in range(3)) for s in range(8))
+    return out
+
+
+def _projected(pts, c2w):
+    """pixel positions [N, 2] of the points, NaN for those the search leaves out (as ref_screen)."""
+    p, m = pts.double(), c2w.double()
+    cam = (p - m[:3, 3]) @ m[:3, :3]
+    z = -cam[:, 2]
+    px = torch.stack([FOCAL * cam[:, 0] / z + 0.5 * W, -FOCAL * cam[:, 1] / z + 0.5 * H], -1)
+    keep = (z > 0) & (px[:, 0] >= -1) & (px[:, 0] <= W + 1) & (px[:, 1] >= -1) & (px[:, 1] <= H + 1) & ~_absent(pts)
+    return torch.where(keep[:, None], px, math.nan)
+
+
+@pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
+@pytest.mark.parametrize("depth_factor", [False, True])
+def test_reach_surround_lets_through_rays_their_neighbours_surround(backend, depth_factor):
+    """reach_surround: of the rays the gate empties, those whose candidates (every point within its reach of the
+    ray) surround them (brute force here) keep their K reach neighbours; every other row is the gated search's."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("numba missing")
+    pts = scene("blob", 800, 5)
+    c2w = camera(5)
+    q = random_px(600, 5)
+    g = torch.Generator().manual_seed(16)
+    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 4.0 * torch.rand(800, generator=g), torch.ones(800))
+    cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend).radius_px(8)
+    per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
+    open_ = ref_screen(pts, c2w, q, 8, depth_factor, per_point.double()[None])
+    near = (ref_screen(pts, c2w, q, 8, depth_factor, cap)[0] >= 0).any(1)
+    px = _projected(pts, c2w)
+    off = px[None] - q.double()[:, None]
+    inside = _surrounded_ref(off, (off.norm(dim=-1) <= per_point.double()[None]) & torch.isfinite(off).all(-1))
+    keep = (near | inside)[:, None]
+    ref = torch.where(keep, open_[0], -1), torch.where(keep, open_[1], math.inf)
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_gate=1.0,
+                           reach_surround=True)
+    assert_same(index.query(q, 8), ref)
+    assert bool((inside & ~near).any()) and bool(((open_[0] >= 0).any(1) & ~near & ~inside).any())
+    ungated = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_surround=True)
+    assert not ungated.reach_surround  # without a gate the switch does nothing: the open search
+    assert_same(ungated.query(q, 8), open_)
+
+
+def test_reach_surround_fills_a_hole_but_not_the_outline():
+    """A sheet facing the camera, points 2 px apart, with a hole of radius 3 px; cap 1.5 px, reach 4: the gate
+    empties the hole's centre and rays 3 px outside the sheet's edge; surround gives the hole its neighbours
+    (candidates all around it), never the rays outside; hostile positions stay finite."""
+    c2w = torch.eye(4)
+    col, row = torch.meshgrid(torch.arange(4.0, 21.0, 2.0), torch.arange(4.0, 21.0, 2.0), indexing="xy")
+    keep = ((col - 12) ** 2 + (row - 12) ** 2) > 9
+    col, row = col[keep], row[keep]
+    z = 2.0
+    pts = torch.stack([(col - 0.5 * W) * z / FOCAL, -(row - 0.5 * H) * z / FOCAL, torch.full_like(col, -z)], 1)
+    reach = torch.full((pts.shape[0],), 4.0)
+    q = torch.tensor([[12.0, 12.0], [12.0, 1.0], [23.5, 12.0], [8.0, 8.0]])  # hole, above, right edge, on the sheet
+    out = {}
+    for surround in (False, True):
+        index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, max_radius_px=1.5, reach=reach, reach_gate=1.0,
+                               reach_surround=surround)
+        out[surround] = index.query(q, 8)
+    assert bool((out[False].idx[:3] < 0).all()) and bool((out[False].idx[3] >= 0).all())
+    assert bool((out[True].idx[0] >= 0).all()) and bool((out[True].idx[1:3] < 0).all())
+    assert torch.equal(out[True].idx[3], out[False].idx[3])
+    wild = pts.clone()
+    wild[::5] = float("nan")
+    wild[1::7] = 1e30
+    far = torch.full((pts.shape[0],), 1e9)
+    far[::3] = float("nan")
+    for gate, own in ((1.0, False), (1e12, True), (2.0, True)):
+        got = nb.ScreenIndex(wild, c2w, H, W, FOCAL, True, max_radius_px=1.5, reach=far, reach_gate=gate,
+                             reach_surround=True, reach_gate_own=own).query(random_px(50, 3), 8)
+        assert torch.isfinite(got.dist[got.valid]).all()
+
+
+@pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
+@pytest.mark.parametrize("depth_factor", [False, True])
+@pytest.mark.parametrize("gate", [1.5, 2.5])
+def test_reach_gate_own_gates_each_point_at_most_at_its_reach(backend, depth_factor, gate):
+    """reach_gate_own: a query keeps the reach search's neighbours when some point lies within the cap × min(gate,
+    that point's reach) of it (brute force here), else none; points of reach 1 gate at the plain cap."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("numba missing")
+    pts = scene("blob", 800, 6)
+    c2w = camera(6)
+    q = random_px(600, 6)
+    g = torch.Generator().manual_seed(17)
+    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 3.0 * torch.rand(800, generator=g), torch.ones(800))
+    cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend).radius_px(8)
+    per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
+    open_ = ref_screen(pts, c2w, q, 8, depth_factor, per_point.double()[None])
+    d = (_projected(pts, c2w)[None] - q.double()[:, None]).norm(dim=-1)
+    near = (d <= (cap * reach.clamp_max(gate)).double()[None]).any(1, keepdim=True)
+    ref = torch.where(near, open_[0], -1), torch.where(near, open_[1], math.inf)
+    got = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_gate=gate,
+                         reach_gate_own=True).query(q, 8)
+    assert_same(got, ref)
+    wide = ref_screen(pts, c2w, q, 8, depth_factor, cap * gate)
+    plain = ref_screen(pts, c2w, q, 8, depth_factor, cap)
+    assert bool(((wide[0] >= 0).any(1) & ~near[:, 0]).any())  # the own-reach gate is narrower than gate × cap ...
+    assert bool((near[:, 0] & ~(plain[0] >= 0).any(1)).any())  # ... and wider than the plain cap
+
+
+@pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
+@pytest.mark.parametrize("own", [False, True])
+@pytest.mark.parametrize("gate", [1.5, 2.0])
+def test_reach_between_opens_the_gate_only_between_points(backend, own, gate):
+    """reach_between: a query keeps the reach search's neighbours when a point lies within the plain cap, or two
+    points within the gate (gate × cap; with own at most each one's reach) lie more than 120° apart as seen from
+    it (brute force here); else none."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("numba missing")
+    pts = scene("blob", 800, 7)
+    c2w = camera(7)
+    q = random_px(600, 7)
+    g = torch.Generator().manual_seed(18)
+    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 3.0 * torch.rand(800, generator=g), torch.ones(800))
+    cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, backend=backend).radius_px(8)
+    per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
+    open_ = ref_screen(pts, c2w, q, 8, True, per_point.double()[None])
+    off = _projected(pts, c2w)[None] - q.double()[:, None]
+    d = off.norm(dim=-1)
+    radius = cap * (reach.clamp_max(gate) if own else torch.full_like(reach, gate))
+    within = d <= radius.double()[None]
+    near = (d <= cap).any(1)
+    for r in range(q.shape[0]):
+        u = off[r][within[r]] / d[r][within[r]][:, None]
+        near[r] |= bool(((u @ u.T) < -0.5).any())
+    ref = torch.where(near[:, None], open_[0], -1), torch.where(near[:, None], open_[1], math.inf)
+    got = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, backend=backend, reach=reach, reach_gate=gate,
+                         reach_gate_own=own, reach_between=True).query(q, 8)
+    assert_same(got, ref)
+    plain = (ref_screen(pts, c2w, q, 8, True, cap)[0] >= 0).any(1)
+    assert bool((within.any(1) & ~near).any())  # the gate kept some rays with points within it shut ...
+    assert own or bool((near & ~plain).any())  # ... and opened some beyond the plain cap
