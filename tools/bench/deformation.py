@@ -86,6 +86,11 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     "capped at the fill's gap, occlusion, deform-aware": {
         **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
         "f_depth": "nearest", "f_compression": "auto", "f_key_stretch": "gap", "f_occlusion": True},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1 cap, keys' stretch capped at the fill's gap, deform-aware": {  # the default renderer
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.0, "f_key_stretch": "gap"},
 }
 
 
