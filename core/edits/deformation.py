@@ -633,11 +633,11 @@ def _expansion_inverse_torch(f: torch.Tensor) -> torch.Tensor:
 def _key_loop(f, cap, n, mode, out):
     """The compiled path of bound_above and key_inverse: f [M, 3, 3] float64, cap [M], n [M, 3] unit normals (read
     with mode 2) -> out [M, 3, 3]. Per row, first the capped F: F itself when ‖F‖_F ≤ cap or cap² I − FᵀF is
-    positive definite (every σ within the cap), else F V diag(min(σ, cap) / σ) Vᵀ with FᵀF = V diag(σ²) Vᵀ: where
-    one or two σ² exceed cap² and lie 0.1 % of σ1² or more from those within it, from the closed-form eigenvalues
-    and eigenvectors by cross products of the rows of FᵀF − σ² I; else by cyclic Jacobi rotations. mode 0: out =
-    that; 1: its inverse; 2: the inverse of it with its column along n raised to unit length where shorter (G = F +
-    (1/|F n| − 1) F n nᵀ, the tangent rule)."""
+    positive definite or, by Gershgorin's bound, σ1² ≤ cap² (1 + 1e-12) (every σ within the cap), else F V
+    diag(min(σ, cap) / σ) Vᵀ with FᵀF = V diag(σ²) Vᵀ: where one or two σ² exceed cap² and lie 1e-6 σ1² or more from
+    those within it, from the closed-form eigenvalues and eigenvectors by cross products of the rows of FᵀF − σ² I;
+    else by cyclic Jacobi rotations. mode 0: out = that; 1: its inverse; 2: the inverse of it with its column along
+    n raised to unit length where shorter (G = F + (1/|F n| − 1) F n nᵀ, the tangent rule)."""
     a = np.empty((3, 3))
     v = np.empty((3, 3))
     u = np.empty((2, 3))
@@ -664,6 +664,9 @@ def _key_loop(f, cap, n, mode, out):
             # eigenvalues of FᵀF in closed form (trigonometric), v1 and v3 from the cross products of the rows of
             # FᵀF − λ I, V diag(h) Vᵀ = h2 I + (h1 − h2) v1 v1ᵀ + (1 − h2) v3 v3ᵀ; the Jacobi rotations below else
             jacobi = not (b00 > 0.0 and m2 > 0.0 and m3 > 0.0)
+            if jacobi and max(a[0, 0] + abs(a[0, 1]) + abs(a[0, 2]), a[1, 1] + abs(a[0, 1]) + abs(a[1, 2]),
+                              a[2, 2] + abs(a[0, 2]) + abs(a[1, 2])) <= c2 * (1.0 + 1e-12):
+                jacobi = False  # σ1² ≤ cap² to rounding (Gershgorin; a rigidly moved part at a cap of 1): F stays
             if jacobi:
                 p1 = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
                 qq = (a[0, 0] + a[1, 1] + a[2, 2]) / 3.0
@@ -680,8 +683,8 @@ def _key_loop(f, cap, n, mode, out):
                     lam1 = qq + 2.0 * pp * math.cos(phi)
                     lam3 = qq + 2.0 * pp * math.cos(phi + 2.0943951023931957)
                     lam2 = 3.0 * qq - lam1 - lam3
-                    one = lam2 < c2 and lam1 - lam2 > 1e-3 * lam1       # only σ1 beyond the cap
-                    two = lam2 >= c2 and lam3 < c2 and lam2 - lam3 > 1e-3 * lam1  # σ1 and σ2 beyond it
+                    one = lam2 < c2 and lam1 - lam2 > 1e-6 * lam1       # only σ1 beyond the cap
+                    two = lam2 >= c2 and lam3 < c2 and lam2 - lam3 > 1e-6 * lam1  # σ1 and σ2 beyond it
                     if one and lam1 <= c2:  # every σ within the cap after all (rounding at the border): F stays
                         jacobi = False
                     elif one or two:

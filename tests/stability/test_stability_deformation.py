@@ -249,7 +249,8 @@ def test_key_inverse_is_the_capped_tangent_rule_and_matches_torch():
 def test_key_loop_closed_form_cases_match_torch():
     """The compiled cap's closed-form paths (one or two singular values beyond the cap) and their fall-back to
     Jacobi rotations (σ's too close to tell apart, all three beyond the cap) equal the torch reference to 1e-8 in
-    float64, mirrored F included; σ1 = σ2, σ2 = σ3, a σ just at the cap and extreme scales stay finite and capped."""
+    float64, mirrored F included; σ1 = σ2, σ2 = σ3, a σ just at the cap, near rotations at a cap of 1 and extreme
+    scales stay finite and capped."""
     from core.edits.deformation import _bound_above_torch, _key_inverse_torch, bound_above, key_inverse
 
     gen = torch.Generator().manual_seed(7)
@@ -259,7 +260,10 @@ def test_key_loop_closed_form_cases_match_torch():
         ((3.0, 1.0, 0.5), 2.0), ((3.0, 2.5, 0.5), 2.0), ((3.0, 3.0, 0.5), 2.0), ((3.0, 3.0 * (1 + 1e-7), 0.5), 2.0),
         ((3.0, 2.999, 2.998), 2.0), ((3.0, 1.0, 1.0), 2.0), ((2.0 * (1 + 1e-12), 1.0, 1.0), 2.0),
         ((2.001, 2.0005, 0.5), 2.0), ((2.5, 2.0 * (1 + 1e-12), 1.0), 2.0), ((1e6, 1.0, 1e-6), 1.0),
-        ((1e-3, 5e-4, 1e-4), 1e-4), ((1.2, 1.0, 0.9), 1.0), ((4.0, 3.0, 2.0), 1.0)]
+        ((1e-3, 5e-4, 1e-4), 1e-4), ((1.2, 1.0, 0.9), 1.0), ((4.0, 3.0, 2.0), 1.0),
+        # near rotations at a cap of 1 (most points of a posed model): σ's apart by 1e-4 … 1e-9
+        ((1 + 2e-4, 1 + 1e-4, 1 - 1e-4), 1.0), ((1 + 1e-6, 1 - 1e-6, 1 - 2e-6), 1.0), ((1 + 2e-9, 1 + 1e-9, 1.0), 1.0),
+        ((1 + 1e-5, 1 + 1e-5, 1 - 1e-5), 1.0), ((1 + 3e-7, 1 + 2e-7, 1 - 1e-7), 1.0)]
     rows, caps = [], []
     for sv, c in cases:
         for sign in (1.0, -1.0):  # a mirrored neighbourhood too
@@ -283,3 +287,11 @@ def test_key_loop_closed_form_cases_match_torch():
     assert torch.allclose(bound_above(f, cap), _bound_above_torch(f, cap), rtol=1e-9, atol=1e-9)
     for nn in (None, n):
         assert torch.allclose(key_inverse(f, cap, nn), _key_inverse_torch(f, cap, nn), rtol=1e-8, atol=1e-8)
+    # near rotations (σ within 1e-3 … 1e-7 of 1) at a cap of 1
+    for eps in (1e-3, 1e-5, 1e-7):
+        r, _ = torch.linalg.qr(torch.randn(500, 3, 3, generator=gen, dtype=torch.float64))
+        f = r @ (torch.eye(3, dtype=torch.float64) + eps * torch.randn(500, 3, 3, generator=gen, dtype=torch.float64))
+        one = torch.ones(500, dtype=torch.float64)
+        assert torch.allclose(bound_above(f, one), _bound_above_torch(f, one), rtol=1e-9, atol=1e-9)
+        assert torch.allclose(key_inverse(f, one, n[:500]), _key_inverse_torch(f, one, n[:500]), rtol=1e-8,
+                              atol=1e-8)
