@@ -633,11 +633,14 @@ def _expansion_inverse_torch(f: torch.Tensor) -> torch.Tensor:
 def _key_loop(f, cap, n, mode, out):
     """The compiled path of bound_above and key_inverse: f [M, 3, 3] float64, cap [M], n [M, 3] unit normals (read
     with mode 2) -> out [M, 3, 3]. Per row, first the capped F: F itself when ‖F‖_F ≤ cap or cap² I − FᵀF is
-    positive definite (every σ within the cap), else, with FᵀF = V diag(σ²) Vᵀ by cyclic Jacobi rotations, F V
-    diag(min(σ, cap) / σ) Vᵀ. mode 0: out = that; 1: its inverse; 2: the inverse of it with its column along n
-    raised to unit length where shorter (G = F + (1/|F n| − 1) F n nᵀ, the tangent rule)."""
+    positive definite or, by Gershgorin's bound, σ1² ≤ cap² (1 + 1e-12) (every σ within the cap), else F V
+    diag(min(σ, cap) / σ) Vᵀ with FᵀF = V diag(σ²) Vᵀ: where one or two σ² exceed cap² and lie 1e-6 σ1² or more from
+    those within it, from the closed-form eigenvalues and eigenvectors by cross products of the rows of FᵀF − σ² I;
+    else by cyclic Jacobi rotations. mode 0: out = that; 1: its inverse; 2: the inverse of it with its column along
+    n raised to unit length where shorter (G = F + (1/|F n| − 1) F n nᵀ, the tangent rule)."""
     a = np.empty((3, 3))
     v = np.empty((3, 3))
+    u = np.empty((2, 3))
     h = np.empty(3)
     g = np.empty((3, 3))
     for m in range(f.shape[0]):
@@ -657,7 +660,74 @@ def _key_loop(f, cap, n, mode, out):
             m2 = b00 * b11 - a[0, 1] * a[0, 1]
             m3 = (b00 * (b11 * b22 - a[1, 2] * a[1, 2]) - a[0, 1] * (a[0, 1] * b22 + a[1, 2] * a[0, 2])
                   - a[0, 2] * (a[0, 1] * a[1, 2] + b11 * a[0, 2]))
-            if not (b00 > 0.0 and m2 > 0.0 and m3 > 0.0):
+            # the common cases: the largest σ (or the two largest) beyond the cap, well apart from the rest. Their
+            # eigenvalues of FᵀF in closed form (trigonometric), v1 and v3 from the cross products of the rows of
+            # FᵀF − λ I, V diag(h) Vᵀ = h2 I + (h1 − h2) v1 v1ᵀ + (1 − h2) v3 v3ᵀ; the Jacobi rotations below else
+            jacobi = not (b00 > 0.0 and m2 > 0.0 and m3 > 0.0)
+            if jacobi and max(a[0, 0] + abs(a[0, 1]) + abs(a[0, 2]), a[1, 1] + abs(a[0, 1]) + abs(a[1, 2]),
+                              a[2, 2] + abs(a[0, 2]) + abs(a[1, 2])) <= c2 * (1.0 + 1e-12):
+                jacobi = False  # σ1² ≤ cap² to rounding (Gershgorin; a rigidly moved part at a cap of 1): F stays
+            if jacobi:
+                p1 = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+                qq = (a[0, 0] + a[1, 1] + a[2, 2]) / 3.0
+                d0, d1, d2 = a[0, 0] - qq, a[1, 1] - qq, a[2, 2] - qq
+                pp = math.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * p1) / 6.0)
+                if pp > 1e-150 * max(qq, 1.0):
+                    ip = 1.0 / pp
+                    x00, x11, x22 = d0 * ip, d1 * ip, d2 * ip
+                    x01, x02, x12 = a[0, 1] * ip, a[0, 2] * ip, a[1, 2] * ip
+                    r = 0.5 * (x00 * (x11 * x22 - x12 * x12) - x01 * (x01 * x22 - x12 * x02)
+                               + x02 * (x01 * x12 - x11 * x02))
+                    r = min(max(r, -1.0), 1.0)
+                    phi = math.acos(r) / 3.0
+                    lam1 = qq + 2.0 * pp * math.cos(phi)
+                    lam3 = qq + 2.0 * pp * math.cos(phi + 2.0943951023931957)
+                    lam2 = 3.0 * qq - lam1 - lam3
+                    one = lam2 < c2 and lam1 - lam2 > 1e-6 * lam1       # only σ1 beyond the cap
+                    two = lam2 >= c2 and lam3 < c2 and lam2 - lam3 > 1e-6 * lam1  # σ1 and σ2 beyond it
+                    if one and lam1 <= c2:  # every σ within the cap after all (rounding at the border): F stays
+                        jacobi = False
+                    elif one or two:
+                        ok = True
+                        for e in range(2 if two else 1):
+                            lv = lam1 if e == 0 else lam3
+                            r00, r01, r02 = a[0, 0] - lv, a[0, 1], a[0, 2]
+                            r10, r11, r12 = a[0, 1], a[1, 1] - lv, a[1, 2]
+                            r20, r21, r22 = a[0, 2], a[1, 2], a[2, 2] - lv
+                            best = -1.0
+                            for pick in range(3):
+                                if pick == 0:
+                                    y0, y1, y2 = r01 * r12 - r02 * r11, r02 * r10 - r00 * r12, r00 * r11 - r01 * r10
+                                elif pick == 1:
+                                    y0, y1, y2 = r01 * r22 - r02 * r21, r02 * r20 - r00 * r22, r00 * r21 - r01 * r20
+                                else:
+                                    y0, y1, y2 = r11 * r22 - r12 * r21, r12 * r20 - r10 * r22, r10 * r21 - r11 * r20
+                                yn = y0 * y0 + y1 * y1 + y2 * y2
+                                if yn > best:
+                                    best, u[e, 0], u[e, 1], u[e, 2] = yn, y0, y1, y2
+                            if best > 1e-24 * lam1 * lam1 * lam1 * lam1:
+                                yi = 1.0 / math.sqrt(best)
+                                u[e, 0], u[e, 1], u[e, 2] = u[e, 0] * yi, u[e, 1] * yi, u[e, 2] * yi
+                            elif e == 0 and two:  # σ1 = σ2 (to rounding): h1 = h2, no v1 term
+                                u[e, 0] = u[e, 1] = u[e, 2] = 0.0
+                            else:
+                                ok = False
+                        if ok:
+                            h1 = cap[m] / math.sqrt(lam1)
+                            if two:
+                                h2 = cap[m] / math.sqrt(lam2)
+                                c0, c1, c3 = h2, h1 - h2, 1.0 - h2
+                            else:
+                                c0, c1, c3 = 1.0, h1 - 1.0, 0.0
+                                u[1, 0] = u[1, 1] = u[1, 2] = 0.0
+                            for i in range(3):
+                                for j in range(3):
+                                    a[i, j] = (c0 if i == j else 0.0) + c1 * u[0, i] * u[0, j] + c3 * u[1, i] * u[1, j]
+                            for i in range(3):
+                                for j in range(3):
+                                    g[i, j] = f[m, i, 0] * a[0, j] + f[m, i, 1] * a[1, j] + f[m, i, 2] * a[2, j]
+                            jacobi = False
+            if jacobi:
                 for _sweep in range(16):
                     off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
                     if off <= 1e-20 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:

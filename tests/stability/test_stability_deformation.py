@@ -244,3 +244,54 @@ def test_key_inverse_is_the_capped_tangent_rule_and_matches_torch():
     assert torch.allclose(key_inverse(squash, None, z), torch.eye(3)[None], atol=1e-6)
     assert torch.allclose(key_inverse(thin, None, z), torch.diag(torch.tensor([5.0, 1.0, 1.0]))[None], atol=1e-5)
     assert torch.isfinite(key_inverse(torch.zeros(2, 3, 3), torch.ones(2), z.expand(2, 3))).all()
+
+
+def test_key_loop_closed_form_cases_match_torch():
+    """The compiled cap's closed-form paths (one or two singular values beyond the cap) and their fall-back to
+    Jacobi rotations (σ's too close to tell apart, all three beyond the cap) equal the torch reference to 1e-8 in
+    float64, mirrored F included; σ1 = σ2, σ2 = σ3, a σ just at the cap, near rotations at a cap of 1 and extreme
+    scales stay finite and capped."""
+    from core.edits.deformation import _bound_above_torch, _key_inverse_torch, bound_above, key_inverse
+
+    gen = torch.Generator().manual_seed(7)
+    q1, _ = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))
+    q2, _ = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))
+    cases = [  # (singular values, cap)
+        ((3.0, 1.0, 0.5), 2.0), ((3.0, 2.5, 0.5), 2.0), ((3.0, 3.0, 0.5), 2.0), ((3.0, 3.0 * (1 + 1e-7), 0.5), 2.0),
+        ((3.0, 2.999, 2.998), 2.0), ((3.0, 1.0, 1.0), 2.0), ((2.0 * (1 + 1e-12), 1.0, 1.0), 2.0),
+        ((2.001, 2.0005, 0.5), 2.0), ((2.5, 2.0 * (1 + 1e-12), 1.0), 2.0), ((1e6, 1.0, 1e-6), 1.0),
+        ((1e-3, 5e-4, 1e-4), 1e-4), ((1.2, 1.0, 0.9), 1.0), ((4.0, 3.0, 2.0), 1.0),
+        # near rotations at a cap of 1 (most points of a posed model): σ's apart by 1e-4 … 1e-9
+        ((1 + 2e-4, 1 + 1e-4, 1 - 1e-4), 1.0), ((1 + 1e-6, 1 - 1e-6, 1 - 2e-6), 1.0), ((1 + 2e-9, 1 + 1e-9, 1.0), 1.0),
+        ((1 + 1e-5, 1 + 1e-5, 1 - 1e-5), 1.0), ((1 + 3e-7, 1 + 2e-7, 1 - 1e-7), 1.0)]
+    rows, caps = [], []
+    for sv, c in cases:
+        for sign in (1.0, -1.0):  # a mirrored neighbourhood too
+            rows.append(q1 @ torch.diag(torch.tensor(sv, dtype=torch.float64) * torch.tensor([1.0, 1.0, sign],
+                                                                                               dtype=torch.float64)) @ q2)
+            caps.append(c)
+    f, cap = torch.stack(rows), torch.tensor(caps, dtype=torch.float64)
+    a, b = bound_above(f, cap), _bound_above_torch(f, cap)
+    assert torch.isfinite(a).all()
+    scale = f.flatten(1).abs().amax(1)[:, None, None]
+    assert bool(((a - b).abs() <= 1e-8 * scale).all())  # σ1 = σ2: the closed form loses ~√eps in σ1 − σ2
+    sv, sv0 = torch.linalg.svdvals(a), torch.linalg.svdvals(f)
+    assert bool(((sv - torch.minimum(sv0, cap[:, None])).abs() <= 1e-8 * sv0[:, :1]).all())
+    assert torch.equal(torch.sign(torch.linalg.det(a)), torch.sign(torch.linalg.det(f)))
+    # random F whose stretch mostly exceeds a cap near 1, as at a posed sheet's joint, with and without normals
+    f = bound(torch.randn(2000, 3, 3, generator=gen, dtype=torch.float64) * 0.3 + torch.eye(3, dtype=torch.float64)
+              * 1.2, MAX)
+    cap = 1.0 + 0.5 * torch.rand(2000, generator=gen, dtype=torch.float64)
+    n = torch.randn(2000, 3, generator=gen, dtype=torch.float64)
+    n = n / n.norm(dim=1, keepdim=True)
+    assert torch.allclose(bound_above(f, cap), _bound_above_torch(f, cap), rtol=1e-9, atol=1e-9)
+    for nn in (None, n):
+        assert torch.allclose(key_inverse(f, cap, nn), _key_inverse_torch(f, cap, nn), rtol=1e-8, atol=1e-8)
+    # near rotations (σ within 1e-3 … 1e-7 of 1) at a cap of 1
+    for eps in (1e-3, 1e-5, 1e-7):
+        r, _ = torch.linalg.qr(torch.randn(500, 3, 3, generator=gen, dtype=torch.float64))
+        f = r @ (torch.eye(3, dtype=torch.float64) + eps * torch.randn(500, 3, 3, generator=gen, dtype=torch.float64))
+        one = torch.ones(500, dtype=torch.float64)
+        assert torch.allclose(bound_above(f, one), _bound_above_torch(f, one), rtol=1e-9, atol=1e-9)
+        assert torch.allclose(key_inverse(f, one, n[:500]), _key_inverse_torch(f, one, n[:500]), rtol=1e-8,
+                              atol=1e-8)

@@ -117,6 +117,11 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
         **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
         "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
         "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap"},
+    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
+    "gated at 1 cap, keys' stretch capped at the fill's gap, deform-aware": {
+        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
+        "f_reach_gate": 1.0, "f_key_stretch": "gap"},
 }
 
 
