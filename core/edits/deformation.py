@@ -545,6 +545,47 @@ def inverse(f: torch.Tensor) -> torch.Tensor:
     return torch.linalg.inv(f.double()).to(f.dtype)
 
 
+def _jacobi_eigen(a, v, tol):
+    """Cyclic Jacobi rotations on the symmetric 3×3 float64 array a, in place, until its off-diagonal part is at most
+    tol times its diagonal's (squared sums; at most 16 sweeps): a -> diag(λ), v [3, 3] -> v times the rotations (the
+    eigenvectors in its columns when v starts as I). Compiled as `_jacobi` for the compiled loops below."""
+    for _sweep in range(16):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        if off <= tol * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            if a[p, q] == 0.0:
+                continue
+            theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+            if theta < 0.0:
+                t = -t
+            c = 1.0 / math.sqrt(t * t + 1.0)
+            s = t * c
+            for k in range(3):
+                akp, akq = a[k, p], a[k, q]
+                a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
+            for k in range(3):
+                apk, aqk = a[p, k], a[q, k]
+                a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
+            for k in range(3):
+                vkp, vkq = v[k, p], v[k, q]
+                v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+
+
+def _njit(fn):
+    """fn compiled by numba on first call (cached on disk where the cache folder is writable); None without numba."""
+    if numba is None:
+        return None
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)
+    except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
+        return numba.njit(cache=False, nogil=True)(fn)
+
+
+_jacobi = _njit(_jacobi_eigen) or _jacobi_eigen
+
+
 def _expansion_inverse_loop(f, out):
     """The compiled path of expansion_inverse: f [M, 3, 3] float64 -> out [M, 3, 3]. Per row: FᵀF = V diag(σ²) Vᵀ
     by cyclic Jacobi rotations, then V diag(1/(σ max(σ, 1))) Vᵀ Fᵀ."""
@@ -556,28 +597,7 @@ def _expansion_inverse_loop(f, out):
             for j in range(3):
                 a[i, j] = f[m, 0, i] * f[m, 0, j] + f[m, 1, i] * f[m, 1, j] + f[m, 2, i] * f[m, 2, j]
                 v[i, j] = 1.0 if i == j else 0.0
-        for _sweep in range(16):
-            off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
-            if off <= 1e-30 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:
-                break
-            for p, q in ((0, 1), (0, 2), (1, 2)):
-                if a[p, q] == 0.0:
-                    continue
-                theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
-                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    t = -t
-                c = 1.0 / math.sqrt(t * t + 1.0)
-                s = t * c
-                for k in range(3):
-                    akp, akq = a[k, p], a[k, q]
-                    a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
-                for k in range(3):
-                    apk, aqk = a[p, k], a[q, k]
-                    a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
-                for k in range(3):
-                    vkp, vkq = v[k, p], v[k, q]
-                    v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+        _jacobi(a, v, 1e-30)
         for i in range(3):
             sv = max(math.sqrt(max(a[i, i], 0.0)), 1e-6)
             h[i] = 1.0 / (sv * max(sv, 1.0))
@@ -594,11 +614,8 @@ _compiled_loop = None
 
 def _compiled():
     global _compiled_loop
-    if _compiled_loop is None and numba is not None:
-        try:
-            _compiled_loop = numba.njit(cache=True, nogil=True)(_expansion_inverse_loop)
-        except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
-            _compiled_loop = numba.njit(cache=False, nogil=True)(_expansion_inverse_loop)
+    if _compiled_loop is None:
+        _compiled_loop = _njit(_expansion_inverse_loop)
     return _compiled_loop
 
 
@@ -728,28 +745,7 @@ def _key_loop(f, cap, n, mode, out):
                                     g[i, j] = f[m, i, 0] * a[0, j] + f[m, i, 1] * a[1, j] + f[m, i, 2] * a[2, j]
                             jacobi = False
             if jacobi:
-                for _sweep in range(16):
-                    off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
-                    if off <= 1e-20 * (a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]) or off == 0.0:
-                        break
-                    for p, q in ((0, 1), (0, 2), (1, 2)):
-                        if a[p, q] == 0.0:
-                            continue
-                        theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
-                        t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                        if theta < 0.0:
-                            t = -t
-                        c = 1.0 / math.sqrt(t * t + 1.0)
-                        s = t * c
-                        for k in range(3):
-                            akp, akq = a[k, p], a[k, q]
-                            a[k, p], a[k, q] = c * akp - s * akq, s * akp + c * akq
-                        for k in range(3):
-                            apk, aqk = a[p, k], a[q, k]
-                            a[p, k], a[q, k] = c * apk - s * aqk, s * apk + c * aqk
-                        for k in range(3):
-                            vkp, vkq = v[k, p], v[k, q]
-                            v[k, p], v[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+                _jacobi(a, v, 1e-20)
                 if max(a[0, 0], a[1, 1], a[2, 2]) > c2:
                     for i in range(3):
                         sv = max(math.sqrt(max(a[i, i], 0.0)), 1e-30)
@@ -803,11 +799,8 @@ _compiled_key_loop = None
 
 def _key_compiled(f: torch.Tensor):
     global _compiled_key_loop
-    if _compiled_key_loop is None and numba is not None and f.device.type == "cpu":
-        try:
-            _compiled_key_loop = numba.njit(cache=True, nogil=True)(_key_loop)
-        except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
-            _compiled_key_loop = numba.njit(cache=False, nogil=True)(_key_loop)
+    if _compiled_key_loop is None and f.device.type == "cpu":
+        _compiled_key_loop = _njit(_key_loop)
     return _compiled_key_loop if f.device.type == "cpu" and f.shape[0] else None
 
 
