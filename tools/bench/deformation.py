@@ -25,6 +25,11 @@ _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "co
         "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
         "fold_test": "displacement", "f_radius_rule": "frame", "f_reach_gate": 0.0, "f_key_stretch": "full",
         "f_reach_surround": False, "f_reach_gate_own": False, "f_reach_between": False}
+# F-aware keys, blended fill, fold rule, canonical depths, compression by thickness; and with the budget reach
+_AUTO = {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
+         "f_depth": "nearest", "f_compression": "auto"}
+_BUDGET = {**_AUTO, "f_radius": True, "f_radius_rule": "budget"}
+_D = "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression"
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper (today), deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -53,75 +58,28 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     "f-attention + blended fill + fold rule, depth from the canonical nearest, undo, deform-aware": {
         **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
         "f_depth": "nearest", "f_compression": "undo"},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto"},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, gap reach, "
-    "deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "gap"},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, gated gap reach, "
-    "deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "gap",
-        "f_reach_gate": 1.0},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach, "
-    "deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget"},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
-    "gated at 1 cap, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
-        "f_reach_gate": 1.0},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
-    "gated at 2 caps, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
-        "f_reach_gate": 2.0},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, keys' stretch "
-    "capped at the fill's gap, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_key_stretch": "gap"},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, keys' stretch "
-    "capped at the fill's gap, occlusion, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_key_stretch": "gap", "f_occlusion": True},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
-    "gated at 1 cap or surrounded, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
-        "f_reach_gate": 1.0, "f_reach_surround": True},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
-    "gated at 1.5 caps, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
-        "f_reach_gate": 1.5},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
-    "gated at 1.5 caps or its own reach, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
-        "f_reach_gate": 1.5, "f_reach_gate_own": True},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
-    "gated at 1.5 caps between points, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
-        "f_reach_gate": 1.5, "f_reach_between": True},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
-    "gated at 2 caps between points, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
-        "f_reach_gate": 2.0, "f_reach_between": True},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
-    "gated at 1.5 caps between points, keys' stretch capped at the fill's gap, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
-        "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap"},
-    "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression, budget reach "
-    "gated at 1 cap, keys' stretch capped at the fill's gap, deform-aware": {
-        **_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-        "f_depth": "nearest", "f_compression": "auto", "f_radius": True, "f_radius_rule": "budget",
-        "f_reach_gate": 1.0, "f_key_stretch": "gap"},
+    _D + ", deform-aware": _AUTO,
+    _D + ", gap reach, deform-aware": {**_AUTO, "f_radius": True, "f_radius_rule": "gap"},
+    _D + ", gated gap reach, deform-aware": {**_AUTO, "f_radius": True, "f_radius_rule": "gap", "f_reach_gate": 1.0},
+    _D + ", budget reach, deform-aware": _BUDGET,
+    _D + ", budget reach gated at 1 cap, deform-aware": {**_BUDGET, "f_reach_gate": 1.0},
+    _D + ", budget reach gated at 2 caps, deform-aware": {**_BUDGET, "f_reach_gate": 2.0},
+    _D + ", keys' stretch capped at the fill's gap, deform-aware": {**_AUTO, "f_key_stretch": "gap"},
+    _D + ", keys' stretch capped at the fill's gap, occlusion, deform-aware":
+        {**_AUTO, "f_key_stretch": "gap", "f_occlusion": True},
+    _D + ", budget reach gated at 1 cap or surrounded, deform-aware":
+        {**_BUDGET, "f_reach_gate": 1.0, "f_reach_surround": True},
+    _D + ", budget reach gated at 1.5 caps, deform-aware": {**_BUDGET, "f_reach_gate": 1.5},
+    _D + ", budget reach gated at 1.5 caps or its own reach, deform-aware":
+        {**_BUDGET, "f_reach_gate": 1.5, "f_reach_gate_own": True},
+    _D + ", budget reach gated at 1.5 caps between points, deform-aware":
+        {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True},
+    _D + ", budget reach gated at 2 caps between points, deform-aware":
+        {**_BUDGET, "f_reach_gate": 2.0, "f_reach_between": True},
+    _D + ", budget reach gated at 1.5 caps between points, keys' stretch capped at the fill's gap, deform-aware":
+        {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap"},
+    _D + ", budget reach gated at 1 cap, keys' stretch capped at the fill's gap, deform-aware":
+        {**_BUDGET, "f_reach_gate": 1.0, "f_key_stretch": "gap"},
 }
 
 
