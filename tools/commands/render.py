@@ -52,7 +52,7 @@ def add_arguments(p):
                         "largest) is at least this counts as a thick shell")
     p.add_argument("--f-depth", default=EditConfig.f_depth, choices=DEPTH_REFS,
                    help="F-aware keys: each neighbour's depth from the ray's nearest neighbour in the canonical "
-                        "frames (nearest) or from the deformed ray's nearest neighbour)")
+                        "frames (nearest) or from the deformed ray's nearest neighbour (ray)")
     p.add_argument("--f-radius", action=argparse.BooleanOptionalAction, default=EditConfig.f_radius,
                    help="moved points: neighbour search radius cap scaled by the points' stretch")
     p.add_argument("--f-radius-rule", default=EditConfig.f_radius_rule, choices=RADIUS_RULES,
