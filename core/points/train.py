@@ -27,6 +27,7 @@ from core.points.resolution import decoder_scale, training_footprint
 from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
 from core.points.key_mlp import KEY_PATHS
+from core.points.ema import ParamEMA
 from core.points.model import ModelConfig, PointModel, mean_spacing
 from core.points.regularizers import close_to_ray, close_to_surface
 from core.points.neighbors.select import select_neighbors
@@ -36,6 +37,7 @@ from core.util.workers import split_rows
 
 
 DEFAULT_STEPS = 6000  # the step budget of a fit given neither --steps nor --minutes
+JITTER_TARGETS = ("pixel", "bilinear")
 
 
 @dataclass
@@ -74,9 +76,17 @@ class TrainConfig:
                                    "points learn the colour late in training; 0 = off", min=0.0, max=1.0)
     ray_jitter: float = opt(0.0, "shift each training patch's rays by a random sub-pixel offset of up to this many "
                                  "pixels in x and y (one offset per patch, so a patch stays a regular grid the "
-                                 "decoder reads as an image; its target pixels are kept), so the points and the "
+                                 "decoder reads as an image; its targets: --jitter-target), so the points and the "
                                  "decoder see neighbour blends between the training views' pixel centres; 0 = off",
                             min=0.0, max=0.5)
+    jitter_target: str = opt("pixel", "the target of a jittered ray (--ray-jitter): pixel = the value of the pixel it "
+                                      "was shifted from (a shifted ray learns a neighbour's value: a blur) | "
+                                      "bilinear = the training image and mask bilinearly interpolated at the "
+                                      "shifted position", choices=JITTER_TARGETS)
+    ema: float = opt(0.0, "decay per step of an exponential moving average of all trained parameters (points and "
+                          "networks; warm-up d = min(decay, (1 + n) / (10 + n)) at step n, following the points "
+                          "through pruning and cloning); the fit returns and saves the average, and its history's "
+                          "last entry also scores the trained parameters (`raw`); 0 = off", min=0.0, max=0.9999)
     close2ray: bool = opt(True, "use the close-to-ray regularizer")
     close2ray_weight: float = opt(0.002, "close-to-ray weight gamma", min=0.0)
     close2surface: bool = opt(True, "use the close-to-surface regularizer")
@@ -179,6 +189,23 @@ def jitter_patches(px: torch.Tensor, p: int, amount: float, gen: torch.Generator
     offset, uniform in [-amount, amount]² pixels."""
     off = (torch.rand(p, 1, 2, generator=gen, dtype=px.dtype) * 2.0 - 1.0) * amount
     return (px.reshape(p, -1, 2) + off).reshape(-1, 2)
+
+
+def sample_bilinear(image: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
+    """Bilinear interpolation of image [H, W, C] (or [H, W]) at px [R, 2] (col, row) positions in pixels, pixel
+    (r, c)'s centre at (c + 0.5, r + 0.5) -> [R, C] (or [R]); positions beyond the outer pixel centres take the
+    edge pixels' values (clamped). At pixel centres it is the pixels' values exactly."""
+    h, w = image.shape[:2]
+    x = (px[:, 0].to(torch.float64) - 0.5).clamp(0.0, w - 1.0)
+    y = (px[:, 1].to(torch.float64) - 0.5).clamp(0.0, h - 1.0)
+    x0, y0 = x.floor().long().clamp(max=w - 1), y.floor().long().clamp(max=h - 1)
+    x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
+    fx, fy = (x - x0).to(image.dtype), (y - y0).to(image.dtype)
+    if image.dim() == 3:
+        fx, fy = fx[:, None], fy[:, None]
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
 
 
 def zoom_pixels(px: torch.Tensor, size: int, zoom: int) -> torch.Tensor:
@@ -334,8 +361,10 @@ def build_optimizer(model: PointModel, cfg: TrainConfig) -> torch.optim.Adam:
     return torch.optim.Adam(groups, weight_decay=0.0, decoupled_weight_decay=True)
 
 
-def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, jitter: torch.Tensor | None = None):
-    """Replace the point parameters by model.<param>[src] (+ jitter on xyz), carrying Adam state along.
+def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, jitter: torch.Tensor | None = None,
+                  ema: ParamEMA | None = None):
+    """Replace the point parameters by model.<param>[src] (src [N'] int64; + jitter [N', 3] on xyz), carrying Adam
+    state and the parameters' moving average (`ema`, when given) along.
 
     New Parameter objects are created (changing .data's shape in place confuses autograd)."""
     groups = {g["name"]: g for g in opt.param_groups}
@@ -351,6 +380,8 @@ def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, j
         if state:
             opt.state[new] = {k: (v[src].clone() if torch.is_tensor(v) and v.dim() > 0 else v)
                               for k, v in state.items()}
+    if ema is not None:
+        ema.resize(_POINT_PARAMS, src, jitter)
 
 
 INTERIOR_VIEWS = 6  # finest-level training views a multi-scale fit renders both ways to pick the `auto` mode
@@ -518,7 +549,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
         m.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, xyz))
         m.decoder_footprint.fill_(training_footprint(coarse.c2w, coarse.focal, xyz))
         o = build_optimizer(m, cfg)
-        return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev)
+        ema = ParamEMA(m, cfg.ema) if cfg.ema > 0 else None
+        return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev), ema
 
     def restart(mcfg, reason):
         """The guard's last resort: a new model without a decoder (schedules rerun over the remaining budget)."""
@@ -527,7 +559,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
         mcfg = dataclasses.replace(mcfg, decoder="none")
         return (mcfg, *start(mcfg))
 
-    model, opt, base_lrs, dens = start(model_cfg)
+    model, opt, base_lrs, dens, ema = start(model_cfg)
     bg = torch.as_tensor(background, dtype=torch.float32, device=dev)
     c2ws = train.c2w
     eval_ids = list(range(0, len(test.files), max(1, len(test.files) // max(cfg.eval_views, 1))))[: cfg.eval_views]
@@ -565,8 +597,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                         zeroed += [*model.decoder.alpha_head[-1].parameters()]
                     for p in zeroed:  # fresh Adam moments for the zeroed layers
                         opt.state.pop(p, None)
+                    if ema is not None:  # the decoder's average restarts from the reset decoder
+                        ema.reset(model, "decoder.")
                 elif action == "restart":
-                    model_cfg, model, opt, base_lrs, dens = restart(model_cfg, reason)
+                    model_cfg, model, opt, base_lrs, dens, ema = restart(model_cfg, reason)
                     step0, sec0 = step, train_s
                     frac = 0.0
             t0 = time.perf_counter()
@@ -588,8 +622,12 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             px, rows, cols, size = sample_patches(alphas[v], n_patches, cfg.patch_size, cfg.fg_patch_frac, gen)
             if cfg.ray_jitter > 0:
                 px = jitter_patches(px, n_patches, cfg.ray_jitter, gen)
-            gt = images[v][rows, cols].to(dev)
-            gt_a = alphas[v][rows, cols].to(dev)
+            if cfg.ray_jitter > 0 and cfg.jitter_target == "bilinear":  # the images where the shifted rays are
+                gt = sample_bilinear(images[v], px).to(dev)
+                gt_a = sample_bilinear(alphas[v], px).to(dev)
+            else:
+                gt = images[v][rows, cols].to(dev)
+                gt_a = alphas[v][rows, cols].to(dev)
             c2w = c2ws[v].to(dev)
             px = px.to(dev)
             if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
@@ -649,7 +687,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 # a non-finite loss or gradient: skip the update; a run of them starts the fit again
                 opt.zero_grad(set_to_none=True)
                 if guard.bad_steps >= guard.MAX_BAD_STEPS and guard.restarts < 2:
-                    model_cfg, model, opt, base_lrs, dens = restart(
+                    model_cfg, model, opt, base_lrs, dens, ema = restart(
                         model_cfg, f"{guard.bad_steps} steps in a row had a non-finite loss or gradient")
                     step0, sec0 = step, train_s
                     guard.bad_steps = 0
@@ -658,13 +696,15 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 continue
             dens.accumulate(model, idx, att["weights"])
             opt.step()
+            if ema is not None:
+                ema.update(model)
             step += 1
             # Densification between 10 % and 70 % of training, when geometry is coarse-right but still moving.
             if 0.1 <= frac <= 0.7:
                 if cfg.prune_every and step % cfg.prune_every == 0:
                     keep = torch.nonzero(dens.prune_mask()).squeeze(1)
                     if keep.numel() >= model_cfg.k and keep.numel() < model.num_points:
-                        resize_points(model, opt, keep)
+                        resize_points(model, opt, keep, ema=ema)
                         dens.reset(model.num_points, dev)
                 if cfg.clone_every and step % cfg.clone_every == 0 and model.num_points < cfg.max_points:
                     src = dens.clone_indices(cfg.clone_frac, cfg.max_points - model.num_points)
@@ -672,7 +712,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                         allidx = torch.cat([torch.arange(model.num_points, device=dev), src])
                         jit = torch.zeros(allidx.shape[0], 3, device=dev)
                         jit[-src.numel():] = 0.5 * float(model.spacing) * torch.randn(src.numel(), 3, generator=gen).to(dev)
-                        resize_points(model, opt, allidx, jit)
+                        resize_points(model, opt, allidx, jit, ema=ema)
                         dens.reset(model.num_points, dev)
             train_s += time.perf_counter() - t0
             info = dict(step=step, loss=float(loss.detach()), pts=model.num_points,
@@ -684,6 +724,11 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     torch.set_num_threads(threads)
     # the training pixel's world size at the final points (what renders at other sizes are scaled against)
     model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
+    raw = None
+    if ema is not None:  # the trained parameters' scores, then the model becomes their average
+        raw = evaluate(model, test, eval_ids, background)
+        ema.swap(model)
+        model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
     model.decoder_footprint.fill_(training_footprint(coarse.c2w, coarse.focal, model.xyz.detach()))
     # which decode the render mode `auto` uses inside the object beyond the training size (measured, not guessed)
     gain = interior_gain(model, fine, background=background) if len(levels) > 1 else float("nan")
@@ -693,6 +738,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,
                     "interior_gain": gain if math.isfinite(gain) else None,
                     "guard": {**guard.summary(), "collapsed": reason}})
+    if raw is not None:  # the scores above are the average's (what is returned); these the trained parameters'
+        history[-1]["raw"] = raw
     if scales:  # steps per level, finest first: {"1": n, "2": n, ...}
         history[-1]["train_levels"] = {str(s): n for s, n in zip(scales, level_steps)}
     return model, history

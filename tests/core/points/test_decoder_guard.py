@@ -123,9 +123,11 @@ def test_guard_actions_order():
     assert not g.step_ok(torch.tensor(float("nan")), dec) and g.skipped_steps == 1
 
 
-def test_a_saturated_decoder_fit_is_caught_and_recovers(monkeypatch):
+@pytest.mark.parametrize("ema", [0.0, 0.9])
+def test_a_saturated_decoder_fit_is_caught_and_recovers(monkeypatch, ema):
     """The collapse that used to ship: a sigmoid decoder stuck on the white background. The guard notices it at a
-    checkpoint, restarts without a decoder, and the fit ends well above the blank floor, with the event recorded."""
+    checkpoint, restarts without a decoder, and the fit ends well above the blank floor, with the event recorded;
+    with a moving average of the parameters (--ema), the average restarts with the new model."""
 
     class Saturated(PointModel):
         def __init__(self, cfg, xyz, spacing):
@@ -138,12 +140,14 @@ def test_a_saturated_decoder_fit_is_caught_and_recovers(monkeypatch):
     split = _split()
     mcfg = model_config("fast", decoder="unet", decoder_residual=False)
     cfg = TrainConfig(steps=400, patches=1, patch_size=32, eval_every=0.0, eval_views=2, device="cpu", seed=1,
-                      threads=1, prune_every=0, clone_every=0, lr_final=0.2)
+                      threads=1, prune_every=0, clone_every=0, lr_final=0.2, ema=ema)
     model, hist = fit_points(split, split, mcfg, cfg, show_progress=False)
     guard = hist[-1]["guard"]
     assert [e["action"] for e in guard["events"]] == ["restarted the fit without a decoder"]
     assert model.decoder is None and guard["collapsed"] is None
     assert hist[-1]["psnr_object"] > guard["blank_floor"]["psnr_object"] + 8
+    if ema:
+        assert hist[-1]["raw"]["psnr_object"] > guard["blank_floor"]["psnr_object"] + 8
 
 
 def test_evaluate_reports_what_the_guard_reads():

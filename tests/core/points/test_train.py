@@ -1,4 +1,6 @@
 """Stage-1 training on tiny analytic scenes (seconds each)."""
+import math
+
 import torch
 
 from core.bundle import Bundle, load_bundle, save_bundle
@@ -251,3 +253,93 @@ def test_ray_jitter_shifts_each_patch_as_a_whole():
     a = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5), show_progress=False)[0]
     b = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.5), show_progress=False)[0]
     assert torch.isfinite(b.xyz).all() and not torch.equal(a.xyz, b.xyz)
+
+
+def test_bilinear_target_is_the_image_at_pixel_centres_and_interpolates_between_them():
+    gen = torch.Generator().manual_seed(1)
+    img = torch.rand(9, 11, 3, generator=gen)
+    rows, cols = torch.meshgrid(torch.arange(9), torch.arange(11), indexing="ij")
+    rows, cols = rows.reshape(-1), cols.reshape(-1)
+    centres = torch.stack([cols + 0.5, rows + 0.5], dim=-1).float()
+    assert torch.equal(train_mod.sample_bilinear(img, centres), img[rows, cols])  # zero offset: the pixels
+    inner = (rows < 8) & (cols < 10)
+    for dx, dy in ((1, 0), (0, 1), (1, 1)):  # integer offsets: the neighbouring pixels
+        got = train_mod.sample_bilinear(img, centres[inner] + torch.tensor([float(dx), float(dy)]))
+        torch.testing.assert_close(got, img[rows[inner] + dy, cols[inner] + dx], rtol=0, atol=1e-7)
+    half = train_mod.sample_bilinear(img, centres[inner] + torch.tensor([0.5, 0.0]))
+    torch.testing.assert_close(half, 0.5 * (img[rows[inner], cols[inner]] + img[rows[inner], cols[inner] + 1]))
+    # exact on a linear ramp at any sub-pixel position inside the outer pixel centres; clamped beyond them
+    yy, xx = torch.meshgrid(torch.arange(9.0), torch.arange(11.0), indexing="ij")
+    ramp = 0.3 * xx - 0.2 * yy + 1.0                                     # [H, W]: a mask-shaped input
+    pos = torch.rand(200, 2, generator=gen) * torch.tensor([10.0, 8.0]) + 0.5
+    torch.testing.assert_close(train_mod.sample_bilinear(ramp, pos),
+                               0.3 * (pos[:, 0] - 0.5) - 0.2 * (pos[:, 1] - 0.5) + 1.0, rtol=0, atol=1e-5)
+    far = train_mod.sample_bilinear(img, torch.tensor([[-1e30, -1e30], [1e30, 1e30], [0.0, 100.0]]))
+    torch.testing.assert_close(far, torch.stack([img[0, 0], img[8, 10], img[8, 0]]))
+
+
+def test_bilinear_jitter_targets_train_and_differ_from_kept_pixels():
+    train, test = _two_views()
+    kept = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.5), show_progress=False)[0]
+    interp = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.5, jitter_target="bilinear"),
+                        show_progress=False)[0]
+    assert torch.isfinite(interp.xyz).all() and torch.isfinite(interp.features).all()
+    assert not torch.equal(kept.features, interp.features)
+    # without jitter the target rule does nothing
+    a = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=3), show_progress=False)[0]
+    b = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=3, jitter_target="bilinear"), show_progress=False)[0]
+    assert torch.equal(a.features, b.features)
+
+
+def test_parameter_average_follows_its_formula_and_the_point_set():
+    from core.points.ema import ParamEMA
+    model = train_mod.PointModel(TINY_MODEL, torch.rand(50, 3), 0.1)
+    same = ParamEMA(model, 0.0)
+    avg = ParamEMA(model, 0.5)
+    start = {n: p.detach().clone() for n, p in model.named_parameters()}
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(1.0)
+    same.update(model)
+    avg.update(model)  # warm-up: d = min(0.5, 1 / 10) = 0.1
+    for n, p in model.named_parameters():
+        assert torch.equal(same.shadow[n], p)  # decay 0: the parameters themselves
+        torch.testing.assert_close(avg.shadow[n], 0.1 * start[n] + 0.9 * p.detach())
+    assert abs(avg.rate() - 2 / 11) < 1e-12 and ParamEMA(model, 0.999).rate() == 0.1
+    src = torch.tensor([3, 3, 7, 0])
+    jit = torch.zeros(4, 3)
+    jit[1] = 0.25
+    before = {n: avg.shadow[n].clone() for n in ("xyz", "features", "influence")}
+    avg.resize(("xyz", "features", "influence"), src, jit)
+    assert torch.equal(avg.shadow["xyz"], before["xyz"][src] + jit)
+    assert torch.equal(avg.shadow["features"], before["features"][src])
+    snapshot = {n: p.detach().clone() for n, p in model.named_parameters()}
+    pair = ParamEMA(model, 0.5)
+    with torch.no_grad():
+        for p in pair.shadow.values():
+            p.mul_(-3.0)
+    pair.swap(model)
+    pair.swap(model)
+    for n, p in model.named_parameters():
+        assert torch.equal(p, snapshot[n])  # swapped twice: unchanged
+
+
+def test_fit_with_parameter_average_trains_the_same_and_saves_the_average(tmp_path):
+    train, test = _two_views()
+    kw = dict(steps=40, prune_every=10, clone_every=15, max_points=700, clone_frac=0.1)
+    plain, h_plain = fit_points(train, test, TINY_MODEL, _tiny_cfg(**kw), show_progress=False)
+    avg, h_avg = fit_points(train, test, TINY_MODEL, _tiny_cfg(ema=0.9, **kw), show_progress=False)
+    assert avg.num_points == plain.num_points != TINY_MODEL.num_points  # the average followed the point set
+    # the average does not change training: the trained parameters score as the plain fit does
+    assert h_avg[-1]["raw"]["psnr"] == h_plain[-1]["psnr"]
+    assert "raw" not in h_plain[-1]
+    assert not torch.equal(avg.features, plain.features) and torch.isfinite(avg.xyz).all()
+    path = save_bundle(tmp_path / "avg.pgt", Bundle(model=avg, meta={"scene": {"name": "sphere"}}))
+    loaded = load_bundle(path, device="cpu").model
+    for (n, p), q in zip(avg.named_parameters(), loaded.parameters()):
+        assert torch.equal(p, q), n
+    a = render_frame(avg, test.c2w[0], 32, 32, test.focal)["rgb"]
+    assert torch.equal(a, render_frame(loaded, test.c2w[0], 32, 32, test.focal)["rgb"])
+    extreme = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ema=0.9999), show_progress=False)
+    assert torch.isfinite(extreme[0].features).all()
+    assert math.isfinite(extreme[1][-1]["psnr"]) and math.isfinite(extreme[1][-1]["raw"]["psnr"])
