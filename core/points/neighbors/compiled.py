@@ -160,13 +160,13 @@ _SECTORS = 8  # surround: the turn around a query in 45° sectors
 _SECTOR_RUN = 3  # ... surrounded when no this many consecutive sectors lack a candidate
 
 
-def _sector(dx, dy):
+def _sector_py(dx, dy):
     """The 45° sector (0..7, counter-clockwise from +x) of the direction (dx, dy) != 0."""
     s = int(math.floor(math.atan2(dy, dx) / (0.25 * math.pi))) % _SECTORS
     return s
 
 
-def _ringed(mask):
+def _ringed_py(mask):
     """Whether a bit mask of occupied sectors leaves no _SECTOR_RUN consecutive sectors (around the turn) empty."""
     for s in range(_SECTORS):
         empty = True
@@ -179,7 +179,19 @@ def _ringed(mask):
     return True
 
 
+_sector, _ringed = _sector_py, _ringed_py  # the kernel calls these names: compiled with it (`_get_kernel`)
+
+
 _compiled = None
+
+
+def _jit_kernel(cache: bool):
+    """The kernel and the helpers it calls compiled by numba, each from its Python function (so a second attempt,
+    without the cache, starts again from those)."""
+    global _sector, _ringed
+    _sector = numba.njit(cache=cache, nogil=True, fastmath=False)(_sector_py)
+    _ringed = numba.njit(cache=cache, nogil=True, fastmath=False)(_ringed_py)
+    return numba.njit(cache=cache, nogil=True, fastmath=False)(_kernel)
 
 
 def _get_kernel():
@@ -188,15 +200,10 @@ def _get_kernel():
         if numba is None:
             raise RuntimeError(f"the compiled neighbour search needs numba ({_NUMBA_ERROR}); "
                                "install it (pip install numba) or use backend='grid'")
-        global _sector, _ringed
         try:  # cached next to the module (or numba's user cache) so later processes skip the ~2 s compile
-            _sector = numba.njit(cache=True, nogil=True, fastmath=False)(_sector)
-            _ringed = numba.njit(cache=True, nogil=True, fastmath=False)(_ringed)
-            _compiled = numba.njit(cache=True, nogil=True, fastmath=False)(_kernel)
+            _compiled = _jit_kernel(cache=True)
         except RuntimeError:  # no writable cache location (read-only install): compile per process
-            _sector = numba.njit(cache=False, nogil=True, fastmath=False)(_sector)
-            _ringed = numba.njit(cache=False, nogil=True, fastmath=False)(_ringed)
-            _compiled = numba.njit(cache=False, nogil=True, fastmath=False)(_kernel)
+            _compiled = _jit_kernel(cache=False)
     return _compiled
 
 
