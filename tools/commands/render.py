@@ -6,7 +6,6 @@ painted texture looked up at each ray's canonical correspondence.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
@@ -22,8 +21,7 @@ def add_arguments(p):
     from core.config import add_to_parser
     from core.edits.correspondence import MODES
     from core.edits.deformation import DeformationConfig
-    from core.frames.edited import (COMPRESSION, DEPTH_REFS, FILL_FEATURES, FOLD_TESTS, KEY_STRETCH, RADIUS_RULES,
-                                     EditConfig)
+    from core.frames.edited import EditConfig
 
     p.add_argument("model", help="model file (.pgt)")
     p.add_argument("--cameras", required=True, help="transforms JSON whose cameras to render (transforms_*.json, or "
@@ -41,65 +39,10 @@ def add_arguments(p):
     p.add_argument("--correspondence", default=EditConfig.correspondence, choices=MODES,
                    help="canonical correspondence for texture lookups of moved points: deform-aware / naive (the "
                         "paper's) or deform-gradient (also undoes each neighbour's local rotation and stretch)")
-    p.add_argument("--f-attention", action=argparse.BooleanOptionalAction, default=EditConfig.f_attention,
-                   help="moved points: attention keys in each point's canonical frame (local deformation gradient)")
-    p.add_argument("--f-compression", default=EditConfig.f_compression, choices=COMPRESSION,
-                   help="what the F-aware keys and deform-gradient correspondence undo of a local compression: "
-                        "tangent (along the surface) | keep (none) | undo (all) | auto (tangent for a thin-sheet "
-                        "model, undo for a thick shell: --f-thick-spread)")
-    p.add_argument("--f-thick-spread", type=float, default=EditConfig.f_thick_spread,
-                   help="--f-compression auto: a model whose median canonical neighbourhood spread (smallest / "
-                        "largest) is at least this counts as a thick shell")
-    p.add_argument("--f-depth", default=EditConfig.f_depth, choices=DEPTH_REFS,
-                   help="F-aware keys: each neighbour's depth from the ray's nearest neighbour in the canonical "
-                        "frames (nearest) or from the deformed ray's nearest neighbour (ray)")
-    p.add_argument("--f-radius", action=argparse.BooleanOptionalAction, default=EditConfig.f_radius,
-                   help="moved points: neighbour search radius cap scaled by the points' stretch")
-    p.add_argument("--f-radius-rule", default=EditConfig.f_radius_rule, choices=RADIUS_RULES,
-                   help="--f-radius: gap (each point reaches farther by the growth the fill left on its neighbour "
-                        "pairs) | budget (gap, only on pairs the fill budget kept sparse) | frame (the whole frame's "
-                        "cap times the points' 90th-percentile stretch)")
-    p.add_argument("--f-reach-gate", type=float, default=EditConfig.f_reach_gate,
-                   help="--f-radius gap / budget: a ray with no point within this many times the plain pixel cap "
-                        "stays empty (1: the reach adds far points only to rays that already see the object; "
-                        "beyond 1 see --f-reach-between; 0 = no gate)")
-    p.add_argument("--f-reach-surround", action=argparse.BooleanOptionalAction,
-                   default=EditConfig.f_reach_surround,
-                   help="--f-reach-gate > 0: a ray with no point within the gate is still reached when its "
-                        "neighbours surround it (a hole in a sparse stretched surface, not a ray beside the "
-                        "object's outline)")
-    p.add_argument("--f-reach-gate-own", action=argparse.BooleanOptionalAction,
-                   default=EditConfig.f_reach_gate_own,
-                   help="--f-reach-gate > 1: each point gates at that many plain caps but at most at its own "
-                        "reach (the wider gate only around points whose neighbours were pulled that far apart)")
-    p.add_argument("--f-reach-between", action=argparse.BooleanOptionalAction,
-                   default=EditConfig.f_reach_between,
-                   help="--f-reach-gate > 1: beyond the plain cap the gate opens only for two points within it "
-                        "more than 120° apart as seen from the ray (between the points of a sparse stretched "
-                        "surface, not beside the object's outline)")
-    p.add_argument("--f-fill", action=argparse.BooleanOptionalAction, default=EditConfig.f_fill,
-                   help="moved points: add points where the pose pulled canonical neighbours apart (a stretched "
-                        "surface, a joint's blend band)")
-    p.add_argument("--f-fill-ratio", type=float, default=EditConfig.f_fill_ratio,
-                   help="--f-fill: a neighbour pair whose distance grew by more than this gets points (> 1)")
-    p.add_argument("--f-fill-budget", type=float, default=EditConfig.f_fill_budget,
-                   help="--f-fill: at most this many added points per point (>= 0)")
-    p.add_argument("--f-fill-features", default=EditConfig.f_fill_features, choices=FILL_FEATURES,
-                   help="--f-fill: an added point carries both ends' features of its pair, mixed by where it lies "
-                        "between them (blend), or those of the nearer end (nearer)")
-    p.add_argument("--f-key-stretch", default=EditConfig.f_key_stretch, choices=KEY_STRETCH,
-                   help="--f-attention with --f-fill: the keys undo a point's stretch only up to the largest growth "
-                        "the fill left between consecutive points on its neighbour pairs (gap), or all of it (full)")
-    p.add_argument("--fold-radius", type=float, default=EditConfig.fold_radius,
-                   help="moved points: the correspondence keeps a ray's neighbours whose displacement lies within "
-                        "this many point spacings of its most-attended one's, dropping the other side of a fold "
-                        "(0 = keep all)")
-    p.add_argument("--fold-test", default=EditConfig.fold_test, choices=FOLD_TESTS,
-                   help="--fold-radius: compare the neighbours' displacements (displacement) or each neighbour's "
-                        "estimate of the ray's canonical point through its local deformation gradient (local-map)")
-    p.add_argument("--f-occlusion", action=argparse.BooleanOptionalAction, default=EditConfig.f_occlusion,
-                   help="moved points: each ray keeps the front one of the surface layers among its neighbours "
-                        "(a joint's fold, a part swung behind another; told apart by the local deformation gradients)")
+    # the F-aware rendering and fold rule: one flag per EditConfig field, help from the field (the other fields
+    # have their own flags above and below, or are not offered)
+    add_to_parser(p, EditConfig, skip=("correspondence", "blend", "mask_threshold", "temperature", "colour",
+                                       "attention", "antialias", "render_mode"))
     add_to_parser(p, DeformationConfig, prefix="deformation")
     p.add_argument("--blend", default="soft", choices=("soft", "threshold"),
                    help="texture-edit blend: soft (m*T' + (1-m)*render) or threshold (paper: m > 0.95)")
@@ -184,7 +127,7 @@ def run(args) -> int:
     import torch
 
     from core.bundle import load_bundle
-    from core.config import check_flag, validate
+    from core.config import check_flag, from_args
     from core.frames.edited import EditConfig
     from core.points.render import straight_colour
     from core.images.dataset import load_cameras
@@ -199,16 +142,7 @@ def run(args) -> int:
     if args.json:
         check_output_file(args.json, "--json")
     check_flag(args.size, "--size", min=1, max=MAX_RENDER_SIZE)
-    cfg = validate(EditConfig(correspondence=args.correspondence, blend=args.blend, antialias=args.antialias,
-                              f_attention=args.f_attention, f_radius=args.f_radius, f_compression=args.f_compression,
-                              f_depth=args.f_depth, f_thick_spread=args.f_thick_spread, f_radius_rule=args.f_radius_rule,
-                              f_reach_gate=args.f_reach_gate, f_reach_surround=args.f_reach_surround,
-                              f_reach_gate_own=args.f_reach_gate_own, f_reach_between=args.f_reach_between,
-                              f_fill=args.f_fill, f_fill_ratio=args.f_fill_ratio, f_fill_budget=args.f_fill_budget,
-                              f_fill_features=args.f_fill_features, f_key_stretch=args.f_key_stretch,
-                              fold_radius=args.fold_radius, fold_test=args.fold_test, f_occlusion=args.f_occlusion,
-                              render_mode=args.render_mode,
-                              **({} if args.temperature is None else {"temperature": args.temperature})))
+    cfg = from_args(EditConfig, args)  # every flag set (the temperature only when given) over the defaults
     check_device(args.device, "--device")
     bundle = load_bundle(args.model, device=args.device)
     cams = load_cameras(args.cameras, size=args.size)
