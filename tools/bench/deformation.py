@@ -1,4 +1,4 @@
-"""Frame cost of the deformation-gradient parts of the edit path, against today's renderer (needs bpy).
+"""Frame cost of the deformation-gradient parts of the edit path, against the paper's renderer (needs bpy).
 
 Run: `python -m tools.bench.deformation MODEL.pgt --scene DIR [--pose stretch] [--views 4] [--repeats 3]
 [--size 128]`.
@@ -7,7 +7,7 @@ The model's points are posed by the scene's rig (as `pointgt eval-edits` does) a
 into the atlas; every frame then builds a fresh EditState, as an animation does when the points move each frame,
 so the F fit (canonical neighbourhoods cached per model, one O(N·k) least-squares fit per frame) is charged to
 every frame. Variants are interleaved per camera and repeat (the machine's load drifts alike for all), one torch
-thread; the table gives the median wall and CPU (process) seconds per frame and the CPU ratio to today's.
+thread; the table gives the median wall and CPU (process) seconds per frame and the CPU ratio to the paper's.
 `--profile`: a second table splits each variant's CPU milliseconds per frame (mean) into stages, by wrapping their
 functions (tools.bench.render's timed_parts): the F fit (neighbour gathering and least squares), the fill, the
 neighbour search, the attention, shading and decoder, the correspondence, the texture lookup; "other" is the rest
@@ -31,7 +31,7 @@ _AUTO = {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fil
 _BUDGET = {**_AUTO, "f_radius": True, "f_radius_rule": "budget"}
 _D = "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression"
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
-    "paper (today), deform-aware": _OFF,
+    "paper, deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
     "f-attention, deform-gradient": {**_OFF, "f_attention": True, "correspondence": "deform-gradient"},
     "f-attention + f-radius, deform-gradient": {**_OFF, "f_attention": True, "f_radius": True,
@@ -105,7 +105,7 @@ def _stage_parts(bundle) -> list:
 
 def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats: int, size: int | None = None,
         log=print, variants: list[str] | None = None, profile: bool = False) -> dict:
-    """variants: names of VARIANTS to time (default: all); today's renderer is always the first. profile: also the
+    """variants: names of VARIANTS to time (default: all); the paper's renderer is always the first. profile: also the
     mean CPU seconds per frame of each stage (PROFILE_STAGES, and "other")."""
     import contextlib
 
@@ -178,7 +178,7 @@ def markdown(res: dict) -> str:
     lines = [f"Scene `{res['scene']}`, pose {res['pose']} m={res['magnitude']:g}, {res['size']}, "
              f"{res['points']} points, {res['frames']} frames per variant; machine: {res['machine'].get('cpu')}, "
              f"{res['machine'].get('cores')} cores, 1 torch thread", "",
-             "| variant | median wall s/frame | median CPU s/frame | CPU vs today | of which F (wall s) |",
+             "| variant | median wall s/frame | median CPU s/frame | CPU vs paper | of which F (wall s) |",
              "|---|---|---|---|---|"]
     for r in res["rows"]:
         lines.append(f"| {r['variant']} | {r['wall']:.3f} | {r['cpu']:.3f} | {100 * (r['cpu_ratio'] - 1):+.0f} % | "
@@ -203,7 +203,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed rounds over the cameras (after one warm-up)")
     ap.add_argument("--profile", action="store_true", help="also split each variant's CPU time into stages")
     ap.add_argument("--variants", default=None,
-                    help="semicolon-separated variant names to time (default: all; today's is always timed first)")
+                    help="semicolon-separated variant names to time (default: all; the paper's is always timed first)")
     args = ap.parse_args(argv)
     variants = [v.strip() for v in args.variants.split(";") if v.strip()] if args.variants else None
     res = run(args.model, args.scene, args.pose, args.magnitude, args.views, args.repeats, args.size,

@@ -21,7 +21,7 @@ def add_arguments(p):
     p.add_argument("--views", type=int, default=4, help="test views per case (evenly spaced over the scene's)")
     p.add_argument("--temperatures", default="1,0.5", help="attention temperatures (< 1 sharpens attention)")
     p.add_argument("--renderers", default="paper,f-attention",
-                   help="comma-separated renderer variants: paper (today's) | f-attention (attention keys in each "
+                   help="comma-separated renderer variants: paper (the paper's renderer) | f-attention (attention keys in each "
                         "point's canonical frame, stretch undone) | f-radius (neighbour radius cap scaled by the stretch) | "
                         "f-both | f-keep / f-squash (as f-attention, undoing no / all compression, also in the deform-gradient "
                         "correspondence) | fill / f-fill (paper / f-attention with points added where the pose pulled neighbours "
