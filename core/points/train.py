@@ -112,6 +112,11 @@ class TrainConfig:
                                 "size (--downscale 4: levels 1,2,4 of the full-size images, weights 1,1,4)")
     train_scale_weights: str = opt("", "share of the steps per level of --train-scales, comma-separated in its "
                                        "(sorted) order, fine to coarse; empty = equal shares")
+    train_scale_settle: float = opt(0.0, "fraction of training, at its end, spent on the coarsest level of "
+                                         "--train-scales alone (the training size), so the points and the decoder "
+                                         "settle at the size the test views, the profile and the atlas use; the "
+                                         "steps before share the levels by --train-scale-weights; 0 = the shares "
+                                         "to the end", min=0.0, max=1.0)
     zoom_max: int = opt(2, "largest zoom of those steps (each picks 2..zoom_max; patches / zoom² of them, so a "
                            "step costs about the same)", min=2, max=8)
     dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)",
@@ -240,6 +245,18 @@ def pool_index(p: int, size: int, zoom: int) -> torch.Tensor:
     r, c = torch.meshgrid(t, t, indexing="ij")
     local = (r * size + c).reshape(-1)
     return (torch.arange(p)[:, None] * size * size + local[None]).reshape(-1)
+
+
+def pick_level(level_p: torch.Tensor, frac: float, settle: float, gen: torch.Generator) -> int:
+    """The pyramid level a multi-scale step trains on, an index into the levels fine to coarse: drawn from the
+    shares level_p [L] (float64, summing to 1); at a fraction of training frac >= 1 - settle (settle > 0) the
+    coarsest, the training size, without a draw. One level: 0, without a draw."""
+    n = level_p.shape[0]
+    if n == 1:
+        return 0
+    if settle > 0 and frac >= 1.0 - settle:
+        return n - 1
+    return int(torch.multinomial(level_p, 1, generator=gen))
 
 
 def patch_neighbors(points: torch.Tensor, model_cfg: ModelConfig, c2w: torch.Tensor, level, px: torch.Tensor,
@@ -610,7 +627,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             dec_factor = decoder_lr_factor(frac, cfg.decoder_stop)
             for g, lr in zip(opt.param_groups, base_lrs):
                 g["lr"] = lr * decay * (dec_factor if g["name"] == "decoder" else 1.0)
-            li = 0 if len(levels) == 1 else int(torch.multinomial(level_p, 1, generator=gen))
+            li = pick_level(level_p, frac, cfg.train_scale_settle, gen)
             lv = levels[li]  # the level's images, size and camera; one level (off): the training images
             level_steps[li] += 1
             images, alphas = lv.images, lv.alphas

@@ -114,3 +114,38 @@ def test_extreme_levels_sizes_that_do_not_divide_and_a_one_pixel_level():
     # one pixel, the object no longer opaque in it: the visual hull says so, as --downscale 16 would
     with pytest.raises(DataError, match="no 3-D point projects onto the foreground"):
         fit_points(tiny, tiny, TINY_MODEL, _cfg(steps=5, train_scales="1,16"), show_progress=False)
+
+
+def test_pick_level_settles_on_the_coarsest_level_at_the_end():
+    """--train-scale-settle: before 1 - settle the shares pick the level; after it the coarsest, without drawing
+    (so the random stream of the steps before is that of the fit without it)."""
+    from core.points.train import pick_level
+
+    p = torch.tensor([0.5, 0.5, 0.0], dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    early = {pick_level(p, 0.2, 0.3, gen) for _ in range(50)}
+    assert early == {0, 1}
+    state = gen.get_state()
+    assert all(pick_level(p, f, 0.3, gen) == 2 for f in (0.7, 0.85, 1.0))
+    assert torch.equal(gen.get_state(), state)
+    assert pick_level(p, 0.0, 1.0, gen) == 2  # settle 1: the training size throughout
+    assert pick_level(torch.ones(1, dtype=torch.float64), 0.9, 0.5, gen) == 0  # one level: nothing to pick
+    assert torch.equal(gen.get_state(), state)
+    assert {pick_level(p, 0.99, 0.0, gen) for _ in range(50)} == {0, 1}  # settle 0: the shares to the end
+
+
+def test_settle_trains_the_last_steps_on_the_training_size_and_zero_is_the_fit_without_it():
+    native = _native(size=32)
+    mcfg = model_config("card", num_points=600, decoder="unet")
+    base = dict(steps=40, train_scales="1,2", train_scale_weights="1,1", prune_every=0, clone_every=0)
+    plain, h0 = fit_points(native, native, mcfg, _cfg(**base), show_progress=False)
+    zero, h1 = fit_points(native, native, mcfg, _cfg(**base, train_scale_settle=0.0), show_progress=False)
+    assert _same(_state(plain), _state(zero)) and h0[-1]["train_levels"] == h1[-1]["train_levels"]
+    model, hist = fit_points(native, native, mcfg, _cfg(**base, train_scale_settle=0.5), show_progress=False)
+    levels = hist[-1]["train_levels"]
+    # steps 20..39 (frac >= 0.5) on the coarsest level; the first 20 shared as the fit without settling shares them
+    first = {k: v for k, v in h0[-1]["train_levels"].items()}
+    assert levels["2"] >= 20 and levels["1"] > 0 and levels["1"] + levels["2"] == 40
+    assert levels["1"] <= first["1"]
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    assert hist[-1]["psnr"] > hist[0]["psnr"] + 3
