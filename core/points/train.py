@@ -117,6 +117,11 @@ class TrainConfig:
                                          "settle at the size the test views, the profile and the atlas use; the "
                                          "steps before share the levels by --train-scale-weights; 0 = the shares "
                                          "to the end", min=0.0, max=1.0)
+    train_scale_decoder: str = opt("all", "which levels of --train-scales train the UNet decoder: all | coarsest = "
+                                          "only the training size's steps (the finer levels' steps train the points "
+                                          "and the attention, the decoder stays the training size's, so it keeps "
+                                          "softening the silhouette and detail the training size cannot hold)",
+                                   choices=("all", "coarsest"))
     zoom_max: int = opt(2, "largest zoom of those steps (each picks 2..zoom_max; patches / zoom² of them, so a "
                            "step costs about the same)", min=2, max=8)
     dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)",
@@ -700,6 +705,9 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                     loss = loss + cfg.close2surface_weight * c2s
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            if model.decoder is not None and cfg.train_scale_decoder == "coarsest" and li != len(levels) - 1:
+                for p in model.decoder.parameters():  # no gradient: Adam leaves the decoder (and its moments) as is
+                    p.grad = None
             if cfg.guard and not guard.step_ok(loss, model):
                 # a non-finite loss or gradient: skip the update; a run of them starts the fit again
                 opt.zero_grad(set_to_none=True)

@@ -149,3 +149,29 @@ def test_settle_trains_the_last_steps_on_the_training_size_and_zero_is_the_fit_w
     assert levels["1"] <= first["1"]
     assert all(torch.isfinite(p).all() for p in model.parameters())
     assert hist[-1]["psnr"] > hist[0]["psnr"] + 3
+
+
+def test_decoder_on_the_coarsest_level_only_leaves_it_alone_on_finer_steps():
+    """--train-scale-decoder coarsest: the finer levels' steps do not move the decoder (all its steps on them:
+    it is the initial decoder to the bit), the points and the other networks still train; on the coarsest level
+    it trains as with `all`."""
+    native = _native(size=32)
+    mcfg = model_config("card", num_points=600, decoder="unet")
+    base = dict(steps=12, train_scales="1,2", prune_every=0, clone_every=0)
+    fine_only = dict(base, train_scale_weights="1,0", train_scale_decoder="coarsest")
+    init, _ = fit_points(native, native, mcfg, _cfg(**{**fine_only, "steps": 2}), show_progress=False)
+    fine, hist = fit_points(native, native, mcfg, _cfg(**fine_only), show_progress=False)
+    assert hist[-1]["train_levels"] == {"1": 12, "2": 0}
+    dec0, dec1 = init.decoder.state_dict(), fine.decoder.state_dict()
+    assert all(torch.equal(dec0[k], dec1[k]) for k in dec0)
+    assert not bool(fine.decoder.out.weight.any())  # its correction is still the initial zero
+    assert not torch.equal(init.xyz, fine.xyz) and not torch.equal(init.features, fine.features)
+    coarse_all, _ = fit_points(native, native, mcfg, _cfg(**base, train_scale_weights="0,1"), show_progress=False)
+    coarse_only, _ = fit_points(native, native, mcfg, _cfg(**base, train_scale_weights="0,1",
+                                                           train_scale_decoder="coarsest"), show_progress=False)
+    assert _same(_state(coarse_all), _state(coarse_only))
+    mixed, hist = fit_points(native, native, mcfg, _cfg(**{**base, "steps": 30}, train_scale_decoder="coarsest"),
+                             show_progress=False)
+    assert min(hist[-1]["train_levels"].values()) > 0
+    assert all(torch.isfinite(p).all() for p in mixed.parameters())
+    assert not all(torch.equal(dec0[k], mixed.decoder.state_dict()[k]) for k in dec0)
