@@ -38,6 +38,7 @@ from core.util.workers import split_rows
 
 DEFAULT_STEPS = 6000  # the step budget of a fit given neither --steps nor --minutes
 JITTER_TARGETS = ("pixel", "bilinear")
+FINE_TRAINS = ("all", "no-decoder", "colour", "features")  # TrainConfig.train_scale_fine
 
 
 @dataclass
@@ -117,11 +118,13 @@ class TrainConfig:
                                          "settle at the size the test views, the profile and the atlas use; the "
                                          "steps before share the levels by --train-scale-weights; 0 = the shares "
                                          "to the end", min=0.0, max=1.0)
-    train_scale_decoder: str = opt("all", "which levels of --train-scales train the UNet decoder: all | coarsest = "
-                                          "only the training size's steps (the finer levels' steps train the points "
-                                          "and the attention, the decoder stays the training size's, so it keeps "
-                                          "softening the silhouette and detail the training size cannot hold)",
-                                   choices=("all", "coarsest"))
+    train_scale_fine: str = opt("all", "what the steps on the finer levels of --train-scales train (the training "
+                                       "size's steps train everything): all | no-decoder = all but the UNet decoder "
+                                       "(it stays the training size's, softening the silhouette and the detail the "
+                                       "training size cannot hold) | colour = the point features and the decoder "
+                                       "only (positions, influence and attention keep the training size's "
+                                       "coverage) | features = the point features only",
+                                choices=FINE_TRAINS)
     zoom_max: int = opt(2, "largest zoom of those steps (each picks 2..zoom_max; patches / zoom² of them, so a "
                            "step costs about the same)", min=2, max=8)
     dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)",
@@ -262,6 +265,19 @@ def pick_level(level_p: torch.Tensor, frac: float, settle: float, gen: torch.Gen
     if settle > 0 and frac >= 1.0 - settle:
         return n - 1
     return int(torch.multinomial(level_p, 1, generator=gen))
+
+
+def frozen_on_fine(model: PointModel, what: str) -> list[torch.nn.Parameter]:
+    """The parameters a finer level's step of a multi-scale fit leaves alone under `--train-scale-fine what`
+    (FINE_TRAINS): none for all; the decoder's for no-decoder; all but the point features and the decoder for
+    colour; all but the point features for features."""
+    if what == "all":
+        return []
+    keep = {"features"} | ({"decoder."} if what == "colour" else set())
+    if what == "no-decoder":
+        return [p for n, p in model.named_parameters() if n.startswith("decoder.")]
+    return [p for n, p in model.named_parameters()
+            if n not in keep and not (n.startswith("decoder.") and "decoder." in keep)]
 
 
 def patch_neighbors(points: torch.Tensor, model_cfg: ModelConfig, c2w: torch.Tensor, level, px: torch.Tensor,
@@ -705,9 +721,9 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                     loss = loss + cfg.close2surface_weight * c2s
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            if model.decoder is not None and cfg.train_scale_decoder == "coarsest" and li != len(levels) - 1:
-                for p in model.decoder.parameters():  # no gradient: Adam leaves the decoder (and its moments) as is
-                    p.grad = None
+            if li != len(levels) - 1:  # a finer level's step: only what --train-scale-fine names trains
+                for p in frozen_on_fine(model, cfg.train_scale_fine):
+                    p.grad = None  # no gradient: Adam leaves the parameter (and its moments) as it is
             if cfg.guard and not guard.step_ok(loss, model):
                 # a non-finite loss or gradient: skip the update; a run of them starts the fit again
                 opt.zero_grad(set_to_none=True)

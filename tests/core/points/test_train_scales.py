@@ -151,14 +151,14 @@ def test_settle_trains_the_last_steps_on_the_training_size_and_zero_is_the_fit_w
     assert hist[-1]["psnr"] > hist[0]["psnr"] + 3
 
 
-def test_decoder_on_the_coarsest_level_only_leaves_it_alone_on_finer_steps():
-    """--train-scale-decoder coarsest: the finer levels' steps do not move the decoder (all its steps on them:
+def test_fine_steps_without_the_decoder_leave_it_alone():
+    """--train-scale-fine no-decoder: the finer levels' steps do not move the decoder (all its steps on them:
     it is the initial decoder to the bit), the points and the other networks still train; on the coarsest level
     it trains as with `all`."""
     native = _native(size=32)
     mcfg = model_config("card", num_points=600, decoder="unet")
     base = dict(steps=12, train_scales="1,2", prune_every=0, clone_every=0)
-    fine_only = dict(base, train_scale_weights="1,0", train_scale_decoder="coarsest")
+    fine_only = dict(base, train_scale_weights="1,0", train_scale_fine="no-decoder")
     init, _ = fit_points(native, native, mcfg, _cfg(**{**fine_only, "steps": 2}), show_progress=False)
     fine, hist = fit_points(native, native, mcfg, _cfg(**fine_only), show_progress=False)
     assert hist[-1]["train_levels"] == {"1": 12, "2": 0}
@@ -168,10 +168,36 @@ def test_decoder_on_the_coarsest_level_only_leaves_it_alone_on_finer_steps():
     assert not torch.equal(init.xyz, fine.xyz) and not torch.equal(init.features, fine.features)
     coarse_all, _ = fit_points(native, native, mcfg, _cfg(**base, train_scale_weights="0,1"), show_progress=False)
     coarse_only, _ = fit_points(native, native, mcfg, _cfg(**base, train_scale_weights="0,1",
-                                                           train_scale_decoder="coarsest"), show_progress=False)
+                                                           train_scale_fine="no-decoder"), show_progress=False)
     assert _same(_state(coarse_all), _state(coarse_only))
-    mixed, hist = fit_points(native, native, mcfg, _cfg(**{**base, "steps": 30}, train_scale_decoder="coarsest"),
+    mixed, hist = fit_points(native, native, mcfg, _cfg(**{**base, "steps": 30}, train_scale_fine="no-decoder"),
                              show_progress=False)
     assert min(hist[-1]["train_levels"].values()) > 0
     assert all(torch.isfinite(p).all() for p in mixed.parameters())
     assert not all(torch.equal(dec0[k], mixed.decoder.state_dict()[k]) for k in dec0)
+
+
+def test_what_the_finer_levels_train():
+    """frozen_on_fine: what --train-scale-fine leaves to the training size's steps; with `colour` a fit whose
+    steps are all on the finer level moves the point features and the decoder, never the positions, influence or
+    attention."""
+    from core.points.train import frozen_on_fine
+
+    mcfg = model_config("card", num_points=600, decoder="unet")
+    native = _native(size=32)
+    model, _ = fit_points(native, native, mcfg, _cfg(steps=2), show_progress=False)
+    names = {id(p): n for n, p in model.named_parameters()}
+    assert frozen_on_fine(model, "all") == []
+    no_dec = {names[id(p)] for p in frozen_on_fine(model, "no-decoder")}
+    assert no_dec and all(n.startswith("decoder.") for n in no_dec)
+    colour = {names[id(p)] for p in frozen_on_fine(model, "colour")}
+    assert {"xyz", "influence"} <= colour and "features" not in colour
+    assert not any(n.startswith("decoder.") for n in colour)
+    feats = {names[id(p)] for p in frozen_on_fine(model, "features")}
+    assert feats == set(names.values()) - {"features"}
+    base = dict(steps=12, train_scales="1,2", train_scale_weights="1,0", prune_every=0, clone_every=0)
+    a, _ = fit_points(native, native, mcfg, _cfg(**{**base, "steps": 2}, train_scale_fine="colour"),
+                      show_progress=False)
+    b, _ = fit_points(native, native, mcfg, _cfg(**base, train_scale_fine="colour"), show_progress=False)
+    assert torch.equal(a.xyz, b.xyz) and torch.equal(a.influence, b.influence)
+    assert not torch.equal(a.features, b.features) and bool(b.decoder.out.weight.any())
