@@ -118,6 +118,11 @@ class TrainConfig:
                                          "settle at the size the test views, the profile and the atlas use; the "
                                          "steps before share the levels by --train-scale-weights; 0 = the shares "
                                          "to the end", min=0.0, max=1.0)
+    train_scale_mix: float = opt(0.0, "share of every step's patches on the coarsest level of --train-scales (the "
+                                      "training size), the rest on one finer level drawn by the finer levels' "
+                                      "--train-scale-weights: every step trains the training size (one backward "
+                                      "over both parts, the same rays per step); 0 = off: each step on one level",
+                                 min=0.0, max=0.95)
     train_scale_fine: str = opt("all", "what the steps on the finer levels of --train-scales train (the training "
                                        "size's steps train everything): all | no-decoder = all but the UNet decoder "
                                        "(it stays the training size's, softening the silhouette and the detail the "
@@ -265,6 +270,14 @@ def pick_level(level_p: torch.Tensor, frac: float, settle: float, gen: torch.Gen
     if settle > 0 and frac >= 1.0 - settle:
         return n - 1
     return int(torch.multinomial(level_p, 1, generator=gen))
+
+
+def mixed_patches(patches: int, share: float, levels: int) -> int:
+    """Patches of a --train-scale-mix step on the training size: round(share x patches), at least 1 and leaving at
+    least 1 to the finer level; 0 (not mixed) with share 0, one level or fewer than 2 patches."""
+    if share <= 0 or levels < 2 or patches < 2:
+        return 0
+    return min(patches - 1, max(1, round(share * patches)))
 
 
 def frozen_on_fine(model: PointModel, what: str) -> list[torch.nn.Parameter]:
@@ -578,7 +591,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     scales = parse_scales(cfg.train_scales)
     levels = [train] if not scales else list(pyramid(train, scales).values())
     level_p = torch.tensor(parse_weights(cfg.train_scale_weights, len(levels)), dtype=torch.float64)
-    level_steps = [0] * len(levels)
+    level_steps = [0] * len(levels)  # steps (with --train-scale-mix: step parts) per level
+    fine_p = level_p[:-1] if float(level_p[:-1].sum()) > 0 else torch.ones(max(len(levels) - 1, 1), dtype=torch.float64)
     fine, coarse = levels[0], levels[-1]
     xyz = visual_hull_points(coarse.alphas, coarse.c2w, coarse.focal, model_cfg.num_points, seed=cfg.seed)
 
@@ -615,6 +629,79 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     threads = torch.get_num_threads()
     workers = (cfg.workers or threads) if dev.type == "cpu" else 1
     op_threads = cfg.op_threads or (1 if workers > 1 else threads)
+    def level_loss(lv, patches: int):
+        """One level's part of a step: `patches` patches of one random view of level lv rendered, decoded and
+        compared with its images. Returns (loss, idx [R, K], attention)."""
+        images, alphas = lv.images, lv.alphas
+        v = int(torch.randint(images.shape[0], (1,), generator=gen))
+        zoom = 1
+        if cfg.zoom_frac > 0 and float(torch.rand(1, generator=gen)) < cfg.zoom_frac:
+            zoom = int(torch.randint(2, cfg.zoom_max + 1, (1,), generator=gen))
+        n_patches = max(1, patches // (zoom * zoom))
+        px, rows, cols, size = sample_patches(alphas[v], n_patches, cfg.patch_size, cfg.fg_patch_frac, gen)
+        if cfg.ray_jitter > 0:
+            px = jitter_patches(px, n_patches, cfg.ray_jitter, gen)
+        if cfg.ray_jitter > 0 and cfg.jitter_target == "bilinear":  # the images where the shifted rays are
+            gt = sample_bilinear(images[v], px).to(dev)
+            gt_a = sample_bilinear(alphas[v], px).to(dev)
+        else:
+            gt = images[v][rows, cols].to(dev)
+            gt_a = alphas[v][rows, cols].to(dev)
+        c2w = c2ws[v].to(dev)
+        px = px.to(dev)
+        if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
+            px = zoom_pixels(px, size, zoom)
+            pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
+        search = model.xyz.detach()
+        p_drop = cfg.dropout * _cosine(min(frac * 2, 1.0))
+        if p_drop > 0:
+            drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
+            search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
+        o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
+        att, sh = attend_and_shade(model, o, d, idx, bg, cfg.key_path, workers)
+        zs = size * zoom
+        if model.decoder is None:
+            rgb = sh["rgb"]
+        else:
+            feat = sh["feature"].reshape(n_patches, zs, zs, -1).permute(0, 3, 1, 2)
+            if cfg.decoder_dropout > 0:  # the residual decoder's base colour and coverage stay
+                feat = feature_dropout(feat, cfg.decoder_dropout, 4 if model.cfg.decoder_residual else 0,
+                                       gen)
+            sym = int(torch.randint(8, (1,), generator=gen)) if cfg.decoder_flip else 0
+            rgb, dec_alpha = model.decode_with_alpha(dihedral(feat, sym), workers=workers)
+            rgb = dihedral(rgb, sym, inverse=True).permute(0, 2, 3, 1).reshape(-1, 3)
+            if dec_alpha is not None:
+                dec_alpha = dihedral(dec_alpha, sym, inverse=True)
+            if dec_alpha is not None and zoom > 1:
+                dec_alpha = pool_zoomed(dec_alpha.reshape(-1, 1), n_patches, size, zoom)
+        cover = 1.0 - att["bg"]
+        if zoom > 1:
+            rgb = pool_zoomed(rgb, n_patches, size, zoom)
+            cover = pool_zoomed(cover[:, None], n_patches, size, zoom)[:, 0]
+        loss = F.mse_loss(rgb, gt)
+        if model.decoder is not None and dec_alpha is not None and cfg.decoder_alpha_weight > 0:
+            loss = loss + cfg.decoder_alpha_weight * F.mse_loss(dec_alpha.reshape(-1), gt_a)
+        if cfg.alpha_weight > 0:
+            loss = loss + cfg.alpha_weight * F.mse_loss(cover, gt_a)
+        if model.decoder is not None and model.cfg.decoder_residual and cfg.base_weight > 0:
+            base = sh["feature"][:, :3]
+            if zoom > 1:
+                base = pool_zoomed(base, n_patches, size, zoom)
+            loss = loss + cfg.base_weight * F.mse_loss(base, gt)
+        if cfg.ssim_weight > 0:
+            pr = rgb.reshape(n_patches, size, size, 3)
+            loss = loss + cfg.ssim_weight * (1 - ssim(pr, gt.reshape(n_patches, size, size, 3)))
+        c2r = c2s = torch.zeros((), device=dev)
+        if frac >= cfg.reg_start:
+            fg_mask = (gt_a[pix_of_ray] if zoom > 1 else gt_a) > 0.5
+            if cfg.close2ray:
+                c2r = close_to_ray(att, o, d, fg_mask)
+                loss = loss + cfg.close2ray_weight * c2r
+            if cfg.close2surface:
+                c2s = close_to_surface(att, fg_mask)
+                loss = loss + cfg.close2surface_weight * c2s
+        return loss, idx, att
+
     max_steps = step_cap(cfg)  # inf: a time budget alone, the minutes decide
     with Progress(1000 if by_time else int(max_steps), "fit", callback=progress_callback,
                   enabled=show_progress) as bar:
@@ -648,77 +735,21 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             dec_factor = decoder_lr_factor(frac, cfg.decoder_stop)
             for g, lr in zip(opt.param_groups, base_lrs):
                 g["lr"] = lr * decay * (dec_factor if g["name"] == "decoder" else 1.0)
-            li = pick_level(level_p, frac, cfg.train_scale_settle, gen)
-            lv = levels[li]  # the level's images, size and camera; one level (off): the training images
-            level_steps[li] += 1
-            images, alphas = lv.images, lv.alphas
-            v = int(torch.randint(images.shape[0], (1,), generator=gen))
-            zoom = 1
-            if cfg.zoom_frac > 0 and float(torch.rand(1, generator=gen)) < cfg.zoom_frac:
-                zoom = int(torch.randint(2, cfg.zoom_max + 1, (1,), generator=gen))
-            n_patches = max(1, cfg.patches // (zoom * zoom))
-            px, rows, cols, size = sample_patches(alphas[v], n_patches, cfg.patch_size, cfg.fg_patch_frac, gen)
-            if cfg.ray_jitter > 0:
-                px = jitter_patches(px, n_patches, cfg.ray_jitter, gen)
-            if cfg.ray_jitter > 0 and cfg.jitter_target == "bilinear":  # the images where the shifted rays are
-                gt = sample_bilinear(images[v], px).to(dev)
-                gt_a = sample_bilinear(alphas[v], px).to(dev)
+            n_coarse = mixed_patches(cfg.patches, cfg.train_scale_mix, len(levels))
+            if n_coarse:  # the step's patches on the training size and on one finer level, one backward
+                li = int(torch.multinomial(fine_p, 1, generator=gen))
+                level_steps[li] += 1
+                level_steps[-1] += 1
+                l_c, idx_c, att_c = level_loss(levels[-1], n_coarse)
+                l_f, idx_f, att_f = level_loss(levels[li], cfg.patches - n_coarse)
+                w = n_coarse / cfg.patches  # the patches' shares: one MSE over all the step's rays
+                loss = w * l_c + (1.0 - w) * l_f
+                idx, att = torch.cat([idx_c, idx_f]), {"weights": torch.cat([att_c["weights"], att_f["weights"]])}
+                li = len(levels) - 1  # the step has the training size's patches: it trains everything
             else:
-                gt = images[v][rows, cols].to(dev)
-                gt_a = alphas[v][rows, cols].to(dev)
-            c2w = c2ws[v].to(dev)
-            px = px.to(dev)
-            if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
-                px = zoom_pixels(px, size, zoom)
-                pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
-            search = model.xyz.detach()
-            p_drop = cfg.dropout * _cosine(min(frac * 2, 1.0))
-            if p_drop > 0:
-                drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
-                search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
-            o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
-            att, sh = attend_and_shade(model, o, d, idx, bg, cfg.key_path, workers)
-            zs = size * zoom
-            if model.decoder is None:
-                rgb = sh["rgb"]
-            else:
-                feat = sh["feature"].reshape(n_patches, zs, zs, -1).permute(0, 3, 1, 2)
-                if cfg.decoder_dropout > 0:  # the residual decoder's base colour and coverage stay
-                    feat = feature_dropout(feat, cfg.decoder_dropout, 4 if model.cfg.decoder_residual else 0,
-                                           gen)
-                sym = int(torch.randint(8, (1,), generator=gen)) if cfg.decoder_flip else 0
-                rgb, dec_alpha = model.decode_with_alpha(dihedral(feat, sym), workers=workers)
-                rgb = dihedral(rgb, sym, inverse=True).permute(0, 2, 3, 1).reshape(-1, 3)
-                if dec_alpha is not None:
-                    dec_alpha = dihedral(dec_alpha, sym, inverse=True)
-                if dec_alpha is not None and zoom > 1:
-                    dec_alpha = pool_zoomed(dec_alpha.reshape(-1, 1), n_patches, size, zoom)
-            cover = 1.0 - att["bg"]
-            if zoom > 1:
-                rgb = pool_zoomed(rgb, n_patches, size, zoom)
-                cover = pool_zoomed(cover[:, None], n_patches, size, zoom)[:, 0]
-            loss = F.mse_loss(rgb, gt)
-            if model.decoder is not None and dec_alpha is not None and cfg.decoder_alpha_weight > 0:
-                loss = loss + cfg.decoder_alpha_weight * F.mse_loss(dec_alpha.reshape(-1), gt_a)
-            if cfg.alpha_weight > 0:
-                loss = loss + cfg.alpha_weight * F.mse_loss(cover, gt_a)
-            if model.decoder is not None and model.cfg.decoder_residual and cfg.base_weight > 0:
-                base = sh["feature"][:, :3]
-                if zoom > 1:
-                    base = pool_zoomed(base, n_patches, size, zoom)
-                loss = loss + cfg.base_weight * F.mse_loss(base, gt)
-            if cfg.ssim_weight > 0:
-                pr = rgb.reshape(n_patches, size, size, 3)
-                loss = loss + cfg.ssim_weight * (1 - ssim(pr, gt.reshape(n_patches, size, size, 3)))
-            c2r = c2s = torch.zeros((), device=dev)
-            if frac >= cfg.reg_start:
-                fg_mask = (gt_a[pix_of_ray] if zoom > 1 else gt_a) > 0.5
-                if cfg.close2ray:
-                    c2r = close_to_ray(att, o, d, fg_mask)
-                    loss = loss + cfg.close2ray_weight * c2r
-                if cfg.close2surface:
-                    c2s = close_to_surface(att, fg_mask)
-                    loss = loss + cfg.close2surface_weight * c2s
+                li = pick_level(level_p, frac, cfg.train_scale_settle, gen)
+                level_steps[li] += 1
+                loss, idx, att = level_loss(levels[li], cfg.patches)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             if li != len(levels) - 1:  # a finer level's step: only what --train-scale-fine names trains

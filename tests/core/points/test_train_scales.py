@@ -201,3 +201,24 @@ def test_what_the_finer_levels_train():
     b, _ = fit_points(native, native, mcfg, _cfg(**base, train_scale_fine="colour"), show_progress=False)
     assert torch.equal(a.xyz, b.xyz) and torch.equal(a.influence, b.influence)
     assert not torch.equal(a.features, b.features) and bool(b.decoder.out.weight.any())
+
+
+def test_mixed_steps_train_the_training_size_every_step():
+    """--train-scale-mix: every step has round(share x patches) patches on the coarsest level and the rest on a
+    finer one (one backward); off (0) is the one-level step exactly."""
+    from core.points.train import mixed_patches
+
+    assert mixed_patches(16, 0.75, 3) == 12 and mixed_patches(16, 0.0, 3) == 0 and mixed_patches(16, 0.75, 1) == 0
+    assert mixed_patches(2, 0.95, 2) == 1 and mixed_patches(2, 0.01, 2) == 1 and mixed_patches(1, 0.5, 2) == 0
+    native = _native(size=32)
+    mcfg = model_config("card", num_points=600, decoder="unet")
+    base = dict(steps=20, patches=4, train_scales="1,2,4", train_scale_weights="1,0,4", prune_every=15,
+                clone_every=10)
+    plain, h0 = fit_points(native, native, mcfg, _cfg(**base), show_progress=False)
+    off, h1 = fit_points(native, native, mcfg, _cfg(**base, train_scale_mix=0.0), show_progress=False)
+    assert _same(_state(plain), _state(off))
+    model, hist = fit_points(native, native, mcfg, _cfg(**base, train_scale_mix=0.75), show_progress=False)
+    # the coarsest in every step; the finer part on level 1 only (level 2's weight is 0)
+    assert hist[-1]["train_levels"] == {"1": 20, "2": 0, "4": 20}
+    assert all(torch.isfinite(p).all() for p in model.parameters())
+    assert hist[-1]["psnr"] > hist[0]["psnr"] + 3
