@@ -592,7 +592,9 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     levels = [train] if not scales else list(pyramid(train, scales).values())
     level_p = torch.tensor(parse_weights(cfg.train_scale_weights, len(levels)), dtype=torch.float64)
     level_steps = [0] * len(levels)  # steps (with --train-scale-mix: step parts) per level
-    fine_p = level_p[:-1] if float(level_p[:-1].sum()) > 0 else torch.ones(max(len(levels) - 1, 1), dtype=torch.float64)
+    # --train-scale-mix: the finer part's level, by the finer levels' shares (equal when those are all 0)
+    fine_p = level_p[:-1] if float(level_p[:-1].sum()) > 0 else torch.ones(max(len(levels) - 1, 1),
+                                                                            dtype=torch.float64)
     fine, coarse = levels[0], levels[-1]
     xyz = visual_hull_points(coarse.alphas, coarse.c2w, coarse.focal, model_cfg.num_points, seed=cfg.seed)
 
@@ -629,6 +631,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     threads = torch.get_num_threads()
     workers = (cfg.workers or threads) if dev.type == "cpu" else 1
     op_threads = cfg.op_threads or (1 if workers > 1 else threads)
+
     def level_loss(lv, patches: int):
         """One level's part of a step: `patches` patches of one random view of level lv rendered, decoded and
         compared with its images. Returns (loss, idx [R, K], attention)."""
