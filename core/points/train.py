@@ -38,6 +38,7 @@ from core.util.workers import split_rows
 
 DEFAULT_STEPS = 6000  # the step budget of a fit given neither --steps nor --minutes
 JITTER_TARGETS = ("pixel", "bilinear")
+FINE_TRAINS = ("all", "no-decoder", "colour", "features")  # TrainConfig.train_scale_fine
 
 
 @dataclass
@@ -112,6 +113,23 @@ class TrainConfig:
                                 "size (--downscale 4: levels 1,2,4 of the full-size images, weights 1,1,4)")
     train_scale_weights: str = opt("", "share of the steps per level of --train-scales, comma-separated in its "
                                        "(sorted) order, fine to coarse; empty = equal shares")
+    train_scale_settle: float = opt(0.0, "fraction of training, at its end, spent on the coarsest level of "
+                                         "--train-scales alone (the training size), so the points and the decoder "
+                                         "settle at the size the test views, the profile and the atlas use; the "
+                                         "steps before share the levels by --train-scale-weights; 0 = the shares "
+                                         "to the end", min=0.0, max=1.0)
+    train_scale_mix: float = opt(0.0, "share of every step's patches on the coarsest level of --train-scales (the "
+                                      "training size), the rest on one finer level drawn by the finer levels' "
+                                      "--train-scale-weights: every step trains the training size (one backward "
+                                      "over both parts, the same rays per step); 0 = off: each step on one level",
+                                 min=0.0, max=0.95)
+    train_scale_fine: str = opt("all", "what the steps on the finer levels of --train-scales train (the training "
+                                       "size's steps train everything): all | no-decoder = all but the UNet decoder "
+                                       "(it stays the training size's, softening the silhouette and the detail the "
+                                       "training size cannot hold) | colour = the point features and the decoder "
+                                       "only (positions, influence and attention keep the training size's "
+                                       "coverage) | features = the point features only",
+                                choices=FINE_TRAINS)
     zoom_max: int = opt(2, "largest zoom of those steps (each picks 2..zoom_max; patches / zoom² of them, so a "
                            "step costs about the same)", min=2, max=8)
     dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)",
@@ -240,6 +258,39 @@ def pool_index(p: int, size: int, zoom: int) -> torch.Tensor:
     r, c = torch.meshgrid(t, t, indexing="ij")
     local = (r * size + c).reshape(-1)
     return (torch.arange(p)[:, None] * size * size + local[None]).reshape(-1)
+
+
+def pick_level(level_p: torch.Tensor, frac: float, settle: float, gen: torch.Generator) -> int:
+    """The pyramid level a multi-scale step trains on, an index into the levels fine to coarse: drawn from the
+    shares level_p [L] (float64, summing to 1); at a fraction of training frac >= 1 - settle (settle > 0) the
+    coarsest, the training size, without a draw. One level: 0, without a draw."""
+    n = level_p.shape[0]
+    if n == 1:
+        return 0
+    if settle > 0 and frac >= 1.0 - settle:
+        return n - 1
+    return int(torch.multinomial(level_p, 1, generator=gen))
+
+
+def mixed_patches(patches: int, share: float, levels: int) -> int:
+    """Patches of a --train-scale-mix step on the training size: round(share x patches), at least 1 and leaving at
+    least 1 to the finer level; 0 (not mixed) with share 0, one level or fewer than 2 patches."""
+    if share <= 0 or levels < 2 or patches < 2:
+        return 0
+    return min(patches - 1, max(1, round(share * patches)))
+
+
+def frozen_on_fine(model: PointModel, what: str) -> list[torch.nn.Parameter]:
+    """The parameters a finer level's step of a multi-scale fit leaves alone under `--train-scale-fine what`
+    (FINE_TRAINS): none for all; the decoder's for no-decoder; all but the point features and the decoder for
+    colour; all but the point features for features."""
+    if what == "all":
+        return []
+    keep = {"features"} | ({"decoder."} if what == "colour" else set())
+    if what == "no-decoder":
+        return [p for n, p in model.named_parameters() if n.startswith("decoder.")]
+    return [p for n, p in model.named_parameters()
+            if n not in keep and not (n.startswith("decoder.") and "decoder." in keep)]
 
 
 def patch_neighbors(points: torch.Tensor, model_cfg: ModelConfig, c2w: torch.Tensor, level, px: torch.Tensor,
@@ -540,7 +591,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     scales = parse_scales(cfg.train_scales)
     levels = [train] if not scales else list(pyramid(train, scales).values())
     level_p = torch.tensor(parse_weights(cfg.train_scale_weights, len(levels)), dtype=torch.float64)
-    level_steps = [0] * len(levels)
+    level_steps = [0] * len(levels)  # steps (with --train-scale-mix: step parts) per level
+    # --train-scale-mix: the finer part's level, by the finer levels' shares (equal when those are all 0)
+    fine_p = level_p[:-1] if float(level_p[:-1].sum()) > 0 else torch.ones(max(len(levels) - 1, 1),
+                                                                            dtype=torch.float64)
     fine, coarse = levels[0], levels[-1]
     xyz = visual_hull_points(coarse.alphas, coarse.c2w, coarse.focal, model_cfg.num_points, seed=cfg.seed)
 
@@ -577,6 +631,80 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     threads = torch.get_num_threads()
     workers = (cfg.workers or threads) if dev.type == "cpu" else 1
     op_threads = cfg.op_threads or (1 if workers > 1 else threads)
+
+    def level_loss(lv, patches: int):
+        """One level's part of a step: `patches` patches of one random view of level lv rendered, decoded and
+        compared with its images. Returns (loss, idx [R, K], attention)."""
+        images, alphas = lv.images, lv.alphas
+        v = int(torch.randint(images.shape[0], (1,), generator=gen))
+        zoom = 1
+        if cfg.zoom_frac > 0 and float(torch.rand(1, generator=gen)) < cfg.zoom_frac:
+            zoom = int(torch.randint(2, cfg.zoom_max + 1, (1,), generator=gen))
+        n_patches = max(1, patches // (zoom * zoom))
+        px, rows, cols, size = sample_patches(alphas[v], n_patches, cfg.patch_size, cfg.fg_patch_frac, gen)
+        if cfg.ray_jitter > 0:
+            px = jitter_patches(px, n_patches, cfg.ray_jitter, gen)
+        if cfg.ray_jitter > 0 and cfg.jitter_target == "bilinear":  # the images where the shifted rays are
+            gt = sample_bilinear(images[v], px).to(dev)
+            gt_a = sample_bilinear(alphas[v], px).to(dev)
+        else:
+            gt = images[v][rows, cols].to(dev)
+            gt_a = alphas[v][rows, cols].to(dev)
+        c2w = c2ws[v].to(dev)
+        px = px.to(dev)
+        if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
+            px = zoom_pixels(px, size, zoom)
+            pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
+        search = model.xyz.detach()
+        p_drop = cfg.dropout * _cosine(min(frac * 2, 1.0))
+        if p_drop > 0:
+            drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
+            search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
+        o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
+        att, sh = attend_and_shade(model, o, d, idx, bg, cfg.key_path, workers)
+        zs = size * zoom
+        if model.decoder is None:
+            rgb = sh["rgb"]
+        else:
+            feat = sh["feature"].reshape(n_patches, zs, zs, -1).permute(0, 3, 1, 2)
+            if cfg.decoder_dropout > 0:  # the residual decoder's base colour and coverage stay
+                feat = feature_dropout(feat, cfg.decoder_dropout, 4 if model.cfg.decoder_residual else 0,
+                                       gen)
+            sym = int(torch.randint(8, (1,), generator=gen)) if cfg.decoder_flip else 0
+            rgb, dec_alpha = model.decode_with_alpha(dihedral(feat, sym), workers=workers)
+            rgb = dihedral(rgb, sym, inverse=True).permute(0, 2, 3, 1).reshape(-1, 3)
+            if dec_alpha is not None:
+                dec_alpha = dihedral(dec_alpha, sym, inverse=True)
+            if dec_alpha is not None and zoom > 1:
+                dec_alpha = pool_zoomed(dec_alpha.reshape(-1, 1), n_patches, size, zoom)
+        cover = 1.0 - att["bg"]
+        if zoom > 1:
+            rgb = pool_zoomed(rgb, n_patches, size, zoom)
+            cover = pool_zoomed(cover[:, None], n_patches, size, zoom)[:, 0]
+        loss = F.mse_loss(rgb, gt)
+        if model.decoder is not None and dec_alpha is not None and cfg.decoder_alpha_weight > 0:
+            loss = loss + cfg.decoder_alpha_weight * F.mse_loss(dec_alpha.reshape(-1), gt_a)
+        if cfg.alpha_weight > 0:
+            loss = loss + cfg.alpha_weight * F.mse_loss(cover, gt_a)
+        if model.decoder is not None and model.cfg.decoder_residual and cfg.base_weight > 0:
+            base = sh["feature"][:, :3]
+            if zoom > 1:
+                base = pool_zoomed(base, n_patches, size, zoom)
+            loss = loss + cfg.base_weight * F.mse_loss(base, gt)
+        if cfg.ssim_weight > 0:
+            pr = rgb.reshape(n_patches, size, size, 3)
+            loss = loss + cfg.ssim_weight * (1 - ssim(pr, gt.reshape(n_patches, size, size, 3)))
+        c2r = c2s = torch.zeros((), device=dev)
+        if frac >= cfg.reg_start:
+            fg_mask = (gt_a[pix_of_ray] if zoom > 1 else gt_a) > 0.5
+            if cfg.close2ray:
+                c2r = close_to_ray(att, o, d, fg_mask)
+                loss = loss + cfg.close2ray_weight * c2r
+            if cfg.close2surface:
+                c2s = close_to_surface(att, fg_mask)
+                loss = loss + cfg.close2surface_weight * c2s
+        return loss, idx, att
+
     max_steps = step_cap(cfg)  # inf: a time budget alone, the minutes decide
     with Progress(1000 if by_time else int(max_steps), "fit", callback=progress_callback,
                   enabled=show_progress) as bar:
@@ -610,79 +738,26 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             dec_factor = decoder_lr_factor(frac, cfg.decoder_stop)
             for g, lr in zip(opt.param_groups, base_lrs):
                 g["lr"] = lr * decay * (dec_factor if g["name"] == "decoder" else 1.0)
-            li = 0 if len(levels) == 1 else int(torch.multinomial(level_p, 1, generator=gen))
-            lv = levels[li]  # the level's images, size and camera; one level (off): the training images
-            level_steps[li] += 1
-            images, alphas = lv.images, lv.alphas
-            v = int(torch.randint(images.shape[0], (1,), generator=gen))
-            zoom = 1
-            if cfg.zoom_frac > 0 and float(torch.rand(1, generator=gen)) < cfg.zoom_frac:
-                zoom = int(torch.randint(2, cfg.zoom_max + 1, (1,), generator=gen))
-            n_patches = max(1, cfg.patches // (zoom * zoom))
-            px, rows, cols, size = sample_patches(alphas[v], n_patches, cfg.patch_size, cfg.fg_patch_frac, gen)
-            if cfg.ray_jitter > 0:
-                px = jitter_patches(px, n_patches, cfg.ray_jitter, gen)
-            if cfg.ray_jitter > 0 and cfg.jitter_target == "bilinear":  # the images where the shifted rays are
-                gt = sample_bilinear(images[v], px).to(dev)
-                gt_a = sample_bilinear(alphas[v], px).to(dev)
+            n_coarse = mixed_patches(cfg.patches, cfg.train_scale_mix, len(levels))
+            if n_coarse:  # the step's patches on the training size and on one finer level, one backward
+                li = int(torch.multinomial(fine_p, 1, generator=gen))
+                level_steps[li] += 1
+                level_steps[-1] += 1
+                l_c, idx_c, att_c = level_loss(levels[-1], n_coarse)
+                l_f, idx_f, att_f = level_loss(levels[li], cfg.patches - n_coarse)
+                w = n_coarse / cfg.patches  # the patches' shares: one MSE over all the step's rays
+                loss = w * l_c + (1.0 - w) * l_f
+                idx, att = torch.cat([idx_c, idx_f]), {"weights": torch.cat([att_c["weights"], att_f["weights"]])}
+                li = len(levels) - 1  # the step has the training size's patches: it trains everything
             else:
-                gt = images[v][rows, cols].to(dev)
-                gt_a = alphas[v][rows, cols].to(dev)
-            c2w = c2ws[v].to(dev)
-            px = px.to(dev)
-            if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
-                px = zoom_pixels(px, size, zoom)
-                pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
-            search = model.xyz.detach()
-            p_drop = cfg.dropout * _cosine(min(frac * 2, 1.0))
-            if p_drop > 0:
-                drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
-                search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
-            o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
-            att, sh = attend_and_shade(model, o, d, idx, bg, cfg.key_path, workers)
-            zs = size * zoom
-            if model.decoder is None:
-                rgb = sh["rgb"]
-            else:
-                feat = sh["feature"].reshape(n_patches, zs, zs, -1).permute(0, 3, 1, 2)
-                if cfg.decoder_dropout > 0:  # the residual decoder's base colour and coverage stay
-                    feat = feature_dropout(feat, cfg.decoder_dropout, 4 if model.cfg.decoder_residual else 0,
-                                           gen)
-                sym = int(torch.randint(8, (1,), generator=gen)) if cfg.decoder_flip else 0
-                rgb, dec_alpha = model.decode_with_alpha(dihedral(feat, sym), workers=workers)
-                rgb = dihedral(rgb, sym, inverse=True).permute(0, 2, 3, 1).reshape(-1, 3)
-                if dec_alpha is not None:
-                    dec_alpha = dihedral(dec_alpha, sym, inverse=True)
-                if dec_alpha is not None and zoom > 1:
-                    dec_alpha = pool_zoomed(dec_alpha.reshape(-1, 1), n_patches, size, zoom)
-            cover = 1.0 - att["bg"]
-            if zoom > 1:
-                rgb = pool_zoomed(rgb, n_patches, size, zoom)
-                cover = pool_zoomed(cover[:, None], n_patches, size, zoom)[:, 0]
-            loss = F.mse_loss(rgb, gt)
-            if model.decoder is not None and dec_alpha is not None and cfg.decoder_alpha_weight > 0:
-                loss = loss + cfg.decoder_alpha_weight * F.mse_loss(dec_alpha.reshape(-1), gt_a)
-            if cfg.alpha_weight > 0:
-                loss = loss + cfg.alpha_weight * F.mse_loss(cover, gt_a)
-            if model.decoder is not None and model.cfg.decoder_residual and cfg.base_weight > 0:
-                base = sh["feature"][:, :3]
-                if zoom > 1:
-                    base = pool_zoomed(base, n_patches, size, zoom)
-                loss = loss + cfg.base_weight * F.mse_loss(base, gt)
-            if cfg.ssim_weight > 0:
-                pr = rgb.reshape(n_patches, size, size, 3)
-                loss = loss + cfg.ssim_weight * (1 - ssim(pr, gt.reshape(n_patches, size, size, 3)))
-            c2r = c2s = torch.zeros((), device=dev)
-            if frac >= cfg.reg_start:
-                fg_mask = (gt_a[pix_of_ray] if zoom > 1 else gt_a) > 0.5
-                if cfg.close2ray:
-                    c2r = close_to_ray(att, o, d, fg_mask)
-                    loss = loss + cfg.close2ray_weight * c2r
-                if cfg.close2surface:
-                    c2s = close_to_surface(att, fg_mask)
-                    loss = loss + cfg.close2surface_weight * c2s
+                li = pick_level(level_p, frac, cfg.train_scale_settle, gen)
+                level_steps[li] += 1
+                loss, idx, att = level_loss(levels[li], cfg.patches)
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            if li != len(levels) - 1:  # a finer level's step: only what --train-scale-fine names trains
+                for p in frozen_on_fine(model, cfg.train_scale_fine):
+                    p.grad = None  # no gradient: Adam leaves the parameter (and its moments) as it is
             if cfg.guard and not guard.step_ok(loss, model):
                 # a non-finite loss or gradient: skip the update; a run of them starts the fit again
                 opt.zero_grad(set_to_none=True)
