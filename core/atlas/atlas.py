@@ -443,12 +443,12 @@ class Atlas(nn.Module):
             atlas = cls(int(meta["n"]), 2 if kind == "islands" else int(meta["R"]), int(meta["pad"]),
                         arrays["atlas/centre"], float(meta["half"]), **{k: int(meta[k]) for k in keys})
             if "sides" in meta:
-                if kind != "islands":
-                    raise ModelFileError("atlas: charts split by side need the island layout")
                 atlas.sides = ChartSides.from_arrays(arrays, meta["sides"])
                 if atlas.sides.n != atlas.n_net:
                     raise ModelFileError(f"atlas: 'atlas/sides/majority' has {atlas.sides.n} entries for "
                                          f"{atlas.n_net} charts")
+                if kind != "islands":
+                    raise ModelFileError("atlas: charts split by side need the island layout")
             if kind == "islands":
                 n_layout = int(meta["n"]) * (2 if atlas.sides is not None else 1)
                 atlas.set_layout(IslandLayout.from_arrays(arrays, n_layout, int(meta["R"]), int(meta["pad"])))
