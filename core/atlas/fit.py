@@ -421,11 +421,20 @@ def chart_sides(atlas: Atlas, xyz: torch.Tensor, xn: torch.Tensor, cfg: AtlasCon
             rhos.append(sides.rho(atlas.tex, x, atlas.denormalise(x)))
             probs.append(torch.softmax(atlas.chart(x), -1))
     rho, probs = torch.cat(rhos), torch.cat(probs)
-    sides.majority = torch.from_numpy(ChartSides.majority_of(rho, probs))
-    atlas.sides = sides
-    r = rho[torch.arange(len(rho)), probs.argmax(-1)] * sides.majority[probs.argmax(-1)]
-    hist["sides"] = {"seconds": round(time.perf_counter() - t0, 2), "reversed": float((r < -sides.crease).float().mean()),
-                     "crease": float((r.abs() < 0.2).float().mean())}
+    major = ChartSides.majority_of(rho, probs)
+    chart = probs.argmax(-1)
+    r = rho[torch.arange(len(rho)), chart] * torch.from_numpy(major)[chart]
+    rev = r < -sides.crease
+    for c in range(atlas.n_net):  # a chart with few samples on its reversed side stays whole (no seams for them)
+        m = chart == c
+        if not bool(m.any()) or float(rev[m].float().mean()) < cfg.island_sides_min_share:
+            major[c] = 0.0
+    sides.majority = torch.from_numpy(major)
+    split = major[chart.numpy()] != 0
+    hist["sides"] = {"seconds": round(time.perf_counter() - t0, 2), "split": int((major != 0).sum()),
+                     "reversed": float((rev & torch.from_numpy(split)).float().mean()),
+                     "crease": float((rho[torch.arange(len(rho)), chart].abs() < 0.2).float().mean())}
+    atlas.sides = sides if bool((major != 0).any()) else None  # nothing split: the atlas of one side per chart
 
 
 def mid_surface(atlas: Atlas, xyz: torch.Tensor, cfg: AtlasConfig, spacing: float, hist: dict) -> torch.Tensor:

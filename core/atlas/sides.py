@@ -60,7 +60,8 @@ def orientation(tex, xn: torch.Tensor, normals: torch.Tensor, h: float) -> torch
 
 class ChartSides:
     """The side rule of a split atlas: surface (a SurfaceProjection whose normals have one side; used for normals
-    only, never to move points), majority [n] +-1 (the orientation most of chart c's samples have), step h
+    only, never to move points), majority [n] +-1 (the orientation most of chart c's samples have; 0: chart c is
+    not split, every point stays on 2c), step h
     (network units), crease (reversed only where majority * rho < -crease).
 
     reversed(tex, xn [M, 3], world [M, 3]) -> [M, n] bool; expand(probs [M, n], uv [M, n, 2], rev [M, n]) ->
@@ -69,8 +70,9 @@ class ChartSides:
 
     def __init__(self, surface: SurfaceProjection, majority, step: float, crease: float = 0.0):
         m = np.asarray(majority, dtype=np.float32).reshape(-1)
-        if not (len(m) >= 1 and np.isin(m, (-1.0, 1.0)).all()):
-            raise InputError(f"chart sides: majority must hold +1 or -1 per chart, got {m.tolist()[:8]}")
+        if not (len(m) >= 1 and np.isin(m, (-1.0, 0.0, 1.0)).all()):
+            raise InputError(f"chart sides: majority must hold +1, -1 or 0 (not split) per chart, got "
+                             f"{m.tolist()[:8]}")
         if not (0 < float(step) < float("inf")) or not (0 <= float(crease) < 1):
             raise InputError(f"chart sides: step must be positive and finite and 0 <= crease < 1, got {step!r}, "
                              f"{crease!r}")
@@ -88,6 +90,8 @@ class ChartSides:
 
     def reversed(self, tex, xn: torch.Tensor, world: torch.Tensor) -> torch.Tensor:
         """[M, n] bool: the point lies on chart c's reversed side."""
+        if not bool((self.majority != 0).any()):
+            return torch.zeros(xn.shape[0], self.n, dtype=torch.bool, device=xn.device)
         rho = self.rho(tex, xn, world)
         return rho * self.majority.to(rho.device, rho.dtype) < -self.crease
 

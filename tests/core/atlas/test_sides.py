@@ -39,7 +39,7 @@ def _round_trip(atlas) -> tuple[float, int]:
     return float((miss <= 1.0).float().mean()), int(ok.sum())
 
 
-def _planar_island_atlas(xyz, split: bool, crease: float = 0.0):
+def _planar_island_atlas(xyz, split: bool, crease: float = 0.0, min_share: float = 0.05):
     """A one-chart atlas with the planar map, its islands, kernel texture and texel map built as fit_atlas does."""
     from core.atlas.fit import chart_sides, island_layout, sample_spacing
     from core.atlas.texture import filled_kernel_texture
@@ -48,7 +48,7 @@ def _planar_island_atlas(xyz, split: bool, crease: float = 0.0):
     atlas = Atlas(1, 16, 2, torch.zeros(3), 1.0)
     atlas.tex = _PlanarMap()
     cfg = AtlasConfig(layout="islands", island_sides=split, island_sides_crease=crease, image_size=96,
-                      mid_surface_neighbours=256)
+                      mid_surface_neighbours=256, island_sides_min_share=min_share)
     spacing, area = sample_spacing(xyz.numpy().astype(np.float64))
     xn, hist = atlas.normalise(xyz), {}
     if split:
@@ -149,6 +149,14 @@ def test_a_flattened_sphere_gets_one_island_set_per_side_and_keeps_its_texels():
     assert torch.isfinite(split.lookup(torch.tensor([[1e6, -1e6, 3.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1e-30]]))).all()
 
 
+def test_a_chart_with_few_reversed_samples_stays_whole():
+    """island_sides_min_share above the chart's reversed share: the chart is not split, and the atlas is the one of
+    one side per chart (no side rule, the same layout charts as networks)."""
+    atlas, hist = _planar_island_atlas(_sphere(4000), split=True, min_share=0.9)
+    assert atlas.sides is None and atlas.n == atlas.n_net == 1 and hist["sides"]["split"] == 0
+    assert hist["sides"]["reversed"] == 0.0 and atlas.meta()["version"] in (2, 3)
+
+
 def test_a_split_atlas_saves_and_loads_bit_for_bit():
     xyz = _sphere(4000)
     atlas, _ = _planar_island_atlas(xyz, split=True)
@@ -179,7 +187,7 @@ def test_a_quick_fit_split_by_side_runs_end_to_end():
     xyz, rgb = synthetic_samples("torus", 4000, seed=4)
     quick = dict(steps=150, batch=256, uv_batch=32, distortion_batch=64, width_map=32, depth_map=2, width_chart=16,
                  depth_chart=1, log_every=1000, eval_samples=256, charts="4", layout="islands", image_size=128,
-                 mid_surface_neighbours=128, island_sides=True)
+                 mid_surface_neighbours=128, island_sides=True, island_sides_min_share=0.0)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
