@@ -13,6 +13,7 @@ correspondences differ, ray by ray, by exactly the offset of the surface point x
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -277,6 +278,11 @@ def oracle_retexture(state: EditState, view: tuple, trace: Trace, texture: str, 
     return out["rgb"]
 
 
+# EditConfig fields applied after the trace (neighbours + attention), so frames that differ only in them share it
+TRACE_FREE_FIELDS = frozenset({"correspondence", "fold_radius", "fold_test", "blend", "mask_threshold", "colour",
+                               "antialias"})
+
+
 def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple | None = None,
                  traces: dict | None = None) -> dict:
     """Render every ground-truth view with `state`; mean PSNR (full, object), SSIM, seconds and diagnostics.
@@ -301,12 +307,10 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
         f_seconds = state.deformation_seconds
 
     def render(i):
-        c = state.cfg  # what the trace depends on (the correspondence and fold rule do not change it)
-        key = (i, c.temperature, c.f_attention, c.f_radius,
-               (c.f_compression, c.f_thick_spread, c.f_depth, c.f_key_stretch) if c.f_attention else "-",
-               (c.f_fill_ratio, c.f_fill_budget, c.f_fill_features) if c.f_fill else None, c.f_occlusion,
-               (c.f_radius_rule, c.f_reach_gate, c.f_reach_surround, c.f_reach_gate_own, c.f_reach_between)
-               if c.f_radius else None)
+        # what the trace (neighbours + attention) depends on: every EditConfig field but the ones applied after it,
+        # so a field added later is in the key unless it is listed here as trace-free
+        key = (i,) + tuple((f.name, getattr(state.cfg, f.name)) for f in dataclasses.fields(state.cfg)
+                           if f.name not in TRACE_FREE_FIELDS)
         cached = traces.get(key) if traces is not None else None
         view = (gt.c2w[i], gt.height, gt.width, gt.focal)
         out = render_edited(state, *view, background, trace=cached[0] if cached else None)

@@ -213,7 +213,7 @@ class Atlas(nn.Module):
         mode "splat" (default): each texel's point is the kernel-weighted mean position of the samples that t_c
         maps around it (the same kernel as the texture, width sigma sample spacings), so the map is consistent with
         lookups by construction. "inverse": s_c at texel centres — the surface-coordinate net misses its own
-        texel by ~5 texels (median) on real samples, which shifts anything baked through it (docs/atlas.md).
+        texel by several texels (median) on real samples, which shifts anything baked through it (docs/atlas.md).
         A texel keeps its point only where the chart net picks chart c there, the point lies within max_dist of
         some sample, and t_c(point) returns to within max_cycle texels of the texel centre.
         The samples (at most MAX_BAKE_SAMPLES) and sigma are kept as `bake_samples` / `bake_sigma` for baking.

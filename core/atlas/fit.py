@@ -41,8 +41,7 @@ def sample_spacing(xyz: np.ndarray, k: int = 8, neighbours: int = 48, max_points
 
     Area: a disc holding k samples has area pi r_k^2 ~ k / density, so area ~ S pi mean(r_k^2) / k. r_k is
     measured in each sample's tangent plane (PCA of its `neighbours` nearest samples): real samples form a
-    slab a few spacings thick (noisy PAPR surface points), where 3-D distances overestimate the area ~2x
-    (measured on the cloth samples: 2.72 in 3-D vs 1.45 in-plane, true ~1.3; docs/atlas.md).
+    slab a few spacings thick (noisy PAPR surface points), where 3-D distances overestimate the area about twice.
     per_sample: also return (sel [m] indices of the measured samples, their area elements [m], summing to the area).
     """
     S = len(xyz)

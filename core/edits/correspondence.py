@@ -20,18 +20,28 @@ recomputed from them). At rest and under a rigid translation every displacement 
 """
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 
 from core.images.rays import project_on_ray
 from core.points.trace import Trace
 
+try:  # optional: the torch path does the same work without it
+    import numba
+except ImportError:  # pragma: no cover - exercised only where numba is missing
+    numba = None
+
 MODES = ("deform-aware", "naive", "deform-gradient")
+BACKENDS = ("auto", "torch", "compiled")
 
 
 def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.Tensor, origins: torch.Tensor,
                      dirs: torch.Tensor, p_def: torch.Tensor, p_can: torch.Tensor,
                      mode: str = "deform-aware", inv_f: torch.Tensor | None = None,
-                     fold_radius: float | None = None, fold_inv_f: torch.Tensor | None = None) -> torch.Tensor:
+                     fold_radius: float | None = None, fold_inv_f: torch.Tensor | None = None,
+                     backend: str = "auto") -> torch.Tensor:
     """Canonical lookup points x_can [R, 3].
 
     Args: fg_weights [R, K] attention over neighbours (rows sum to 1 where any neighbour exists), idx [R, K]
@@ -42,13 +52,29 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
     p_can − p_def lies within this distance (world units) of the most-attended neighbour's (None or inf: all);
     fold_inv_f [M, 3, 3]: the fold rule compares each neighbour's own estimate of the ray's canonical point,
     p_can + fold_inv_f (x_def − p_def), instead of its displacement (see `_fold_reject`).
+    backend: "compiled" (one numba pass per ray: the displacement fold rule and the naive or deform-aware sum, CPU
+    tensors; with fold_inv_f the fold rule stays in torch and the sum is compiled; not for deform-gradient),
+    "torch", or "auto" (compiled where it can run). Both give the same numbers to float rounding
+    (tests/core/edits/test_correspondence.py).
     """
     if mode not in MODES:
         raise ValueError(f"correspondence must be one of {MODES}, got {mode!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"correspondence backend must be one of {BACKENDS}, got {backend!r}")
+    fold = fold_radius is not None and fold_radius < float("inf") and idx.shape[1] > 0
+    can_compile = (numba is not None and mode != "deform-gradient"
+                   and all(t.device.type == "cpu" for t in (fg_weights, idx, x_hat, p_def, p_can)))
+    if backend == "compiled" and not can_compile:
+        raise ValueError("correspondence backend 'compiled' needs numba, CPU tensors and mode naive or deform-aware; "
+                         "use 'auto' or 'torch'")
+    compiled = backend != "torch" and can_compile
+    if compiled and not (fold and fold_inv_f is not None):
+        return _canonical_compiled(fg_weights, idx, x_hat, origins, dirs, p_def, p_can, mode == "naive",
+                                   float(fold_radius) if fold else None)
     w = fg_weights * (idx >= 0)
     safe = idx.clamp_min(0)
     disp = None  # the neighbours' displacements p_can − p_def [R, K, 3], once gathered
-    if fold_radius is not None and fold_radius < float("inf") and w.shape[1]:
+    if fold:
         local = None
         if fold_inv_f is not None:  # each neighbour's estimate of the canonical point, through its local map
             off = project_on_ray(x_hat, origins, dirs)[:, None, :] - p_def[safe]
@@ -56,6 +82,8 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
         else:
             disp = (p_can - p_def)[safe]
         w, x_hat = _fold_reject(w, idx, safe, x_hat, p_def, p_can, float(fold_radius), local, disp)
+        if compiled:  # the sum as without the rule (rows it left whole: the same numbers)
+            return _canonical_compiled(w, idx, x_hat, origins, dirs, p_def, p_can, mode == "naive", None)
     if mode == "naive":
         return (w[..., None] * p_can[safe]).sum(1)
     x_def = project_on_ray(x_hat, origins, dirs)
@@ -125,3 +153,105 @@ def _fold_reject(w: torch.Tensor, idx: torch.Tensor, safe: torch.Tensor, x_hat: 
     kr = kept[rows]
     x_new[rows] = (kr[..., None] * p_def[safe[rows]]).sum(1) / kr.sum(1, keepdim=True).clamp_min(1e-30)
     return kept, x_new
+
+
+def _canonical_loop(w_in, idx, x_hat, o, d, p_def, p_can, disp, naive, fold, radius, out):
+    """The compiled path of `canonical_points` (modes naive and deform-aware, the displacement fold rule): per ray,
+    the weights w = fg · (idx ≥ 0); with fold, the neighbours whose displacement disp = p_can − p_def lies farther
+    than radius from that of the most-attended one (the first maximum) dropped, the rest scaled back to the row's
+    sum and x̂ recomputed from them (rows that drop nothing, or would drop everything, are left as they are); then
+    Σ w p_can (naive) or Π_ray(x̂) + Σ w disp (deform-aware). float32 inputs, out [R, 3] float32; the torch path's
+    float32 steps (sums in neighbour order; the radius test on squared lengths)."""
+    f32 = np.float32
+    r_n, k = idx.shape
+    w = np.empty(k, dtype=np.float32)
+    keep = np.empty(k, dtype=np.bool_)
+    r2 = radius * radius
+    for r in range(r_n):
+        total = f32(0.0)
+        best = 0
+        for j in range(k):
+            w[j] = w_in[r, j] if idx[r, j] >= 0 else f32(0.0)
+            total += w[j]
+            if w[j] > w[best]:
+                best = j
+        xx, xy, xz = x_hat[r, 0], x_hat[r, 1], x_hat[r, 2]
+        if fold:
+            qb = idx[r, best] if idx[r, best] >= 0 else 0
+            bx, by, bz = disp[qb, 0], disp[qb, 1], disp[qb, 2]
+            left = f32(0.0)
+            dropped = False
+            for j in range(k):
+                q = idx[r, j]
+                keep[j] = False
+                if q < 0:
+                    continue
+                ex, ey, ez = disp[q, 0] - bx, disp[q, 1] - by, disp[q, 2] - bz
+                keep[j] = not (ex * ex + ey * ey + ez * ez > r2)  # NaN: kept, as in the torch path
+                if keep[j]:
+                    left += w[j]
+                elif w[j] != f32(0.0):
+                    dropped = True
+            if dropped and left > f32(0.0):
+                scale = total / max(left, f32(1e-30))
+                sx, sy, sz, sw = f32(0.0), f32(0.0), f32(0.0), f32(0.0)
+                for j in range(k):
+                    if keep[j]:
+                        q = idx[r, j]
+                        w[j] = w[j] * scale
+                        sx += w[j] * p_def[q, 0]
+                        sy += w[j] * p_def[q, 1]
+                        sz += w[j] * p_def[q, 2]
+                        sw += w[j]
+                    else:
+                        w[j] = f32(0.0)
+                sw = max(sw, f32(1e-30))
+                xx, xy, xz = sx / sw, sy / sw, sz / sw
+        ax, ay, az = f32(0.0), f32(0.0), f32(0.0)
+        for j in range(k):
+            q = idx[r, j]
+            if q < 0:
+                q = 0  # its weight is 0, as the torch path's clamped index
+            if naive:
+                ax += w[j] * p_can[q, 0]
+                ay += w[j] * p_can[q, 1]
+                az += w[j] * p_can[q, 2]
+            else:
+                ax += w[j] * disp[q, 0]
+                ay += w[j] * disp[q, 1]
+                az += w[j] * disp[q, 2]
+        if naive:
+            out[r, 0], out[r, 1], out[r, 2] = ax, ay, az
+            continue
+        t = (xx - o[r, 0]) * d[r, 0] + (xy - o[r, 1]) * d[r, 1] + (xz - o[r, 2]) * d[r, 2]
+        if not t > f32(0.0):  # clamped at 0 (NaN stays NaN)
+            t = t if t != t else f32(0.0)
+        out[r, 0] = o[r, 0] + t * d[r, 0] + ax
+        out[r, 1] = o[r, 1] + t * d[r, 1] + ay
+        out[r, 2] = o[r, 2] + t * d[r, 2] + az
+
+
+_compiled_canonical = None
+
+
+def _canonical_compiled(fg_weights, idx, x_hat, origins, dirs, p_def, p_can, naive: bool,
+                        radius: float | None) -> torch.Tensor:
+    """canonical_points through the compiled loop (`_canonical_loop`): x_can [R, 3] in x_hat's dtype."""
+    global _compiled_canonical
+    if _compiled_canonical is None:
+        try:
+            _compiled_canonical = numba.njit(cache=True, nogil=True)(_canonical_loop)
+        except RuntimeError:  # no writable cache location: compile per process
+            _compiled_canonical = numba.njit(cache=False, nogil=True)(_canonical_loop)
+
+    def f32(t):
+        return np.ascontiguousarray(t.detach().to(torch.float32).numpy())
+
+    r = idx.shape[0]
+    out = np.empty((r, 3), dtype=np.float32)
+    if r:
+        pd, pc = f32(p_def), f32(p_can)
+        _compiled_canonical(f32(fg_weights), np.ascontiguousarray(idx.detach().to(torch.int64).numpy()), f32(x_hat),
+                            f32(origins), f32(dirs), pd, pc, pc - pd, bool(naive), radius is not None,
+                            np.float32(0.0 if radius is None else min(radius, 1e18)), out)
+    return torch.from_numpy(out).to(x_hat.dtype)

@@ -156,6 +156,7 @@ class EditState:
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
         self._f = self._inv_f = self._inv_f_keys = self._inv_f_att = self._radius_scale = self._reach = None
+        self._local_scale = None  # median |det F|^(1/3), once computed
         self._fill_blend = None  # f_fill_features = blend: (canonical ids of both ends [P], fraction [P])
         self._gap = None  # f_fill: per point the largest growth left between consecutive points on its pairs
         self._sparse = None  # f_fill: that growth where the budget kept a pair sparser than f_fill_ratio, else 1
@@ -351,10 +352,12 @@ class EditState:
         points of |det F|^(1/3) (an object scaled by s: s; a bend: about 1); 1 when nothing moved or undefined."""
         if self.f is None:
             return 1.0
-        det = torch.linalg.det(self._f.double()).abs()[torch.isfinite(self.points).all(1)]
-        det = det[torch.isfinite(det) & (det > 0)]
-        s = float(det.median() ** (1.0 / 3.0)) if det.numel() else 1.0
-        return s if math.isfinite(s) and s > 0 else 1.0
+        if self._local_scale is None:  # once per state: render_edited asks twice a frame
+            det = torch.linalg.det(self._f.double()).abs()[torch.isfinite(self.points).all(1)]
+            det = det[torch.isfinite(det) & (det > 0)]
+            s = float(det.median() ** (1.0 / 3.0)) if det.numel() else 1.0
+            self._local_scale = s if math.isfinite(s) and s > 0 else 1.0
+        return self._local_scale
 
     @property
     def radius_scale(self) -> float:

@@ -74,15 +74,15 @@ class TrainConfig:
     decoder_stop: float = opt(0.0, "UNet decoder: fraction of training at which its learning rate reaches 0 (held "
                                    "to its schedule until half of this fraction, then a cosine decay), so the "
                                    "points learn the colour late in training; 0 = off", min=0.0, max=1.0)
-    ray_jitter: float = opt(0.0, "shift each training patch's rays by a random sub-pixel offset of up to this many "
-                                 "pixels in x and y (one offset per patch, so a patch stays a regular grid the "
-                                 "decoder reads as an image; its targets: --jitter-target), so the points and the "
-                                 "decoder see neighbour blends between the training views' pixel centres; 0 = off",
+    ray_jitter: float = opt(0.25, "shift each training patch's rays by a random sub-pixel offset of up to this "
+                                  "many pixels in x and y (one offset per patch, so a patch stays a regular grid the "
+                                  "decoder reads as an image; its targets: --jitter-target), so the points and the "
+                                  "decoder see neighbour blends between the training views' pixel centres; 0 = off",
                             min=0.0, max=0.5)
-    jitter_target: str = opt("pixel", "the target of a jittered ray (--ray-jitter): pixel = the value of the pixel it "
-                                      "was shifted from (a shifted ray learns a neighbour's value: a blur) | "
-                                      "bilinear = the training image and mask bilinearly interpolated at the "
-                                      "shifted position", choices=JITTER_TARGETS)
+    jitter_target: str = opt("bilinear", "the target of a jittered ray (--ray-jitter): bilinear = the training image "
+                                         "and mask bilinearly interpolated at the shifted position | pixel = the "
+                                         "value of the pixel it was shifted from (a shifted ray learns a "
+                                         "neighbour's value: a blur)", choices=JITTER_TARGETS)
     ema: float = opt(0.0, "decay per step of an exponential moving average of all trained parameters (points and "
                           "networks; warm-up d = min(decay, (1 + n) / (10 + n)) at step n, following the points "
                           "through pruning and cloning); the fit returns and saves the average, and its history's "

@@ -4,8 +4,8 @@ Presets (seconds each on one CPU thread; quality is low but real, trained rather
 - "card": 1000 points, 40² views, 12 train / 4 test — the edit, pipeline and evaluation tests;
 - "fast": 600 points, small networks and atlas, 32² views, 8 train / 2 test — the stability suite and the point
   renderer's tests (they check finiteness and ranges, not picture quality);
-- "addon": the "fast" networks trained longer on the 8 train views alone, with a finer atlas — the add-on tests,
-  which save it to a file Blender opens (`save_tiny`).
+- "addon": the "fast" networks trained longer on the 8 train views alone (without ray jitter), with a finer atlas
+  — the add-on tests, which save it to a file Blender opens (`save_tiny`).
 
 `fit_tiny(preset, train, test)` fits the preset on given splits (a loaded capture).
 `tiny_bundle(preset, ...)` is cached per process: treat the result as read-only. `model_config(preset, **changes)`
@@ -52,8 +52,11 @@ PRESETS = {
                    atlas=dict(steps=40, texture_steps=20, texture_res=16, pad=2, batch=256, uv_batch=32,
                               distortion_batch=32, width_chart=32, depth_chart=2, width_map=32, depth_map=2,
                               eval_samples=512, log_every=10_000)),
+    # the add-on's card: ray jitter pinned off. The add-on tests' spots, pieces and drifts are hand-checked on this
+    # model's points through the surface proxy; trained with the default jitter (equal quality: 23.50 against
+    # 23.53 dB on 8 held-out views) the proxy comes out with more open edges and a painted spot misses the frame
     "addon": Preset(32, 8, 0, model=_SMALL_NETS,
-                    train=dict(steps=300, patches=1, patch_size=32, eval_views=1),
+                    train=dict(steps=300, patches=1, patch_size=32, eval_views=1, ray_jitter=0.0),
                     atlas=dict(steps=600, texture_steps=100, texture_res=32, width_map=64, width_chart=16,
                                depth_map=3, depth_chart=2)),
 }

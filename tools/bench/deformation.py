@@ -80,6 +80,9 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
         {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap"},
     _D + ", budget reach gated at 1 cap, keys' stretch capped at the fill's gap, deform-aware":
         {**_BUDGET, "f_reach_gate": 1.0, "f_key_stretch": "gap"},
+    _D + ", budget reach gated at 1.5 caps between points, keys' stretch capped at the fill's gap, occlusion, "
+         "deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap",
+                          "f_occlusion": True},
 }
 
 

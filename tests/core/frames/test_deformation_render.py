@@ -351,15 +351,41 @@ def test_reach_surround_adds_only_rays_the_reach_candidates_surround(tiny):
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
 
 
+def _gate_checked(bundle, pts, gate, c2w, height, width, focal, fill):
+    """Renders the posed points pts [N, 3] with the gate options `gate` (f_reach_gate 1.5 plus the rule) and with
+    the ungated reach, the 1-cap gate and the wide 1.5-cap gate; checks that the rule's rays with neighbours
+    include the 1-cap gate's, lie within the wide gate's, keep the ungated search's neighbours and equal the
+    screen index's answer. Returns (the rule's rays [H*W] bool, the 1-cap gate's)."""
+    states = {name: EditState(bundle, points=pts, cfg=EditConfig(f_fill=fill, f_fill_budget=0.1, f_occlusion=False,
+                                                                 **over))
+              for name, over in (("reach", dict(gate, f_reach_gate=0.0)), ("one", dict(gate, f_reach_gate=1.0)),
+                                 ("wide", dict(gate, f_reach_gate_own=False, f_reach_between=False)), ("own", gate))}
+    st, model = states["own"], bundle.model
+    assert st.reach_gate_own == gate["f_reach_gate_own"] and st.reach_between == gate["f_reach_between"]
+    assert not (states["reach"].reach_gate_own or states["reach"].reach_between)
+    tr = {name: render_edited(s, c2w, height, width, focal)["trace"] for name, s in states.items()}
+    got = tr["own"].active
+    assert not bool((tr["one"].active & ~got).any()) and not bool((got & ~tr["wide"].active).any())
+    assert torch.equal(tr["own"].idx[got], tr["reach"].idx[got])
+    index = screen_index(st.points, model.cfg.neighbors, model.cfg.k, c2w, height, width, focal,
+                         model.cfg.neighbor_radius_px, reach=st.reach, reach_gate=1.5,
+                         reach_gate_own=gate["f_reach_gate_own"], reach_between=gate["f_reach_between"])
+    assert torch.equal(got, (index.query(pixel_grid(height, width, "cpu"), model.cfg.k).idx >= 0).any(1))
+    return got, tr["one"].active
+
+
 @pytest.mark.parametrize("rule", ["own", "between"])
 def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny, rule):
-    """f_reach_gate_own / f_reach_between with a gate of 1.5 caps: rest frames are today's; on a stretched card the
-    rays that get neighbours include the 1-cap gate's and lie within the 1.5-cap gate's, each with the ungated
-    reach search's neighbours, and equal the screen index's answer; extreme poses stay finite."""
+    """f_reach_gate_own / f_reach_between with a gate of 1.5 caps: rest frames are today's; on a card stretched
+    along x and on a card torn in two (a slot between its halves) the rays that get neighbours include the 1-cap
+    gate's and lie within the 1.5-cap gate's, each with the ungated reach search's neighbours, and equal the screen
+    index's answer; both rules open rays in the slot beyond the 1-cap gate (the own-reach rule also beside the
+    stretched card's outline, where the between rule keeps them shut); extreme poses stay finite."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
     n = bundle.model.num_points
-    flag = dict(f_reach_gate_own=True, f_reach_between=False) if rule == "own" else dict(f_reach_between=True)
+    flag = dict(f_reach_gate_own=True, f_reach_between=False) if rule == "own" else \
+        dict(f_reach_gate_own=False, f_reach_between=True)
     own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, **flag)
     today = EditState(bundle)
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**own))
@@ -369,22 +395,20 @@ def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny, rule)
         assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
     c2w = test.c2w[0].clone()
     c2w[:3, 3] *= 2.5
-    states = {name: EditState(bundle, points=xyz * torch.tensor([4.0, 1.0, 1.0]),
-                              cfg=EditConfig(f_fill_budget=0.1, f_occlusion=False, **over))
-              for name, over in (("reach", dict(own, f_reach_gate=0.0)), ("one", dict(own, f_reach_gate=1.0)),
-                                 ("wide", dict(own, f_reach_gate_own=False, f_reach_between=False)), ("own", own))}
-    assert states["own"].reach_gate_own == (rule == "own") and states["own"].reach_between == (rule == "between")
-    assert not (states["reach"].reach_gate_own or states["reach"].reach_between)
-    tr = {name: render_edited(st, c2w, test.height, test.width, test.focal)["trace"] for name, st in states.items()}
-    got = tr["own"].active
-    assert not bool((tr["one"].active & ~got).any()) and not bool((got & ~tr["wide"].active).any())
-    assert bool((got & ~tr["one"].active).any())
-    assert torch.equal(tr["own"].idx[got], tr["reach"].idx[got])
-    st, model = states["own"], bundle.model
-    index = screen_index(st.points, model.cfg.neighbors, model.cfg.k, c2w, test.height, test.width, test.focal,
-                         model.cfg.neighbor_radius_px, reach=st.reach, reach_gate=1.5, reach_gate_own=rule == "own",
-                         reach_between=rule == "between")
-    assert torch.equal(got, (index.query(pixel_grid(test.height, test.width, "cpu"), model.cfg.k).idx >= 0).any(1))
+    got, one = _gate_checked(bundle, xyz * torch.tensor([4.0, 1.0, 1.0]), own, c2w, test.height, test.width,
+                             test.focal, fill=True)
+    if rule == "own":  # a uniaxial stretch leaves no hole between points (they stay dense along y): the rays the
+        assert bool((got & ~one).any())  # own-reach gate adds lie beside the outline, which the between rule keeps
+    # the card torn: its right half moved 2.5 plain caps along x, without fill, so the slot between the halves stays
+    # open; its middle lies beyond the 1-cap gate and within 1.5 caps of points on both sides. Rendered at 3x the
+    # test size so that the slot is several pixels wide (the card's 1000 points at 40² lie at the cap's floor).
+    h, w, f, cam = 3 * test.height, 3 * test.width, 3 * test.focal, test.c2w[0]
+    cap = screen_index(xyz, bundle.model.cfg.neighbors, bundle.model.cfg.k, cam, h, w, f,
+                       bundle.model.cfg.neighbor_radius_px).radius_px(bundle.model.cfg.k)
+    torn = xyz.clone()
+    torn[xyz[:, 0] > xyz[:, 0].median(), 0] += 2.5 * cap * float(cam[:3, 3].norm()) / f
+    got, one = _gate_checked(bundle, torn, own, cam, h, w, f, fill=False)
+    assert int((got & ~one).sum()) >= 10
     wild = xyz.clone()
     wild[::13] = float("nan")
     wild[1::17] = 1e30

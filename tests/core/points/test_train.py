@@ -250,7 +250,7 @@ def test_ray_jitter_shifts_each_patch_as_a_whole():
     assert torch.allclose(shift, shift[:, :1].expand_as(shift))  # one offset per patch: still a regular grid
     assert float(shift.abs().max()) <= 0.5 and len({tuple(s) for s in shift[:, 0].tolist()}) == 6
     train, test = _two_views()
-    a = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5), show_progress=False)[0]
+    a = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.0), show_progress=False)[0]
     b = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.5), show_progress=False)[0]
     assert torch.isfinite(b.xyz).all() and not torch.equal(a.xyz, b.xyz)
 
@@ -280,14 +280,17 @@ def test_bilinear_target_is_the_image_at_pixel_centres_and_interpolates_between_
 
 def test_bilinear_jitter_targets_train_and_differ_from_kept_pixels():
     train, test = _two_views()
-    kept = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.5), show_progress=False)[0]
+    kept = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.5, jitter_target="pixel"),
+                      show_progress=False)[0]
     interp = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ray_jitter=0.5, jitter_target="bilinear"),
                         show_progress=False)[0]
     assert torch.isfinite(interp.xyz).all() and torch.isfinite(interp.features).all()
     assert not torch.equal(kept.features, interp.features)
     # without jitter the target rule does nothing
-    a = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=3), show_progress=False)[0]
-    b = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=3, jitter_target="bilinear"), show_progress=False)[0]
+    a = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=3, ray_jitter=0.0, jitter_target="pixel"),
+                   show_progress=False)[0]
+    b = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=3, ray_jitter=0.0, jitter_target="bilinear"),
+                   show_progress=False)[0]
     assert torch.equal(a.features, b.features)
 
 
