@@ -123,10 +123,10 @@ class AtlasConfig:
                                           "the orientation (sine of the angle, in [-1, 1]) is below minus this; "
                                           "creases and points without a normal stay on the majority side",
                                      min=0.0, max=0.99)
-    island_sides_min_share: float = opt(0.0, "island_sides: split only the charts with at least this share of "
-                                             "their samples on the reversed side (others stay whole: a few "
-                                             "reversed samples only add seams; 0 splits every chart that has any)",
-                                        min=0.0, max=1.0)
+    island_sides_min_share: float = opt(0.05, "island_sides: split only the charts with at least this share of "
+                                              "their samples on the reversed side (others stay whole: a few "
+                                              "reversed samples only add seams; 0 splits every chart that has any; "
+                                              "docs/atlas.md)", min=0.0, max=1.0)
     island_sides_anchors: int = opt(20000, "island_sides without mid_surface: anchor planes built for the normals "
                                            "(at most this many)", min=16, max=1 << 20)
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
