@@ -11,16 +11,18 @@ from core.atlas.config import MAX_CHART_RES
 from core.atlas.islands import IslandLayout
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet
 from core.atlas.packing import GridLayout, pack, sample_charts, texel_uv, unpack, uv_to_pixel
+from core.atlas.sides import ChartSides
 from core.atlas.surface import SurfaceProjection
 from core.atlas.texture import kernel_texture, local_linear_points
 from core.util.errors import InputError, ModelFileError
 
 # 1: grid layout; 2: island layout ("layout": "islands"); 3: islands some of which are transposed
 # (atlas/islands/orient, which a version-2 reader would ignore and misplace); 4: lookups projected onto the samples'
-# mid-surface first (atlas/surface/..., which an older reader would ignore and read other texels). Files are written
-# at the lowest version that describes them, so older readers load every file they can read correctly.
-FORMAT_VERSION = 4
-READ_VERSIONS = (1, 2, 3, 4)
+# mid-surface first (atlas/surface/..., which an older reader would ignore and read other texels); 5: island charts
+# split by side (atlas/sides/..., 2n sub-charts over n chart networks). Files are written at the lowest version that
+# describes them, so older readers load every file they can read correctly.
+FORMAT_VERSION = 5
+READ_VERSIONS = (1, 2, 3, 4, 5)
 _CHUNK = 65536
 MAX_BAKE_SAMPLES = 200_000  # stored surface samples for baking (2.4 MB); more are subsampled
 
@@ -77,10 +79,34 @@ class Atlas(nn.Module):
         # Mid-surface projection applied to every point before the chart networks (core/atlas/surface.py); None:
         # points go to the networks as they are (files written before it existed, AtlasConfig.mid_surface off).
         self.surface: SurfaceProjection | None = None
+        # Island charts split by side (core/atlas/sides.py): the layout then has 2 n_net sub-charts, 2c and 2c + 1
+        # both read through chart network c. None: one layout chart per network chart.
+        self.sides: ChartSides | None = None
+        self.n_net = n
 
     @property
     def n(self) -> int:
+        """Charts of the layout (what chart_uv, the textures and the packed image index); 2 n_net when split by
+        side."""
         return self.layout.n
+
+    def net_chart(self, chart: torch.Tensor) -> torch.Tensor:
+        """Layout chart indices [M] -> the chart network each reads through [M]."""
+        return chart // 2 if self.sides is not None else chart
+
+    def outputs(self, xn: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw chart outputs at network-frame points xn [M, 3] (already on the mid-surface when there is one):
+        (probs [M, n] softmax, uv [M, n, 2] t_c) over the layout's charts — split by side when `sides` is set
+        (a sub-chart without islands hands its points to the other side of its chart)."""
+        p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
+        if self.sides is None:
+            return p, uv
+        rev = self.sides.reversed(self.tex, xn, self.denormalise(xn))
+        if self.islands:
+            has = self.layout.has_islands.to(rev.device).view(-1, 2)       # [n_net, 2] (majority, reversed)
+            rev = torch.where(has[:, 1], rev, torch.zeros_like(rev))
+            rev = torch.where(has[:, 0], rev, torch.ones_like(rev) & has[:, 1])
+        return ChartSides.expand(p, uv, rev)
 
     @property
     def islands(self) -> bool:
@@ -93,8 +119,9 @@ class Atlas(nn.Module):
 
     def set_layout(self, layout: IslandLayout) -> None:
         """Switch to an island layout: new textures [n, 3, size, size] (0.5) and an empty texel map."""
-        if layout.n != self.n:
-            raise InputError(f"island layout has {layout.n} charts, the atlas {self.n}")
+        want = self.n_net * (2 if self.sides is not None else 1)
+        if layout.n != want:
+            raise InputError(f"island layout has {layout.n} charts, the atlas {want}")
         self.layout = layout
         self.textures = nn.Parameter(torch.full((self.n, 3, layout.size, layout.size), 0.5, device=self.device))
         self.texel_xyz = torch.full((*layout.shape, 3), float("nan"), device=self.device)
@@ -140,7 +167,7 @@ class Atlas(nn.Module):
         ps, uvs = [], []
         for s in range(0, len(x), _CHUNK):
             xn = self.normalise(self.on_surface(x[s:s + _CHUNK]))
-            p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
+            p, uv = self.outputs(xn)
             if placed:
                 p, uv = self.place(p, uv)
             ps.append(p)
@@ -255,18 +282,19 @@ class Atlas(nn.Module):
         reach = max_move * float(slope.norm(dim=-1).median())  # max_move texels of the typical texel size
 
         def chart_texels(pts, ch, ar):  # raw t_c -> chart texel coordinates (before the island offset) [K, 2]
-            raw = self.tex(self.normalise(self.on_surface(pts)))[ar, ch]
+            raw = self.tex(self.normalise(self.on_surface(pts)))[ar, net]
             return (aff[ch, :, :2] @ raw[..., None])[..., 0] + aff[ch, :, 2]
 
         for s in range(0, len(x), chunk):
             x0, B, ch, tg = x[s:s + chunk], slope[s:s + chunk], chart[s:s + chunk], target[s:s + chunk]
             rot = None if orient is None else orient[s:s + chunk].to(x0.dtype)
+            net = self.net_chart(ch)
             ar = torch.arange(len(x0), device=self.device)
             q = torch.zeros(len(x0), 2, device=self.device)
             xs = x0.clone()
             best, best_miss = x0.clone(), torch.full((len(x0),), float("inf"), device=self.device)
             for it in range(iters + 1):
-                raw = self.tex(self.normalise(self.on_surface(xs)))[ar, ch]
+                raw = self.tex(self.normalise(self.on_surface(xs)))[ar, net]
                 pix = self.layout.place(raw[:, None].expand(-1, self.n, -1).contiguous())[:, 0] * A \
                     if self.n == 1 else self._place_one(raw, ch) * A
                 r = pix - tg
@@ -376,7 +404,9 @@ class Atlas(nn.Module):
         extra = {}
         if self.surface is not None:
             version, extra = 4, {"surface": self.surface.meta()}
-        return dict(version=version, n=L.n, R=L.R, pad=L.pad, half=self.half,
+        if self.sides is not None:
+            version, extra = 5, dict(extra, sides=self.sides.meta())
+        return dict(version=version, n=self.n_net, R=L.R, pad=L.pad, half=self.half,
                     height=L.shape[0], width=L.shape[1], layout=getattr(L, "kind", "grid"),
                     uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch, **extra)
 
@@ -395,6 +425,8 @@ class Atlas(nn.Module):
             arrays["atlas/bake_samples"] = self.bake_samples.cpu().numpy().astype(np.float32)
         if self.surface is not None:
             arrays.update(self.surface.to_arrays())
+        if self.sides is not None:
+            arrays.update(self.sides.to_arrays())
         return arrays
 
     @classmethod
@@ -410,8 +442,16 @@ class Atlas(nn.Module):
             keys = ("width_chart", "depth_chart", "width_map", "depth_map", "fourier_chart", "fourier_map")
             atlas = cls(int(meta["n"]), 2 if kind == "islands" else int(meta["R"]), int(meta["pad"]),
                         arrays["atlas/centre"], float(meta["half"]), **{k: int(meta[k]) for k in keys})
+            if "sides" in meta:
+                atlas.sides = ChartSides.from_arrays(arrays, meta["sides"])
+                if atlas.sides.n != atlas.n_net:
+                    raise ModelFileError(f"atlas: 'atlas/sides/majority' has {atlas.sides.n} entries for "
+                                         f"{atlas.n_net} charts")
+                if kind != "islands":
+                    raise ModelFileError("atlas: charts split by side need the island layout")
             if kind == "islands":
-                atlas.set_layout(IslandLayout.from_arrays(arrays, int(meta["n"]), int(meta["R"]), int(meta["pad"])))
+                n_layout = int(meta["n"]) * (2 if atlas.sides is not None else 1)
+                atlas.set_layout(IslandLayout.from_arrays(arrays, n_layout, int(meta["R"]), int(meta["pad"])))
             if "surface" in meta:
                 atlas.surface = SurfaceProjection.from_arrays(arrays, meta["surface"])
         except KeyError as e:

@@ -112,6 +112,23 @@ class AtlasConfig:
     island_min_fill: float = opt(0.6, "islands (island_split > 0): an island longer than a quarter of that cut "
                                        "length that fills less of its bounding box than this (curved, hollow) is cut "
                                        "too", min=0.0, max=1.0)
+    island_sides: bool = opt(False, "islands: split every chart by side — the sign of its map's orientation against "
+                                    "the surface's normals given one side picks one of two sub-charts at each "
+                                    "point, for baking and lookups alike — so a chart that lays two sides of a part "
+                                    "over each other gives each side its own islands (docs/atlas.md)")
+    island_sides_step: float = opt(2.0, "island_sides: width of the finite differences that measure the map's "
+                                        "orientation, in sample spacings (wider: smoother sides)", above=0.0,
+                                   max=64.0)
+    island_sides_crease: float = opt(0.0, "island_sides: a point goes to its chart's reversed sub-chart only where "
+                                          "the orientation (sine of the angle, in [-1, 1]) is below minus this; "
+                                          "creases and points without a normal stay on the majority side",
+                                     min=0.0, max=0.99)
+    island_sides_min_share: float = opt(0.05, "island_sides: split only the charts with at least this share of "
+                                              "their samples on the reversed side (others stay whole: a few "
+                                              "reversed samples only add seams; 0 splits every chart that has any; "
+                                              "docs/atlas.md)", min=0.0, max=1.0)
+    island_sides_anchors: int = opt(20000, "island_sides without mid_surface: anchor planes built for the normals "
+                                           "(at most this many)", min=16, max=1 << 20)
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
                                  min=1, max=1_000_000)
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings",

@@ -250,8 +250,9 @@ def _predict(atlas: Atlas, xn: torch.Tensor, chunk: int = 32768) -> tuple[torch.
     """Chart probabilities [M, n] and uv [M, n, 2] for normalised points xn [M, 3]."""
     ps, uvs = [], []
     for s in range(0, len(xn), chunk):
-        ps.append(torch.softmax(atlas.chart(xn[s:s + chunk]), -1))
-        uvs.append(atlas.tex(xn[s:s + chunk]))
+        p, uv = atlas.outputs(xn[s:s + chunk])
+        ps.append(p)
+        uvs.append(uv)
     return torch.cat(ps), torch.cat(uvs)
 
 
@@ -350,6 +351,8 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     # Final texture with the maps frozen: chart probabilities and uv of every sample are fixed.
     if cfg.mid_surface and not cfg.mid_surface_maps:  # from here on every point reads the maps on the mid-surface
         xn = mid_surface(atlas, xyz, cfg, spacing, hist).to(dev)
+    if cfg.layout == "islands" and cfg.island_sides:
+        chart_sides(atlas, xyz, xn, cfg, spacing, hist)
     probs_all, uv_all = _predict(atlas, xn)
     if cfg.layout == "islands":
         layout, info = island_layout(probs_all, uv_all, xyz.numpy().astype(np.float64), area, k_area, R, cfg,
@@ -393,6 +396,44 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     hist["total_seconds"] = time.perf_counter() - t0
     hist["spacing"], hist["area"] = spacing, area
     return atlas, hist
+
+
+def chart_sides(atlas: Atlas, xyz: torch.Tensor, xn: torch.Tensor, cfg: AtlasConfig, spacing: float,
+                hist: dict) -> None:
+    """Split the atlas's charts by side (core/atlas/sides.py): normals given one side from the mid-surface's anchor
+    planes (the atlas's own when it has a mid-surface, else built from the samples xyz [S, 3] for the side rule
+    only), each chart's majority orientation over the samples xn [S, 3] (network frame, as the lookups read them).
+    hist gets "sides": seconds, reversed share of the samples, creases (|rho| < 0.2)."""
+    from core.atlas.sides import ChartSides
+
+    t0 = time.perf_counter()
+    src = atlas.surface if atlas.surface is not None else SurfaceProjection.from_samples(
+        xyz.numpy(), neighbours=cfg.mid_surface_neighbours, max_ratio=cfg.mid_surface_max_ratio, seed=cfg.seed,
+        max_anchors=cfg.island_sides_anchors)
+    surf = SurfaceProjection(src.centres, src.normals, src.bandwidth, src.k).orient()  # a copy: projection untouched
+    h = cfg.island_sides_step * spacing / atlas.half
+    sides = ChartSides(surf, np.ones(atlas.n_net, np.float32), h, cfg.island_sides_crease)
+    rhos, probs = [], []
+    with torch.no_grad():
+        for s in range(0, len(xn), 32768):
+            x = xn[s:s + 32768]
+            rhos.append(sides.rho(atlas.tex, x, atlas.denormalise(x)))
+            probs.append(torch.softmax(atlas.chart(x), -1))
+    rho, probs = torch.cat(rhos), torch.cat(probs)
+    major = ChartSides.majority_of(rho, probs)
+    chart = probs.argmax(-1)
+    r = rho[torch.arange(len(rho)), chart] * torch.from_numpy(major)[chart]
+    rev = r < -sides.crease
+    for c in range(atlas.n_net):  # a chart with few samples on its reversed side stays whole (no seams for them)
+        m = chart == c
+        if not bool(m.any()) or float(rev[m].float().mean()) < cfg.island_sides_min_share:
+            major[c] = 0.0
+    sides.majority = torch.from_numpy(major)
+    split = major[chart.numpy()] != 0
+    hist["sides"] = {"seconds": round(time.perf_counter() - t0, 2), "split": int((major != 0).sum()),
+                     "reversed": float((rev & torch.from_numpy(split)).float().mean()),
+                     "crease": float((rho[torch.arange(len(rho)), chart].abs() < 0.2).float().mean())}
+    atlas.sides = sides if bool((major != 0).any()) else None  # nothing split: the atlas of one side per chart
 
 
 def mid_surface(atlas: Atlas, xyz: torch.Tensor, cfg: AtlasConfig, spacing: float, hist: dict) -> torch.Tensor:
@@ -444,7 +485,7 @@ def quality_report(atlas: Atlas, xyz, rgb, area: float, chart_fill: float = 0.5,
         J, _ = uv_jacobian(atlas.tex, atlas.normalise(xyz[sel]))
     from core.atlas.distortion import singular_values_2x3
 
-    J = J.detach()[torch.arange(len(sel)), chart[sel]] * jac_scale  # [P, 2, 3]
+    J = J.detach()[torch.arange(len(sel)), atlas.net_chart(chart[sel])] * jac_scale  # [P, 2, 3]
     s1, s2, log_area = singular_values_2x3(J)
     aniso = (s1 / s2.clamp_min(1e-12)).cpu().numpy()
     areas = torch.exp(log_area).cpu().numpy()
@@ -478,7 +519,7 @@ def fold_report(atlas: Atlas, xyz, max_points: int = 20000, seed: int = 0) -> di
     pts = atlas.on_surface(x)
     nrm = surf.normals_at(pts).to(atlas.device).double()
     probs, _ = atlas.chart_uv(x)
-    chart = probs.argmax(-1)
+    chart = atlas.net_chart(probs.argmax(-1))  # the chart network (a split atlas: both sides of it together)
     with torch.enable_grad():
         J, _ = uv_jacobian(atlas.tex, atlas.normalise(pts))
     J = J.detach()[torch.arange(len(x), device=atlas.device), chart].double()
@@ -487,7 +528,7 @@ def fold_report(atlas: Atlas, xyz, max_points: int = 20000, seed: int = 0) -> di
     ok = (nrm.norm(dim=-1) > 0.5) & torch.isfinite(rho)
     rev = torch.zeros(len(x), dtype=torch.bool, device=atlas.device)
     per = []
-    for c in range(atlas.n):
+    for c in range(atlas.n_net):
         m = (chart == c) & ok
         if bool(m.any()):
             rev[m] = (rho[m] < 0) if float(rho[m].sum()) >= 0 else (rho[m] > 0)

@@ -214,6 +214,15 @@ MODEL_CASES = {
     "features_wrong_size": lambda a, m: a.update({"points/features": a["points/features"][:, :3].copy()}),
     "network_array_missing": lambda a, m: _drop(a, next(k for k in a if k.startswith("net/"))),
 }
+_SIDES = {"bandwidth": 0.1, "k": 8, "step": 0.01, "crease": 0.0}
+
+
+def _sides_arrays(meta, majority):
+    return {"atlas/sides/centres": np.zeros((5, 3), np.float32),
+            "atlas/sides/normals": np.tile(np.eye(3, dtype=np.float32)[:1], (5, 1)),
+            "atlas/sides/majority": np.full(int(meta["atlas"]["n"]), majority, np.float32)}
+
+
 ATLAS_CASES = {
     "atlas_version": lambda a, m: m["atlas"].update(version=99),
     "atlas_entry_missing": lambda a, m: _drop(m["atlas"], "R"),
@@ -229,6 +238,15 @@ ATLAS_CASES = {
         a.update({"atlas/surface/centres": np.zeros((5, 3), np.float32),
                   "atlas/surface/normals": np.tile(np.eye(3, dtype=np.float32)[:1], (5, 1))}),
         m["atlas"].update(version=4, surface={"bandwidth": "wide", "k": 8})),
+    # charts split by side (version 5) without their arrays, with a majority that is not +-1, a step that is not
+    # positive, or on a grid layout
+    "atlas_sides_missing": lambda a, m: m["atlas"].update(version=5, sides=dict(_SIDES)),
+    "atlas_sides_bad_majority": lambda a, m: (
+        a.update(_sides_arrays(m, 0.5)), m["atlas"].update(version=5, sides=dict(_SIDES))),
+    "atlas_sides_bad_step": lambda a, m: (
+        a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, sides=dict(_SIDES, step=-1.0))),
+    "atlas_sides_on_grid": lambda a, m: (
+        a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, sides=dict(_SIDES))),
 }
 # load_bundle prefixes the atlas's own ModelFileError with the model file's path.
 

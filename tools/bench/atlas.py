@@ -12,7 +12,8 @@ in memory with each layout and report the atlas's utilisation
 (texels with a surface point / image pixels), the texel -> surface -> texel round trip (share within 1 texel),
 stage-2 seconds, the atlas-coloured render and, at rest, the retexture (with its perfect-atlas reference: the
 texture evaluated exactly at the surface points) and the decal, object PSNR on the scene's test views
-(--no-scores: the layout figures only, no renders).
+(--no-scores: the layout figures only, no renders). --island-sides splits every chart by side
+(core/atlas/sides.py; side_reversed: the samples' share on a reversed sub-chart); --folds adds the maps' fold report.
 """
 from __future__ import annotations
 
@@ -163,6 +164,8 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                    "round_trip_all": hist.get("texel_stats", {}).get("round_trip_1", float("nan")),
                    "islands": hist.get("islands", 0),
                    "island_share": float(atlas.layout.island_pixels.float().mean()) if atlas.islands else float("nan")}
+            if "sides" in hist:  # charts split by side: share of the samples on a reversed sub-chart
+                row["side_reversed"] = hist["sides"]["reversed"]
             if folds and atlas.bake_samples is not None:
                 from core.atlas.fit import fold_report
 
