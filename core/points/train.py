@@ -132,8 +132,10 @@ class TrainConfig:
                                 choices=FINE_TRAINS)
     zoom_max: int = opt(2, "largest zoom of those steps (each picks 2..zoom_max; patches / zoom² of them, so a "
                            "step costs about the same)", min=2, max=8)
-    dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at half of training)",
+    dropout: float = opt(0.3, "initial point dropout probability (cosine decay to 0 at --dropout-end)",
                          min=0.0, max=0.95)
+    dropout_end: float = opt(0.5, "fraction of training at which the point dropout's cosine decay reaches 0",
+                             above=0.0, max=1.0)
     eval_every: float = opt(30.0, "seconds of training between test-PSNR measurements", above=0.0)
     eval_views: int = opt(4, "test views used for the PSNR-vs-time curve", min=1)
     guard: bool = opt(True, "watch stage 1 for a collapsed fit (test renders at the blank-frame floor or without "
@@ -192,6 +194,11 @@ def feature_dropout(feat: torch.Tensor, p: float, keep: int, gen: torch.Generato
         return feat
     mask = (torch.rand(feat.shape[0], feat.shape[1] - keep, 1, 1, generator=gen) >= p).to(feat)
     return torch.cat([feat[:, :keep], feat[:, keep:] * (mask / (1.0 - p))], dim=1)
+
+
+def point_dropout(frac: float, p: float, end: float) -> float:
+    """Point dropout probability at a fraction of training: p at 0, a cosine decay to 0 at `end` (> 0), 0 after."""
+    return p * _cosine(frac / end)
 
 
 def decoder_lr_factor(frac: float, stop: float) -> float:
@@ -656,7 +663,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             px = zoom_pixels(px, size, zoom)
             pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
         search = model.xyz.detach()
-        p_drop = cfg.dropout * _cosine(min(frac * 2, 1.0))
+        p_drop = point_dropout(frac, cfg.dropout, cfg.dropout_end)
         if p_drop > 0:
             drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
             search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)

@@ -200,6 +200,16 @@ def test_decoder_flip_keeps_the_decoded_patch_on_its_target():
         torch.testing.assert_close(getattr(on, name), getattr(off, name), rtol=1e-5, atol=1e-6)
 
 
+def test_point_dropout_schedule_decays_to_zero_at_its_end():
+    assert train_mod.point_dropout(0.0, 0.3, 0.5) == 0.3
+    for frac in (0.1, 0.25, 0.4, 0.5, 0.9):  # the default end: a cosine to 0 at half of training
+        assert train_mod.point_dropout(frac, 0.3, 0.5) == 0.3 * train_mod._cosine(min(frac * 2, 1.0))
+    assert abs(train_mod.point_dropout(0.4, 0.3, 0.8) - 0.15) < 1e-12  # half-way: half the probability
+    assert train_mod.point_dropout(0.8, 0.3, 0.8) < 1e-12 and train_mod.point_dropout(1.0, 0.3, 0.8) == 0.0
+    ps = [train_mod.point_dropout(f / 100, 0.5, 1.0) for f in range(101)]
+    assert all(a >= b for a, b in zip(ps, ps[1:]))  # non-increasing
+
+
 def test_feature_dropout_drops_whole_feature_channels_only():
     gen = torch.Generator().manual_seed(0)
     feat = torch.rand(6, 4 + 40, 5, 5) + 0.5
