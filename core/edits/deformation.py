@@ -255,20 +255,21 @@ class DeformationField:
     @torch.no_grad()
     def gradients_and_fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
                            max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False,
-                           with_gap: bool = False, gap_pairs: str = "all"):
+                           with_gap: bool = False, gap_pairs: str = "all", tear: float | None = None):
         """`gradients` and `fill` of the same points, sharing their neighbour gathering: (F [M, 3, 3], (new [P, 3],
         canonical [P, 3], source [P])); with_partner: the fill's tuple also holds partner [P] and fraction [P]
-        (see `fill`); with_gap: it also ends with gap [M] and sparse [M] (see `fill`, and gap_pairs)."""
+        (see `fill`); with_gap: it also ends with gap [M] and sparse [M] (see `fill`, and gap_pairs); tear: see
+        `fill`."""
         pts = points.detach().to(self.device, torch.float32)
         if pts.dim() != 2 or pts.shape[1] != 3:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         if pts.shape[0] == 0:
             return torch.zeros(0, 3, 3, device=self.device), self.fill(pts, ids, ratio, max_per_pair, budget,
-                                                                       with_partner, with_gap, gap_pairs)
+                                                                       with_partner, with_gap, gap_pairs, tear)
         gathered = self._gather_deformed(pts, ids, with_rows=True)
         return (self._fit(pts, *gathered[:5], ids),
                 self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap,
-                           canonical_rows=ids is None, gap_pairs=gap_pairs))
+                           canonical_rows=ids is None, gap_pairs=gap_pairs, tear=tear))
 
     def _fit(self, pts, dc, dd, w, cid, own_ok, ids):
         """The fit of `gradients` from gathered neighbour offsets (see _gather_deformed)."""
@@ -329,15 +330,15 @@ class DeformationField:
     @torch.no_grad()
     def fill(self, points: torch.Tensor, ids: torch.Tensor | None = None, ratio: float = 1.5,
              max_per_pair: int = 8, budget: float = 1.0, with_partner: bool = False,
-             with_gap: bool = False, gap_pairs: str = "all") -> tuple:
+             with_gap: bool = False, gap_pairs: str = "all", tear: float | None = None) -> tuple:
         """Extra points where the deformation pulled canonical neighbours apart (a stretched surface: a joint's
         blend band, a scaled part), so the deformed cloud keeps about its canonical density.
 
         Every canonical neighbour pair (j, l) (each pair once) whose deformed distance grew by g = |d_l − d_j| /
         |c_l − c_j| > ratio gets n = ceil(g / ratio) − 1 points (at most max_per_pair) evenly spaced on the
         segment between them: deformed d_j + t (d_l − d_j), canonical c_j + t (c_l − c_j), t = i / (n + 1). Pairs
-        that grew beyond max_stretch (a tear: parts moved apart) are left open. At most budget × M points are
-        added: past that the ratio is raised (a binary search) until they fit.
+        that grew beyond the tear growth (`tear`, None = max_stretch; at most max_stretch: parts moved apart) are
+        left open. At most budget × M points are added: past that the ratio is raised until they fit.
 
         points [M, 3] deformed (non-finite = absent), ids [M] as in `gradients`. Returns (new [P, 3] deformed
         positions, canonical [P, 3] their canonical positions, source [P] int64 the row of `points` each takes
@@ -346,7 +347,7 @@ class DeformationField:
         the segment from the source towards the partner the point lies (to blend the two ends' features).
         with_gap: the tuple ends with gap [M] and sparse [M], float32 >= 1, per given point: gap = the largest
         growth left between consecutive points on any of its pairs (g / (n + 1) on a filled pair, g on a pair left as
-        it is, at most `ratio`; 1 for none grown; pairs beyond max_stretch are tears and count as closed); sparse =
+        it is, at most `ratio`; 1 for none grown; pairs beyond the tear growth are tears and count as closed); sparse =
         that growth only where it exceeds `ratio` (the budget or max_per_pair kept a stretched pair sparser than the
         ratio), else 1; gap_pairs "budget": for sparse, only pairs the budget kept sparse count (those that got
         max_per_pair points, grown past max_per_pair + 1 times the ratio — a joint's near-tears — count as
@@ -356,7 +357,7 @@ class DeformationField:
             raise InputError(f"deformation: points must have shape [M, 3], got {tuple(pts.shape)}")
         gathered = self._gather_deformed(pts, ids, with_rows=True) if pts.shape[0] else None
         return self._fill(pts, gathered, ratio, max_per_pair, budget, with_partner, with_gap,
-                          canonical_rows=ids is None, gap_pairs=gap_pairs)
+                          canonical_rows=ids is None, gap_pairs=gap_pairs, tear=tear)
 
     @property
     def reverse_slots(self) -> torch.Tensor:
@@ -375,7 +376,7 @@ class DeformationField:
         return self._reverse
 
     def _fill(self, pts, gathered, ratio, max_per_pair, budget, with_partner=False, with_gap=False,
-              canonical_rows=False, gap_pairs="all"):
+              canonical_rows=False, gap_pairs="all", tear=None):
         """The work of `fill` from gathered neighbour offsets (_gather_deformed with rows; None: no points).
         canonical_rows: the points are the canonical ones in order (no ids), so the rows gathered are the cached
         neighbour lists and whether a pair's other end lists it back is looked up (`reverse_slots`)."""
@@ -390,6 +391,9 @@ class DeformationField:
             raise InputError(f"fill ratio must be a finite number > 1, got {ratio}")
         if not (budget >= 0 and math.isfinite(budget)):
             raise InputError(f"fill budget must be a finite number >= 0, got {budget}")
+        torn = self.cfg.max_stretch if tear is None else min(float(tear), self.cfg.max_stretch)
+        if not torn > 1.0:
+            raise InputError(f"fill tear growth must be a number > 1, got {tear}")
         if gathered is None or int(max_per_pair) < 1 or budget == 0:
             return empty
         dc, dd, w, cid, own_ok, rows = gathered
@@ -402,7 +406,7 @@ class DeformationField:
             lc = dc.norm(dim=-1)
         ld = dd.norm(dim=-1)                                                         # [M, k]
         grow = ld / lc.clamp_min(1e-30)
-        pair = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow <= self.cfg.max_stretch)
+        pair = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow <= torn)
         sel = pair & (grow > ratio)
         if with_gap:  # pairs left as they are (grown by at most the ratio, or shrunk): their own growth, both ends
             keep = torch.where(pair & ~sel, grow, torch.ones_like(grow)).clamp_min(1.0).to(torch.float32)

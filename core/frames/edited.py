@@ -109,6 +109,10 @@ class EditConfig:
                                    "this many times their canonical distance apart", min=1.01, max=100.0)
     f_fill_budget: float = opt(1.0, "f_fill: at most this many added points per point (the ratio is raised past "
                                     "it)", min=0.0, max=64.0)
+    f_fill_tear: float = opt(20.0, "f_fill: a canonical neighbour pair grown more than this many times its canonical "
+                                   "distance is a tear (parts the pose pulled apart, a rig's envelope band): it gets "
+                                   "no points and counts as closed; above the deformation's max_stretch (20) that "
+                                   "bound applies", min=1.01, max=1e6)
     f_fill_features: str = opt("blend", "f_fill: what an added point carries of its pair's two ends: blend (both "
                                         "ends' features and influence, mixed by where the point lies between them) | "
                                         "nearer (the features and influence of the nearer end)",
@@ -244,7 +248,8 @@ class EditState:
         fld = field_for(self.bundle.model, self.deformation_cfg)
         f, (new, can, src, partner, frac, gap, sparse) = self._timed(lambda: fld.gradients_and_fill(
             self.points, self.ids, ratio=self.cfg.f_fill_ratio, budget=self.cfg.f_fill_budget, with_partner=True,
-            with_gap=True, gap_pairs="budget" if self.cfg.f_radius_rule == "budget" else "all"))
+            with_gap=True, gap_pairs="budget" if self.cfg.f_radius_rule == "budget" else "all",
+            tear=self.cfg.f_fill_tear))
         self._f = f
         self._gap = gap
         self._sparse = sparse

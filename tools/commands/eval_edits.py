@@ -52,7 +52,9 @@ def add_arguments(p):
                         "f_reach_gate_own) | f-fill-fold-blend-depth-auto-budget-between (the gate at 1.5 caps "
                         "opening beyond the cap only between points more than 120° apart, f_reach_between) | "
                         "f-fill-fold-blend-depth-auto-budget-between2 (that at 2 caps) | "
-                        "f-fill-fold-blend-depth-auto-budget-between-gap (both -budget-between and -gap)")
+                        "f-fill-fold-blend-depth-auto-budget-between-gap (both -budget-between and -gap) | "
+                        "f-fill-fold-blend-depth-auto-budget-between-gap-tear (it, pairs grown past 13.5× left "
+                        "unfilled, f_fill_tear 13.5)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")

@@ -249,3 +249,27 @@ def test_fill_with_cached_reverse_lists_equals_the_generic_pairing(seed):
     assert torch.equal(nb[nb[j, s], rev[j, s]], j)
     j, s = torch.nonzero((rev < 0) & (nb >= 0), as_tuple=True)
     assert not bool((nb[nb[j, s]] == j[:, None]).any())
+
+
+def test_tear_growth_leaves_pairs_grown_past_it_open():
+    """tear: pairs grown by more than it get no points and leave no gap (as past max_stretch); pairs below it are
+    filled exactly as without it; None and any value at or above max_stretch are the plain call; <= 1 is refused."""
+    p = _sheet(12)
+    fld = DeformationField(p)
+    q = p * torch.tensor([14.0, 1.0, 1.0])  # x pairs grow 14×, diagonals ~9.9×: both below max_stretch (20)
+    plain = fld.fill(q, ratio=1.5, budget=100.0, with_partner=True, with_gap=True)
+    for tear in (None, 20.0, 50.0):
+        out = fld.fill(q, ratio=1.5, budget=100.0, with_partner=True, with_gap=True, tear=tear)
+        assert all(torch.equal(a, b) for a, b in zip(out, plain))
+    torn = fld.fill(q, ratio=1.5, budget=100.0, with_partner=True, with_gap=True, tear=12.0)
+    assert 0 < torn[0].shape[0] < plain[0].shape[0]
+    d = (p[torn[3]] - p[torn[2]]).abs()  # the pairs still filled: diagonals (both offsets), no pure x pair
+    assert bool((d[:, 1] > 1e-6).all())
+    assert float(torn[5].max()) <= 1.5 + 1e-5  # what was filled is closed; the x pairs count as torn
+    nothing = fld.fill(q, ratio=1.5, budget=100.0, with_gap=True, tear=1.2)
+    assert nothing[0].shape[0] == 0 and torch.equal(nothing[-2], torch.ones(p.shape[0]))
+    _, both = fld.gradients_and_fill(q, ratio=1.5, budget=100.0, with_partner=True, with_gap=True, tear=12.0)
+    assert all(torch.equal(a, b) for a, b in zip(both, torn))
+    for bad in (1.0, float("nan")):
+        with pytest.raises(InputError):
+            fld.fill(q, tear=bad)

@@ -14,7 +14,7 @@ from tests.helpers.tiny import card_half_swung_behind, tiny_bundle
 # every part on (at rest the fold rule sees one displacement, 0, and drops nothing; the occlusion rule finds every
 # neighbour in every other's layer)
 ALL_ON = EditConfig(correspondence="deform-gradient", f_attention=True, f_radius=True, f_fill=True, fold_radius=2.0,
-                    f_occlusion=True)
+                    f_occlusion=True, f_fill_tear=13.5)
 
 
 @pytest.fixture(scope="module")
@@ -162,6 +162,33 @@ def test_fill_closes_a_stretch_and_keeps_ids_features_and_canonical_points(tiny)
             assert st.f.shape[0] == n + p and torch.equal(st.f[n:], st.f[st.ids[n:]])
             assert out["stats"]["filled_points"] == p
     assert cover[True] > cover[False]
+
+
+def test_fill_tear_leaves_pairs_pulled_past_it_open_and_rest_frames_unchanged(tiny):
+    """f_fill_tear: under a 16× stretch along x (pairs grow up to 16×) a tear growth of 8 adds fewer points than the
+    default (20) and none whose pair grew past 8; rest frames forced through the moved path equal today's."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    s = torch.tensor([16.0, 1.0, 1.0])
+    states = {t: EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=8.0, f_fill_tear=t))
+              for t in (20.0, 8.0)}
+    assert 0 < states[8.0].filled_points < states[20.0].filled_points
+    st = states[8.0]
+    a, b, _ = st._fill_blend
+    grown = (xyz[b] - xyz[a]).mul(s).norm(dim=1) / (xyz[b] - xyz[a]).norm(dim=1)
+    assert float(grown.max()) <= 8.0 + 1e-4 and float(states[20.0]._fill_blend[0].numel()) > 0
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 4.0
+    out = render_edited(st, c2w, test.height, test.width, test.focal)
+    assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+    today = EditState(bundle, cfg=EditConfig(f_attention=False, f_fill=False, fold_radius=0.0))
+    rest = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(f_fill_tear=8.0))
+    assert rest.filled_points == 0
+    for i in range(len(test)):
+        ra = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        rb = render_edited(rest, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(ra["rgb"], rb["rgb"], atol=1e-5) and torch.allclose(ra["alpha"], rb["alpha"], atol=1e-5)
 
 
 def test_blended_fill_mixes_both_ends_and_leaves_rest_frames_unchanged(tiny):
