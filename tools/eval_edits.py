@@ -40,7 +40,7 @@ _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "
           "f_depth": "ray",
           "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
           "f_reach_gate": 0.0, "f_key_stretch": "full", "f_reach_surround": False, "f_reach_gate_own": False,
-          "f_reach_between": False, "f_fill_tear": 20.0}
+          "f_reach_between": False, "f_fill_tear": 20.0, "f_fill_budget": 1.0}
 # F-aware keys, blended fill, fold rule, canonical depths, compression by the model's thickness; with the budget reach
 _AUTO = {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
          "f_depth": "nearest", "f_compression": "auto"}
@@ -89,7 +89,12 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
                                                                  "f_reach_between": True, "f_key_stretch": "gap"},
              "f-fill-fold-blend-depth-auto-budget-between-gap-tear": {**_BUDGET, "f_reach_gate": 1.5,
                                                                       "f_reach_between": True, "f_key_stretch": "gap",
-                                                                      "f_fill_tear": 13.5}}
+                                                                      "f_fill_tear": 13.5},
+             "f-fill-fold-blend-depth-auto-budget-gate15-gap-b3": {**_BUDGET, "f_reach_gate": 1.5,
+                                                                   "f_key_stretch": "gap", "f_fill_budget": 3.0},
+             "f-fill-fold-blend-depth-auto-budget-between25-gap-b2": {**_BUDGET, "f_reach_gate": 2.5,
+                                                                      "f_reach_between": True, "f_key_stretch": "gap",
+                                                                      "f_fill_budget": 2.0}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 

@@ -24,7 +24,8 @@ _OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "co
         "f_depth": "ray",
         "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
         "fold_test": "displacement", "f_radius_rule": "frame", "f_reach_gate": 0.0, "f_key_stretch": "full",
-        "f_reach_surround": False, "f_reach_gate_own": False, "f_reach_between": False}
+        "f_reach_surround": False, "f_reach_gate_own": False, "f_reach_between": False, "f_fill_tear": 20.0,
+        "f_fill_budget": 1.0}
 # F-aware keys, blended fill, fold rule, canonical depths, compression by thickness; and with the budget reach
 _AUTO = {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
          "f_depth": "nearest", "f_compression": "auto"}
@@ -83,6 +84,14 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch capped at the fill's gap, occlusion, "
          "deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap",
                           "f_occlusion": True},
+    _D + ", budget reach gated at 1.5 caps between points, keys' stretch capped at the fill's gap, no fill past "
+         "13.5x, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap",
+                                 "f_fill_tear": 13.5},
+    _D + ", budget reach gated at 1.5 caps, keys' stretch capped at the fill's gap, fill budget 3, deform-aware":
+        {**_BUDGET, "f_reach_gate": 1.5, "f_key_stretch": "gap", "f_fill_budget": 3.0},
+    _D + ", budget reach gated at 2.5 caps between points, keys' stretch capped at the fill's gap, fill budget 2, "
+         "deform-aware": {**_BUDGET, "f_reach_gate": 2.5, "f_reach_between": True, "f_key_stretch": "gap",
+                          "f_fill_budget": 2.0},
 }
 
 

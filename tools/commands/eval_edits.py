@@ -54,7 +54,10 @@ def add_arguments(p):
                         "f-fill-fold-blend-depth-auto-budget-between2 (that at 2 caps) | "
                         "f-fill-fold-blend-depth-auto-budget-between-gap (both -budget-between and -gap) | "
                         "f-fill-fold-blend-depth-auto-budget-between-gap-tear (it, pairs grown past 13.5× left "
-                        "unfilled, f_fill_tear 13.5)")
+                        "unfilled, f_fill_tear 13.5) | f-fill-fold-blend-depth-auto-budget-gate15-gap-b3 (the gate at "
+                        "1.5 caps for any point, -gap, fill budget 3) | "
+                        "f-fill-fold-blend-depth-auto-budget-between25-gap-b2 (the gate between points at 2.5 caps, "
+                        "-gap, fill budget 2)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")
