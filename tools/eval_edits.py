@@ -94,7 +94,13 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
                                                                    "f_key_stretch": "gap", "f_fill_budget": 3.0},
              "f-fill-fold-blend-depth-auto-budget-between25-gap-b2": {**_BUDGET, "f_reach_gate": 2.5,
                                                                       "f_reach_between": True, "f_key_stretch": "gap",
-                                                                      "f_fill_budget": 2.0}}
+                                                                      "f_fill_budget": 2.0},
+             "f-fill-fold-blend-depth-auto-budget-gate15-gap": {**_BUDGET, "f_reach_gate": 1.5, "f_key_stretch": "gap"},
+             "f-fill-fold-blend-depth-auto-budget-gate15-gap-b2": {**_BUDGET, "f_reach_gate": 1.5,
+                                                                   "f_key_stretch": "gap", "f_fill_budget": 2.0},
+             "f-fill-fold-blend-depth-auto-budget-between25-gap-b3": {**_BUDGET, "f_reach_gate": 2.5,
+                                                                      "f_reach_between": True, "f_key_stretch": "gap",
+                                                                      "f_fill_budget": 3.0}}
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 

@@ -57,7 +57,10 @@ def add_arguments(p):
                         "unfilled, f_fill_tear 13.5) | f-fill-fold-blend-depth-auto-budget-gate15-gap-b3 (the gate at "
                         "1.5 caps for any point, -gap, fill budget 3) | "
                         "f-fill-fold-blend-depth-auto-budget-between25-gap-b2 (the gate between points at 2.5 caps, "
-                        "-gap, fill budget 2)")
+                        "-gap, fill budget 2) | f-fill-fold-blend-depth-auto-budget-gate15-gap (the gate at 1.5 caps "
+                        "for any point, -gap) | f-fill-fold-blend-depth-auto-budget-gate15-gap-b2 (that, fill budget "
+                        "2) | f-fill-fold-blend-depth-auto-budget-between25-gap-b3 (the gate between points at 2.5 "
+                        "caps, -gap, fill budget 3)")
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")
