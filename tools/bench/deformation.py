@@ -92,6 +92,13 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     _D + ", budget reach gated at 2.5 caps between points, keys' stretch capped at the fill's gap, fill budget 2, "
          "deform-aware": {**_BUDGET, "f_reach_gate": 2.5, "f_reach_between": True, "f_key_stretch": "gap",
                           "f_fill_budget": 2.0},
+    _D + ", budget reach gated at 2.5 caps between points, keys' stretch capped at the fill's gap, fill budget 3, "
+         "deform-aware": {**_BUDGET, "f_reach_gate": 2.5, "f_reach_between": True, "f_key_stretch": "gap",
+                          "f_fill_budget": 3.0},
+    _D + ", budget reach gated at 1.5 caps, keys' stretch capped at the fill's gap, fill budget 2, deform-aware":
+        {**_BUDGET, "f_reach_gate": 1.5, "f_key_stretch": "gap", "f_fill_budget": 2.0},
+    _D + ", budget reach gated at 1.5 caps, keys' stretch capped at the fill's gap, deform-aware":
+        {**_BUDGET, "f_reach_gate": 1.5, "f_key_stretch": "gap"},
 }
 
 
