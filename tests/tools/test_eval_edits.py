@@ -268,3 +268,23 @@ def test_eval_edits_smoke_on_a_tiny_scene(tmp_path):
     table = (tmp_path / "e.md").read_text()
     assert table.count("| bend | 1 | ") == 2 * (7 + 2 + 1)  # per renderer: every case, 2 retexture gaps, ablation
     assert (tmp_path / "scene" / "eval_views1" / "poses" / "bend_decal" / "variant.json").exists()
+
+
+def test_every_renderer_variant_is_a_valid_edit_config():
+    """Each eval-edits renderer and each timing variant of tools/bench/deformation sets only EditConfig fields, to
+    values EditConfig accepts, and names every F switch (so a changed default does not change a variant); exactly one
+    renderer is the defaults' own."""
+    import dataclasses
+
+    from tools.bench.deformation import VARIANTS
+    from tools.eval_edits import RENDERERS, _PAPER, default_renderer
+
+    fields = {f.name for f in dataclasses.fields(EditConfig)}
+    for table in (RENDERERS, VARIANTS):
+        for name, over in table.items():
+            assert set(over) <= fields, (name, set(over) - fields)
+            assert set(_PAPER) <= set(over) | {"correspondence"}, (name, set(_PAPER) - set(over))
+            EditConfig(**over)
+    defaults = [k for k, v in RENDERERS.items() if all(getattr(EditConfig, f) == x for f, x in v.items())]
+    assert defaults == [default_renderer()]
+    assert RENDERERS["f-fill-fold-blend-depth-auto-budget-between-gap-tear"]["f_fill_tear"] == 13.5
