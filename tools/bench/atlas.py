@@ -186,14 +186,17 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
 
 
 def markdown_rows(rows: list[dict]) -> str:
-    head = ("| scene | layout | atlas | utilisation | round trip ≤ 1 texel | stage 2 (s) | atlas-coloured | "
-            "retexture / perfect atlas | decal |")
-    out = [head, "|" + "---|" * 9]
+    """The docs' per-scene table: one row per scene and layout (islands: the packed islands; – for the grid),
+    with the retexture's gap to the perfect atlas (reference − retexture, dB) in brackets."""
+    head = ("| scene | layout | atlas | islands | utilisation | round trip ≤ 1 texel | stage 2 (s) | atlas-coloured | "
+            "retexture / perfect atlas (gap) | decal |")
+    out = [head, "|" + "---|" * 10]
     for r in rows:
         scored = "atlas_colour" in r
-        out.append(f"| {r['scene']} | {r['layout']} | {r['size']} | {100 * r['utilisation']:.1f} % | "
-                   f"{100 * r['round_trip']:.1f} % | {r['seconds']:.0f} | "
-                   + (f"{r['atlas_colour']:.2f} | {r['retexture']:.2f} / {r['retexture_perfect']:.2f} | "
+        gap = r["retexture_perfect"] - r["retexture"] if scored else 0.0
+        out.append(f"| {r['scene']} | {r['layout']} | {r['size']} | {r.get('islands') or '–'} | "
+                   f"{100 * r['utilisation']:.1f} % | {100 * r['round_trip']:.1f} % | {r['seconds']:.0f} | "
+                   + (f"{r['atlas_colour']:.2f} | {r['retexture']:.2f} / {r['retexture_perfect']:.2f} ({gap:.2f}) | "
                       f"{r['decal']:.2f} |" if scored else "– | – | – |"))
     return "\n".join(out)
 
