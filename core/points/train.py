@@ -32,6 +32,7 @@ from core.points.model import ModelConfig, PointModel, mean_spacing
 from core.points.regularizers import close_to_ray, close_to_surface
 from core.points.neighbors.select import select_neighbors
 from core.util.device import resolve_device
+from core.util.errors import InputError
 from core.util.progress import Progress
 from core.util.workers import split_rows
 
@@ -57,6 +58,9 @@ class TrainConfig:
     lr_influence: float = opt(1e-2, "point influence learning rate", min=0.0)
     lr_networks: float = opt(2e-3, "attention / value / decoder learning rate", min=0.0)
     lr_final: float = opt(0.05, "learning rates decay exponentially to this fraction", above=0.0, max=1.0)
+    lr_final_groups: str = opt("", "per-group final fractions overriding --lr-final, comma-separated name=fraction "
+                                   "over the parameter groups xyz, features, influence, networks (attention / "
+                                   "value) and decoder (e.g. xyz=0.05,decoder=0.15); empty = --lr-final for all")
     alpha_weight: float = opt(0.05, "weight of the foreground-mask loss (1 - background weight vs alpha)", min=0.0)
     decoder_alpha_weight: float = opt(0.5, "weight of the decoder mask head's loss (MSE against alpha)", min=0.0)
     ssim_weight: float = opt(0.0, "weight of the (1 - SSIM) loss on patches", min=0.0)
@@ -199,6 +203,30 @@ def feature_dropout(feat: torch.Tensor, p: float, keep: int, gen: torch.Generato
 def point_dropout(frac: float, p: float, end: float) -> float:
     """Point dropout probability at a fraction of training: p at 0, a cosine decay to 0 at `end` (> 0), 0 after."""
     return p * _cosine(frac / end)
+
+
+LR_GROUPS = ("xyz", "features", "influence", "networks", "decoder")  # build_optimizer's parameter groups
+
+
+def lr_finals(cfg: "TrainConfig") -> dict[str, float]:
+    """Final learning-rate fraction of each parameter group (LR_GROUPS): --lr-final, overridden per group by
+    --lr-final-groups ("xyz=0.05,decoder=0.15"). A malformed list raises InputError."""
+    out = {g: float(cfg.lr_final) for g in LR_GROUPS}
+    for part in (p.strip() for p in str(cfg.lr_final_groups).split(",")):
+        if not part:
+            continue
+        name, eq, val = (t.strip() for t in part.partition("="))
+        if not eq or name not in LR_GROUPS:
+            raise InputError(f"--lr-final-groups: name=fraction items, names from {', '.join(LR_GROUPS)}; "
+                             f"got {part!r}")
+        try:
+            v = float(val)
+        except ValueError:
+            raise InputError(f"--lr-final-groups: {name}'s fraction must be a number, got {val!r}") from None
+        if not 0.0 < v <= 1.0:
+            raise InputError(f"--lr-final-groups: {name}'s fraction must be in (0, 1], got {val!r}")
+        out[name] = v
+    return out
 
 
 def decoder_lr_factor(frac: float, stop: float) -> float:
@@ -596,6 +624,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     dev = resolve_device(cfg.device)
     # Multi-scale training: one split per level, fine to coarse; the coarsest is the training size.
     scales = parse_scales(cfg.train_scales)
+    finals = lr_finals(cfg)  # each parameter group's final learning-rate fraction
     levels = [train] if not scales else list(pyramid(train, scales).values())
     level_p = torch.tensor(parse_weights(cfg.train_scale_weights, len(levels)), dtype=torch.float64)
     level_steps = [0] * len(levels)  # steps (with --train-scale-mix: step parts) per level
@@ -741,10 +770,9 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             t0 = time.perf_counter()
             if torch.get_num_threads() != op_threads:
                 torch.set_num_threads(op_threads)
-            decay = cfg.lr_final ** frac
             dec_factor = decoder_lr_factor(frac, cfg.decoder_stop)
             for g, lr in zip(opt.param_groups, base_lrs):
-                g["lr"] = lr * decay * (dec_factor if g["name"] == "decoder" else 1.0)
+                g["lr"] = lr * finals[g["name"]] ** frac * (dec_factor if g["name"] == "decoder" else 1.0)
             n_coarse = mixed_patches(cfg.patches, cfg.train_scale_mix, len(levels))
             if n_coarse:  # the step's patches on the training size and on one finer level, one backward
                 li = int(torch.multinomial(fine_p, 1, generator=gen))

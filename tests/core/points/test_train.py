@@ -250,6 +250,30 @@ def test_decoder_stop_freezes_the_decoder_and_the_points_keep_learning():
     assert not torch.equal(first.features, late.features)
 
 
+def test_lr_final_groups_override_the_final_fraction_per_group():
+    import pytest
+    from core.util.errors import InputError
+    finals = train_mod.lr_finals(TrainConfig(lr_final=0.05, lr_final_groups="decoder=0.15, xyz=1"))
+    assert finals == {"xyz": 1.0, "features": 0.05, "influence": 0.05, "networks": 0.05, "decoder": 0.15}
+    assert set(train_mod.lr_finals(TrainConfig())) == set(train_mod.LR_GROUPS)
+    for bad in ("points=0.1", "xyz", "xyz=abc", "xyz=0", "xyz=1.5"):
+        with pytest.raises(InputError):
+            train_mod.lr_finals(TrainConfig(lr_final_groups=bad))
+    train, test = _two_views()
+    mcfg = model_config("card", num_points=600, decoder="unet")
+    every = ",".join(f"{g}=0.2" for g in train_mod.LR_GROUPS)
+    ref = fit_points(train, test, mcfg, _tiny_cfg(steps=12, lr_final=0.2), show_progress=False)[0]
+    same = fit_points(train, test, mcfg, _tiny_cfg(steps=12, lr_final=0.9, lr_final_groups=every),
+                      show_progress=False)[0]
+    assert torch.equal(ref.xyz, same.xyz) and torch.equal(ref.features, same.features)
+    for p, q in zip(ref.decoder.parameters(), same.decoder.parameters()):
+        assert torch.equal(p, q)
+    # only the decoder's schedule differs: the step's first update is the same (frac 0), the fit's end is not
+    dec = fit_points(train, test, mcfg, _tiny_cfg(steps=12, lr_final=0.2, lr_final_groups="decoder=1"),
+                     show_progress=False)[0]
+    assert any(not torch.equal(p, q) for p, q in zip(ref.decoder.parameters(), dec.decoder.parameters()))
+
+
 def test_ray_jitter_shifts_each_patch_as_a_whole():
     gen = torch.Generator().manual_seed(0)
     alpha = torch.zeros(40, 40)
