@@ -13,7 +13,7 @@ Package layout (one job per module; tests/pointgt_blender/test_addon_layers.py c
 - bridge/: the torch side, no bpy: deps (torch detection, pip), frame_renderer (model/state caches,
   compositing), paint_transfer, checks.
 - scene/: reads and writes Blender data: evaluated (deformed points), scene_inputs, camera, proxy_mesh,
-  model_pack, atlas_image, session (the in-memory state, one clear()), handlers (every Blender handler and the
+  model_pack, atlas_image, state (everything kept in memory, one clear()), handlers (every Blender handler and the
   UI timer).
 """
 from __future__ import annotations

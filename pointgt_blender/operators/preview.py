@@ -24,13 +24,13 @@ from ..bridge import checks, deps
 from ..scene.camera import preview_size, scene_camera
 from ..ui.properties import ModelOperator, is_pointgt_object
 from .reporting import reports_errors
-from ..scene.session import SESSION
+from ..scene.state import STATE
 
 POLL_SECONDS = 0.5      # idle timer period: look for paint on the previews
 SLICE_SECONDS = 0.05    # a timer call runs preview steps until this budget is spent
 SLICE_INTERVAL = 0.02   # next timer call while a preview job is running
 FIRST_LEVEL = 64        # coarse-to-fine: long side of the first preview level, then doubled
-S = SESSION
+S = STATE
 COUNTS = S.counts
 _RECORDS = S.records
 _STATUS = S.status
@@ -168,7 +168,7 @@ def transfer_paint(scene, obj) -> tuple[int, int]:
     rec = S.records.get(obj.name)
     s = obj.pointgt
     if rec is None:
-        raise InputError(f"object '{obj.name}': its preview was not rendered in this session, so PointGT cannot "
+        raise InputError(f"object '{obj.name}': its preview was not rendered since this .blend was opened, so PointGT cannot "
                          f"tell what was painted on it; re-render the preview, then paint on it")
     if s.atlas is None or rec.state.bundle.atlas is None:
         raise InputError(f"object '{obj.name}': the model has no atlas to paint into; fit one (`pointgt atlas`) "

@@ -12,7 +12,7 @@ from core.atlas.outlines import chart_labels, outline_segments, segments_to_uv
 from core.modelfile.pgt import PgtFile
 from core.util.errors import ModelFileError
 
-from .session import SESSION
+from .state import STATE
 
 KEYS = ("atlas/islands/cells", "atlas/islands/offset", "atlas/texel_points")
 
@@ -37,14 +37,14 @@ def read_outlines(path: str) -> np.ndarray:
 
 
 def model_outlines(path: str) -> np.ndarray:
-    """read_outlines, cached in the session until the file changes (size or modification time)."""
+    """read_outlines, cached in memory until the file changes (size or modification time)."""
     st = os.stat(path)
     stamp = (st.st_size, st.st_mtime_ns)
-    hit = SESSION.outlines.get(path)
+    hit = STATE.outlines.get(path)
     if hit is not None and hit[0] == stamp:
         return hit[1]
     seg = read_outlines(path)
-    SESSION.outlines[path] = (stamp, seg)
+    STATE.outlines[path] = (stamp, seg)
     return seg
 
 

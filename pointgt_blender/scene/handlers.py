@@ -5,7 +5,7 @@ dirty (`preview.request`, constant time); the preview itself is rendered coarse-
 (`preview.tick` -> `preview.run_slice`) in slices of about 50 ms when Blender is idle, and a newer change cancels
 the running one. So a script's batch of operator calls (each a depsgraph update) costs nothing until Blender
 is idle again. Headless (`blender -b`, the bpy module) timers never fire; `preview.run_pending()` runs the
-slices. Each handler call's duration is kept in `SESSION.handler_ms` (tests hold it to <= 100 ms).
+slices. Each handler call's duration is kept in `STATE.handler_ms` (tests hold it to <= 100 ms).
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from core.util.errors import PointGTError
 
 from . import atlas_image
 from ..operators import model_import, preview
-from .session import SESSION
+from .state import STATE
 
 FIRST_TICK = 0.05  # after a change, the timer looks again this soon (seconds)
 
@@ -32,8 +32,8 @@ def _timed(fn):
         except Exception as exc:  # a handler must never take Blender down
             print(f"PointGT {fn.__name__}: {type(exc).__name__}: {exc}")
         finally:
-            SESSION.handler_ms.append((time.perf_counter() - t0) * 1000.0)
-            del SESSION.handler_ms[:-1000]
+            STATE.handler_ms.append((time.perf_counter() - t0) * 1000.0)
+            del STATE.handler_ms[:-1000]
     wrapper.__name__ = fn.__name__
     wrapper.__doc__ = fn.__doc__
     return bpy.app.handlers.persistent(wrapper)
@@ -73,7 +73,7 @@ def on_depsgraph_update(scene, depsgraph=None):
 
 @_timed
 def on_load(*_args):
-    SESSION.clear()
+    STATE.clear()
     _start_warmup()
 
 
@@ -110,7 +110,7 @@ def _start_warmup():
 def on_undo(*_args):
     """undo_post / redo_post: the preview images may hold other pixels now; forget what was written into them, so
     the difference is never mistaken for paint (no atlas texel changes because of an undo)."""
-    SESSION.forget_previews()
+    STATE.forget_previews()
     scene = bpy.context.scene
     if preview.live(scene):
         preview.request(scene)
@@ -126,8 +126,8 @@ def on_save(filepath="", *_args):
 
 @_timed
 def on_render_start(*_args):
-    SESSION.rendering = True
-    SESSION.cancel()
+    STATE.rendering = True
+    STATE.cancel()
 
 
 @_timed
@@ -146,13 +146,13 @@ def on_render_pre(scene, *_args):
         composite.update_layer(scene)
     except Exception as exc:
         composite.clear_layer(scene)  # never a stale model from an earlier frame
-        SESSION.status["__composite__"] = f"PointGT layer failed: {type(exc).__name__}: {exc}"
+        STATE.status["__composite__"] = f"PointGT layer failed: {type(exc).__name__}: {exc}"
         raise
 
 
 @_timed
 def on_render_end(*_args):
-    SESSION.rendering = False
+    STATE.rendering = False
 
 
 HANDLERS = (("frame_change_post", on_frame_change), ("depsgraph_update_post", on_depsgraph_update),
@@ -188,4 +188,4 @@ def unregister_handlers():
             lst.remove(fn)
     if bpy.app.timers.is_registered(preview.tick):
         bpy.app.timers.unregister(preview.tick)
-    SESSION.clear()
+    STATE.clear()

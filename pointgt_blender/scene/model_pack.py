@@ -2,7 +2,7 @@
 
 The .pgt bytes live in a bytes custom property of a Text datablock '<file>.pgt' (visible in the Text Editor, where
 its text says what it is); each object points to it (`object.pointgt.packed_model`), so duplicates share one
-copy. Rendering extracts it once per Blender session into Blender's temporary folder, named by its SHA-256, and
+copy. Rendering extracts it once per Blender process into Blender's temporary folder, named by its SHA-256, and
 loads it from there (after a .blend is opened, the add-on's warm-up extracts it in its background thread). A
 packed model takes precedence over the file at the model path, as packed images do.
 """
@@ -21,7 +21,7 @@ DATA = "pointgt_model"      # bytes: the .pgt file
 SHA = "pointgt_sha256"      # its SHA-256 (hex)
 SOURCE = "pointgt_source"   # the file name it was packed from
 
-_EXTRACTED: dict = {}  # sha -> extracted path (this Blender session)
+_EXTRACTED: dict = {}  # sha -> extracted path (this Blender process)
 _LOCK = threading.Lock()  # one extraction at a time (the warm-up thread and a frame may both ask)
 
 
@@ -53,7 +53,7 @@ def packed_bytes(text) -> bytes:
 
 
 def extracted_path(text) -> str:
-    """A file holding the packed model (written once per session, checked against its SHA-256)."""
+    """A file holding the packed model (written once per process, checked against its SHA-256)."""
     path, extract = extraction(text)
     return path if extract is None else extract()
 

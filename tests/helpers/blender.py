@@ -1,5 +1,5 @@
 """What the add-on tests share around their Blender subprocesses: the packaged add-on with the tiny trained model
-in a fresh folder, running one session script and reading the record it prints, checking one recorded step, and
+in a fresh folder, running one Blender script and reading the record it prints, checking one recorded step, and
 the enlarged image strips some tests write for the docs (POINTGT_DOC_IMAGES)."""
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from tools.package_addon import build_addon
 
 @dataclass
 class AddonSetup:
-    """zip_path: the packaged add-on; model: the tiny "addon" model file; work: an empty folder for the session's
+    """zip_path: the packaged add-on; model: the tiny "addon" model file; work: an empty folder for the script's
     outputs; env: the environment for Blender (its own BLENDER_USER_RESOURCES, one OpenMP thread)."""
 
     tmp: Path
@@ -38,19 +38,19 @@ def addon_setup(tmp: Path) -> AddonSetup:
     return AddonSetup(tmp, zip_path, model, work, env)
 
 
-def run_session(script: Path, args: list[str], env: dict | None = None, cwd: Path | None = None,
+def run_script(script: Path, args: list[str], env: dict | None = None, cwd: Path | None = None,
                 timeout: float = 600):
-    """Run a session script (bpy as a module) with `args` after `--`; returns its last `RESULTS: ` line, parsed.
-    A session that printed none (a crash) fails the test with the end of its output."""
+    """Run a Blender script (bpy as a module) with `args` after `--`; returns its last `RESULTS: ` line, parsed.
+    A script that printed none (a crash) fails the test with the end of its output."""
     proc = subprocess.run([sys.executable, str(script), "--", *args], capture_output=True, text=True, env=env,
                           timeout=timeout, cwd=cwd)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
-    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
+    assert lines, f"Blender script crashed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
     return json.loads(lines[-1][len("RESULTS: "):])
 
 
 def step_result(results: dict, step: str):
-    """The recorded result of one step; fails with its traceback when the step raised (session_common.recorder
+    """The recorded result of one step; fails with its traceback when the step raised (script_common.recorder
     records {"error", "trace"} then; a step may return an "error" of its own, which is not a failure)."""
     res = results[step]
     failed = isinstance(res, dict) and "error" in res and isinstance(res.get("trace"), str)

@@ -1,6 +1,6 @@
 """The packaged add-on inside a real Blender (bpy in a subprocess, its own BLENDER_USER_RESOURCES): install the
 zip, register without torch, import a .pgt, rig it with a lattice and armatures, export, and the error cases.
-One Blender session runs every step (tests/pointgt_blender/addon_session.py); the tests below check its record."""
+One Blender process runs every step (tests/pointgt_blender/addon_script.py); the tests below check its record."""
 from __future__ import annotations
 
 import os
@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from core.modelfile.pgt import save_pgt
-from tests.helpers.blender import run_session, step_result
+from tests.helpers.blender import run_script, step_result
 from tools.package_addon import build_addon
 
 pytestmark = pytest.mark.blender
-SESSION = Path(__file__).with_name("addon_session.py")
+SCRIPT = Path(__file__).with_name("addon_script.py")
 N = 60
 
 
@@ -41,7 +41,7 @@ def _probe_wheel(folder: Path) -> None:
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory):
+def record(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("addon")
     zip_path = build_addon(tmp / "dist")
     xyz, atlas = _model_arrays()
@@ -56,129 +56,129 @@ def session(tmp_path_factory):
     wheels.mkdir()
     _probe_wheel(wheels)
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), PIP_NO_INDEX="1")
-    results = run_session(SESSION, [str(zip_path), str(model), str(corrupt), str(work), str(wheels)], env, tmp,
+    results = run_script(SCRIPT, [str(zip_path), str(model), str(corrupt), str(work), str(wheels)], env, tmp,
                           timeout=300)
     return {"r": results, "xyz": xyz, "atlas": atlas, "model": model, "corrupt": corrupt, "work": work}
 
 
-def _get(session, step):
-    return step_result(session["r"], step)
+def _get(record, step):
+    return step_result(record["r"], step)
 
 
-def test_installs_and_registers_without_torch(session):
-    r = _get(session, "install")
+def test_installs_and_registers_without_torch(record):
+    r = _get(record, "install")
     assert r["result"] == ["FINISHED"] and r["enabled"] and r["import_op"]
     assert r["torch_loaded"] is False
     # operators on the model are undoable through their shared base; those that change no scene data are not
     assert r["undo"] == {"reset_canonical": True, "bind_armature": True, "add_lattice": True, "pack_model": True,
                          "transfer_paint": False, "export_deformed": False}
-    t = _get(session, "torch_missing")
+    t = _get(record, "torch_missing")
     assert t["available"] is False and "PyTorch is missing" in t["message"]
     # the torch-only operator refuses to run on an imported model and says why
-    assert "PyTorch is missing" in _get(session, "import")["torch_poll_error"]
+    assert "PyTorch is missing" in _get(record, "import")["torch_poll_error"]
 
 
-def test_import_builds_points_mesh_with_ids_and_packed_atlas(session):
-    r = _get(session, "import")
+def test_import_builds_points_mesh_with_ids_and_packed_atlas(record):
+    r = _get(record, "import")
     assert r["result"] == ["FINISHED"] and r["new_objects"] == 1 and r["name"] == "bunny"
     assert (r["verts"], r["edges"], r["faces"]) == (N, 0, 0)
     assert r["ids"] == list(range(N)) and r["attr"] == ["POINT", "INT"]
-    np.testing.assert_allclose(np.asarray(r["co"]).reshape(N, 3), session["xyz"], atol=1e-7)
+    np.testing.assert_allclose(np.asarray(r["co"]).reshape(N, 3), record["xyz"], atol=1e-7)
     assert r["image_size"] == [8, 6] and r["packed"] and r["image_float"]
     atlas = np.asarray(r["atlas"], np.float32)
-    np.testing.assert_allclose(atlas, session["atlas"], atol=2e-5)  # same orientation: row 0 = top
+    np.testing.assert_allclose(atlas, record["atlas"], atol=2e-5)  # same orientation: row 0 = top
     assert r["k"] == 12 and r["point_count"] == N
-    assert os.path.samefile(r["model_path"], session["model"])  # absolute while the .blend is unsaved
+    assert os.path.samefile(r["model_path"], record["model"])  # absolute while the .blend is unsaved
 
 
-def test_atlas_and_settings_survive_save_and_reload(session):
-    r = _get(session, "reload_blend")
-    np.testing.assert_allclose(np.asarray(r["atlas"], np.float32), session["atlas"], atol=2e-5)
+def test_atlas_and_settings_survive_save_and_reload(record):
+    r = _get(record, "reload_blend")
+    np.testing.assert_allclose(np.asarray(r["atlas"], np.float32), record["atlas"], atol=2e-5)
     assert r["k"] == 12 and r["resolved"]
     assert r["model_path"] == "//../bunny.pgt"  # made relative when the .blend got a location (work/scene.blend)
 
 
-def test_corrupt_or_missing_model_reports_and_creates_nothing(session):
-    r = _get(session, "import_corrupt")
+def test_corrupt_or_missing_model_reports_and_creates_nothing(record):
+    r = _get(record, "import_corrupt")
     assert "broken.pgt" in r["error"] and r["unchanged"]
     assert "nope.pgt" in r["missing"] and "not found" in r["missing"]
     assert "BAD" in r["late"] and r["unchanged_late"]
 
 
-def test_lattice_wraps_points_and_deforms_them(session):
-    r = _get(session, "lattice")
+def test_lattice_wraps_points_and_deforms_them(record):
+    r = _get(record, "lattice")
     assert r["lattice_type"] == "LATTICE"
     assert r["identity_err"] < 1e-4  # an untouched lattice leaves the points where they were
     assert r["max_move"] > 0.05 and r["finite"] and r["ids_ok"]
 
 
-def test_reset_restores_canonical_positions(session):
-    r = _get(session, "reset")
+def test_reset_restores_canonical_positions(record):
+    r = _get(record, "reset")
     assert r["err"] < 1e-6 and r["disabled"] == [False] and r["left"] == 0
 
 
-def test_armature_envelopes_move_points(session):
-    r = _get(session, "armature_envelope")
+def test_armature_envelopes_move_points(record):
+    r = _get(record, "armature_envelope")
     assert r["modifier"] == ["ARMATURE"] and r["max_move"] > 0.05 and r["finite"]
     # our envelope estimate (used for the "points outside every envelope" warning) agrees with Blender
     assert r["uncovered"] > 0 and r["uncovered_move"] < 1e-6 and r["covered_still"] == 0
 
 
-def test_armature_weights_from_proxy_mesh(session):
-    r = _get(session, "armature_proxy")
+def test_armature_weights_from_proxy_mesh(record):
+    r = _get(record, "armature_proxy")
     assert r["groups"] == ["Bone"] and r["min_weight"] == pytest.approx(1.0)
     assert r["modifiers"] == ["ARMATURE"] and r["max_move"] > 0.05
     assert "vertex groups" in r["err_no_groups"]
 
 
-def test_export_writes_npy_pair_with_backups(session):
-    r = _get(session, "export")
+def test_export_writes_npy_pair_with_backups(record):
+    r = _get(record, "export")
     assert r["shape"] == [N, 3] and r["dtype"] == "float32" and r["ids_dtype"] == "int64"
     assert r["equal"] and r["bak"]
 
 
-def test_nan_positions_are_reported_not_exported(session):
-    r = _get(session, "nan_positions")
+def test_nan_positions_are_reported_not_exported(record):
+    r = _get(record, "nan_positions")
     assert "NaN" in r["error"] and "ids 1" in r["error"] and not r["written"]
 
 
-def test_point_count_change_without_ids_is_reported(session):
-    r = _get(session, "count_changed")
+def test_point_count_change_without_ids_is_reported(record):
+    r = _get(record, "count_changed")
     assert "changed the point count" in r["direct"] and f"from {N} to {N + 3}" in r["direct"]
     assert r["n_eval"] < N
     assert "changed the point count" in r["op_error"]
 
 
-def test_install_button_runs_pip_into_the_addon_folder(session):
-    r = _get(session, "install_offline_wheel")
+def test_install_button_runs_pip_into_the_addon_folder(record):
+    r = _get(record, "install_offline_wheel")
     assert r["result"] == ["FINISHED"] and r["value"] == 42 and r["in_site"]
 
 
-def test_torch_features_work_once_torch_imports(session):
-    r = _get(session, "torch_unblocked")
+def test_torch_features_work_once_torch_imports(record):
+    r = _get(record, "torch_unblocked")
     assert r["result"] == ["FINISHED"]
     assert r["cuda_err"] == "" or "CUDA is not available" in r["cuda_err"]
 
 
-def test_existing_site_packages_folder_is_used_and_released(session):
-    r = _get(session, "site_packages_pref")
+def test_existing_site_packages_folder_is_used_and_released(record):
+    r = _get(record, "site_packages_pref")
     assert r["value"] == 7 and r["on_path"] and r["removed"]
 
 
-def test_lattice_on_flat_and_single_point_models_stays_finite(session):
-    r = _get(session, "degenerate_lattice")
+def test_lattice_on_flat_and_single_point_models_stays_finite(record):
+    r = _get(record, "degenerate_lattice")
     for name in ("flat", "single"):
         assert r[name]["finite"] and r[name]["scale_ok"] and r[name]["err"] < 1e-4, (name, r[name])
         assert r[name]["atlas"]  # models without an atlas import as points only
 
 
-def test_points_outside_every_envelope_are_counted(session):
-    r = _get(session, "envelope_outside")
+def test_points_outside_every_envelope_are_counted(record):
+    r = _get(record, "envelope_outside")
     assert r["outside_far"] == N and r["outside_near"] < N
 
 
-def test_panel_and_preferences_draw_and_show_what_is_missing(session):
-    r = _get(session, "draw_ui")
+def test_panel_and_preferences_draw_and_show_what_is_missing(record):
+    r = _get(record, "draw_ui")
     assert "PyTorch is missing" in r["no_model"] and "Select an imported model" in r["no_model"]
     for name in ("model_path", "neighbors", "correspondence", "device", "pointgt.add_lattice",
                  "pointgt.bind_armature", "pointgt.reset_canonical", "pointgt.export_deformed"):

@@ -10,9 +10,9 @@ import pytest
 from core.images.cameras import Intrinsics
 from core.util.errors import InputError
 from pointgt_blender.scene.camera import camera_settings, focal_pixels, pixel_aspect, principal_point
-from tests.helpers.blender import run_session
+from tests.helpers.blender import run_script
 
-SESSION = Path(__file__).with_name("camera_shift_session.py")
+SCRIPT = Path(__file__).with_name("camera_shift_script.py")
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -42,7 +42,7 @@ def test_camera_settings_invert_the_add_on_camera():
 
 @pytest.mark.blender
 def test_shifted_and_non_square_cameras_match_blenders_projection():
-    rows = run_session(SESSION, [str(REPO)], cwd=REPO, timeout=300)
+    rows = run_script(SCRIPT, [str(REPO)], cwd=REPO, timeout=300)
     assert len(rows) == 10
     for row in rows[:7]:
         assert row["max_px_err"] < 1e-4, row  # float32 c2w: ~5e-6 px

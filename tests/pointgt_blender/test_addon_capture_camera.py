@@ -31,7 +31,7 @@ VIEW = "test_1"
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory):
+def record(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("capture")
     train = render_split("card", fibonacci_cameras(8, seed=0), W, height=H, intrinsics=K)
     test = render_split("card", fibonacci_cameras(2, seed=5), W, height=H, intrinsics=K, split="test")
@@ -53,17 +53,17 @@ def session(tmp_path_factory):
     work = tmp / "work"
     work.mkdir()
     env = dict(env, BLENDER_USER_RESOURCES=str(tmp / "blender_user"))
-    proc = subprocess.run([sys.executable, str(HERE / "capture_render_session.py"), "--", str(build_addon(tmp / "dist")),
+    proc = subprocess.run([sys.executable, str(HERE / "capture_render_script.py"), "--", str(build_addon(tmp / "dist")),
                            str(model), str(tmp / "camera.json"), str(work)],
                           capture_output=True, text=True, env=env, cwd=HERE, timeout=600)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
-    assert lines, f"Blender session crashed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
+    assert lines, f"Blender script crashed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
     return {"r": json.loads(lines[-1][len("RESULTS: "):]), "ref": read_png(tmp / "ref" / f"{VIEW}.png"),
             "engine": work / "engine.npy", "camera": camera}
 
 
-def test_scene_camera_reproduces_the_capture_camera(session):
-    r = session["r"]
+def test_scene_camera_reproduces_the_capture_camera(record):
+    r = record["r"]
     for name in ("install", "scene", "camera"):
         assert "error" not in r[name], r[name]
     assert r["camera"]["aspect"] == pytest.approx([1.0, 40.0 / 35.0])  # fy < fx: taller pixels
@@ -71,11 +71,11 @@ def test_scene_camera_reproduces_the_capture_camera(session):
     assert r["camera"]["c2w_err"] < 1e-6
 
 
-def test_engine_frame_equals_pointgt_render(session):
-    r = session["r"]
+def test_engine_frame_equals_pointgt_render(record):
+    r = record["r"]
     assert r["render"].get("error") is None and r["render"]["size"] == [W, H], r["render"]
-    got = np.load(session["engine"])  # scene-linear, premultiplied, float32
-    ref = session["ref"]  # 8-bit PNG: straight sRGB colour, alpha
+    got = np.load(record["engine"])  # scene-linear, premultiplied, float32
+    ref = record["ref"]  # 8-bit PNG: straight sRGB colour, alpha
     assert got.shape == ref.shape == (H, W, 4)
     alpha = got[..., 3]
     assert (ref[..., 3] > 0.5).sum() > 50  # the card is in view

@@ -1,6 +1,6 @@
 """Live preview, render engine, Image Editor panel and paint transfer of the packaged add-on, in real Blender
-subprocesses (own BLENDER_USER_RESOURCES) with a tiny trained card model. One session (render_session.py) runs
-every step; a second, fresh process (reload_session.py) renders the saved .blend."""
+subprocesses (own BLENDER_USER_RESOURCES) with a tiny trained card model. One process (render_script.py) runs
+every step; a second, fresh process (reload_script.py) renders the saved .blend."""
 from __future__ import annotations
 
 import os
@@ -12,11 +12,11 @@ import torch
 from PIL import Image
 
 from core.bundle import load_bundle
-from tests.helpers.blender import addon_setup, image_strip, run_session, step_result
+from tests.helpers.blender import addon_setup, image_strip, run_script, step_result
 
 pytestmark = pytest.mark.blender
 HERE = Path(__file__).parent
-PATCH_CENTRE = np.array([0.45, 0.15, 0.0])  # keep in step with render_session.py
+PATCH_CENTRE = np.array([0.45, 0.15, 0.0])  # keep in step with render_script.py
 PATCH_RADIUS = 0.15
 
 
@@ -47,14 +47,14 @@ def patch_mask(model: Path) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory):
+def record(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("render")
     s = addon_setup(tmp)
     model, work = s.model, s.work
     np.save(tmp / "patch.npy", patch_mask(model))
-    first = run_session(HERE / "render_session.py", [str(s.zip_path), str(model), str(tmp / "patch.npy"), str(work)],
+    first = run_script(HERE / "render_script.py", [str(s.zip_path), str(model), str(tmp / "patch.npy"), str(work)],
                         s.env, tmp)
-    second = run_session(HERE / "reload_session.py", [str(work / "posed.blend")], s.env, tmp) \
+    second = run_script(HERE / "reload_script.py", [str(work / "posed.blend")], s.env, tmp) \
         if (work / "posed.blend").exists() else {"error": "posed.blend was not saved"}
     if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows this test's frames
         _doc_images(work, Path(os.environ["POINTGT_DOC_IMAGES"]))
@@ -67,8 +67,8 @@ def _doc_images(work: Path, out: Path) -> None:
     image_strip([work / "anim" / "f_0001.png", work / "other_view.png"], out / "addon_preview_paint_other_view.png")
 
 
-def _get(session, step):
-    return step_result(session["r"], step)
+def _get(record, step):
+    return step_result(record["r"], step)
 
 
 def _png(path: Path) -> np.ndarray:
@@ -84,23 +84,23 @@ def _centroid(rgb: np.ndarray, colour) -> tuple[np.ndarray, int]:
     return np.array([cols.mean() + 0.5, rows.mean() + 0.5]), int(near.sum())
 
 
-def test_without_torch_the_preview_and_render_say_so(session):
-    r = _get(session, "torch_missing")
+def test_without_torch_the_preview_and_render_say_so(record):
+    r = _get(record, "torch_missing")
     assert "PyTorch is missing" in r["status"] and r["done"]["card"].startswith("error: ")
     assert "PyTorch is missing" in r["render_error"] and r["torch_loaded"] is False
 
 
-def test_import_takes_k_from_the_model(session):
-    r = _get(session, "scene")
+def test_import_takes_k_from_the_model(record):
+    r = _get(record, "scene")
     assert r["import"] == ["FINISHED"] and r["k"] == 8 and r["engine"] == "POINTGT"
 
 
-def test_painted_atlas_patch_moves_with_the_posed_surface(session):
-    r = _get(session, "animation")
+def test_painted_atlas_patch_moves_with_the_posed_surface(record):
+    r = _get(record, "animation")
     assert r["files"] == ["f_0001.png", "f_0002.png", "f_0003.png"] and r["n_ids"] >= 5
     centres = []
     for f in (1, 2, 3):
-        rgb = _png(session["work"] / "anim" / f"f_000{f}.png")
+        rgb = _png(record["work"] / "anim" / f"f_000{f}.png")
         assert rgb.shape == (48, 64, 3)  # 128 x 96 at 50 %
         c, n = _centroid(rgb, (1.0, 0.0, 0.0))
         assert n >= 8, f"frame {f}: the red patch is not visible ({n} px)"
@@ -110,8 +110,8 @@ def test_painted_atlas_patch_moves_with_the_posed_surface(session):
     assert np.linalg.norm(centres[2] - centres[0]) > 4.0  # it did move
 
 
-def test_live_preview_updates_only_when_something_changed(session):
-    r = _get(session, "live_preview")
+def test_live_preview_updates_only_when_something_changed(record):
+    r = _get(record, "live_preview")
     c = r["counts"]
     assert r["size"] == [64, 48] and r["image_name"] == "card preview"
     assert c["after_frame"] >= 1
@@ -121,30 +121,30 @@ def test_live_preview_updates_only_when_something_changed(session):
     assert r["status"].startswith("Preview 64x48")
 
 
-def test_paint_on_preview_lands_in_atlas_and_shows_from_another_camera(session):
-    r = _get(session, "paint_preview")
+def test_paint_on_preview_lands_in_atlas_and_shows_from_another_camera(record):
+    r = _get(record, "paint_preview")
     assert r["result"] == ["FINISHED"] and r["changed_texels"] >= 10 and r["green_pct"] > 0.9
-    rgb = _png(session["work"] / "other_view.png")
+    rgb = _png(record["work"] / "other_view.png")
     c, n = _centroid(rgb, (0.1, 0.9, 0.1))
     assert n >= 4, f"the green square is not visible from the other camera ({n} px)"
     assert np.linalg.norm(c - np.asarray(r["expect"])) < 3.0, (c, r["expect"], r["point"])
     assert r["auto_changed"] >= 4  # painting the preview again transferred by itself on the next update
 
 
-def test_saved_scene_renders_the_same_frames_in_a_fresh_process(session):
-    prep = _get(session, "save_reload_prepare")
+def test_saved_scene_renders_the_same_frames_in_a_fresh_process(record):
+    prep = _get(record, "save_reload_prepare")
     assert prep["model_path"].startswith("//") and prep["before"] == ["f_0002.png", "f_0003.png"]
-    r = session["reload"]
+    r = record["reload"]
     assert "error" not in r, r
     assert r["enabled"] and r["engine"] == "POINTGT" and r["frames"] == ["f_0002.png", "f_0003.png"]
     for name in r["frames"]:
-        a = _png(session["work"] / "before" / name)
-        b = _png(session["work"] / "frames" / name)
+        a = _png(record["work"] / "before" / name)
+        b = _png(record["work"] / "frames" / name)
         assert np.array_equal(a, b), name
 
 
-def test_errors_become_reports_and_keep_earlier_frames(session):
-    r = _get(session, "errors")
+def test_errors_become_reports_and_keep_earlier_frames(record):
+    r = _get(record, "errors")
     assert "NaN" in r["nan_status"] and "NaN" in r["nan_render"] and r["kept"] and r["kept_end"]
     assert "changed the point count" in r["count_status"] and "changed the point count" in r["count_render"]
     assert "gone.pgt" in r["missing_render"] and "not found" in r["missing_render"]
@@ -152,11 +152,11 @@ def test_errors_become_reports_and_keep_earlier_frames(session):
     assert r["recovered"] in ("rendered", "unchanged")
 
 
-def test_image_editor_panel_and_atlas_ready_for_painting(session):
-    calls = _get(session, "draw_ui")["calls"]
+def test_image_editor_panel_and_atlas_ready_for_painting(record):
+    calls = _get(record, "draw_ui")["calls"]
     for name in ("pointgt.open_preview", "pointgt.open_atlas", "preview_resolution", "correspondence",
                  "pointgt.refresh_preview", "pointgt.transfer_paint", "render.render", "live_preview"):
         assert name in calls, name
-    r = _get(session, "open_atlas")
+    r = _get(record, "open_atlas")
     assert r["result"] == ["FINISHED"] and r["image"] == "card atlas" and r["ui_mode"] == "PAINT"
     assert r["canvas"] == "card atlas" and r["mode"] == "IMAGE"

@@ -74,7 +74,7 @@ def test_validator_rejects_a_bad_manifest(tmp_path):
         validate(tmp_path)
 
 
-LEGACY_SESSION = """
+LEGACY_SCRIPT = """
 import sys, bpy
 import addon_utils
 zip_path, model = sys.argv[-2:]
@@ -100,7 +100,7 @@ def test_legacy_zip_installs_as_a_legacy_addon(tmp_path):
     model = tmp_path / "m.pgt"
     save_pgt(model, {"points/xyz": np.zeros((5, 3), np.float32)}, {})
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp_path / "user"))
-    proc = subprocess.run([sys.executable, "-c", LEGACY_SESSION, str(path), str(model)], capture_output=True,
+    proc = subprocess.run([sys.executable, "-c", LEGACY_SCRIPT, str(path), str(model)], capture_output=True,
                           text=True, env=env, timeout=120)
     assert "RESULT True ['FINISHED'] 5" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-2000:]
 

@@ -1,5 +1,5 @@
 """Blender's first frame after opening a .blend (`python -m tools.bench.frames --blend-cold`): the scene is made once
-by `blend_session.py setup`, then every run is a fresh bpy process (`blend_session.py open`) timed from inside
+by `blend_script.py setup`, then every run is a fresh bpy process (`blend_script.py open`) timed from inside
 (per step, wall and CPU seconds) and from outside (the whole process). See tools/bench/frames.py for the flags."""
 from __future__ import annotations
 
@@ -11,21 +11,21 @@ import sys
 import time
 from pathlib import Path
 
-SESSION = Path(__file__).with_name("blend_session.py")
+SCRIPT = Path(__file__).with_name("blend_script.py")
 VARIANTS = ("packed", "path")  # the model packed into the .blend (the import's default) | read from the .pgt
 STEPS = ("import_bpy_s", "prefs_s", "open_s", "first_frame_s", "first_frame_cpu_s", "open_to_image_s",
          "open_to_image_cpu_s", "second_frame_s")
 
 
-def _session(args: list[str], env: dict, timeout: float) -> tuple[dict, float]:
-    """Run blend_session.py with `args`; (its RESULTS record, the process's wall seconds)."""
+def _run_script(args: list[str], env: dict, timeout: float) -> tuple[dict, float]:
+    """Run blend_script.py with `args`; (its RESULTS record, the process's wall seconds)."""
     t = time.perf_counter()
-    proc = subprocess.run([sys.executable, str(SESSION), "--", *args], capture_output=True, text=True, env=env,
+    proc = subprocess.run([sys.executable, str(SCRIPT), "--", *args], capture_output=True, text=True, env=env,
                           timeout=timeout, check=False)
     wall = time.perf_counter() - t
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
     if proc.returncode or not lines:
-        raise RuntimeError(f"blend_session.py {args[0]} failed (exit {proc.returncode}):\n"
+        raise RuntimeError(f"blend_script.py {args[0]} failed (exit {proc.returncode}):\n"
                            f"{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}")
     return json.loads(lines[-1][len("RESULTS: "):]), wall
 
@@ -43,13 +43,13 @@ def blender_env(work: Path, threads: int) -> dict:
 
 def setup_scene(model: str | os.PathLike, work: Path, size: int, timeout: float = 900) -> dict:
     """Package the add-on from this checkout and build the scene in `work` (path.blend, packed.blend; see
-    blend_session.py). Returns the setup session's record (incl. first_render_ever_s: the first F12 after
+    blend_script.py). Returns the setup run's record (incl. first_render_ever_s: the first F12 after
     installing, which compiles the numba kernels) and setup_s, its process's wall seconds."""
     from tools.package_addon import build_addon
 
     work.mkdir(parents=True, exist_ok=True)
     zip_path = build_addon(work / "dist")
-    res, wall = _session(["setup", str(zip_path), str(Path(model).resolve()), str(work), str(size)],
+    res, wall = _run_script(["setup", str(zip_path), str(Path(model).resolve()), str(work), str(size)],
                          blender_env(work, 1), timeout)
     res["setup_s"] = wall
     return res
@@ -57,13 +57,13 @@ def setup_scene(model: str | os.PathLike, work: Path, size: int, timeout: float 
 
 def open_run(work: Path, variant: str, threads: int, wait: float = 0.0, timeout: float = 600) -> dict:
     """One fresh Blender opening work/<variant>.blend and pressing F12 twice (`wait` seconds after opening);
-    the record of blend_session.py open plus process_s, the whole process's wall seconds seen from here, and
+    the record of blend_script.py open plus process_s, the whole process's wall seconds seen from here, and
     image_diff: the largest difference (8-bit levels) of its first image from the setup's F12 of the same pose."""
     import numpy as np
     from PIL import Image
 
     png = work / f"open_{variant}.png"
-    res, wall = _session(["open", str(work / f"{variant}.blend"), str(png), str(wait)], blender_env(work, threads),
+    res, wall = _run_script(["open", str(work / f"{variant}.blend"), str(png), str(wait)], blender_env(work, threads),
                          timeout)
     res["process_s"] = wall
     a, b = (np.asarray(Image.open(p), dtype=np.int16) for p in (png, work / "setup.png"))
@@ -74,7 +74,7 @@ def open_run(work: Path, variant: str, threads: int, wait: float = 0.0, timeout:
 def blend_cold(model: str | os.PathLike, work: Path, size: int, runs: int, threads: int, wait: float = 0.0,
                variants=VARIANTS, log=print) -> dict:
     """Set up once, then `runs` rounds of one fresh Blender per variant (interleaved), then one more Blender that
-    times the parts of the first variant's first image on their own (blend_session.py parts). Returns {"setup":
+    times the parts of the first variant's first image on their own (blend_script.py parts). Returns {"setup":
     record, "runs": {variant: [record per run]}, "median": {variant: {step: median seconds}}, "parts": {part: CPU
     seconds}, "load": [1-minute load average before, after]}."""
     load = [os.getloadavg()[0]]
@@ -85,7 +85,7 @@ def blend_cold(model: str | os.PathLike, work: Path, size: int, runs: int, threa
     for _ in range(runs):
         for v in variants:
             out[v].append(open_run(work, v, threads, wait))
-    parts, _ = _session(["parts", str(work / f"{variants[0]}.blend"), str(work / "parts.png")],
+    parts, _ = _run_script(["parts", str(work / f"{variants[0]}.blend"), str(work / "parts.png")],
                         blender_env(work, threads), 600)
     load.append(os.getloadavg()[0])
     med = {v: {k: statistics.median(r[k] for r in rs) for k in STEPS + ("process_s",)} for v, rs in out.items()}

@@ -28,7 +28,7 @@ two-bone armature on the proxy with one bone turned, the PointGT engine at `--bl
 packed into the .blend (the import's default), once read from the .pgt next to it. Each of `--blend-runs` rounds
 starts a fresh Blender per .blend that reads the user preferences, opens the .blend (the add-on's load_post handler
 may start its background warm-up), presses F12 (`--blend-wait` seconds after opening; default at once) and again
-in a new pose; wall and CPU seconds per step (tools/bench/blend_session.py, tools/bench/blend_cold.py). One more
+in a new pose; wall and CPU seconds per step (tools/bench/blend_script.py, tools/bench/blend_cold.py). One more
 Blender, with the warm-up switched off, gives the CPU seconds of each part of the first image on its own.
 `--blend-work DIR` keeps the scene and frames.
 

@@ -1,7 +1,7 @@
 """Run in a fresh bpy subprocess by test_addon_pose90.py; prints one JSON line "RESULTS: {...}".
 
 argv after "--": zip model.pgt workdir
-The issue's scripted session at 90 degrees: import the tiny card (surface proxy, points bound to it by Surface
+The issue's scripted run at 90 degrees: import the tiny card (surface proxy, points bound to it by Surface
 Deform), Automatic Weights on the proxy for a two-bone armature along the card, a red disc painted through the
 proxy's UV map, then the right bone turned 0 / 45 / 90 degrees and rendered (F12, PointGT engine). For each angle:
 where the disc lands in the frame against where the deformed proxy says it should be, and the pieces of the chain
@@ -15,7 +15,7 @@ import sys
 
 import numpy as np
 import bpy
-from session_common import (install_addon, paint_through_uvs, read_png, recorder,  # noqa: E402
+from script_common import (install_addon, paint_through_uvs, read_png, recorder,  # noqa: E402
                             two_bone_rig)
 
 zip_path, model, work = sys.argv[sys.argv.index("--") + 1:]
@@ -102,7 +102,7 @@ def _():
     r = scene.render
     r.resolution_x, r.resolution_y, r.resolution_percentage = W, H, 100
     scene.view_settings.view_transform = 'Standard'
-    scene.pointgt.live_preview = False  # this session measures F12 only
+    scene.pointgt.live_preview = False  # this script measures F12 only
     out["import"] = sorted(bpy.ops.pointgt.import_model(filepath=model, preview_resolution=W))
     bpy.context.active_object.name = "card"
     proxy = obj().pointgt.proxy

@@ -1,4 +1,4 @@
-"""What the headless Blender session scripts share (each runs as its own process with this folder on sys.path):
+"""What the headless Blender scripts share (each runs as its own process with this folder on sys.path):
 blocking torch as a Blender without PyTorch would, steps whose result or traceback is recorded for the test to
 assert on, an empty scene with its camera above the card, selecting objects, painting through a proxy's UV map and
 reading rendered frames. bpy is imported only inside the functions, so a script can block torch before anything

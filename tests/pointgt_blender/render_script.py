@@ -16,7 +16,7 @@ import zipfile
 import numpy as np
 
 
-from session_common import block_torch, camera_only_scene, drop_ids_modifier, make_active, recorder
+from script_common import block_torch, camera_only_scene, drop_ids_modifier, make_active, recorder
 
 BLOCKER = block_torch()
 
@@ -253,7 +253,7 @@ def _():
     prev.run_pending()  # and the slices that follow transfer it
     after_auto = mod("scene.atlas_image").read_atlas_image(obj().pointgt.atlas)
     auto_changed = int((np.linalg.norm(after_auto - before_auto, axis=-1) > 0.05).sum())
-    # undo the yellow square so the rest of the session sees only the red and green patches
+    # undo the yellow square so the rest of the script sees only the red and green patches
     obj().pointgt.atlas.pixels.foreach_set(mod("scene.atlas_image").atlas_to_pixels(before_auto))
     obj().pointgt.atlas.update()
     return {"result": sorted(res), "changed_texels": int(changed.sum()), "green_pct": green_pct,

@@ -1,9 +1,9 @@
 """The Blender side of `python -m tools.bench.frames --blend-cold`: run by path with the bpy module (Blender as a
 Python module), never imported. Prints one JSON line "RESULTS: {...}".
 
-    python tools/bench/blend_session.py -- setup ADDON.zip MODEL.pgt WORK SIZE
-    python tools/bench/blend_session.py -- open SCENE.blend OUT.png [WAIT_S]
-    python tools/bench/blend_session.py -- parts SCENE.blend OUT.png
+    python tools/bench/blend_script.py -- setup ADDON.zip MODEL.pgt WORK SIZE
+    python tools/bench/blend_script.py -- open SCENE.blend OUT.png [WAIT_S]
+    python tools/bench/blend_script.py -- parts SCENE.blend OUT.png
 
 setup: installs the packaged add-on (saved in the user preferences, so a fresh Blender starts with it enabled),
 builds an artist's scene — the model imported with its surface proxy, a disc painted into its atlas through the
@@ -68,7 +68,7 @@ def setup(zip_path: str, model: str, work: str, size: int) -> dict:
 
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "tests",
                                     "pointgt_blender"))
-    from session_common import install_addon, make_active, paint_through_uvs, two_bone_rig
+    from script_common import install_addon, make_active, paint_through_uvs, two_bone_rig
 
     out = {"install": install_addon(zip_path)}
     bpy.ops.wm.save_userpref()  # a fresh Blender starts with the add-on enabled, as an artist's does
@@ -132,7 +132,7 @@ def open_and_render(blend: str, png: str, wait: float = 0.0) -> dict:
 
     warmup = importlib.import_module(f"{PKG}.bridge.warmup")
     started = warmup._thread is not None
-    handler_ms = max(importlib.import_module(f"{PKG}.scene.session").SESSION.handler_ms, default=0.0)
+    handler_ms = max(importlib.import_module(f"{PKG}.scene.state").STATE.handler_ms, default=0.0)
     if wait > 0:
         time.sleep(wait)
     warm_before = started and not warmup._thread.is_alive()

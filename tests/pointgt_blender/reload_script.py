@@ -8,7 +8,7 @@ import bpy
 
 blend = sys.argv[sys.argv.index("--") + 1]
 # The bpy module starts with factory preferences; the Blender application reads the saved ones (where the
-# first session enabled the extension) at startup, as this does.
+# first script enabled the extension) at startup, as this does.
 bpy.ops.wm.read_userpref()
 bpy.ops.wm.open_mainfile(filepath=blend)
 out = {"enabled": "bl_ext.user_default.pointgt" in bpy.context.preferences.addons,

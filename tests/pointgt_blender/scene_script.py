@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 import bpy
-from session_common import (camera_only_scene, centroid, install_addon, make_active, paint_through_uvs,  # noqa: E402
+from script_common import (camera_only_scene, centroid, install_addon, make_active, paint_through_uvs,  # noqa: E402
                             read_png, recorder, two_bone_rig)
 
 zip_path, model, blank_model, work = sys.argv[sys.argv.index("--") + 1:]

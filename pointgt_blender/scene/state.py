@@ -1,12 +1,12 @@
 """Everything the add-on keeps in memory for the open .blend, in one object with one `clear()`: what each preview
 shows, the status lines, the pending preview work and, once torch is loaded, the model / edit-state / atlas
-caches. Loading another .blend or unregistering calls `SESSION.clear()`."""
+caches. Loading another .blend or unregistering calls `STATE.clear()`."""
 from __future__ import annotations
 
 import sys
 
 
-class Session:
+class AddonState:
     def __init__(self):
         self.records: dict = {}   # object name -> preview.PreviewRecord (the full-resolution preview it shows)
         self.written: dict = {}   # object name -> raw pixels last written into its preview (any level)
@@ -56,4 +56,4 @@ class Session:
                 scene_inputs.ATLASES.clear()
 
 
-SESSION = Session()
+STATE = AddonState()

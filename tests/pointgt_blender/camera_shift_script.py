@@ -1,4 +1,4 @@
-"""Run with the Python that has bpy: `python camera_shift_session.py -- REPO`. Projects points through the add-on's
+"""Run with the Python that has bpy: `python camera_shift_script.py -- REPO`. Projects points through the add-on's
 camera (pointgt_blender/scene/camera.py -> core Intrinsics -> core.images.cameras.project_points) and through Blender's
 own `world_to_camera_view` for shifted lenses, sensor fits and non-square renders; prints RESULTS: <json>."""
 import json

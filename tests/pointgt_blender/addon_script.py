@@ -12,7 +12,7 @@ import sys
 import numpy as np
 
 
-from session_common import block_torch, drop_ids_modifier, make_active, recorder
+from script_common import block_torch, drop_ids_modifier, make_active, recorder
 
 BLOCKER = block_torch()
 

@@ -14,7 +14,7 @@ import sys
 import numpy as np
 
 import bpy  # noqa: E402
-from session_common import install_addon, recorder  # noqa: E402
+from script_common import install_addon, recorder  # noqa: E402
 
 zip_path, model, camera_json, work = sys.argv[sys.argv.index("--") + 1:]
 R = {}
