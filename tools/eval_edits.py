@@ -25,6 +25,7 @@ import torch
 
 from core.edits.bake import bake
 from core.edits.correspondence import ray_canonical_points
+from core.edits.deformation import MAX_STRETCH
 from core.edits.procedural import evaluate, get_texture
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.images.metrics import blank_floor, mean_scores, object_mask, psnr, score_views
@@ -40,7 +41,7 @@ _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "
           "f_depth": "ray",
           "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
           "f_reach_gate": 0.0, "f_key_stretch": "full", "f_reach_surround": False, "f_reach_gate_own": False,
-          "f_reach_between": False, "f_fill_tear": 20.0, "f_fill_budget": 1.0}
+          "f_reach_between": False, "f_fill_tear": MAX_STRETCH, "f_fill_budget": 1.0}
 # F-aware keys, blended fill, fold rule, canonical depths, compression by the model's thickness; with the budget reach
 _AUTO = {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
          "f_depth": "nearest", "f_compression": "auto"}

@@ -44,6 +44,9 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
 
+MAX_STRETCH = 20.0  # default bound of F's singular values (DeformationConfig.max_stretch)
+
+
 @dataclass
 class DeformationConfig:
     """Local deformation gradients of the deformed points (F-aware rendering and correspondence)."""
@@ -51,7 +54,8 @@ class DeformationConfig:
     k: int = opt(12, "canonical neighbours per point in the local fit of F")
     sheet_ratio: float = opt(0.05, "a neighbourhood whose smallest/largest spread (eigenvalue) ratio is below "
                                    "this counts as (partly) flat: its missing direction comes from the tangents")
-    max_stretch: float = opt(20.0, "bound of F's singular values: |σ| is clamped to [1/max_stretch, max_stretch]")
+    max_stretch: float = opt(MAX_STRETCH, "bound of F's singular values: |σ| is clamped to "
+                                          "[1/max_stretch, max_stretch]")
     max_copies: int = opt(8, "with ids: copies of one canonical point considered as a neighbour (nearest wins)")
 
 

@@ -20,7 +20,7 @@ from core.atlas.packing import sample_charts, unpack
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
-from core.edits.deformation import (DeformationConfig, bound_above, expansion_inverse, field_for, inverse,
+from core.edits.deformation import (MAX_STRETCH, DeformationConfig, bound_above, expansion_inverse, field_for, inverse,
                                      key_inverse, stretch)
 from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, unoccluded
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
@@ -109,10 +109,10 @@ class EditConfig:
                                    "this many times their canonical distance apart", min=1.01, max=100.0)
     f_fill_budget: float = opt(1.0, "f_fill: at most this many added points per point (the ratio is raised past "
                                     "it)", min=0.0, max=64.0)
-    f_fill_tear: float = opt(20.0, "f_fill: a canonical neighbour pair grown more than this many times its canonical "
-                                   "distance is a tear (parts the pose pulled apart, a rig's envelope band): it gets "
-                                   "no points and counts as closed; above the deformation's max_stretch (20) that "
-                                   "bound applies", min=1.01, max=1e6)
+    f_fill_tear: float = opt(MAX_STRETCH, "f_fill: a canonical neighbour pair grown more than this many times its "
+                                          "canonical distance is a tear (parts the pose pulled apart, a rig's envelope "
+                                          f"band): it gets no points and counts as closed; above the deformation's "
+                                          f"max_stretch ({MAX_STRETCH:g}) that bound applies", min=1.01, max=1e6)
     f_fill_features: str = opt("blend", "f_fill: what an added point carries of its pair's two ends: blend (both "
                                         "ends' features and influence, mixed by where the point lies between them) | "
                                         "nearer (the features and influence of the nearer end)",

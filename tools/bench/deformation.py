@@ -20,12 +20,11 @@ import statistics
 import time
 from pathlib import Path
 
-_OFF = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "correspondence": "deform-aware",
-        "f_depth": "ray",
-        "f_fill": False, "fold_radius": 0.0, "f_occlusion": False, "f_fill_features": "nearer",
-        "fold_test": "displacement", "f_radius_rule": "frame", "f_reach_gate": 0.0, "f_key_stretch": "full",
-        "f_reach_surround": False, "f_reach_gate_own": False, "f_reach_between": False, "f_fill_tear": 20.0,
-        "f_fill_budget": 1.0}
+from tools.eval_edits import RENDERERS
+
+# the paper's renderer with the deform-aware correspondence and the frame's reach rule (every F switch named, from
+# eval-edits' "paper" renderer: the defaults may change)
+_OFF = {**RENDERERS["paper"], "correspondence": "deform-aware", "f_radius_rule": "frame"}
 # F-aware keys, blended fill, fold rule, canonical depths, compression by thickness; and with the budget reach
 _AUTO = {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
          "f_depth": "nearest", "f_compression": "auto"}
