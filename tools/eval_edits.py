@@ -105,6 +105,18 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
 CORRESPONDENCES = ("naive", "deform-aware", "deform-gradient")
 
 
+def describe_renderer(name: str) -> str:
+    """A renderer variant in words: the EditConfig switches it sets beyond the paper's renderer (`pointgt render
+    --help` says what each does)."""
+    changed = [f"{k} {v}" for k, v in RENDERERS[name].items() if _PAPER.get(k) != v]
+    return ", ".join(changed) if changed else "the paper's renderer and correspondence"
+
+
+def renderers_help() -> str:
+    """Every renderer variant with its switches, for --renderers' help and the report's legend."""
+    return " | ".join(f"{n} ({describe_renderer(n)})" for n in RENDERERS)
+
+
 def default_renderer() -> str:
     """The RENDERERS key whose fields are all EditConfig's defaults (what `pointgt render` does by default)."""
     return next(k for k, v in RENDERERS.items() if all(getattr(EditConfig, f) == x for f, x in v.items()))
@@ -514,31 +526,9 @@ def markdown(result: dict) -> str:
     lines = [f"Scene `{result['scene_name']}`, {result['views']} views at {result['width']}x{result['height']}, "
              f"model {result['model_points']} points (spacing {result['point_spacing']:.4f}), "
              f"retexture `{result['retexture']}`, total {result['seconds_total']:.0f} s.", ""]
-    lines += ["**Ablation** (object PSNR, dB; renderer: paper = today's, f-attention = attention keys in each "
-              "point's canonical frame (rotation, stretch and compression along the surface undone), f-radius = "
-              "neighbour radius cap scaled by the stretch, f-both = both, f-keep / f-squash = f-attention undoing no "
-              "compression / all compression (and so does their deform-gradient correspondence), fill / f-fill = paper / "
-              "f-attention with points added where the pose pulled neighbours apart, fold / fill-fold / f-fold / f-fill-fold = "
-              "paper / fill / f-attention / f-fill with the correspondence's fold rule, f-fill-fold-occ = f-fill-fold "
-              "with the occlusion rule (each ray keeps its front surface layer), f-fill-fold-blend = f-fill-fold "
-              "with each added point's features mixed from both ends of its pair, f-fill-fold-local = f-fill-fold "
-              "whose fold rule compares each neighbour's local-map estimate of the canonical point (radius 0.5 "
-              "spacings), f-fill-fold-blend-local = both, f-fill-fold-blend-reach = f-fill-fold-blend whose points "
-              "reach the neighbour search's pixel cap times the growth the fill left on their pairs, "
-              "f-fill-fold-blend-undo = f-fill-fold-blend undoing all compression (f_compression undo), "
-              "f-fill-fold-blend-depth = f-fill-fold-blend whose keys take depths from the ray's nearest neighbour "
-              "in the canonical frames (f_depth nearest), f-fill-fold-blend-depth-undo = both, "
-              "f-fill-fold-blend-depth-auto = f-fill-fold-blend-depth undoing all compression on a model whose points "
-              "form a thick shell (f_compression auto), -reach = with f-fill-fold-blend-reach's reach, -budget = "
-              "with the reach from the pairs the fill budget kept sparse only (f_radius_rule budget), -budget-gate = "
-              "that reach only for rays the plain pixel cap gives a point (f_reach_gate 1), -budget-gate2 = the gate "
-              "at twice the cap, -gap = the keys undoing at most the stretch the fill left between consecutive "
-              "points (f_key_stretch gap), -gap-occ = -gap with the occlusion rule, -budget-gate-gap = both "
-              "-budget-gate and -gap, -budget-surround = the gate at 1 cap letting through rays their neighbours "
-              "surround (f_reach_surround), -budget-gate15 = the gate at 1.5 caps, -gate15-own = each point's gate at "
-              "most its own reach (f_reach_gate_own), -budget-between = the gate at 1.5 caps opening beyond the cap only "
-              "between points more than 120° apart (f_reach_between), -between2 = that at 2 caps, "
-              "-budget-between-gap = both -budget-between and -gap; first "
+    names = list(dict.fromkeys(r.get("renderer", "paper") for r in rows if r.get("renderer", "paper") in RENDERERS))
+    legend = "; ".join(f"{n} = {describe_renderer(n)}" for n in names)
+    lines += [f"**Ablation** (object PSNR, dB; renderers, by the EditConfig switches they set: {legend}; first "
               "temperature, soft blend; "
               "s/frame = mean over the row's renders)", "",
               ablation_markdown(result)]

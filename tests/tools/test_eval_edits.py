@@ -288,3 +288,15 @@ def test_every_renderer_variant_is_a_valid_edit_config():
     defaults = [k for k, v in RENDERERS.items() if all(getattr(EditConfig, f) == x for f, x in v.items())]
     assert defaults == [default_renderer()]
     assert RENDERERS["f-fill-fold-blend-depth-auto-budget-between-gap-tear"]["f_fill_tear"] == 13.5
+
+
+def test_renderer_help_names_every_variant_by_its_switches():
+    from tools.eval_edits import RENDERERS, describe_renderer, renderers_help
+
+    text = renderers_help()
+    assert all(f"{n} (" in text for n in RENDERERS)
+    assert describe_renderer("paper") == "the paper's renderer and correspondence"
+    # a variant is described by exactly the switches that differ from the paper's renderer
+    gap_b2 = describe_renderer("f-fill-fold-blend-depth-auto-budget-gate15-gap-b2")
+    assert "f_fill_budget 2.0" in gap_b2 and "f_reach_gate 1.5" in gap_b2 and "f_fill_tear" not in gap_b2
+    assert describe_renderer("f-attention") == "f_attention True"

@@ -20,47 +20,11 @@ def add_arguments(p):
     p.add_argument("--magnitudes", default="0.25,0.5,1", help="comma-separated pose magnitudes (1 = the named pose)")
     p.add_argument("--views", type=int, default=4, help="test views per case (evenly spaced over the scene's)")
     p.add_argument("--temperatures", default="1,0.5", help="attention temperatures (< 1 sharpens attention)")
+    from tools.eval_edits import renderers_help
+
     p.add_argument("--renderers", default="paper,f-attention",
-                   help="comma-separated renderer variants: paper (the paper's renderer) | f-attention (attention keys in each "
-                        "point's canonical frame, stretch undone) | f-radius (neighbour radius cap scaled by the stretch) | "
-                        "f-both | f-keep / f-squash (as f-attention, undoing no / all compression, also in the deform-gradient "
-                        "correspondence) | fill / f-fill (paper / f-attention with points added where the pose pulled neighbours "
-                        "apart) | fold / fill-fold / f-fold / f-fill-fold (paper / fill / f-attention / f-fill with the "
-                        "correspondence's fold rule) | f-fill-fold-occ (f-fill-fold with the occlusion rule: each ray "
-                        "keeps its front surface layer) | f-fill-fold-blend (f-fill-fold, each added point's "
-                        "features mixed from both ends of its pair) | f-fill-fold-local (f-fill-fold, the fold rule "
-                        "comparing each neighbour's local-map estimate of the canonical point, radius 0.5) | "
-                        "f-fill-fold-blend-local (both) | f-fill-fold-blend-reach (f-fill-fold-blend, each point "
-                        "reaching the neighbour search's cap times the growth the fill left on its pairs) | "
-                        "f-fill-fold-blend-undo (f-fill-fold-blend undoing all compression, f_compression undo) | "
-                        "f-fill-fold-blend-depth (f-fill-fold-blend, the keys' depths from the ray's nearest "
-                        "neighbour in the canonical frames, f_depth nearest) | f-fill-fold-blend-depth-undo (both) | "
-                        "f-fill-fold-blend-depth-auto (f-fill-fold-blend-depth, undo on a model whose points form "
-                        "a thick shell, f_compression auto) | f-fill-fold-blend-depth-auto-reach (it, with "
-                        "f-fill-fold-blend-reach's reach) | f-fill-fold-blend-depth-auto-budget (it, with the reach "
-                        "from the pairs the fill budget kept sparse only, f_radius_rule budget) | "
-                        "f-fill-fold-blend-depth-auto-budget-gate (that reach only for rays the plain pixel cap gives "
-                        "a point, f_reach_gate 1) | f-fill-fold-blend-depth-auto-budget-gate2 (the gate at twice the "
-                        "cap) | f-fill-fold-blend-depth-auto-gap (f-fill-fold-blend-depth-auto, the keys undoing at "
-                        "most the stretch the fill left between consecutive points, f_key_stretch gap) | "
-                        "f-fill-fold-blend-depth-auto-gap-occ (that with the occlusion rule, f_occlusion) | "
-                        "f-fill-fold-blend-depth-auto-budget-gate-gap (both -budget-gate and -gap) | "
-                        "f-fill-fold-blend-depth-auto-budget-surround (the gate at 1 cap, letting through "
-                        "rays their neighbours surround, f_reach_surround) | "
-                        "f-fill-fold-blend-depth-auto-budget-gate15 (the gate at 1.5 caps) | "
-                        "f-fill-fold-blend-depth-auto-budget-gate15-own (each point's gate at most its own reach, "
-                        "f_reach_gate_own) | f-fill-fold-blend-depth-auto-budget-between (the gate at 1.5 caps "
-                        "opening beyond the cap only between points more than 120° apart, f_reach_between) | "
-                        "f-fill-fold-blend-depth-auto-budget-between2 (that at 2 caps) | "
-                        "f-fill-fold-blend-depth-auto-budget-between-gap (both -budget-between and -gap) | "
-                        "f-fill-fold-blend-depth-auto-budget-between-gap-tear (it, pairs grown past 13.5× left "
-                        "unfilled, f_fill_tear 13.5) | f-fill-fold-blend-depth-auto-budget-gate15-gap-b3 (the gate at "
-                        "1.5 caps for any point, -gap, fill budget 3) | "
-                        "f-fill-fold-blend-depth-auto-budget-between25-gap-b2 (the gate between points at 2.5 caps, "
-                        "-gap, fill budget 2) | f-fill-fold-blend-depth-auto-budget-gate15-gap (the gate at 1.5 caps "
-                        "for any point, -gap) | f-fill-fold-blend-depth-auto-budget-gate15-gap-b2 (that, fill budget "
-                        "2) | f-fill-fold-blend-depth-auto-budget-between25-gap-b3 (the gate between points at 2.5 "
-                        "caps, -gap, fill budget 3)")
+                   help="comma-separated renderer variants, each named with the EditConfig switches it sets beyond "
+                        "the paper's renderer (what a switch does: `pointgt render --help`): " + renderers_help())
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")
