@@ -1,0 +1,25 @@
+"""The library edit benchmark's summary: rest, worst pose and gap per renderer and edit, from eval-edits rows."""
+from tools.bench.edits_library import gaps, markdown
+
+
+def _row(pose, mag, edit, renderer, psnr_object, corr="deform-aware", blend="soft"):
+    return {"pose": pose, "magnitude": mag, "edit": edit, "correspondence": "-" if edit == "geometry" else corr,
+            "temperature": 1.0, "blend": blend, "renderer": renderer, "psnr_object": psnr_object,
+            "seconds_per_frame": 0.1}
+
+
+def test_worst_pose_gap_and_count_within_3_db():
+    rows = [_row("rest", 0.0, "geometry", "paper", 20.0), _row("bend", 1.0, "geometry", "paper", 19.0),
+            _row("stretch", 1.0, "geometry", "paper", 12.0), _row("rest", 0.0, "retexture", "paper", 18.0),
+            _row("bend", 1.0, "retexture", "paper", 17.5), _row("stretch", 1.0, "retexture", "paper", 16.0),
+            # ignored: other correspondence, threshold blend, another magnitude
+            _row("stretch", 1.0, "retexture", "paper", 1.0, corr="naive"),
+            _row("stretch", 1.0, "retexture", "paper", 1.0, blend="threshold"),
+            _row("stretch", 0.5, "geometry", "paper", 1.0)]
+    out = gaps({"renderers": ["paper"], "rows": rows})
+    assert len(out) == 1
+    g, t = out[0]["geometry"], out[0]["retexture"]
+    assert g["worst_pose"] == "stretch" and abs(g["gap"] - 8.0) < 1e-9 and (g["within"], g["poses"]) == (1, 2)
+    assert t["worst_pose"] == "stretch" and abs(t["gap"] - 2.0) < 1e-9 and (t["within"], t["poses"]) == (2, 2)
+    text = markdown({"cloth": out}, "head")
+    assert "| cloth | paper | 20.00 / stretch 8.00 | 18.00 / stretch 2.00 | 1/2, 2/2 |" in text

@@ -1,0 +1,127 @@
+"""Posed frames across the scene library: each pose's object-PSNR gap to rest, per renderer, on every scene.
+
+    python -m tools.bench.edits_library --work DIR [--scenes cloth,tube,...] [--steps 1000 | --minutes 10]
+        [--renderers paper,DEFAULT,...] [--poses bend,...] [--views 4] [--threads 1] [--json OUT] [--markdown OUT]
+
+Per scene, each step a separate process, exactly what a user runs, and each reused when its output exists:
+`pointgt make-scene` and the default stage-1 fit (as `python -m tools.bench.scenes --no-pair` makes them:
+DIR/NAME, DIR/NAME.default.pgt), `pointgt atlas` with its defaults, then `pointgt eval-edits` at magnitude 1
+(deform-aware correspondence, temperature 1, the soft blend; DIR/NAME.edits.json). The table gives, per scene
+and renderer, the rest frame's object PSNR and, over the posed frames, the worst pose and its gap to rest for the
+geometry-only edit and for the retexture (issue #16's bar: every pose within 3 dB of rest), and the mean seconds
+per frame. The model's quality sets the rest figure: a weak fit has less to lose, so compare renderers within
+one run (same models), and budgets across runs.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+EDITS = ("geometry", "retexture")
+
+
+def gaps(result: dict) -> list[dict]:
+    """Per renderer of one eval-edits result (its --json): rest object PSNR and the worst posed gap per edit.
+
+    Reads rows at magnitude 1 (rest: magnitude 0), deform-aware correspondence for the retexture (geometry has
+    none), temperature 1, soft blend. Returns [{renderer, seconds_per_frame, <edit>: {rest, worst_pose, gap,
+    within}}] with within = the number of poses whose gap is at most 3 dB, out of `poses`."""
+    rows = [r for r in result["rows"] if r["blend"] == "soft" and r["temperature"] == 1.0
+            and r["correspondence"] in ("-", "deform-aware")]
+    out = []
+    for rd in result["renderers"]:
+        mine = [r for r in rows if r.get("renderer", "paper") == rd]
+        entry = {"renderer": rd, "seconds_per_frame": sum(r["seconds_per_frame"] for r in mine) / max(len(mine), 1)}
+        for edit in EDITS:
+            rest = [r["psnr_object"] for r in mine if r["edit"] == edit and r["pose"] == "rest"]
+            posed = {r["pose"]: r["psnr_object"] for r in mine
+                     if r["edit"] == edit and r["pose"] != "rest" and r["magnitude"] == 1.0}
+            if not rest or not posed:
+                continue
+            worst = min(posed, key=posed.get)
+            entry[edit] = {"rest": rest[0], "worst_pose": worst, "gap": rest[0] - posed[worst],
+                           "within": sum(rest[0] - v <= 3.0 for v in posed.values()), "poses": len(posed),
+                           "gaps": {p: rest[0] - v for p, v in posed.items()}}
+        out.append(entry)
+    return out
+
+
+def markdown(per_scene: dict[str, list[dict]], head: str) -> str:
+    """The table: a row per scene and renderer."""
+    lines = [head, "", "| scene | renderer | geometry: rest / worst pose, gap | retexture: rest / worst pose, gap | "
+             "poses within 3 dB (geometry, retexture) | s/frame |", "|---|---|---|---|---|---|"]
+    for scene, entries in per_scene.items():
+        for e in entries:
+            cells = []
+            for edit in EDITS:
+                g = e.get(edit)
+                cells.append("–" if g is None else f"{g['rest']:.2f} / {g['worst_pose']} {g['gap']:.2f}")
+            within = ", ".join(f"{e[x]['within']}/{e[x]['poses']}" if x in e else "–" for x in EDITS)
+            lines.append(f"| {scene} | {e['renderer']} | {cells[0]} | {cells[1]} | {within} | "
+                         f"{e['seconds_per_frame']:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    from tools.bench import run_command, write_json
+    from tools.bench.scenes import model_path
+    from tools.eval_edits import default_renderer
+    from tools.machine import machine_line
+    from tools.scenes.library import scene_names
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", required=True, help="folder for the scenes, models and results (reused between runs)")
+    ap.add_argument("--scenes", default=",".join(scene_names()), help="comma-separated library scenes (default: all)")
+    ap.add_argument("--steps", type=int, default=1000, help="stage-1 steps per fit (0: --minutes instead)")
+    ap.add_argument("--minutes", type=float, default=10.0, help="stage-1 budget per fit when --steps is 0")
+    ap.add_argument("--renderers", default=None,
+                    help="comma-separated eval-edits renderer variants (default: paper and the default renderer)")
+    ap.add_argument("--poses", default=None, help="comma-separated poses (default: every pose of each scene)")
+    ap.add_argument("--views", type=int, default=4, help="test views per case (eval-edits --views)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads per fit and per atlas fit")
+    ap.add_argument("--json", default=None, help="write all figures here")
+    ap.add_argument("--markdown", default=None, help="write the table here")
+    args = ap.parse_args(argv)
+    renderers = args.renderers or f"paper,{default_renderer()}"
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    py = [sys.executable, "-m"]
+    budget = ["--steps", str(args.steps)] if args.steps else ["--minutes", str(args.minutes)]
+    head = (f"```\n{machine_line()}\nstage 1: {' '.join(budget)}, {args.threads} thread(s); atlas: defaults; "
+            f"eval-edits: magnitude 1, {args.views} views, deform-aware, T = 1, soft blend\n```")
+    print(head, flush=True)
+    per_scene, figures = {}, {}
+    for name in [s for s in args.scenes.split(",") if s]:
+        model = model_path(work, name, None)
+        if not model.exists():
+            run_command(py + ["tools.bench.scenes", "--work", str(work), "--scenes", name, "--no-pair",
+                              "--threads", str(args.threads), *budget], print, check=True)
+        if not model.with_suffix(".atlas_history.json").exists():
+            run_command(py + ["tools.cli", "atlas", str(model), str(work / name), "--atlas-threads",
+                              str(args.threads), "--no-progress"], print, check=True)
+        out = work / f"{name}.edits.json"
+        want = [r for r in renderers.split(",") if r]
+        have = json.loads(out.read_text()) if out.exists() else None
+        if have is None or have.get("renderers") != want or (args.poses and have.get("poses") != args.poses.split(",")):
+            cmd = py + ["tools.cli", "eval-edits", str(model), "--scene", str(work / name), "--magnitudes", "1",
+                        "--views", str(args.views), "--temperatures", "1", "--correspondences", "deform-aware",
+                        "--renderers", ",".join(want), "--json", str(out)]
+            if args.poses:
+                cmd += ["--poses", args.poses]
+            run_command(cmd, print, check=True)
+            have = json.loads(out.read_text())
+        per_scene[name] = gaps(have)
+        figures[name] = per_scene[name]
+        print("\n".join(markdown({name: per_scene[name]}, "").strip().splitlines()[-len(want):]), flush=True)
+        write_json(args.json, {"machine": head, "scenes": figures})
+    table = markdown(per_scene, head)
+    print(table)
+    if args.markdown:
+        Path(args.markdown).write_text(table)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
