@@ -106,6 +106,10 @@ class AtlasConfig:
                              above=0.0, max=64.0)
     island_transpose: bool = opt(True, "islands: the packer may transpose an island (turns by 90 degrees and mirrors, "
                                        "exact on the texel grid): curved islands pack much tighter")
+    island_packer: str = opt("xatlas", "islands: how islands are packed: xatlas (by their outlines, xatlas's "
+                                       "brute-force search) or bitmap (by their exact cells, largest first, each at "
+                                       "the free spot nearest one corner in any allowed orientation: interlocks "
+                                       "curved islands; core/atlas/bitmap_pack.py)", choices=("xatlas", "bitmap"))
     island_split: float = opt(0.6, "islands: an island longer than this share of the side of the square its "
                                    "islands would fill is cut across (at its narrowest) into pieces that pack into "
                                    "a square; 0 keeps every island whole", min=0.0, max=64.0)

@@ -134,7 +134,7 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
             fill[c] = cfg.island_fill * max(1.0, sp)
         layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.image_size, fill, cfg.island_min_texels,
                                transpose=cfg.island_transpose, split=cfg.island_split,
-                               min_fill=cfg.island_min_fill)
+                               min_fill=cfg.island_min_fill, packer=cfg.island_packer)
         if layout is not None and (cfg.image_size > 0 or layout.size <= cfg.max_image_size):
             info = {"texel_size": h, "chart_scale": scale.tolist(), "islands": layout.islands,
                     "atlas_size": layout.size, "island_seconds": time.perf_counter() - t0}

@@ -1,5 +1,6 @@
 """Island layout: local-linear texel points, building and packing islands, placement, images, storage, outlines."""
 import numpy as np
+import pytest
 import torch
 
 from core.atlas.atlas import Atlas
@@ -224,13 +225,15 @@ def _long_and_hollow_samples(S=20000):
     return torch.nn.functional.one_hot(chart, 2).float(), uv
 
 
-def test_cut_islands_fill_the_square_and_keep_their_padding_for_bilinear_lookups():
+@pytest.mark.parametrize("packer", ["xatlas", "bitmap"])
+def test_cut_islands_fill_the_square_and_keep_their_padding_for_bilinear_lookups(packer):
     from scipy.ndimage import distance_transform_edt
 
     from core.atlas.packing import sample_charts
     probs, uv = _long_and_hollow_samples()
-    whole = build_islands(probs, uv, np.array([160.0, 160.0]), pad=2, fill=1.0, min_cells=4)
-    lay = build_islands(probs, uv, np.array([160.0, 160.0]), pad=2, fill=1.0, min_cells=4, split=0.6, min_fill=0.55)
+    whole = build_islands(probs, uv, np.array([160.0, 160.0]), pad=2, fill=1.0, min_cells=4, packer=packer)
+    lay = build_islands(probs, uv, np.array([160.0, 160.0]), pad=2, fill=1.0, min_cells=4, split=0.6, min_fill=0.55,
+                        packer=packer)
     share = lambda L: float(L.island_pixels.float().mean())  # noqa: E731
     assert share(whole) < 0.35 and share(lay) > 0.6 and lay.islands > whole.islands, (share(whole), share(lay))
     ids = lay.label.numpy()

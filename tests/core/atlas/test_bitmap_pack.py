@@ -1,0 +1,81 @@
+"""The bitmap packer: exact-cell placement, padding between islands, orientations, fixed sizes."""
+import numpy as np
+import pytest
+from scipy.ndimage import distance_transform_edt
+
+from core.atlas.bitmap_pack import pack_bitmap
+from core.atlas.islands import pack_islands, start_side
+from core.atlas.outlines import cell_pixels
+from core.util.errors import InputError
+
+
+def _masks():
+    """24 rectangles and three curved (arc) islands, whose hollows a shape packer can fill."""
+    rng = np.random.default_rng(0)
+    masks = [np.ones((h, w), bool) for h, w in rng.integers(8, 40, (24, 2))]
+    yy, xx = np.mgrid[-30:31, -30:31]
+    arc = (np.hypot(yy, xx) < 30) & (np.hypot(yy, xx) > 22) & (yy > -5)
+    arc = arc[np.any(arc, 1)][:, np.any(arc, 0)]
+    return masks + [arc, arc.T.copy(), arc[::-1].copy()]
+
+
+def _labels(masks, offsets, orient, side):
+    """Island id per pixel [side, side] (-1 outside); asserts every cell lands inside the image, no two on one."""
+    lab = np.full((side, side), -1)
+    for i, m in enumerate(masks):
+        rr, kk = np.nonzero(m)
+        pc, pr = cell_pixels(kk, rr, np.broadcast_to(offsets[i], (len(rr), 2)), np.full(len(rr), orient[i]))
+        assert pc.min() >= 0 and pr.min() >= 0 and pc.max() < side and pr.max() < side
+        assert (lab[pr, pc] == -1).all()
+        lab[pr, pc] = i
+    return lab
+
+
+@pytest.mark.parametrize("pad", [1, 2, 3])
+def test_bitmap_packing_keeps_islands_whole_apart_and_denser_than_xatlas(pad):
+    masks = _masks()
+    offsets, orient, side = pack_bitmap(masks, pad, 0, transpose=True)
+    lab = _labels(masks, offsets, orient, side)
+    cells = sum(int(m.sum()) for m in masks)
+    assert (lab >= 0).sum() == cells and side >= start_side(masks, pad, 1.0) - 2 * pad
+    isl = lab >= 0
+    for i in range(len(masks)):  # the separation bilinear lookups need (as xatlas's packing gives)
+        assert distance_transform_edt(lab != i)[isl & (lab != i)].min() >= 2 * pad - 1
+    if pad == 2:  # interlocking arcs and rectangles: a tighter square than the outline packer's
+        _, _, side_x = pack_islands(masks, pad, 0, transpose=True)
+        assert side < side_x and cells / side ** 2 > 0.65, (side, side_x)
+
+
+def test_bitmap_packing_without_transpose_keeps_every_orientation_and_fixed_sizes_fit_or_say_none():
+    masks = _masks()
+    offsets, orient, side = pack_bitmap(masks, 2, 0, transpose=False)
+    assert (orient == 0).all()
+    _labels(masks, offsets, orient, side)
+    offsets, orient, got = pack_bitmap(masks, 2, side + 10, transpose=True)
+    assert got == side + 10
+    _labels(masks, offsets, orient, got)
+    assert pack_bitmap(masks, 2, start_side(masks, 2, 1.0) // 2, transpose=True) is None
+    assert pack_bitmap([np.ones((50, 3), bool)], 2, 40) is None  # longer than the image
+
+
+def test_bitmap_packing_orients_asymmetric_islands_exactly():
+    L = np.zeros((9, 6), bool)
+    L[:, :2] = True
+    L[-2:, :] = True
+    masks = [L] * 6 + [np.ones((3, 3), bool)]
+    offsets, orient, side = pack_bitmap(masks, 1, 0, transpose=True)
+    lab = _labels(masks, offsets, orient, side)
+    for i in range(len(masks)):  # each placed island is its mask under its symmetry: same cell count, shape kept
+        sel = lab == i
+        rr, cc = np.nonzero(sel)
+        box = sel[rr.min():rr.max() + 1, cc.min():cc.max() + 1]
+        syms = [np.rot90(m, k) for m in (masks[i], masks[i].T) for k in range(4)]
+        assert box.sum() == masks[i].sum() and any(s.shape == box.shape and (s == box).all() for s in syms)
+    assert len(set(orient[:6].tolist())) > 1  # the L shapes interlock in more than one orientation
+
+
+def test_bitmap_packing_rejects_empty_input():
+    with pytest.raises(InputError):
+        pack_bitmap([], 2)
+    with pytest.raises(InputError):
+        pack_bitmap([np.zeros((3, 3), bool)], 2)
