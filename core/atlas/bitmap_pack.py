@@ -40,15 +40,22 @@ def _grow(mask: np.ndarray, by: int) -> np.ndarray:
     return binary_dilation(np.pad(mask, by), np.ones((2 * by + 1, 2 * by + 1), bool))
 
 
-def _overlaps(occ: np.ndarray, foot: np.ndarray) -> np.ndarray:
-    """Overlap counts of footprint foot [a, b] at every position inside occ [H, W] (both 0/1) -> [H - a + 1,
-    W - b + 1] float (integers up to rounding): entry (r, c) counts the occupied cells under foot placed with its
-    first cell at (r, c)."""
+def _overlaps(occ: np.ndarray, feet: list[np.ndarray]) -> list[np.ndarray]:
+    """Overlap counts of each footprint [a, b] (0/1) at every position inside occ [H, W] (0/1) -> per footprint
+    [H - a + 1, W - b + 1] float (integers up to rounding; empty when it does not fit): entry (r, c) counts the
+    occupied cells under the footprint placed with its first cell at (r, c). One FFT of occ for all of them."""
     H, W = occ.shape
-    a, b = foot.shape
     fh, fw = _fft_size(H), _fft_size(W)
-    spec = np.fft.rfft2(occ, (fh, fw)) * np.conj(np.fft.rfft2(foot, (fh, fw)))
-    return np.fft.irfft2(spec, (fh, fw))[:H - a + 1, :W - b + 1]
+    spec = np.fft.rfft2(occ, (fh, fw))
+    out = []
+    for foot in feet:
+        a, b = foot.shape
+        if a > H or b > W:
+            out.append(np.zeros((0, 0)))
+            continue
+        corr = np.fft.irfft2(spec * np.conj(np.fft.rfft2(foot, (fh, fw))), (fh, fw))
+        out.append(corr[:H - a + 1, :W - b + 1])
+    return out
 
 
 def _fft_size(n: int) -> int:
@@ -73,8 +80,8 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
     transpose: each island may take any of the eight symmetries of the texel grid (else only the identity).
     size > 0: into one size x size image, each island at its first free spot in reading order (None when they do
     not all fit); 0: the smallest square found: a placement that grows a square from one corner gives a side that
-    holds them, then up to `search` placements into fixed squares bisect between it and the side their cells fill
-    exactly. Returns (offsets [I, 2] int (col, row), orient [I] int (ORIENT_NP), side): mask cell (col, row) goes
+    holds them, then up to `search` placements into fixed squares bisect between it and the side their padded
+    footprints fill exactly, to within 1 % of the side. Returns (offsets [I, 2] int (col, row), orient [I] int (ORIENT_NP), side): mask cell (col, row) goes
     to pixel cell_pixels(col, row, offset, orient), as `pack_islands`."""
     if not masks:
         raise InputError("island packing: no islands")
@@ -110,9 +117,11 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
                 raise InputError("island packing: no placement found")
             S = int(math.ceil(S * 1.25)) + 1
     best = (best[0], best[1], max(best[2], 1))
-    lo, hi = max(math.isqrt(cells), longest) - 1, best[2]  # no square below lo + 1 holds the cells
+    # footprints never overlap, so they fit in the image grown by g on every side: no smaller square holds them
+    feet = sum(int(o[0][3].sum()) for o in shapes)
+    lo, hi = max(math.isqrt(feet) - 2 * g, longest) - 1, best[2]
     for _ in range(search):
-        if hi - lo <= 1:
+        if hi - lo <= max(1, hi // 100):  # within 1 % of the side: not worth another placement
             break
         mid = (lo + hi) // 2
         got = _place_all(shapes, order, mid, g, corner=False)
@@ -127,35 +136,48 @@ def _place_all(shapes, order, S: int, g: int, corner: bool):
     """Greedy placement of every island (in `order`) into an S x S image: (offsets [I, 2], orient [I], the used
     square's side) or None when one does not fit. corner: each island at the free spot whose far corner is nearest
     the image's top-left corner (Chebyshev extent, then row + col), over its orientations; else at its first free
-    spot in reading order (row, then col)."""
+    spot in reading order (row, then col). The reading-order search runs over bands of rows from the first row
+    with a free cell down, so an island that fits near the top costs a band, not the image."""
     occ = np.zeros((S + 2 * g, S + 2 * g), np.float64)  # footprints, the image grown by g on every side
     offsets = np.zeros((len(shapes), 2), np.int64)
     orient = np.zeros(len(shapes), np.int64)
     extent = 0
     for i in order:
+        opts = [o for o in shapes[i] if o[1].shape[0] <= S and o[1].shape[1] <= S]
         best = None
-        for q, t, first, foot in shapes[i]:
-            h, w = t.shape
-            if h > S or w > S:
-                continue
-            if corner:  # no spot past the used square and its gap can win: the free spot (0, extent + 2 g) just
-                # right of it has a nearer far corner (while it fits the image)
-                lim_r, lim_c = min(S - h, extent + 2 * g), min(S - w, extent + 2 * g)
-                win = occ[:lim_r + h + 2 * g, :lim_c + w + 2 * g]
-            else:
-                win = occ
-            rr, cc = np.nonzero(_overlaps(win, foot) < 0.5)
-            if len(rr) == 0:
-                continue
-            if corner:
+        if corner:  # no spot past the used square and its gap can win: the free spot (0, extent + 2 g) just right
+            # of it has a nearer far corner (while it fits the image)
+            hmax = max(o[3].shape[0] for o in opts) if opts else 0
+            lim = extent + 2 * g
+            win = occ[:min(lim + hmax, S + 2 * g), :min(lim + hmax, S + 2 * g)]
+            for (q, t, first, foot), ov in zip(opts, _overlaps(win, [o[3] for o in opts])):
+                h, w = t.shape
+                ov = ov[:min(S - h, lim) + 1, :min(S - w, lim) + 1]
+                rr, cc = np.nonzero(ov < 0.5)
+                if len(rr) == 0:
+                    continue
                 far = np.maximum(rr + h, cc + w)
                 k = np.lexsort((cc, rr + cc, far))[0]
                 cand = (int(far[k]), int(rr[k] + cc[k]), int(rr[k]), int(cc[k]), q, t, first, foot)
-            else:
-                k = 0  # np.nonzero is row-major: the first free spot in reading order
-                cand = (int(rr[k]), int(cc[k]), int(rr[k]), int(cc[k]), q, t, first, foot)
-            if best is None or cand[:2] < best[:2]:
-                best = cand
+                if best is None or cand[:2] < best[:2]:
+                    best = cand
+        elif opts:
+            full = occ[g:S + g, g:S + g].all(1)
+            r0 = int(np.argmin(full)) if not full.all() else S  # rows above are full: no island starts there
+            hmax = max(o[3].shape[0] for o in opts)
+            band = max(32, hmax)
+            while best is None and r0 <= S - min(o[1].shape[0] for o in opts):
+                win = occ[r0:r0 + band + hmax - 1]  # spots of rows r0 .. r0 + band - 1 for every orientation
+                for (q, t, first, foot), ov in zip(opts, _overlaps(win, [o[3] for o in opts])):
+                    h, w = t.shape
+                    ov = ov[:max(min(band, S - h - r0 + 1), 0)]
+                    rr, cc = np.nonzero(ov < 0.5)
+                    if len(rr) == 0:
+                        continue
+                    cand = (int(rr[0]) + r0, int(cc[0]), int(rr[0]) + r0, int(cc[0]), q, t, first, foot)
+                    if best is None or cand[:2] < best[:2]:
+                        best = cand
+                r0 += band
         if best is None:
             return None
         _, _, r, c, q, t, first, foot = best
