@@ -5,8 +5,7 @@ texel grid, or only the identity) at every position of the image where its footp
 texels in the chessboard metric) overlaps no footprint already placed; the overlap count of all positions at once is
 one FFT correlation of the occupied image with the footprint. In a square of fixed side the first free position in
 reading order wins (over the orientations), so islands interlock (a curved island's hollow takes small islands);
-the smallest side is found by bisection, from the side of a first placement that grows a square from one corner
-(each island where its far corner is nearest the image's top-left corner).
+the smallest side is found by bisection.
 Two disjoint footprints leave the islands' cells at least 2 pad - 1 apart, the separation bilinear lookups need
 (core/atlas/islands.py). The result has the same form as `pack_islands`'s, so it drops into `build_islands`.
 """
@@ -78,10 +77,9 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
     """Pack island cell masks (each [h, w] bool, cropped) by their exact shapes with `pad` texels of padding.
 
     transpose: each island may take any of the eight symmetries of the texel grid (else only the identity).
-    size > 0: into one size x size image, each island at its first free spot in reading order (None when they do
-    not all fit); 0: the smallest square found: a placement that grows a square from one corner gives a side that
-    holds them, then up to `search` placements into fixed squares bisect between it and the side their padded
-    footprints fill exactly, to within 1 % of the side. Returns (offsets [I, 2] int (col, row), orient [I] int (ORIENT_NP), side): mask cell (col, row) goes
+    size > 0: into one size x size image (None when they do not all fit); 0: the smallest square found: a first
+    square where the padded footprints would fill 80 % (10 % larger until they fit), then up to `search`
+    placements bisect between it and the side the footprints fill exactly, to within 1 % of the side. Returns (offsets [I, 2] int (col, row), orient [I] int (ORIENT_NP), side): mask cell (col, row) goes
     to pixel cell_pixels(col, row, offset, orient), as `pack_islands`."""
     if not masks:
         raise InputError("island packing: no islands")
@@ -106,25 +104,25 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
     if size > 0:
         if longest > size:
             return None
-        got = _place_all(shapes, order, int(size), g, corner=False)
+        got = _place_all(shapes, order, int(size), g)
         return None if got is None else (got[0], got[1], int(size))
-    S = max(int(math.ceil(math.sqrt(sum(int(o[0][3].sum()) for o in shapes) / 0.5))), longest + 2 * g)
-    best = None
-    while best is None:  # the corner placement in a generous square, larger until everything fits
-        best = _place_all(shapes, order, S, g, corner=True)
-        if best is None:
-            if S > 64 * (math.isqrt(cells) + longest + 2 * g + 1):
-                raise InputError("island packing: no placement found")
-            S = int(math.ceil(S * 1.25)) + 1
-    best = (best[0], best[1], max(best[2], 1))
     # footprints never overlap, so they fit in the image grown by g on every side: no smaller square holds them
     feet = sum(int(o[0][3].sum()) for o in shapes)
-    lo, hi = max(math.isqrt(feet) - 2 * g, longest) - 1, best[2]
+    lo = max(math.isqrt(feet) - 2 * g, longest) - 1
+    S, best = max(int(math.ceil(math.sqrt(feet / 0.8))), longest + 2 * g), None
+    while best is None:  # a first square that holds them: the footprints at 80 % of it, larger until they fit
+        got = _place_all(shapes, order, S, g)
+        if got is not None:
+            best, hi = (got[0], got[1], S), S
+        else:
+            if S > 64 * (math.isqrt(cells) + longest + 2 * g + 1):
+                raise InputError("island packing: no placement found")
+            lo, S = S, int(math.ceil(S * 1.1)) + 1
     for _ in range(search):
         if hi - lo <= max(1, hi // 100):  # within 1 % of the side: not worth another placement
             break
         mid = (lo + hi) // 2
-        got = _place_all(shapes, order, mid, g, corner=False)
+        got = _place_all(shapes, order, mid, g)
         if got is None:
             lo = mid
         else:
@@ -132,45 +130,33 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
     return best
 
 
-def _place_all(shapes, order, S: int, g: int, corner: bool):
-    """Greedy placement of every island (in `order`) into an S x S image: (offsets [I, 2], orient [I], the used
-    square's side) or None when one does not fit. corner: each island at the free spot whose far corner is nearest
-    the image's top-left corner (Chebyshev extent, then row + col), over its orientations; else at its first free
-    spot in reading order (row, then col). The reading-order search runs over bands of rows from the first row
-    with a free cell down, so an island that fits near the top costs a band, not the image."""
+def _place_all(shapes, order, S: int, g: int):
+    """Greedy placement of every island (in `order`) into an S x S image, each at its first free spot in reading
+    order (row, then col) over its orientations: (offsets [I, 2], orient [I]) or None when one does not fit. The
+    search runs over bands of rows from the first row with a free cell down, so an island that fits near the top
+    costs a band, not the image."""
     occ = np.zeros((S + 2 * g, S + 2 * g), np.float64)  # footprints, the image grown by g on every side
     offsets = np.zeros((len(shapes), 2), np.int64)
     orient = np.zeros(len(shapes), np.int64)
-    extent = 0
     for i in order:
         opts = [o for o in shapes[i] if o[1].shape[0] <= S and o[1].shape[1] <= S]
         best = None
-        if corner:  # no spot past the used square and its gap can win: the free spot (0, extent + 2 g) just right
-            # of it has a nearer far corner (while it fits the image)
-            hmax = max(o[3].shape[0] for o in opts) if opts else 0
-            lim = extent + 2 * g
-            win = occ[:min(lim + hmax, S + 2 * g), :min(lim + hmax, S + 2 * g)]
-            for (q, t, first, foot), ov in zip(opts, _overlaps(win, [o[3] for o in opts])):
-                h, w = t.shape
-                ov = ov[:min(S - h, lim) + 1, :min(S - w, lim) + 1]
-                rr, cc = np.nonzero(ov < 0.5)
-                if len(rr) == 0:
-                    continue
-                far = np.maximum(rr + h, cc + w)
-                k = np.lexsort((cc, rr + cc, far))[0]
-                cand = (int(far[k]), int(rr[k] + cc[k]), int(rr[k]), int(cc[k]), q, t, first, foot)
-                if best is None or cand[:2] < best[:2]:
-                    best = cand
-        elif opts:
+        if opts:
             full = occ[g:S + g, g:S + g].all(1)
             r0 = int(np.argmin(full)) if not full.all() else S  # rows above are full: no island starts there
             hmax = max(o[3].shape[0] for o in opts)
             band = max(32, hmax)
+            H, W = band + hmax - 1, S + 2 * g  # the window of a band's spots, for every orientation
+            fh, fw = _fft_size(H), _fft_size(W)
+            specs = [np.conj(np.fft.rfft2(o[3], (fh, fw))) for o in opts]  # each footprint's, once per island
             while best is None and r0 <= S - min(o[1].shape[0] for o in opts):
-                win = occ[r0:r0 + band + hmax - 1]  # spots of rows r0 .. r0 + band - 1 for every orientation
-                for (q, t, first, foot), ov in zip(opts, _overlaps(win, [o[3] for o in opts])):
+                spec = np.fft.rfft2(occ[r0:r0 + H], (fh, fw))  # rows past the image read as zero-padding
+                for (q, t, first, foot), fs in zip(opts, specs):
                     h, w = t.shape
-                    ov = ov[:max(min(band, S - h - r0 + 1), 0)]
+                    n = min(band, S - h - r0 + 1)  # spots r0 .. r0 + n - 1 keep the island inside the image
+                    if n <= 0:
+                        continue
+                    ov = np.fft.irfft2(spec * fs, (fh, fw))[:n, :W - foot.shape[1] + 1]
                     rr, cc = np.nonzero(ov < 0.5)
                     if len(rr) == 0:
                         continue
@@ -184,5 +170,4 @@ def _place_all(shapes, order, S: int, g: int, corner: bool):
         occ[r:r + foot.shape[0], c:c + foot.shape[1]] += foot
         offsets[i] = np.array([c, r], np.int64) - first
         orient[i] = q
-        extent = max(extent, r + t.shape[0], c + t.shape[1])
-    return offsets, orient, extent
+    return offsets, orient
