@@ -79,3 +79,55 @@ def test_bitmap_packing_rejects_empty_input():
         pack_bitmap([], 2)
     with pytest.raises(InputError):
         pack_bitmap([np.zeros((3, 3), bool)], 2)
+
+
+def _place_reference(shapes, order, S, g):
+    """The reading-order placement by direct overlap tests at every spot (no FFT, no bands)."""
+    occ = np.zeros((S + 2 * g, S + 2 * g), bool)
+    offsets, orient = np.zeros((len(shapes), 2), np.int64), np.zeros(len(shapes), np.int64)
+    for i in order:
+        best = None
+        for q, t, first, foot in shapes[i]:
+            h, w = t.shape
+            f = foot > 0.5
+            spot = next(((r, c) for r in range(S - h + 1) for c in range(S - w + 1)
+                         if not (occ[r:r + f.shape[0], c:c + f.shape[1]] & f).any()), None)
+            if spot is not None and (best is None or spot < best[0]):
+                best = (spot, q, first, f)
+        if best is None:
+            return None
+        (r, c), q, first, f = best
+        occ[r:r + f.shape[0], c:c + f.shape[1]] |= f
+        offsets[i], orient[i] = np.array([c, r]) - first, q
+    return offsets, orient
+
+
+@pytest.mark.parametrize("seed", [1])
+def test_banded_fft_placement_matches_a_direct_search(seed):
+    from core.atlas import bitmap_pack as bp
+    rng = np.random.default_rng(seed)
+    masks = []
+    for _ in range(14):  # blobs with holes and notches, some taller than a band
+        h, w = rng.integers(3, 40, 2)
+        m = rng.random((h, w)) < 0.8
+        m[0, :] = m[:, 0] = True
+        masks.append(m)
+    g = 1
+    shapes = []
+    for m in masks:
+        seen, opts = set(), []
+        for q in range(8):
+            t, first = bp._oriented(m, q)
+            if (t.shape, t.tobytes()) not in seen:
+                seen.add((t.shape, t.tobytes()))
+                opts.append((q, t, first, bp._grow(t, g).astype(np.float64)))
+        shapes.append(opts)
+    order = list(range(len(masks)))
+    fits = []
+    for S in (90, 100, 130):  # too small; tight (several bands of rows); loose
+        got, want = bp._place_all(shapes, order, S, g), _place_reference(shapes, order, S, g)
+        assert (got is None) == (want is None)
+        fits.append(got is not None)
+        if got is not None:
+            assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    assert fits == [False, True, True]
