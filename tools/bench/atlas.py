@@ -162,7 +162,7 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                    "utilisation": float(torch.isfinite(atlas.texel_points()).all(-1).float().mean()),
                    "round_trip": round_trip(atlas),
                    "round_trip_all": hist.get("texel_stats", {}).get("round_trip_1", float("nan")),
-                   "islands": hist.get("islands", 0),
+                   "islands": hist.get("islands", 0), "layout_seconds": hist.get("island_seconds", float("nan")),
                    "island_share": float(atlas.layout.island_pixels.float().mean()) if atlas.islands else float("nan")}
             if "sides" in hist:  # charts split by side: share of the samples on a reversed sub-chart
                 row["side_reversed"] = hist["sides"]["reversed"]
