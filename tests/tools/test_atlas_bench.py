@@ -1,5 +1,5 @@
 """tools.bench.atlas per-scene mode: which model file a scene uses, and the table with and without scores."""
-from tools.bench.atlas import markdown_rows, scene_model
+from tools.bench.atlas import markdown_rows, scene_mirror, scene_model
 
 
 def test_scene_model_prefers_the_plain_name_then_the_library_bench_default(tmp_path):
@@ -21,3 +21,26 @@ def test_markdown_rows_with_and_without_scores():
     assert "| islands | 257x257 | – |" in lines[3]  # a row without an island count
     assert lines[3].endswith("| 16.87 | 15.31 / 15.95 (0.64) | 19.07 |")
     assert "| grid | 378x378 | – |" in lines[4] and lines[4].endswith("| 16.20 / 15.95 (-0.25) | 19.07 |")
+
+
+def test_scene_mirror_keeps_ground_truth_out_of_a_read_only_scene(tmp_path):
+    import json
+    import os
+    import stat
+
+    from tools.eval_edits import view_subset_dir
+    scene = tmp_path / "lib" / "cloth"
+    scene.mkdir(parents=True)
+    (scene / "scene.blend").write_bytes(b"blend")
+    (scene / "scene.json").write_text("{}")
+    (scene / "transforms_test.json").write_text(json.dumps({"frames": [{"i": i} for i in range(6)]}))
+    os.chmod(scene, stat.S_IRUSR | stat.S_IXUSR)  # the library is read-only
+    try:
+        mirror = scene_mirror(scene, tmp_path / "work")
+        sub = view_subset_dir(mirror, 2)
+        assert sub.parent == mirror and (sub / "scene.blend").read_bytes() == b"blend"
+        assert len(json.loads((sub / "transforms_test.json").read_text())["frames"]) == 2
+        assert sorted(p.name for p in scene.iterdir()) == ["scene.blend", "scene.json", "transforms_test.json"]
+        assert scene_mirror(scene, tmp_path / "work") == mirror  # reused
+    finally:
+        os.chmod(scene, stat.S_IRWXU)

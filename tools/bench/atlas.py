@@ -12,7 +12,8 @@ in memory with each layout and report the atlas's utilisation
 (texels with a surface point / image pixels), the texel -> surface -> texel round trip (share within 1 texel),
 stage-2 seconds, the atlas-coloured render and, at rest, the retexture (with its perfect-atlas reference: the
 texture evaluated exactly at the surface points) and the decal, object PSNR on the scene's test views
-(--no-scores: the layout figures only, no renders). --island-sides splits every chart by side
+(--no-scores: the layout figures only, no renders; --work DIR keeps the ground truth out of the scene folders).
+--island-sides splits every chart by side
 (core/atlas/sides.py; side_reversed: the samples' share on a reversed sub-chart); --folds adds the maps' fold report.
 """
 from __future__ import annotations
@@ -120,11 +121,27 @@ def scene_model(root, name: str):
     return None
 
 
+def scene_mirror(scene, work):
+    """A folder work/<scene's name> that stands for the scene where ground truth is written (its test views'
+    subset, the Cycles renders of its variants): links to the scene's scene.blend, scene.json and transforms files,
+    so a read-only scene library stays untouched. Returns its path."""
+    from pathlib import Path
+
+    scene, mirror = Path(scene), Path(work) / Path(scene).name
+    mirror.mkdir(parents=True, exist_ok=True)
+    for name in ("scene.blend", "scene.json", "transforms_train.json", "transforms_test.json"):
+        link, target = mirror / name, (scene / name).resolve()
+        if target.exists() and not link.exists():
+            link.symlink_to(target)
+    return mirror
+
+
 def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=None, log=print,
-               scores: bool = True, folds: bool = False) -> list[dict]:
+               scores: bool = True, folds: bool = False, work=None) -> list[dict]:
     """The per-scene figures (module doc) for every scene of the library found under root (or those in only);
     scores False: the layout figures only (utilisation, round trip, islands, seconds), no renders; folds: also
-    `core.atlas.fit.fold_report` on the atlas's stored samples (reversed, crease)."""
+    `core.atlas.fit.fold_report` on the atlas's stored samples (reversed, crease). work: a folder for the ground
+    truth (`scene_mirror`); None writes it into the scene folders."""
     import time
     from pathlib import Path
 
@@ -147,7 +164,7 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
         train = load_split(scene, "train")
         if scores:
             spec = load_scene_spec(scene)
-            gt_dir = view_subset_dir(scene, views)
+            gt_dir = view_subset_dir(scene if work is None else scene_mirror(scene, work), views)
             gts = {e: ground_truth(gt_dir, "rest", 0.0, t, None, log) for e, t in (("retexture", retexture),
                                                                                    ("decal", "decal"))}
             test = ground_truth(gt_dir, "rest", 0.0, None, None, log)
@@ -216,6 +233,8 @@ def main(argv=None) -> int:
     ap.add_argument("--layouts", default="islands,grid", help="per-scene mode: layouts to compare")
     ap.add_argument("--views", type=int, default=4, help="per-scene mode: test views scored")
     ap.add_argument("--scenes", default="", help="per-scene mode: only these scenes (comma-separated)")
+    ap.add_argument("--work", help="per-scene mode: folder for the ground truth the scores need (test-view subsets, "
+                    "Cycles renders); default: inside each scene folder")
     ap.add_argument("--no-scores", action="store_true", help="per-scene mode: layout figures only, no renders")
     ap.add_argument("--folds", action="store_true", help="per-scene mode: also the share of samples whose chart map "
                     "is reversed on the surface (core.atlas.fit.fold_report)")
@@ -226,7 +245,7 @@ def main(argv=None) -> int:
         machine = machine_info()
         rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
                           only=[x for x in args.scenes.split(",") if x], scores=not args.no_scores,
-                          folds=args.folds)
+                          folds=args.folds, work=args.work)
         print(markdown_rows(rows))
         print(f"machine: {machine}")
         rows = [dict(r, machine=machine) for r in rows]
