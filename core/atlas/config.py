@@ -87,8 +87,8 @@ class AtlasConfig:
                            min=0, max=MAX_CHART_RES)
     pad: int = opt(4, "grid layout: padding texels around each chart square (edge-replicated, no bleeding)",
                    min=0, max=64)
-    layout: str = opt("grid", "packed image: islands (each chart cut to the region the surface uses, packed by "
-                      "xatlas, one chart per point; denser, but the Blender proxy rigs poorly on its separate "
+    layout: str = opt("grid", "packed image: islands (each chart cut to the region the surface uses, packed "
+                      "tightly, one chart per point; denser, but the Blender proxy rigs poorly on its separate "
                       "pieces, docs/atlas.md) or grid (the paper's fixed chart squares)",
                       choices=("islands", "grid"))
     image_size: int = opt(0, "islands: side of the square atlas image in texels; 0 = chosen per scene from the "
@@ -106,10 +106,11 @@ class AtlasConfig:
                              above=0.0, max=64.0)
     island_transpose: bool = opt(True, "islands: the packer may transpose an island (turns by 90 degrees and mirrors, "
                                        "exact on the texel grid): curved islands pack much tighter")
-    island_packer: str = opt("xatlas", "islands: how islands are packed: xatlas (by their outlines, xatlas's "
-                                       "brute-force search) or bitmap (by their exact cells, largest first, each at "
-                                       "the free spot nearest one corner in any allowed orientation: interlocks "
-                                       "curved islands; core/atlas/bitmap_pack.py)", choices=("xatlas", "bitmap"))
+    island_packer: str = opt("bitmap", "islands: how islands are packed: bitmap (by their exact cells, largest "
+                                       "first, each at its first free spot in reading order in any allowed "
+                                       "orientation: interlocks curved islands; core/atlas/bitmap_pack.py) or "
+                                       "xatlas (by their outlines; 5-15 points less utilisation on the library, "
+                                       "docs/atlas.md)", choices=("bitmap", "xatlas"))
     island_split: float = opt(0.6, "islands: an island longer than this share of the side of the square its "
                                    "islands would fill is cut across (at its narrowest) into pieces that pack into "
                                    "a square; 0 keeps every island whole", min=0.0, max=64.0)

@@ -1,5 +1,6 @@
 """Island layout: each chart is cut to the region of its UV square that the surface actually uses, the regions
-(islands) are packed by xatlas into one square image, and every island is placed by a pure integer offset.
+(islands) are packed into one square image (by their exact cells, core/atlas/bitmap_pack.py, or by xatlas:
+`pack_islands`), and every island is placed by a pure integer offset.
 
 Lookup path: chart net -> t_c(x) (uv in [0, 1]^2 of chart c) -> texel coordinates of the chart, M_c [u, v, 1]
 (a scale, chosen so every chart has the same texel density on the surface, and a rotation that gives the chart's
@@ -11,8 +12,8 @@ views of one image with R = size: chart c's coordinates, divided by size, are al
 
 Islands are built on a grid of one cell per texel: a cell is occupied when a sample whose most probable chart is c
 lands in it, or in a cell within `fill` cells (closing the gaps between samples); 4-connected components are the
-islands, components below `min_cells` are dropped (their points clamp to the nearest island). xatlas packs the
-islands' cell meshes with `pad` texels of padding around each; it may transpose an island (`orient`: one of the
+islands, components below `min_cells` are dropped (their points clamp to the nearest island). The packer places
+the islands with `pad` texels of padding around each; it may transpose an island (`orient`: one of the
 eight symmetries of the texel grid, which keep its texels aligned with image pixels; a learned chart has no
 preferred handedness anyway): curved islands pack much tighter (`transpose=False` keeps every island as its
 chart lays it out).
