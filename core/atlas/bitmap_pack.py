@@ -39,24 +39,6 @@ def _grow(mask: np.ndarray, by: int) -> np.ndarray:
     return binary_dilation(np.pad(mask, by), np.ones((2 * by + 1, 2 * by + 1), bool))
 
 
-def _overlaps(occ: np.ndarray, feet: list[np.ndarray]) -> list[np.ndarray]:
-    """Overlap counts of each footprint [a, b] (0/1) at every position inside occ [H, W] (0/1) -> per footprint
-    [H - a + 1, W - b + 1] float (integers up to rounding; empty when it does not fit): entry (r, c) counts the
-    occupied cells under the footprint placed with its first cell at (r, c). One FFT of occ for all of them."""
-    H, W = occ.shape
-    fh, fw = _fft_size(H), _fft_size(W)
-    spec = np.fft.rfft2(occ, (fh, fw))
-    out = []
-    for foot in feet:
-        a, b = foot.shape
-        if a > H or b > W:
-            out.append(np.zeros((0, 0)))
-            continue
-        corr = np.fft.irfft2(spec * np.conj(np.fft.rfft2(foot, (fh, fw))), (fh, fw))
-        out.append(corr[:H - a + 1, :W - b + 1])
-    return out
-
-
 def _fft_size(n: int) -> int:
     """The smallest 2^i 3^j 5^k >= n (fast FFT lengths)."""
     best = 1 << max(int(n - 1).bit_length(), 0)
@@ -79,8 +61,9 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
     transpose: each island may take any of the eight symmetries of the texel grid (else only the identity).
     size > 0: into one size x size image (None when they do not all fit); 0: the smallest square found: a first
     square where the padded footprints would fill 80 % (10 % larger until they fit), then up to `search`
-    placements bisect between it and the side the footprints fill exactly, to within 1 % of the side. Returns (offsets [I, 2] int (col, row), orient [I] int (ORIENT_NP), side): mask cell (col, row) goes
-    to pixel cell_pixels(col, row, offset, orient), as `pack_islands`."""
+    placements bisect between it and the side the footprints fill exactly, to within 1 % of the side.
+    Returns (offsets [I, 2] int (col, row), orient [I] int (ORIENT_NP), side): mask cell (col, row) goes to pixel
+    cell_pixels(col, row, offset, orient), as `pack_islands`."""
     if not masks:
         raise InputError("island packing: no islands")
     g = max(int(pad) - 1, 0)
@@ -160,13 +143,13 @@ def _place_all(shapes, order, S: int, g: int):
                     rr, cc = np.nonzero(ov < 0.5)
                     if len(rr) == 0:
                         continue
-                    cand = (int(rr[0]) + r0, int(cc[0]), int(rr[0]) + r0, int(cc[0]), q, t, first, foot)
-                    if best is None or cand[:2] < best[:2]:
+                    cand = (int(rr[0]) + r0, int(cc[0]), q, first, foot)  # np.nonzero is row-major: the first
+                    if best is None or cand[:2] < best[:2]:  # free spot in reading order, then over orientations
                         best = cand
                 r0 += band
         if best is None:
             return None
-        _, _, r, c, q, t, first, foot = best
+        r, c, q, first, foot = best
         occ[r:r + foot.shape[0], c:c + foot.shape[1]] += foot
         offsets[i] = np.array([c, r], np.int64) - first
         orient[i] = q
