@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from core.atlas.islands import bisect_side
 from core.atlas.outlines import ORIENT_NP, cell_pixels
 from core.util.errors import InputError
 
@@ -101,16 +102,8 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
             if S > 64 * (math.isqrt(cells) + longest + 2 * g + 1):
                 raise InputError("island packing: no placement found")
             lo, S = S, int(math.ceil(S * 1.1)) + 1
-    for _ in range(search):
-        if hi - lo <= max(1, hi // 100):  # within 1 % of the side: not worth another placement
-            break
-        mid = (lo + hi) // 2
-        got = _place_all(shapes, order, mid, g)
-        if got is None:
-            lo = mid
-        else:
-            hi, best = mid, (got[0], got[1], mid)
-    return best
+    # within 1 % of the side: not worth another placement
+    return bisect_side(lambda side: _place_all(shapes, order, side, g), lo, hi, best, search, tol=0.01)
 
 
 def _place_all(shapes, order, S: int, g: int):

@@ -358,11 +358,19 @@ def pack_islands(masks: list[np.ndarray], pad: int, size: int = 0, transpose: bo
             hi = int(math.ceil(hi * 1.05)) + 1
             got = _xatlas_pack(masks, pad, hi, transpose)
             best = None if got is None else (got[0], got[1], hi)
+    return bisect_side(lambda side: _xatlas_pack(masks, pad, side, transpose), lo, hi, best, search)
+
+
+def bisect_side(pack, lo: int, hi: int, best, search: int, tol: float = 0.0):
+    """The smallest square side in (lo, hi] a packer fills, by bisection: pack(side) -> (offsets, orient, ...) or
+    None when the islands do not fit; lo: a side known not to hold them; best: the packing at hi, (offsets, orient,
+    hi). At most `search` packings, none once hi - lo <= max(1, tol x hi). Returns the best (offsets, orient,
+    side)."""
     for _ in range(search):
-        if hi - lo <= 1:
+        if hi - lo <= max(1, int(tol * hi)):
             break
         mid = (lo + hi) // 2
-        got = _xatlas_pack(masks, pad, mid, transpose)
+        got = pack(mid)
         if got is None:
             lo = mid
         else:
