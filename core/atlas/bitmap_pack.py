@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.fft import next_fast_len
 
 from core.atlas.islands import bisect_side
 from core.atlas.outlines import ORIENT_NP, cell_pixels
@@ -40,20 +41,24 @@ def _grow(mask: np.ndarray, by: int) -> np.ndarray:
     return binary_dilation(np.pad(mask, by), np.ones((2 * by + 1, 2 * by + 1), bool))
 
 
-def _fft_size(n: int) -> int:
-    """The smallest 2^i 3^j 5^k >= n (fast FFT lengths)."""
-    best = 1 << max(int(n - 1).bit_length(), 0)
-    f5 = 1
-    while f5 < 2 * n:
-        f3 = f5
-        while f3 < 2 * n:
-            f2 = f3
-            while f2 < n:
-                f2 *= 2
-            best = min(best, f2)
-            f3 *= 3
-        f5 *= 5
-    return best
+def _shapes(masks: list[np.ndarray], g: int, transpose: bool) -> list[list[tuple]]:
+    """Per island, its distinct orientations (every symmetry of the texel grid with transpose, else the identity):
+    [(q, turned mask [h, w] bool, first-cell pixel [2] (`_oriented`), footprint [h + 2 g, w + 2 g] float 0/1)]."""
+    qs = range(len(ORIENT_NP)) if transpose else (0,)
+    shapes = []
+    for m in masks:
+        if not m.any():
+            raise InputError("island packing: an island has no cells")
+        seen, opts = set(), []
+        for q in qs:
+            t, first = _oriented(m, q)
+            key = (t.shape, t.tobytes())
+            if key in seen:  # a symmetric island: one orientation per distinct shape
+                continue
+            seen.add(key)
+            opts.append((q, t, first, _grow(t, g).astype(np.float64)))
+        shapes.append(opts)
+    return shapes
 
 
 def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: bool = False, search: int = 8):
@@ -68,20 +73,7 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
     if not masks:
         raise InputError("island packing: no islands")
     g = max(int(pad) - 1, 0)
-    qs = range(len(ORIENT_NP)) if transpose else (0,)
-    shapes = []  # per island: [(q, turned mask, first-cell pixel, footprint)]
-    for m in masks:
-        if not m.any():
-            raise InputError("island packing: an island has no cells")
-        seen, opts = set(), []
-        for q in qs:
-            t, first = _oriented(m, q)
-            key = (t.shape, t.tobytes())
-            if key in seen:  # a symmetric island: one orientation per distinct shape
-                continue
-            seen.add(key)
-            opts.append((q, t, first, _grow(t, g).astype(np.float64)))
-        shapes.append(opts)
+    shapes = _shapes(masks, g, transpose)
     longest = max(max(m.shape) for m in masks)
     cells = sum(int(m.sum()) for m in masks)
     order = sorted(range(len(masks)), key=lambda i: (-int(shapes[i][0][3].sum()), -max(masks[i].shape), i))
@@ -123,7 +115,7 @@ def _place_all(shapes, order, S: int, g: int):
             hmax = max(o[3].shape[0] for o in opts)
             band = max(32, hmax)
             H, W = band + hmax - 1, S + 2 * g  # the window of a band's spots, for every orientation
-            fh, fw = _fft_size(H), _fft_size(W)
+            fh, fw = next_fast_len(H, real=True), next_fast_len(W, real=True)
             specs = [np.conj(np.fft.rfft2(o[3], (fh, fw))) for o in opts]  # each footprint's, once per island
             while best is None and r0 <= S - min(o[1].shape[0] for o in opts):
                 spec = np.fft.rfft2(occ[r0:r0 + H], (fh, fw))  # rows past the image read as zero-padding

@@ -113,15 +113,7 @@ def test_banded_fft_placement_matches_a_direct_search(seed):
         m[0, :] = m[:, 0] = True
         masks.append(m)
     g = 1
-    shapes = []
-    for m in masks:
-        seen, opts = set(), []
-        for q in range(8):
-            t, first = bp._oriented(m, q)
-            if (t.shape, t.tobytes()) not in seen:
-                seen.add((t.shape, t.tobytes()))
-                opts.append((q, t, first, bp._grow(t, g).astype(np.float64)))
-        shapes.append(opts)
+    shapes = bp._shapes(masks, g, transpose=True)
     order = list(range(len(masks)))
     fits = []
     for S in (90, 100, 130):  # too small; tight (several bands of rows); loose
