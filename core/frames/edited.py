@@ -31,7 +31,7 @@ from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
 from core.points.render import pixel_grid, shade_frame, trace_frame
 from core.points.resolution import (RENDER_MODES, check_mode, decoder_scale, filter_sigma, gaussian_blur,
-                                    scale_factor)
+                                    low_size, scale_factor, scaled_focal, upsample_frame)
 from core.points.trace import Trace
 from core.util.errors import InputError
 
@@ -140,8 +140,8 @@ class EditConfig:
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
-                                   "filtered | footprint | decoder | interior | their '+' pairs; auto = the "
-                                   "model's (filtered, or interior+filtered where its fit measured a gain)",
+                                   "filtered | footprint | decoder | interior | their '+' pairs | upsampled; "
+                                   "auto = the model's (the mode its fit measured best, else filtered)",
                            choices=("auto", *RENDER_MODES))
 
 
@@ -588,6 +588,22 @@ def _filtered_lookup(state: EditState, tr: Trace, sel: torch.Tensor, xc: torch.T
     return linear_to_srgb(px[:3].T.clamp(0, 1)), px[3]
 
 
+def _trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, soft: bool, scale: float) -> Trace:
+    """The edited points traced for one frame (neighbours, attention, the occlusion rule's visible layer); soft:
+    footprint windows at scale factor `scale` (the `footprint` modes beyond the training scale)."""
+    model, cfg = state.bundle.model, state.cfg
+    index = None if soft else state.search_index(c2w, height, width, focal)  # shared with the occlusion rule
+    radius_scale, reach = state.search_radius()
+    tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
+                     temperature=cfg.temperature, inv_f=state.inv_f_attention if cfg.f_attention else None,
+                     rebase_depth=state.rebase_depth,
+                     radius_scale=radius_scale, reach=reach, attention=cfg.attention,
+                     reach_gate=state.reach_gate, reach_surround=state.reach_surround,
+                     reach_gate_own=state.reach_gate_own, reach_between=state.reach_between,
+                     soft_scale=scale if soft else 1.0, index=index)
+    return state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
+
+
 @torch.no_grad()
 def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, focal: float,
                   background=(1.0, 1.0, 1.0), trace: Trace | None = None, texture_fn=None) -> dict:
@@ -608,25 +624,22 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     else:  # moved points: the training pixel in their own size (an object scaled by s has s times larger pixels)
         scale = scale_factor(float(model.train_footprint) * state.local_scale, c2w, focal, state.points.detach())
         dscale = decoder_scale(model, None, c2w, focal, state.points.detach(), size_scale=state.local_scale)
-    if trace is None:
-        soft = "footprint" in parts and scale > 1.0  # footprint windows: keep them, drop hidden weights only
-        index = None if soft else state.search_index(c2w, height, width, focal)  # shared with the occlusion rule
-        radius_scale, reach = state.search_radius()
-        tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
-                         temperature=cfg.temperature, inv_f=state.inv_f_attention if cfg.f_attention else None,
-                         rebase_depth=state.rebase_depth,
-                         radius_scale=radius_scale, reach=reach, attention=cfg.attention,
-                         reach_gate=state.reach_gate, reach_surround=state.reach_surround,
-                         reach_gate_own=state.reach_gate_own, reach_between=state.reach_between,
-                         soft_scale=scale if soft else 1.0, index=index)
-        tr = state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
-    else:
-        tr = trace
+    tr = _trace(state, c2w, height, width, focal, "footprint" in parts and scale > 1.0, scale) if trace is None \
+        else trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
-    rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,
-                                 decoder_scale=dscale if "decoder" in parts else 1.0,
-                                 coverage_scale=dscale if "filtered" in parts else 1.0,
-                                 interior_scale=dscale if "interior" in parts else 1.0)
+    if "upsampled" in parts and dscale > 1.0:  # the model's colour and coverage at the training scale, upsampled
+        lh, lw, s = low_size(height, width, dscale)
+        low_focal = scaled_focal(focal, s)
+        low = _trace(state, c2w, lh, lw, low_focal, False, 1.0)
+        low_rgb, low_alpha = shade_frame(model, low, background, features=state.features, with_alpha=True)
+        low_alpha = (1.0 - low.bg).reshape(lh, lw) if low_alpha is None else low_alpha
+        rgb = upsample_frame(low_rgb, height, width)
+        dec_alpha = upsample_frame(low_alpha.clamp(0, 1), height, width)
+    else:
+        rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,
+                                     decoder_scale=dscale if "decoder" in parts else 1.0,
+                                     coverage_scale=dscale if "filtered" in parts else 1.0,
+                                     interior_scale=dscale if "interior" in parts else 1.0)
     rgb = rgb.reshape(-1, 3)
     fg = tr.fg
     # Coverage of painted rays: the decoder's mask head when it has one (sharp silhouettes, opaque interior),

@@ -13,7 +13,8 @@ from core.points.attention_compiled import BACKENDS as ATTENTION_BACKENDS
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import select_neighbors, select_neighbors_soft
 from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_at_scale, filter_sigma,
-                                    decoder_scale, gate_coverage, gaussian_blur, interior_weight, scale_factor)
+                                    decoder_scale, gate_coverage, gaussian_blur, interior_weight, low_size,
+                                    scale_factor, scaled_focal, upsample_frame)
 from core.points.trace import Trace
 from core.util.errors import InputError
 
@@ -252,6 +253,11 @@ def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, 
     f = scale_factor(float(model.train_footprint), c2w, focal, pts.detach()) if scale is None else float(scale)
     f = min(f, MAX_SCALE) if f == f and f > 1.0 else 1.0  # NaN or F <= 1: the training scale
     tr = trace_frame(model, c2w, height, width, focal, soft_scale=f if "footprint" in parts else 1.0, **kw)
+    if "upsampled" in parts and fd > 1.0:  # the training scale's frame, upsampled; x stays at the full size
+        lh, lw, s = low_size(height, width, fd)
+        low = render_frame(model, c2w, lh, lw, scaled_focal(focal, s), background, mode="pixels", scale=1.0, **kw)
+        rgb, alpha = upsample_frame(low["rgb"], height, width), upsample_frame(low["alpha"], height, width)
+        return {"rgb": rgb, "alpha": alpha, "x": tr.x.reshape(height, width, 3), "trace": tr, "scale": f}
     rgb, alpha = shade_frame(model, tr, background, with_alpha=True,
                              decoder_scale=fd if "decoder" in parts else 1.0,
                              coverage_scale=fd if "filtered" in parts else 1.0,  # the decoder's own size

@@ -32,17 +32,25 @@ training size is pixel-identical in every mode); above, the modes of `RENDER_MOD
   (where the full-size decoder draws the sharper edge) and the background keep the full-size decode, and the
   interior (where the full-size decoder, its 3×3 kernels on a frame magnified F times, mottles what it learned
   to smooth) gets the one the decoder was trained for; models without a decoder render as `pixels`;
-- interior+filtered: both (the filter's coverage gate applies to the full-size share).
+- interior+filtered: both (the filter's coverage gate applies to the full-size share);
+- upsampled: the model's frame rendered at the training scale (the same camera, H/F x W/F pixels, `low_size`)
+  and upsampled bicubically (`upsample_frame`): no detail finer than a training pixel, and nothing the model
+  does not draw at its training size; what is drawn per ray on top of the model's colour (a painted texture
+  looked up through the correspondence, posed frames) stays at the full size.
 The decoder's scale factor (`decoder_scale`, used by `decoder` and `interior`) counts in the pixel of the training
 size (`PointModel.decoder_footprint`): for a multi-scale fit (`pointgt fit --train-scales`) that is its coarsest
 level, where the decoder had most of its steps, while its train_footprint is the finest level's — such a model
 renders its finest level with F = 1 (nothing filtered) and F_dec = the ratio of the levels.
 `python -m tools.bench.resolution` measures them against Cycles at 2x and 4x (docs/results.md, "Resolution"). The
-mode `auto` is per model (`auto_mode`): which of the two decodes is better inside the object depends on the
-model (the full-size decoder adds detail where it learned some and mottles smooth interiors where it did not), so
-a multi-scale fit measures it on its finest level's images (`core.points.train.interior_gain`) and `auto`
-renders `interior+filtered` where that gained, DEFAULT_RENDER_MODE (`filtered`) elsewhere — for every
-single-scale fit, which has no finer images to measure it on.
+mode `auto` is per model (`auto_mode`), measured by its fit, since which mode holds up depends on the model (a
+full-size decoder adds detail where it learned some and mottles smooth interiors where it did not): a
+multi-scale fit measures the interior blend against the full-size decode on its finest level's images
+(`core.points.train.interior_gain`) and `auto` renders `interior+filtered` where that gained, `filtered`
+elsewhere; a single-scale fit with a UNet, which has no finer images, renders its own training views at 4x in
+`filtered`, `decoder+filtered`, `interior+filtered` and `upsampled`, averages them back to the training size and
+keeps the mode that agrees best with the images (`core.points.train.single_scale_scores`, `pick_single_scale`:
+`filtered` unless another gains more than 0.1 dB); models without a decoder and older files render
+DEFAULT_RENDER_MODE (`filtered`).
 """
 from __future__ import annotations
 
@@ -54,8 +62,9 @@ import torch.nn.functional as F
 from core.images.cameras import focal_scale
 from core.util.errors import InputError
 
+# Only ever appended to: a model file names the mode `auto` renders by its index here (PointModel.render_choice).
 RENDER_MODES = ("pixels", "filtered", "footprint", "decoder", "decoder+filtered", "footprint+decoder", "interior",
-                "interior+filtered")
+                "interior+filtered", "upsampled")
 DEFAULT_RENDER_MODE = "filtered"
 FILTER_PER_SCALE = 0.25  # Gaussian sigma in output pixels per (F − 1): ~ a box of one training pixel at large F
 _SCALE_TOL = 0.05  # F within this of 1 is the training scale (cameras a few % closer than the training median)
@@ -73,10 +82,14 @@ def check_mode(mode: str, model=None) -> str:
 
 
 def auto_mode(model) -> str:
-    """The render mode `auto` picks for a model: `interior+filtered` when its (multi-scale) fit measured the
-    interior blend better than the full-size decode (`PointModel.interior_gain` > 0 dB,
-    `core.points.train.interior_gain`), else DEFAULT_RENDER_MODE (also for models without that measurement:
-    single-scale fits, no decoder, older files)."""
+    """The render mode `auto` picks for a model: the mode its single-scale fit measured best on its own training
+    views (`PointModel.render_choice`, `core.points.train.single_scale_scores`); for a multi-scale fit
+    `interior+filtered` when it measured the interior blend better than the full-size decode on its finest level
+    (`PointModel.interior_gain` > 0 dB, `core.points.train.interior_gain`); else DEFAULT_RENDER_MODE (models
+    without a decoder, older files)."""
+    choice = float(getattr(model, "render_choice", torch.tensor(0.0)))
+    if math.isfinite(choice) and 1 <= int(choice) <= len(RENDER_MODES):
+        return RENDER_MODES[int(choice) - 1]
     gain = float(getattr(model, "interior_gain", torch.tensor(0.0)))
     return "interior+filtered" if math.isfinite(gain) and gain > 0.0 else DEFAULT_RENDER_MODE
 
@@ -117,6 +130,31 @@ def scale_factor(train_footprint: float, c2w: torch.Tensor, focal, points: torch
     if not math.isfinite(f):
         return MAX_SCALE
     return 1.0 if abs(f - 1.0) <= _SCALE_TOL else min(f, MAX_SCALE)
+
+
+def low_size(height: int, width: int, scale: float) -> tuple[int, int, float]:
+    """The `upsampled` mode's training-scale frame for an H x W frame at scale factor F: (h, w, s), h = H/F and
+    w = W/F rounded (at least 1 pixel), s = h / H the factor its focal length is scaled by. F within 5 % of a
+    whole number counts as that number (as F within 5 % of 1 is the training scale): 256² at F = 4.09 renders 64²."""
+    f = max(float(scale), 1.0)
+    f = float(round(f)) if abs(f - round(f)) <= _SCALE_TOL * f else f
+    h = max(1, int(round(height / f)))
+    w = max(1, int(round(width * h / height)))
+    return h, w, h / height
+
+
+def scaled_focal(focal, factor: float):
+    """focal (pixels or Intrinsics) for the image resized by factor."""
+    return focal.scaled(factor) if hasattr(focal, "scaled") else focal * factor
+
+
+def upsample_frame(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Bicubic upsampling of img [h, w] or [h, w, C] in [0, 1] to [H, W(, C)] (pixel centres aligned), clamped to
+    [0, 1]; non-finite values count as 0."""
+    squeeze = img.dim() == 2
+    x = torch.nan_to_num((img[..., None] if squeeze else img).float(), nan=0.0).permute(2, 0, 1)[None]
+    y = _upsample(x, height, width)[0].permute(1, 2, 0).clamp(0.0, 1.0)
+    return y[..., 0] if squeeze else y
 
 
 def decoder_footprint(model) -> float:

@@ -305,7 +305,10 @@ def test_the_fit_measures_which_decode_auto_uses(unet_scene, scene):
     from core.points.train import INTERIOR_VIEWS, interior_gain
 
     model, train, test = unet_scene
-    assert float(model.interior_gain) == 0.0 and auto_mode(model) == "filtered"  # one scale: nothing measured
+    assert float(model.interior_gain) == 0.0  # one scale: no interior gain (its mode is measured otherwise, below)
+    model = copy.deepcopy(model)
+    model.render_choice.fill_(0)  # as a multi-scale fit leaves it
+    assert auto_mode(model) == "filtered"
     assert math.isnan(interior_gain(model, train))  # the decoder runs at these views' size: nothing to compare
     multi = copy.deepcopy(model)  # as if its decoder had trained at half these views' size (a coarser level)
     multi.decoder_footprint.fill_(2 * float(model.train_footprint))
@@ -326,7 +329,89 @@ def test_the_fit_measures_which_decode_auto_uses(unet_scene, scene):
         assert torch.equal(render_frame(m, c2w, h, w, f)["rgb"], render_frame(m, c2w, h, w, f, mode=mode)["rgb"])
     plain, ptrain, _ = scene
     assert math.isnan(interior_gain(plain, ptrain)) and float(plain.interior_gain) == 0.0
-    assert auto_mode(plain) == "filtered"
+    assert float(plain.render_choice) == 0.0 and auto_mode(plain) == "filtered"
+
+
+def test_a_single_scale_fit_measures_its_mode_on_its_training_views_rendered_larger(unet_scene):
+    """A single-scale fit with a UNet has no finer images: it renders its training views at SINGLE_SCALE_FACTOR x
+    their size in each of SINGLE_SCALE_MODES, area-averages them back and scores them against the images
+    (`single_scale_scores`); `auto` renders the mode `pick_single_scale` takes from those scores."""
+    import copy
+
+    import torch.nn.functional as F
+
+    from core.images.metrics import mean_scores, score_views
+    from core.points.resolution import auto_mode
+    from core.points.train import (INTERIOR_VIEWS, SINGLE_SCALE_FACTOR, SINGLE_SCALE_MODES, pick_single_scale,
+                                   single_scale_scores)
+
+    model, train, test = unet_scene
+    scores = single_scale_scores(model, train)
+    assert set(scores) == set(SINGLE_SCALE_MODES) and all(math.isfinite(v) for v in scores.values())
+    picked = pick_single_scale(scores)
+    assert picked in SINGLE_SCALE_MODES
+    assert auto_mode(model) == RENDER_MODES[int(model.render_choice) - 1] == picked  # what the fit stored
+    # the measurement by hand for one mode
+    ids = sorted({int(i) for i in torch.linspace(0, len(train.c2w) - 1, INTERIOR_VIEWS).round().tolist()})
+    k = SINGLE_SCALE_FACTOR
+
+    def render(i):
+        out = render_frame(model, train.c2w[i], k * train.height, k * train.width, k * train.focal,
+                           mode="decoder+filtered")
+        down = lambda x: F.avg_pool2d(x.permute(2, 0, 1)[None], k)[0].permute(1, 2, 0)  # noqa: E731
+        return {"rgb": down(out["rgb"]).clamp(0, 1), "alpha": down(out["alpha"][..., None])[..., 0].clamp(0, 1)}
+    by_hand = mean_scores(score_views(render, train.images, train.alphas, ids))["psnr_object"]
+    assert scores["decoder+filtered"] == pytest.approx(by_hand, abs=1e-5)
+    # the pick: the first mode (filtered) unless another gains more than the margin
+    assert pick_single_scale({"filtered": 20.0, "upsampled": 20.05, "decoder+filtered": 19.0}) == "filtered"
+    assert pick_single_scale({"filtered": 20.0, "upsampled": 20.5, "decoder+filtered": 21.0}) == "decoder+filtered"
+    assert pick_single_scale({"filtered": float("nan"), "upsampled": 20.5}) == "upsampled"
+    assert pick_single_scale({}) is None and pick_single_scale({"filtered": float("nan")}) is None
+    # the choice is kept by the model file and followed by `auto`; older files (no choice) render `filtered`
+    for choice in ("upsampled", "decoder+filtered"):
+        m = copy.deepcopy(model)
+        m.render_choice.fill_(RENDER_MODES.index(choice) + 1)
+        arrays, meta = model_to_arrays(m)
+        back = model_from_arrays(arrays, meta)
+        assert auto_mode(back) == choice
+        c2w, h, w, f = test.c2w[0], 3 * test.height, 3 * test.width, 3 * test.focal
+        assert torch.equal(render_frame(back, c2w, h, w, f)["rgb"], render_frame(back, c2w, h, w, f, mode=choice)["rgb"])
+    arrays, meta = model_to_arrays(model)
+    legacy = model_from_arrays({k: v for k, v in arrays.items() if k != "net/render_choice"}, meta)
+    assert float(legacy.render_choice) == 0.0 and auto_mode(legacy) == "filtered"
+    for bad in (float("nan"), -3.0, 1e9):  # a damaged choice renders the default, never raises
+        m = copy.deepcopy(model)
+        m.render_choice.fill_(bad)
+        assert auto_mode(m) == "filtered"
+
+
+@pytest.mark.parametrize("decoder", ["none", "unet"])
+@pytest.mark.parametrize("factor", [3, 4.1])
+def test_upsampled_frames_are_the_training_size_frame_upsampled(scene, unet_scene, decoder, factor):
+    """`upsampled` renders the frame at the training scale (H/F, F within 5 % of a whole number counting as it)
+    and upsamples it bicubically; x (the surface per pixel) stays at the full size."""
+    from core.points.resolution import low_size, upsample_frame
+
+    model, _, test = scene if decoder == "none" else unet_scene
+    c2w, h, w, f = test.c2w[0], test.height, test.width, test.focal
+    big = render_frame(model, c2w, 3 * h, 3 * w, factor * f, mode="upsampled")
+    lh, lw, s = low_size(3 * h, 3 * w, big["scale"])
+    assert (lh, lw) == ((h, w) if factor == 3 else (lh, lw)) and big["x"].shape == (3 * h, 3 * w, 3)
+    low = render_frame(model, c2w, lh, lw, factor * f * s, mode="pixels")
+    assert torch.equal(big["rgb"], upsample_frame(low["rgb"], 3 * h, 3 * w))
+    assert torch.equal(big["alpha"], upsample_frame(low["alpha"], 3 * h, 3 * w))
+    for k in ("rgb", "alpha"):
+        assert bool(torch.isfinite(big[k]).all()) and float(big[k].min()) >= 0 and float(big[k].max()) <= 1
+
+
+def test_low_size_snaps_to_whole_factors_and_stays_positive():
+    from core.points.resolution import low_size
+
+    assert low_size(256, 256, 4.09) == (64, 64, 0.25)
+    assert low_size(256, 128, 3.9) == (64, 32, 0.25)
+    h, w, s = low_size(256, 256, 3.5)
+    assert (h, w) == (73, 73) and s == pytest.approx(73 / 256)
+    assert low_size(10, 20, 1e9)[:2] == (1, 2) and low_size(10, 10, 0.5) == (10, 10, 1.0)
 
 
 @pytest.mark.parametrize("mode", RENDER_MODES)
@@ -386,7 +471,7 @@ def test_edited_frames_follow_the_render_mode():
     bundle, _, test = tiny_bundle("card")
     c2w, h, w, f = test.c2w[0], test.height, test.width, test.focal
     frames = {}
-    for mode in ("pixels", "filtered"):
+    for mode in ("pixels", "filtered", "upsampled"):
         state = EditState(bundle, atlas=bundle.atlas.packed_image(), cfg=EditConfig(render_mode=mode))
         one = render_edited(state, c2w, h, w, f)
         assert one["stats"]["scale"] == 1.0
@@ -396,7 +481,38 @@ def test_edited_frames_follow_the_render_mode():
         assert bool(torch.isfinite(four["rgb"]).all()) and bool(torch.isfinite(four["alpha"]).all())
         frames[mode, 3] = four["rgb"]
     assert torch.equal(frames["pixels", 1], frames["filtered", 1])  # the training size: the same in every mode
+    assert torch.equal(frames["pixels", 1], frames["upsampled", 1])
     assert not torch.equal(frames["pixels", 3], frames["filtered", 3])
+    # upsampled: the unedited frame is render_frame's (the training-size frame upsampled)
+    state = EditState(bundle, atlas=bundle.atlas.packed_image(), cfg=EditConfig(render_mode="upsampled"))
+    plain = render_frame(bundle.model, c2w, 3 * h, 3 * w, 3 * f, mode="upsampled")
+    assert torch.allclose(frames["upsampled", 3], plain["rgb"], atol=1e-5)
+
+
+def test_upsampled_edited_frames_keep_the_painted_texture_at_the_full_size():
+    """The model's colour comes from the training scale; a texture painted on the atlas is looked up per ray of the
+    full-size frame, so a fine pattern stays as sharp as in the `pixels` mode."""
+    from core.frames.edited import EditConfig, EditState, render_edited
+
+    bundle, _, test = tiny_bundle("card")
+    c2w, h, w, f = test.c2w[0], 4 * test.height, 4 * test.width, 4 * test.focal
+
+    def checker(x):  # a pattern finer than a training pixel on the card
+        v = (torch.floor(x[:, 0] * 40) + torch.floor(x[:, 1] * 40)) % 2
+        return torch.stack([v, 1 - v, 0.5 * torch.ones_like(v)], 1)
+    painted = bundle.atlas.packed_image().clone()
+    painted[::2] = 1.0 - painted[::2]  # an edited atlas: the frame looks its texture up
+    out = {}
+    for mode in ("pixels", "upsampled"):
+        state = EditState(bundle, atlas=painted, cfg=EditConfig(render_mode=mode))
+        out[mode] = render_edited(state, c2w, h, w, f, texture_fn=checker)
+    painted = torch.isfinite(out["upsampled"]["x_can"]).all(-1)
+    assert int(painted.sum()) > 50 and torch.equal(painted, torch.isfinite(out["pixels"]["x_can"]).all(-1))
+
+    def detail(img):  # mean absolute difference between neighbouring pixels over the painted rays
+        d = (img[1:, :] - img[:-1, :]).abs().sum(-1)
+        return float(d[painted[1:, :] & painted[:-1, :]].mean())
+    assert detail(out["upsampled"]["rgb"]) > 0.8 * detail(out["pixels"]["rgb"])
 
 
 @pytest.mark.parametrize("s", [0.1, 10.0])
