@@ -14,7 +14,7 @@ from core.util.errors import ModelFileError
 
 _POINT_ARRAYS = {"xyz": "points/xyz", "features": "points/features", "influence": "points/influence"}
 # buffers files from before them lack: the model's default value stays
-_OPTIONAL = {"train_footprint", "decoder_footprint", "interior_gain", "render_choice"}
+_OPTIONAL = {"train_footprint", "decoder_footprint", "interior_gain"}
 
 
 def model_to_arrays(model: PointModel) -> tuple[dict[str, np.ndarray], dict]:

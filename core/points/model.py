@@ -103,11 +103,6 @@ class PointModel(nn.Module):
         # by the fit, core/points/train.py `interior_gain`; 0 = no gain or not measured: single-scale fits, no
         # decoder, older files): the render mode `auto` follows it.
         self.register_buffer("interior_gain", torch.tensor(0.0))
-        # The render mode `auto` renders beyond the training size, measured by a single-scale fit on its own training
-        # views (core/points/train.py `single_scale_scores`): 1 + its index in core.points.resolution.RENDER_MODES
-        # (a tuple that is only ever appended to); 0 = not measured: multi-scale fits (interior_gain), no decoder,
-        # older files.
-        self.register_buffer("render_choice", torch.tensor(0.0))
         key_in = 2 * (1 + 2 * cfg.key_freqs)
         self.key_mlp = _mlp(key_in, cfg.key_width, 1)
         self.bg_logit = nn.Parameter(torch.tensor(0.0))

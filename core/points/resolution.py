@@ -42,15 +42,13 @@ size (`PointModel.decoder_footprint`): for a multi-scale fit (`pointgt fit --tra
 level, where the decoder had most of its steps, while its train_footprint is the finest level's — such a model
 renders its finest level with F = 1 (nothing filtered) and F_dec = the ratio of the levels.
 `python -m tools.bench.resolution` measures them against Cycles at 2x and 4x (docs/results.md, "Resolution"). The
-mode `auto` is per model (`auto_mode`), measured by its fit, since which mode holds up depends on the model (a
-full-size decoder adds detail where it learned some and mottles smooth interiors where it did not): a
-multi-scale fit measures the interior blend against the full-size decode on its finest level's images
-(`core.points.train.interior_gain`) and `auto` renders `interior+filtered` where that gained, `filtered`
-elsewhere; a single-scale fit with a UNet, which has no finer images, renders its own training views at 4x in
-`filtered`, `decoder+filtered`, `interior+filtered` and `upsampled`, averages them back to the training size and
-keeps the mode that agrees best with the images (`core.points.train.single_scale_scores`, `pick_single_scale`:
-`filtered` unless another gains more than 0.1 dB); models without a decoder and older files render
-DEFAULT_RENDER_MODE (`filtered`).
+mode `auto` is per model (`auto_mode`). A single-scale fit renders `upsampled`: trained on one size of images, it
+has learned nothing finer than their pixels, and its full-size frames (points magnified F times, a decoder on a
+frame it never saw) fall below its upsampled training-size frame on most library scenes at 4x (by up to 4 dB after
+a ten-minute fit). A multi-scale fit (`pointgt fit --train-scales`) has learned the finer levels: it measures
+which decode is better inside the object on its finest level's images (`core.points.train.interior_gain`) and
+`auto` renders `interior+filtered` where that gained, `filtered` elsewhere. (Models without a training footprint,
+older files, render every size as the training size.)
 """
 from __future__ import annotations
 
@@ -62,10 +60,10 @@ import torch.nn.functional as F
 from core.images.cameras import focal_scale
 from core.util.errors import InputError
 
-# Only ever appended to: a model file names the mode `auto` renders by its index here (PointModel.render_choice).
 RENDER_MODES = ("pixels", "filtered", "footprint", "decoder", "decoder+filtered", "footprint+decoder", "interior",
                 "interior+filtered", "upsampled")
-DEFAULT_RENDER_MODE = "filtered"
+DEFAULT_RENDER_MODE = "filtered"  # a multi-scale fit's, unless its interior gain says `interior+filtered`
+SINGLE_SCALE_MODE = "upsampled"  # a single-scale fit's (docs/results.md "Resolution")
 FILTER_PER_SCALE = 0.25  # Gaussian sigma in output pixels per (F − 1): ~ a box of one training pixel at large F
 _SCALE_TOL = 0.05  # F within this of 1 is the training scale (cameras a few % closer than the training median)
 MAX_SCALE = 1e6  # larger scale factors are clamped (a camera inside the object): the filter covers the frame anyway
@@ -81,15 +79,21 @@ def check_mode(mode: str, model=None) -> str:
     return mode
 
 
+def multi_scale(model) -> bool:
+    """True for a model fitted on several image sizes (`pointgt fit --train-scales`): its decoder's training pixel
+    (the coarsest level's, `decoder_footprint`) is larger than its training footprint (the finest level's)."""
+    tf = float(model.train_footprint)
+    df = float(getattr(model, "decoder_footprint", torch.tensor(0.0)))
+    return math.isfinite(tf) and math.isfinite(df) and tf > 0 and df > tf * (1.0 + _SCALE_TOL)
+
+
 def auto_mode(model) -> str:
-    """The render mode `auto` picks for a model: the mode its single-scale fit measured best on its own training
-    views (`PointModel.render_choice`, `core.points.train.single_scale_scores`); for a multi-scale fit
-    `interior+filtered` when it measured the interior blend better than the full-size decode on its finest level
-    (`PointModel.interior_gain` > 0 dB, `core.points.train.interior_gain`); else DEFAULT_RENDER_MODE (models
-    without a decoder, older files)."""
-    choice = float(getattr(model, "render_choice", torch.tensor(0.0)))
-    if math.isfinite(choice) and 1 <= int(choice) <= len(RENDER_MODES):
-        return RENDER_MODES[int(choice) - 1]
+    """The render mode `auto` picks for a model: for a multi-scale fit `interior+filtered` when it measured the
+    interior blend better than the full-size decode on its finest level (`PointModel.interior_gain` > 0 dB,
+    `core.points.train.interior_gain`), else `filtered`; for a single-scale fit (and older files) SINGLE_SCALE_MODE,
+    `upsampled`."""
+    if not multi_scale(model):
+        return SINGLE_SCALE_MODE
     gain = float(getattr(model, "interior_gain", torch.tensor(0.0)))
     return "interior+filtered" if math.isfinite(gain) and gain > 0.0 else DEFAULT_RENDER_MODE
 

@@ -23,7 +23,7 @@ from core.images.intrinsics import Intrinsics
 from core.images.metrics import blank_floor, mean_scores, score_views, ssim
 from core.images.pyramid import parse_scales, parse_weights, pyramid
 from core.points.render import render_frame
-from core.points.resolution import RENDER_MODES, auto_mode, decoder_scale, training_footprint
+from core.points.resolution import decoder_scale, training_footprint
 from core.images.cameras import rays_for_pixels
 from core.points.init import visual_hull_points
 from core.points.key_mlp import KEY_PATHS
@@ -499,54 +499,6 @@ def interior_gain(model: PointModel, split, views: int = INTERIOR_VIEWS, backgro
     return gain if math.isfinite(gain) else float("nan")
 
 
-SINGLE_SCALE_MODES = ("filtered", "decoder+filtered", "interior+filtered", "upsampled")  # what a single-scale fit chooses from
-SINGLE_SCALE_MARGIN = 0.1  # dB another mode must gain over the first of SINGLE_SCALE_MODES to be chosen
-SINGLE_SCALE_FACTOR = 4  # the scale factor it renders its training views at (AUTO_MAX_FACTOR of --train-scales auto)
-
-
-@torch.no_grad()
-def single_scale_scores(model: PointModel, split, views: int = INTERIOR_VIEWS, factor: int = SINGLE_SCALE_FACTOR,
-                        modes=SINGLE_SCALE_MODES, background=(1.0, 1.0, 1.0)) -> dict:
-    """How well each render mode's frames at `factor` x the training size agree with the training images, for a
-    fit that has no finer images: `views` evenly spaced views of split (images [V, H, W, 3] at the training size)
-    rendered at factor x their size in each of `modes`, area-averaged back to the training size (colour and
-    coverage) and scored against the images: {mode: object PSNR in dB}. A mode whose decode mottles the frame
-    (the points' own colours magnified, which the decoder learned to smooth at one training pixel) or draws
-    wrong silhouettes there shows it in the averaged frame too. {} for models without a residual UNet decoder
-    (every mode is then the same frame but for the filter)."""
-    if model.decoder is None or not model.cfg.decoder_residual or views < 1 or factor <= 1:
-        return {}
-    n = split.images.shape[0]
-    ids = sorted({int(i) for i in torch.linspace(0, n - 1, min(views, n)).round().tolist()})
-    h, w = split.height * factor, split.width * factor
-    focal = split.focal.scaled(factor) if isinstance(split.focal, Intrinsics) else split.focal * factor
-
-    def down(x: torch.Tensor) -> torch.Tensor:  # [H, W, C] or [H, W] -> area average by factor
-        y = x[..., None] if x.dim() == 2 else x
-        y = F.avg_pool2d(y.permute(2, 0, 1)[None].float(), factor)[0].permute(1, 2, 0)
-        return y[..., 0] if x.dim() == 2 else y
-
-    scores = {}
-    for mode in modes:
-        def render(i, mode=mode):
-            out = render_frame(model, split.c2w[i], h, w, focal, background=background, mode=mode)
-            return {"rgb": down(out["rgb"]).clamp(0, 1), "alpha": down(out["alpha"]).clamp(0, 1)}
-        scores[mode] = mean_scores(score_views(render, split.images, split.alphas, ids))["psnr_object"]
-    return scores
-
-
-def pick_single_scale(scores: dict, margin: float = SINGLE_SCALE_MARGIN) -> str | None:
-    """The mode `auto` renders a single-scale fit in, from `single_scale_scores`' {mode: dB}: the best-scoring
-    mode, but the first of SINGLE_SCALE_MODES (the default, `filtered`) unless another beats it by more than
-    `margin` dB. None without scores (or when none is finite): nothing measured."""
-    ok = {m: v for m, v in scores.items() if math.isfinite(v)}
-    if not ok:
-        return None
-    first = next((m for m in SINGLE_SCALE_MODES if m in ok), None)
-    best = max(ok, key=ok.get)
-    return first if first is not None and ok[best] - ok[first] <= margin else best
-
-
 @torch.no_grad()
 def evaluate(model: PointModel, split, views, background) -> dict:
     """Mean PSNR (full frame and object pixels) and SSIM over the given view indices of a split (the evaluation
@@ -891,15 +843,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     # which decode the render mode `auto` uses inside the object beyond the training size (measured, not guessed)
     gain = interior_gain(model, fine, background=background) if len(levels) > 1 else float("nan")
     model.interior_gain.fill_(gain if math.isfinite(gain) else 0.0)  # 0: nothing measured, `filtered`
-    # a single-scale fit (no finer images) measures the mode on its own training views rendered larger
-    single = single_scale_scores(model, fine, background=background) if len(levels) == 1 else {}
-    best = pick_single_scale(single)
-    model.render_choice.fill_(RENDER_MODES.index(best) + 1 if best else 0)
     scores = evaluate(model, test, eval_ids, background)
     reason = collapse_reason(scores, guard.floor, cfg.guard_margin)
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,
                     "interior_gain": gain if math.isfinite(gain) else None,
-                    "single_scale_scores": single or None, "auto_render_mode": auto_mode(model),
                     "guard": {**guard.summary(), "collapsed": reason}})
     if raw is not None:  # the scores above are the average's (what is returned); these the trained parameters'
         history[-1]["raw"] = raw

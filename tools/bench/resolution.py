@@ -35,9 +35,7 @@ footprint is the coarsest level's (the training size S, filled in as H x the tra
 from before it), which the `decoder` and `interior` modes decode at. The mode `auto` is the model's
 (`core.points.resolution.auto_mode`, from the interior gain a multi-scale fit measures on its finest level; for
 such model files from before that measurement the bench makes it on the H x training images,
-`core.points.train.interior_gain`, and prints it; a single-scale fit measures its mode on its own training views
-rendered at 4x, `core.points.train.single_scale_scores`, which the bench likewise makes for model files from
-before it, on the 1x training images, and prints).
+`core.points.train.interior_gain`, and prints it; a single-scale fit renders `upsampled`).
 --time-steps N (with --train-hires) also times stage-1 steps: per scene, 3 pairs of N-step `fit_points` runs in
 this process, the fit from the 1x images and the multi-scale one from the H x images alternating (the settings of
 --fit-args, the decoder and K of the fitted model, evaluation excluded): seconds per step, min / median / max.
@@ -322,15 +320,8 @@ def main(argv=None) -> int:
 
             gain = interior_gain(model, load_split(work / name / f"x{hires}", "train"))
             model.interior_gain.fill_(gain if math.isfinite(gain) else 0.0)
-        single = {}
-        if not hires and float(model.render_choice) == 0.0:  # a single-scale model file from before the fit
-            from core.points.train import pick_single_scale, single_scale_scores  # measured its mode: the same
-
-            single = single_scale_scores(model, load_split(work / name / "x1", "train"))  # on its training views
-            best = pick_single_scale(single)
-            model.render_choice.fill_(RENDER_MODES.index(best) + 1 if best else 0)
-        print(f"{name}: auto = {check_mode('auto', model)} (interior gain {float(model.interior_gain):+.2f} dB"
-              + ("".join(f", {m} {v:.2f}" for m, v in single.items()) if single else "") + ")", flush=True)
+        print(f"{name}: auto = {check_mode('auto', model)} (interior gain {float(model.interior_gain):+.2f} dB)",
+              flush=True)
         cache: dict = {}
         for f in factors:
             high = low if f == 1 else load_split(work / name / f"x{f}", "test")

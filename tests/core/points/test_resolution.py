@@ -296,8 +296,8 @@ def test_a_multi_scale_model_runs_its_decoder_at_the_training_size(unet_scene):
 def test_the_fit_measures_which_decode_auto_uses(unet_scene, scene):
     """`auto` follows the interior gain a multi-scale fit stores (core.points.train.interior_gain:
     `interior+filtered` − `filtered` in object PSNR on views finer than the decoder's training size):
-    `interior+filtered` when it is positive, `filtered` otherwise, for single-scale fits (nothing measured) and
-    for models without a decoder."""
+    `interior+filtered` when it is positive, `filtered` otherwise; a single-scale fit (with or without a decoder,
+    nothing measured) renders `upsampled`, the training-size frame upsampled."""
     import copy
 
     from core.images.metrics import mean_scores, score_views
@@ -305,10 +305,7 @@ def test_the_fit_measures_which_decode_auto_uses(unet_scene, scene):
     from core.points.train import INTERIOR_VIEWS, interior_gain
 
     model, train, test = unet_scene
-    assert float(model.interior_gain) == 0.0  # one scale: no interior gain (its mode is measured otherwise, below)
-    model = copy.deepcopy(model)
-    model.render_choice.fill_(0)  # as a multi-scale fit leaves it
-    assert auto_mode(model) == "filtered"
+    assert float(model.interior_gain) == 0.0 and auto_mode(model) == "upsampled"  # one scale: nothing measured
     assert math.isnan(interior_gain(model, train))  # the decoder runs at these views' size: nothing to compare
     multi = copy.deepcopy(model)  # as if its decoder had trained at half these views' size (a coarser level)
     multi.decoder_footprint.fill_(2 * float(model.train_footprint))
@@ -323,66 +320,18 @@ def test_the_fit_measures_which_decode_auto_uses(unet_scene, scene):
     assert gain == pytest.approx(score("interior+filtered") - score("filtered"), abs=1e-6)
     c2w, h, w, f = test.c2w[0], 3 * test.height, 3 * test.width, 3 * test.focal
     for g, mode in ((0.3, "interior+filtered"), (-0.3, "filtered"), (0.0, "filtered")):
-        m = copy.deepcopy(model)
+        m = copy.deepcopy(multi)
         m.interior_gain.fill_(g)
         assert auto_mode(m) == check_mode("auto", m) == mode
         assert torch.equal(render_frame(m, c2w, h, w, f)["rgb"], render_frame(m, c2w, h, w, f, mode=mode)["rgb"])
     plain, ptrain, _ = scene
     assert math.isnan(interior_gain(plain, ptrain)) and float(plain.interior_gain) == 0.0
-    assert float(plain.render_choice) == 0.0 and auto_mode(plain) == "filtered"
-
-
-def test_a_single_scale_fit_measures_its_mode_on_its_training_views_rendered_larger(unet_scene):
-    """A single-scale fit with a UNet has no finer images: it renders its training views at SINGLE_SCALE_FACTOR x
-    their size in each of SINGLE_SCALE_MODES, area-averages them back and scores them against the images
-    (`single_scale_scores`); `auto` renders the mode `pick_single_scale` takes from those scores."""
-    import copy
-
-    import torch.nn.functional as F
-
-    from core.images.metrics import mean_scores, score_views
-    from core.points.resolution import auto_mode
-    from core.points.train import (INTERIOR_VIEWS, SINGLE_SCALE_FACTOR, SINGLE_SCALE_MODES, pick_single_scale,
-                                   single_scale_scores)
-
-    model, train, test = unet_scene
-    scores = single_scale_scores(model, train)
-    assert set(scores) == set(SINGLE_SCALE_MODES) and all(math.isfinite(v) for v in scores.values())
-    picked = pick_single_scale(scores)
-    assert picked in SINGLE_SCALE_MODES
-    assert auto_mode(model) == RENDER_MODES[int(model.render_choice) - 1] == picked  # what the fit stored
-    # the measurement by hand for one mode
-    ids = sorted({int(i) for i in torch.linspace(0, len(train.c2w) - 1, INTERIOR_VIEWS).round().tolist()})
-    k = SINGLE_SCALE_FACTOR
-
-    def render(i):
-        out = render_frame(model, train.c2w[i], k * train.height, k * train.width, k * train.focal,
-                           mode="decoder+filtered")
-        down = lambda x: F.avg_pool2d(x.permute(2, 0, 1)[None], k)[0].permute(1, 2, 0)  # noqa: E731
-        return {"rgb": down(out["rgb"]).clamp(0, 1), "alpha": down(out["alpha"][..., None])[..., 0].clamp(0, 1)}
-    by_hand = mean_scores(score_views(render, train.images, train.alphas, ids))["psnr_object"]
-    assert scores["decoder+filtered"] == pytest.approx(by_hand, abs=1e-5)
-    # the pick: the first mode (filtered) unless another gains more than the margin
-    assert pick_single_scale({"filtered": 20.0, "upsampled": 20.05, "decoder+filtered": 19.0}) == "filtered"
-    assert pick_single_scale({"filtered": 20.0, "upsampled": 20.5, "decoder+filtered": 21.0}) == "decoder+filtered"
-    assert pick_single_scale({"filtered": float("nan"), "upsampled": 20.5}) == "upsampled"
-    assert pick_single_scale({}) is None and pick_single_scale({"filtered": float("nan")}) is None
-    # the choice is kept by the model file and followed by `auto`; older files (no choice) render `filtered`
-    for choice in ("upsampled", "decoder+filtered"):
+    assert auto_mode(plain) == "upsampled"  # a single-scale fit, no decoder
+    assert torch.equal(render_frame(model, c2w, h, w, f)["rgb"], render_frame(model, c2w, h, w, f, mode="upsampled")["rgb"])
+    for fp in (0.0, float("nan"), float("inf")):  # older or damaged files: a single-scale fit's mode, never raises
         m = copy.deepcopy(model)
-        m.render_choice.fill_(RENDER_MODES.index(choice) + 1)
-        arrays, meta = model_to_arrays(m)
-        back = model_from_arrays(arrays, meta)
-        assert auto_mode(back) == choice
-        c2w, h, w, f = test.c2w[0], 3 * test.height, 3 * test.width, 3 * test.focal
-        assert torch.equal(render_frame(back, c2w, h, w, f)["rgb"], render_frame(back, c2w, h, w, f, mode=choice)["rgb"])
-    arrays, meta = model_to_arrays(model)
-    legacy = model_from_arrays({k: v for k, v in arrays.items() if k != "net/render_choice"}, meta)
-    assert float(legacy.render_choice) == 0.0 and auto_mode(legacy) == "filtered"
-    for bad in (float("nan"), -3.0, 1e9):  # a damaged choice renders the default, never raises
-        m = copy.deepcopy(model)
-        m.render_choice.fill_(bad)
-        assert auto_mode(m) == "filtered"
+        m.decoder_footprint.fill_(fp)
+        assert auto_mode(m) == "upsampled"
 
 
 @pytest.mark.parametrize("decoder", ["none", "unet"])
