@@ -68,16 +68,17 @@ def stage_parts(bundle) -> list:
 class Case:
     """One column of the table: a bundle and an edit (plain | edited)."""
 
-    def __init__(self, label: str, bundle, edited: bool, points=None, painted=None):
+    def __init__(self, label: str, bundle, edited: bool, points=None, painted=None, mode: str = "auto"):
         self.label, self.bundle, self.edited = label, bundle, edited
-        self.points, self.painted = points, painted
+        self.points, self.painted, self.mode = points, painted, mode
 
     def state(self):
-        from core.frames.edited import EditState
+        from core.frames.edited import EditConfig, EditState
 
+        cfg = EditConfig(render_mode=self.mode)
         if not self.edited:
-            return EditState(self.bundle)
-        return EditState(self.bundle, points=self.points, atlas=self.painted)
+            return EditState(self.bundle, cfg=cfg)
+        return EditState(self.bundle, points=self.points, atlas=self.painted, cfg=cfg)
 
 
 def time_cases(cases: list[Case], cams, size: int, focal, profile: bool = False) -> list[dict]:
@@ -200,6 +201,9 @@ def main(argv=None) -> int:
     ap.add_argument("--threads-list", default="1,0", help="comma-separated torch thread counts (0 = all cores)")
     ap.add_argument("--frames", type=int, default=3, help="timed views per cell (median reported)")
     ap.add_argument("--decoders", default="none,unet", help="built models: decoders to time (none, unet)")
+    ap.add_argument("--render-modes", default="auto",
+                    help="comma-separated render modes to time, each its own columns (auto = the model's; "
+                         "core/points/resolution.py: frames finer than the training pixels)")
     ap.add_argument("--no-cold", action="store_true", help="skip the cold first-frame process")
     ap.add_argument("--no-profile", action="store_true", help="skip the per-stage profile")
     ap.add_argument("--blend-cold", action="store_true", help="time Blender's first frame after opening a .blend "
@@ -239,9 +243,12 @@ def main(argv=None) -> int:
     painted = retexture(any_bundle.atlas)
     names = {"none": "no decoder", "unet": "UNet"}
     cases = []
+    modes = [m.strip() for m in args.render_modes.split(",") if m.strip()]
     for d, b in bundles.items():
-        cases.append(Case(f"{names.get(d, d)}: plain", b, False))
-        cases.append(Case(f"{names.get(d, d)}: deformed + painted", b, True, bent, painted))
+        for mode in modes:
+            tag = "" if modes == ["auto"] else f" ({mode})"
+            cases.append(Case(f"{names.get(d, d)}: plain{tag}", b, False, mode=mode))
+            cases.append(Case(f"{names.get(d, d)}: deformed + painted{tag}", b, True, bent, painted, mode=mode))
 
     print(machine_line())
     print(f"model: {source}; K = {cfg.k}, {cfg.neighbors} neighbours, atlas "
