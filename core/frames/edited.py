@@ -141,7 +141,8 @@ class EditConfig:
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
                                    "filtered | footprint | decoder | interior | their '+' pairs | upsampled; "
-                                   "auto = the model's (the mode its fit measured best, else filtered)",
+                                   "auto = the model's (upsampled for a single-scale fit; for a multi-scale fit "
+                                   "interior+filtered where its fit measured it better, else filtered)",
                            choices=("auto", *RENDER_MODES))
 
 

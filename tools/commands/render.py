@@ -56,9 +56,8 @@ def add_arguments(p):
                         "discs) | decoder (UNet decoder at the training scale) | decoder+filtered | interior (UNet "
                         "decoder at the training scale inside the object, at the full size at its silhouette) | "
                         "interior+filtered | footprint | footprint+decoder | upsampled (the training-size frame "
-                        "upsampled, a painted texture at the full size); auto = the model's: the mode its fit "
-                        f"measured best (single-scale fits with a UNet: on their training views rendered 4x and "
-                        f"averaged back; multi-scale fits: interior+filtered where it gained), else {DEFAULT_RENDER_MODE}")
+                        "upsampled, a painted texture at the full size); auto = upsampled for a single-scale fit; for a "
+                        f"multi-scale fit interior+filtered where its fit measured it better, else {DEFAULT_RENDER_MODE}")
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side, pixel-filtered (1 = one per ray, no filter)")
 
