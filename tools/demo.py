@@ -259,10 +259,10 @@ def render_scaled(state, c2w, split, factor: int) -> dict:
     import time as _time
 
     from core.frames.edited import render_edited
-    from core.images.intrinsics import Intrinsics
+    from core.images.cameras import scaled_focal
 
     h, w = split.height * factor, split.width * factor
-    focal = split.focal.scaled(factor) if isinstance(split.focal, Intrinsics) else split.focal * factor
+    focal = scaled_focal(split.focal, factor)
     t0 = _time.perf_counter()
     r = render_edited(state, c2w, h, w, focal)
     return {"rgb": r["rgb"], "height": h, "width": w, "seconds": _time.perf_counter() - t0}

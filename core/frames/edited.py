@@ -26,12 +26,12 @@ from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, un
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
-from core.images.cameras import focal_scale
+from core.images.cameras import focal_scale, scaled_focal
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
 from core.points.render import pixel_grid, shade_frame, trace_frame
 from core.points.resolution import (RENDER_MODES, check_mode, decoder_scale, filter_sigma, gaussian_blur,
-                                    low_size, scale_factor, scaled_focal, upsample_frame)
+                                    low_size, scale_factor, upsample_frame)
 from core.points.trace import Trace
 from core.util.errors import InputError
 

@@ -48,6 +48,12 @@ def focal_scale(focal) -> float:
     return focal
 
 
+def scaled_focal(focal, factor: float):
+    """The focal (pixels or Intrinsics) of the same camera's frame resized by `factor` (2 = twice the pixels per
+    side)."""
+    return focal.scaled(factor) if isinstance(focal, Intrinsics) else focal * factor
+
+
 def focal_from_fov(width: int, camera_angle_x: float) -> float:
     return 0.5 * width / math.tan(0.5 * camera_angle_x)
 

@@ -7,14 +7,14 @@ from __future__ import annotations
 
 import torch
 
-from core.images.cameras import pixel_rays
+from core.images.cameras import pixel_rays, scaled_focal
 from core.points.model import TRAIN_BACKGROUND, PointModel
 from core.points.attention_compiled import BACKENDS as ATTENTION_BACKENDS
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import select_neighbors, select_neighbors_soft
 from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_at_scale, filter_sigma,
                                     decoder_scale, gate_coverage, gaussian_blur, interior_weight, low_size,
-                                    scale_factor, scaled_focal, upsample_frame)
+                                    scale_factor, upsample_frame)
 from core.points.trace import Trace
 from core.util.errors import InputError
 

@@ -147,11 +147,6 @@ def low_size(height: int, width: int, scale: float) -> tuple[int, int, float]:
     return h, w, h / height
 
 
-def scaled_focal(focal, factor: float):
-    """focal (pixels or Intrinsics) for the image resized by factor."""
-    return focal.scaled(factor) if hasattr(focal, "scaled") else focal * factor
-
-
 def upsample_frame(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """Bicubic upsampling of img [h, w] or [h, w, C] in [0, 1] to [H, W(, C)] (pixel centres aligned), clamped to
     [0, 1]; non-finite values count as 0."""

@@ -19,12 +19,11 @@ import torch
 import torch.nn.functional as F
 
 from core.config import opt
-from core.images.intrinsics import Intrinsics
 from core.images.metrics import blank_floor, mean_scores, score_views, ssim
 from core.images.pyramid import parse_scales, parse_weights, pyramid
 from core.points.render import render_frame
 from core.points.resolution import decoder_scale, training_footprint
-from core.images.cameras import rays_for_pixels
+from core.images.cameras import rays_for_pixels, scaled_focal
 from core.points.init import visual_hull_points
 from core.points.key_mlp import KEY_PATHS
 from core.points.ema import ParamEMA
@@ -280,13 +279,6 @@ def pool_zoomed(values: torch.Tensor, p: int, size: int, zoom: int) -> torch.Ten
     return F.avg_pool2d(img, zoom).permute(0, 2, 3, 1).reshape(-1, c)
 
 
-def _zoom_focal(focal, zoom: int):
-    """The camera of a frame zoom times larger: a focal in pixels or Intrinsics, scaled."""
-    if zoom == 1:
-        return focal
-    return focal.scaled(zoom) if isinstance(focal, Intrinsics) else focal * zoom
-
-
 def pool_index(p: int, size: int, zoom: int) -> torch.Tensor:
     """For each ray of `zoom_pixels`' order [P*(zoom*size)²], the index of its patch pixel in [P*size*size]."""
     t = torch.arange(size * zoom) // zoom
@@ -339,7 +331,7 @@ def patch_neighbors(points: torch.Tensor, model_cfg: ModelConfig, c2w: torch.Ten
     level frame — the neighbours `render_frame` at that size gives those pixels."""
     o, d = rays_for_pixels(c2w, px, level.height, level.width, level.focal)
     idx = select_neighbors(points, model_cfg.neighbors, model_cfg.k, c2w, level.height * zoom, level.width * zoom,
-                           _zoom_focal(level.focal, zoom), px * zoom, o, d, model_cfg.neighbor_radius_px)
+                           (level.focal if zoom == 1 else scaled_focal(level.focal, zoom)), px * zoom, o, d, model_cfg.neighbor_radius_px)
     return o, d, idx
 
 
