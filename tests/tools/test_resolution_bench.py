@@ -11,18 +11,6 @@ from tests.helpers.tiny import tiny_bundle
 from tools.bench import resolution
 
 
-def test_upsample_keeps_constants_and_pixel_centres():
-    img = torch.full((4, 5, 3), 0.25)
-    assert resolution.upsample(img, 1) is img
-    up = resolution.upsample(img, 3)
-    assert up.shape == (12, 15, 3) and torch.allclose(up, img[:1, :1].expand(12, 15, 3))
-    ramp = torch.linspace(0, 1, 8)[None, :, None].expand(8, 8, 3).contiguous()
-    up = resolution.upsample(ramp, 2)
-    # fine pixels 2c and 2c + 1 sit a quarter coarse pixel either side of coarse pixel c's centre
-    assert torch.allclose((up[:, 2:14:2] + up[:, 3:15:2]) / 2, ramp[:1, 1:7].expand(16, 6, 3), atol=5e-3)
-    assert bool((up[0, 3:14, 0] > up[0, 2:13, 0]).all())  # and the ramp stays increasing
-
-
 def test_specks_count_stray_pixels_away_from_the_object_only():
     gt_alpha = torch.zeros(20, 20)
     gt_alpha[5:10, 5:10] = 1.0

@@ -98,18 +98,6 @@ def step_seconds(model_cfg, fit_args: list[str], low_train, high_train, test, st
     return out
 
 
-def upsample(img, factor: int):
-    """Bicubic upsampling of an image [H, W, C] in [0, 1] by an integer factor -> [F*H, F*W, C] in [0, 1]
-    (pixel centres aligned: align_corners=False)."""
-    import torch.nn.functional as F
-
-    if factor == 1:
-        return img
-    x = img.permute(2, 0, 1)[None]
-    y = F.interpolate(x, scale_factor=factor, mode="bicubic", align_corners=False)
-    return y[0].permute(1, 2, 0).clamp(0.0, 1.0)
-
-
 SPECK_CONTRAST = 0.1  # a speck pixel differs from the white background by more than this in some channel
 
 
@@ -152,8 +140,12 @@ def evaluate(model, low, high, factor: int, mode: str, cache: dict | None = None
     native_edge, up_render_interior, ..., up_gt_edge (PSNR on `region_masks`' regions)} and per_view rows."""
     from core.images.metrics import mean_scores, score_views
     from core.points.render import render_frame
+    from core.points.resolution import upsample_frame
 
     cache = {} if cache is None else cache
+
+    def upsample(img, f: int):  # the `upsampled` mode's bicubic, by a whole factor
+        return upsample_frame(img, f * img.shape[0], f * img.shape[1])
 
     def render(i):
         if i not in cache:

@@ -353,6 +353,22 @@ def test_upsampled_frames_are_the_training_size_frame_upsampled(scene, unet_scen
         assert bool(torch.isfinite(big[k]).all()) and float(big[k].min()) >= 0 and float(big[k].max()) <= 1
 
 
+def test_upsample_frame_keeps_constants_and_pixel_centres():
+    """The bicubic of `upsampled` (and of the resolution benchmark's bar): constants stay, pixel centres align."""
+    from core.points.resolution import upsample_frame
+
+    img = torch.full((4, 5, 3), 0.25)
+    assert upsample_frame(img, 4, 5) is not None and torch.equal(upsample_frame(img, 4, 5), img)
+    up = upsample_frame(img, 12, 15)
+    assert up.shape == (12, 15, 3) and torch.allclose(up, img[:1, :1].expand(12, 15, 3))
+    ramp = torch.linspace(0, 1, 8)[None, :, None].expand(8, 8, 3).contiguous()
+    up = upsample_frame(ramp, 16, 16)
+    # fine pixels 2c and 2c + 1 sit a quarter coarse pixel either side of coarse pixel c's centre
+    assert torch.allclose((up[:, 2:14:2] + up[:, 3:15:2]) / 2, ramp[:1, 1:7].expand(16, 6, 3), atol=5e-3)
+    assert bool((up[0, 3:14, 0] > up[0, 2:13, 0]).all())  # and the ramp stays increasing
+    assert upsample_frame(img[..., 0], 8, 10).shape == (8, 10)
+
+
 def test_low_size_snaps_to_whole_factors_and_stays_positive():
     from core.points.resolution import low_size
 
