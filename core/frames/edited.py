@@ -31,7 +31,8 @@ from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
 from core.points.render import pixel_grid, shade_frame, trace_frame
 from core.points.resolution import (RENDER_MODES, check_mode, decoder_scale, filter_sigma, gaussian_blur,
-                                    low_size, scale_factor, upsample_frame)
+                                    interpolate_rays, interpolate_trace, low_size, scale_factor,
+                                    upsample_frame)
 from core.points.trace import Trace
 from core.util.errors import InputError
 
@@ -507,9 +508,19 @@ class EditState:
         """Canonical surface points [S, 3] of the rays sel [S] of a trace of these points, by the configured
         correspondence (core.edits.correspondence.ray_canonical_points, with the fold rule of cfg.fold_radius; F is
         fitted only when the mode needs it).
+        A trace interpolated from the training scale (`Trace.coarse`, the `upsampled` mode) blends the canonical
+        points of its training-scale rays with the interpolation's weights, so they vary smoothly across a
+        training pixel in every correspondence.
         Can be non-finite where the correspondence breaks down."""
         if not self.moved:  # the ray's surface point on its ray, as the atlas saw it
             return ray_canonical_points(trace, sel)
+        if trace.coarse is not None:
+            link = trace.coarse
+            need = link.corners[sel][link.weights[sel] > 0].unique()
+            low_can = torch.zeros(link.low.x.shape, dtype=trace.x.dtype, device=trace.x.device)
+            if need.numel():
+                low_can[need] = self.canonical_surface(link.low, need).to(low_can.dtype)
+            return interpolate_rays(link, low_can, sel)
         cfg = self.cfg
         mode = cfg.correspondence
         fold = cfg.fold_radius * float(self.bundle.model.spacing) if cfg.fold_radius > 0 else None
@@ -589,13 +600,15 @@ def _filtered_lookup(state: EditState, tr: Trace, sel: torch.Tensor, xc: torch.T
     return linear_to_srgb(px[:3].T.clamp(0, 1)), px[3]
 
 
-def _trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, soft: bool, scale: float) -> Trace:
+def _trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, soft: bool, scale: float,
+           k: int | None = None) -> Trace:
     """The edited points traced for one frame (neighbours, attention, the occlusion rule's visible layer); soft:
-    footprint windows at scale factor `scale` (the `footprint` modes beyond the training scale)."""
+    footprint windows at scale factor `scale` (the `footprint` modes beyond the training scale); k: neighbours per
+    ray (None: the model's)."""
     model, cfg = state.bundle.model, state.cfg
-    index = None if soft else state.search_index(c2w, height, width, focal)  # shared with the occlusion rule
+    index = None if soft else state.search_index(c2w, height, width, focal, k)  # shared with the occlusion rule
     radius_scale, reach = state.search_radius()
-    tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence,
+    tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence, k=k,
                      temperature=cfg.temperature, inv_f=state.inv_f_attention if cfg.f_attention else None,
                      rebase_depth=state.rebase_depth,
                      radius_scale=radius_scale, reach=reach, attention=cfg.attention,
@@ -603,6 +616,32 @@ def _trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, 
                      reach_gate_own=state.reach_gate_own, reach_between=state.reach_between,
                      soft_scale=scale if soft else 1.0, index=index)
     return state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
+
+
+def _scales(state: EditState, c2w: torch.Tensor, focal) -> tuple[float, float]:
+    """The frame's scale factor against the training footprint and the decoder's (`decoder_scale`); moved points
+    in their own size (an object scaled by s has s times larger pixels)."""
+    model = state.bundle.model
+    if state.points is None:
+        return (scale_factor(float(model.train_footprint), c2w, focal, model.xyz.detach()),
+                decoder_scale(model, None, c2w, focal, model.xyz.detach()))
+    return (scale_factor(float(model.train_footprint) * state.local_scale, c2w, focal, state.points.detach()),
+            decoder_scale(model, None, c2w, focal, state.points.detach(), size_scale=state.local_scale))
+
+
+def frame_trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, k: int | None = None) -> Trace:
+    """Neighbours and attention of one frame as `render_edited` traces it (pass the result back as its `trace`):
+    in the `upsampled` mode beyond the training scale the training-scale frame is traced and the full-size trace
+    interpolated from it (`interpolate_trace`, the training-scale trace kept as its `coarse`); otherwise every
+    ray is traced. k: neighbours per ray (None: the model's)."""
+    parts = set(check_mode(state.cfg.render_mode, state.bundle.model).split("+"))
+    scale, dscale = _scales(state, c2w, focal)
+    if "upsampled" in parts and dscale > 1.0:
+        lh, lw, s = low_size(height, width, dscale)
+        low_focal = scaled_focal(focal, s)
+        low = _trace(state, c2w, lh, lw, low_focal, False, 1.0, k)
+        return interpolate_trace(low, c2w, height, width, focal, low_focal)
+    return _trace(state, c2w, height, width, focal, "footprint" in parts and scale > 1.0, scale, k)
 
 
 @torch.no_grad()
@@ -619,19 +658,14 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     bundle, cfg = state.bundle, state.cfg
     model = bundle.model
     parts = set(check_mode(cfg.render_mode, model).split("+"))
-    if state.points is None:
-        scale = scale_factor(float(model.train_footprint), c2w, focal, model.xyz.detach())
-        dscale = decoder_scale(model, None, c2w, focal, model.xyz.detach())
-    else:  # moved points: the training pixel in their own size (an object scaled by s has s times larger pixels)
-        scale = scale_factor(float(model.train_footprint) * state.local_scale, c2w, focal, state.points.detach())
-        dscale = decoder_scale(model, None, c2w, focal, state.points.detach(), size_scale=state.local_scale)
-    tr = _trace(state, c2w, height, width, focal, "footprint" in parts and scale > 1.0, scale) if trace is None \
-        else trace
+    scale, dscale = _scales(state, c2w, focal)
+    tr = frame_trace(state, c2w, height, width, focal) if trace is None else trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
     if "upsampled" in parts and dscale > 1.0:  # the model's colour and coverage at the training scale, upsampled
         lh, lw, s = low_size(height, width, dscale)
-        low_focal = scaled_focal(focal, s)
-        low = _trace(state, c2w, lh, lw, low_focal, False, 1.0)
+        low = None if tr.coarse is None else tr.coarse.low
+        if low is None or low.shape != (lh, lw):  # a caller's trace of every full-size ray
+            low = _trace(state, c2w, lh, lw, scaled_focal(focal, s), False, 1.0)
         low_rgb, low_alpha = shade_frame(model, low, background, features=state.features, with_alpha=True)
         low_alpha = (1.0 - low.bg).reshape(lh, lw) if low_alpha is None else low_alpha
         rgb = upsample_frame(low_rgb, height, width)

@@ -14,7 +14,7 @@ from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import select_neighbors, select_neighbors_soft
 from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_at_scale, filter_sigma,
                                     decoder_scale, gate_coverage, gaussian_blur, interior_weight, low_size,
-                                    scale_factor, upsample_frame)
+                                    interpolate_trace, scale_factor, upsample_frame)
 from core.points.trace import Trace
 from core.util.errors import InputError
 
@@ -252,12 +252,14 @@ def render_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, 
     fd = decoder_scale(model, scale, c2w, focal, pts.detach())  # the decoder's (a multi-scale fit's coarsest level)
     f = scale_factor(float(model.train_footprint), c2w, focal, pts.detach()) if scale is None else float(scale)
     f = min(f, MAX_SCALE) if f == f and f > 1.0 else 1.0  # NaN or F <= 1: the training scale
-    tr = trace_frame(model, c2w, height, width, focal, soft_scale=f if "footprint" in parts else 1.0, **kw)
-    if "upsampled" in parts and fd > 1.0:  # the training scale's frame, upsampled; x stays at the full size
+    if "upsampled" in parts and fd > 1.0:  # the training scale's frame, upsampled; its trace interpolated
         lh, lw, s = low_size(height, width, fd)
-        low = render_frame(model, c2w, lh, lw, scaled_focal(focal, s), background, mode="pixels", scale=1.0, **kw)
+        low_focal = scaled_focal(focal, s)
+        low = render_frame(model, c2w, lh, lw, low_focal, background, mode="pixels", scale=1.0, **kw)
         rgb, alpha = upsample_frame(low["rgb"], height, width), upsample_frame(low["alpha"], height, width)
+        tr = interpolate_trace(low["trace"], c2w, height, width, focal, low_focal)
         return {"rgb": rgb, "alpha": alpha, "x": tr.x.reshape(height, width, 3), "trace": tr, "scale": f}
+    tr = trace_frame(model, c2w, height, width, focal, soft_scale=f if "footprint" in parts else 1.0, **kw)
     rgb, alpha = shade_frame(model, tr, background, with_alpha=True,
                              decoder_scale=fd if "decoder" in parts else 1.0,
                              coverage_scale=fd if "filtered" in parts else 1.0,  # the decoder's own size

@@ -57,7 +57,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from core.images.cameras import focal_scale
+from core.images.cameras import focal_scale, pixel_rays
+from core.points.trace import CoarseLink, Trace
 from core.util.errors import InputError
 
 RENDER_MODES = ("pixels", "filtered", "footprint", "decoder", "decoder+filtered", "footprint+decoder", "interior",
@@ -154,6 +155,77 @@ def upsample_frame(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
     x = torch.nan_to_num((img[..., None] if squeeze else img).float(), nan=0.0).permute(2, 0, 1)[None]
     y = _upsample(x, height, width)[0].permute(1, 2, 0).clamp(0.0, 1.0)
     return y[..., 0] if squeeze else y
+
+
+SAME_SURFACE_PIXELS = 3.0  # training pixels of depth within which two neighbouring rays are on one surface
+
+
+def interpolate_trace(low: Trace, c2w: torch.Tensor, height: int, width: int, focal, low_focal) -> Trace:
+    """The trace of an H x W frame interpolated from the trace `low` of the same camera at the training scale
+    (h x w, focal `low_focal`): what the `upsampled` mode's texture lookups, correspondence, depth and paint
+    transfer read, without searching neighbours and running the attention for every full-size ray.
+
+    Each full-size ray takes the four training-scale rays around its pixel centre (bilinear weights, pixel
+    centres aligned as in `upsample_frame`) and keeps the active ones on the surface of the nearest (depth within
+    SAME_SURFACE_PIXELS training pixels: no blending across an occlusion edge), renormalised: its surface point x
+    is their surface points blended by these weights (smooth between the training-scale rays on one surface), its
+    neighbours and their attention those of the nearest (`Trace.idx` etc.), its background share bg the bilinear
+    blend of all four (the coverage falls off across the silhouette as the upsampled frame's). A ray with no
+    active ray around is background (bg 1, no neighbours, x = its origin). The blend is kept as the trace's
+    `coarse` (`CoarseLink`): the correspondence interpolates the training-scale rays' canonical points with it
+    (`core.frames.edited.EditState.canonical_surface`).
+
+    low: Trace with shape (h, w); c2w [4, 4] and focal the full-size frame's camera. Returns a Trace of shape
+    (H, W) with the same K and dtypes."""
+    h, w = low.shape
+    dev = low.x.device
+    fdt = low.x.dtype
+    n = height * width
+    origins, dirs = pixel_rays(c2w.to(dev, torch.float32), height, width, focal)
+    origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+
+    def axis(size, low_size):  # per output row (or column): the two source rows and the second one's weight
+        t = (torch.arange(size, device=dev, dtype=torch.float64) + 0.5) * (low_size / size) - 0.5
+        t0 = torch.floor(t)
+        return (t0.long().clamp(0, low_size - 1), (t0.long() + 1).clamp(0, low_size - 1), (t - t0).to(fdt))
+    r0, r1, fy = axis(height, h)
+    c0, c1, fx = axis(width, w)
+    def grid(a, b):  # [H, 1] and [1, W] -> [R]
+        return (a[:, None] + b[None, :]).reshape(-1)
+    corners = torch.stack([grid(r0 * w, c0), grid(r0 * w, c1), grid(r1 * w, c0), grid(r1 * w, c1)], 1)  # [R, 4]
+    wy, wx = (fy[:, None] + 0 * fx[None, :]).reshape(-1), (0 * fy[:, None] + fx[None, :]).reshape(-1)
+    bil = torch.stack([(1 - wy) * (1 - wx), (1 - wy) * wx, wy * (1 - wx), wy * wx], 1)  # [R, 4]
+    flat = corners.reshape(-1)
+
+    def at(v):  # per-ray values of the low trace at the corners: [h*w, ...] -> [R, 4, ...]
+        return v.index_select(0, flat).reshape(n, 4, *v.shape[1:])
+    bg = (bil * at(low.bg).to(fdt)).sum(1)
+    active_c = at(low.active)
+    depth_c = at(low.depth)
+    ref = torch.where(active_c, bil, torch.full_like(bil, -1.0)).argmax(1, keepdim=True)  # the nearest active
+    ref_depth = depth_c.gather(1, ref)
+    step = SAME_SURFACE_PIXELS * ref_depth.abs() / float(focal_scale(low_focal))
+    b = torch.where(active_c & ((depth_c - ref_depth).abs() <= step), bil, torch.zeros_like(bil))
+    total = b.sum(1, keepdim=True)
+    active = total[:, 0] > 0  # an active corner at bilinear weight 0 does not count: at F = 1 this is `low`
+    b = b / total.clamp_min(1e-12)
+    x = torch.where(active[:, None], (b[..., None] * at(low.x)).sum(1), origins.to(fdt))
+    bg = torch.where(active, bg.clamp(0.0, 1.0), torch.ones_like(bg))
+    owner = corners.gather(1, ref)[:, 0]
+    idx = low.idx.index_select(0, owner).masked_fill_(~active[:, None], -1)
+    fg_weights = low.fg_weights.index_select(0, owner).masked_fill_(~active[:, None], 0.0)
+    weights = fg_weights * (1.0 - bg)[:, None].to(fg_weights.dtype)
+    return Trace(origins=origins, dirs=dirs, idx=idx, weights=weights, fg_weights=fg_weights, bg=bg, x=x,
+                 active=active, shape=(height, width), non_finite_points=low.non_finite_points,
+                 coarse=CoarseLink(low, corners, b))
+
+
+def interpolate_rays(link: CoarseLink, values: torch.Tensor, sel: torch.Tensor) -> torch.Tensor:
+    """Per-ray values of the training-scale trace blended to the full-size rays `sel` [S] by `link`'s weights:
+    values [h*w, C] -> [S, C] (a non-finite value with weight reaches the result)."""
+    c, wt = link.corners[sel], link.weights[sel]
+    v = values[c]                                                    # [S, 4, C]
+    return (torch.where(wt[..., None] > 0, v, torch.zeros_like(v)) * wt[..., None].to(v.dtype)).sum(1)
 
 
 def decoder_footprint(model) -> float:

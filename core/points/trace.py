@@ -19,6 +19,8 @@ class Trace:
     traced points were non-finite and treated as absent.
 
     A variant with other surface points is `dataclasses.replace(trace, x=...)` (its depth then follows the new x).
+    coarse: how an `upsampled` frame's trace was interpolated from the training-scale trace
+    (`core.points.resolution.interpolate_trace`), else None.
     """
 
     origins: torch.Tensor
@@ -31,6 +33,7 @@ class Trace:
     active: torch.Tensor
     shape: tuple[int, int]
     non_finite_points: int = 0
+    coarse: "CoarseLink | None" = None
 
     @cached_property
     def depth(self) -> torch.Tensor:
@@ -41,3 +44,14 @@ class Trace:
     def fg(self) -> torch.Tensor:
         """The attention's foreground weight 1 − bg: [R]."""
         return 1.0 - self.bg
+
+
+@dataclass(frozen=True)
+class CoarseLink:
+    """A full-size trace's link to the training-scale trace it was interpolated from: low the Trace (h x w);
+    corners [R, 4] each full-size ray's four training-scale rays (flat indices into low), weights [R, 4] their
+    blend (bilinear, renormalised over the active ones on one surface; a row of zeros for a background ray)."""
+
+    low: Trace
+    corners: torch.Tensor
+    weights: torch.Tensor

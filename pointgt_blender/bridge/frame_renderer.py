@@ -15,8 +15,7 @@ import numpy as np
 import torch
 
 from core.bundle import load_bundle
-from core.frames.edited import EditConfig, EditState, render_edited
-from core.points.render import trace_frame
+from core.frames.edited import EditConfig, EditState, frame_trace, render_edited
 from core.points.trace import Trace
 from core.util.errors import InputError, ModelFileError
 
@@ -128,20 +127,11 @@ def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCach
 
 def trace_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float,
                 k: int | None = None) -> Trace:
-    """Neighbours and attention of one model's frame (core `trace_frame` with the state's points and the
-    object's K; None: the model's own K): the expensive half of `render_layer`, so a preview can yield between
-    the two. Returns the Trace (flat per-ray tensors, R = height * width)."""
+    """Neighbours and attention of one model's frame, as `render_edited` traces it (core `frame_trace` with the
+    state's points and the object's K; None: the model's own K): the expensive half of `render_layer`, so a
+    preview can yield between the two. Returns the Trace (flat per-ray tensors, R = height * width)."""
     c2w_t = torch.as_tensor(np.asarray(c2w, dtype=np.float32))
-    cfg = state.cfg  # the same keys and radius as render_edited's own trace (F-aware for moved points)
-    index = state.search_index(c2w_t, height, width, focal, None if k is None else int(k))  # shared, as there
-    radius_scale, reach = state.search_radius()  # f_radius: the frame's factor or each point's reach
-    tr = trace_frame(state.bundle.model, c2w_t, height, width, focal, points=state.points,
-                     influence=state.influence, k=None if k is None else int(k),
-                     temperature=cfg.temperature, inv_f=state.inv_f_attention if cfg.f_attention else None,
-                     rebase_depth=state.rebase_depth, radius_scale=radius_scale, reach=reach, index=index,
-                     reach_gate=state.reach_gate, reach_surround=state.reach_surround,
-                     reach_gate_own=state.reach_gate_own, reach_between=state.reach_between)
-    return state.visible_layer(tr, c2w_t, focal, index=index)  # the occlusion rule, as render_edited applies it
+    return frame_trace(state, c2w_t, height, width, focal, None if k is None else int(k))
 
 
 def render_layer(state: EditState, c2w: np.ndarray, height: int, width: int, focal: float, k: int | None = None,

@@ -33,8 +33,9 @@ Blender, with the warm-up switched off, gives the CPU seconds of each part of th
 `--blend-work DIR` keeps the scene and frames.
 
 Profile: the deformed + painted frame split into stages by wrapping their functions (tools.bench.render's
-timed_parts): neighbour search, local deformation gradients, attention, point colours (values blended by the
-attention), decoder, correspondence, texture lookup; the rest is ray set-up, compositing and bookkeeping.
+timed_parts): neighbour search, local deformation gradients, attention, trace interpolation (the `upsampled` mode's
+full-size trace from the training-scale one), point colours (values blended by the attention), decoder,
+correspondence, texture lookup; the rest is ray set-up, compositing and bookkeeping.
 """
 from __future__ import annotations
 
@@ -50,8 +51,8 @@ from tools.bench import parse, parser, write_json
 from tools.bench.render import bend, build_model, orbit_cameras, retexture, timed_parts, with_decoder
 from tools.machine import machine_line
 
-STAGES = ("neighbour search", "deformation gradients", "attention", "point colours", "decoder", "correspondence",
-          "texture lookup")
+STAGES = ("neighbour search", "deformation gradients", "attention", "trace interpolation", "point colours", "decoder",
+          "correspondence", "texture lookup")
 
 
 def stage_parts(bundle) -> list:
@@ -62,7 +63,7 @@ def stage_parts(bundle) -> list:
     return [(render_mod, "select_neighbors", "neighbour search"), (bundle.model, "attend", "attention"),
             (render_mod, "attend_compiled", "attention"), (bundle.model, "shade", "point colours"), (bundle.model, "decode_with_alpha", "decoder"),
             (edited_mod, "ray_canonical_points", "correspondence"), (edited_mod, "_filtered_lookup", "texture lookup"),
-            (edited_mod, "_lookup", "texture lookup")]
+            (edited_mod, "_lookup", "texture lookup"), (edited_mod, "interpolate_trace", "trace interpolation")]
 
 
 class Case:

@@ -471,8 +471,12 @@ def test_upsampled_edited_frames_keep_the_painted_texture_at_the_full_size():
     for mode in ("pixels", "upsampled"):
         state = EditState(bundle, atlas=painted, cfg=EditConfig(render_mode=mode))
         out[mode] = render_edited(state, c2w, h, w, f, texture_fn=checker)
-    painted = torch.isfinite(out["upsampled"]["x_can"]).all(-1)
-    assert int(painted.sum()) > 50 and torch.equal(painted, torch.isfinite(out["pixels"]["x_can"]).all(-1))
+    painted = torch.isfinite(out["pixels"]["x_can"]).all(-1)
+    up = torch.isfinite(out["upsampled"]["x_can"]).all(-1)
+    # the upsampled trace is interpolated from the training-scale rays: it textures the same rays, and a band of
+    # at most one training pixel (4 pixels) beyond them where the coverage falls off
+    grown = torch.nn.functional.max_pool2d(painted[None, None].float(), 9, stride=1, padding=4)[0, 0] > 0
+    assert int(painted.sum()) > 50 and bool(up[painted].all()) and bool(grown[up].all())
 
     def detail(img):  # mean absolute difference between neighbouring pixels over the painted rays
         d = (img[1:, :] - img[:-1, :]).abs().sum(-1)
