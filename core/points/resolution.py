@@ -36,7 +36,10 @@ training size is pixel-identical in every mode); above, the modes of `RENDER_MOD
 - upsampled: the model's frame rendered at the training scale (the same camera, H/F x W/F pixels, `low_size`)
   and upsampled bicubically (`upsample_frame`): no detail finer than a training pixel, and nothing the model
   does not draw at its training size; what is drawn per ray on top of the model's colour (a painted texture
-  looked up through the correspondence, posed frames) stays at the full size.
+  looked up through the correspondence, posed frames) stays at the full size. The full-size rays are not traced:
+  their trace is interpolated from the training-scale one (`interpolate_trace`: surface points, coverage and the
+  canonical points of the correspondence blended across each training pixel, never across an occlusion edge),
+  so a frame costs one training-size trace whatever its size.
 The decoder's scale factor (`decoder_scale`, used by `decoder` and `interior`) counts in the pixel of the training
 size (`PointModel.decoder_footprint`): for a multi-scale fit (`pointgt fit --train-scales`) that is its coarsest
 level, where the decoder had most of its steps, while its train_footprint is the finest level's — such a model
