@@ -512,8 +512,6 @@ class EditState:
         points of its training-scale rays with the interpolation's weights, so they vary smoothly across a
         training pixel in every correspondence.
         Can be non-finite where the correspondence breaks down."""
-        if not self.moved:  # the ray's surface point on its ray, as the atlas saw it
-            return ray_canonical_points(trace, sel)
         if trace.coarse is not None:
             link = trace.coarse
             need = link.corners[sel][link.weights[sel] > 0].unique()
@@ -521,6 +519,8 @@ class EditState:
             if need.numel():
                 low_can[need] = self.canonical_surface(link.low, need).to(low_can.dtype)
             return interpolate_rays(link, low_can, sel)
+        if not self.moved:  # the ray's surface point on its ray, as the atlas saw it
+            return ray_canonical_points(trace, sel)
         cfg = self.cfg
         mode = cfg.correspondence
         fold = cfg.fold_radius * float(self.bundle.model.spacing) if cfg.fold_radius > 0 else None

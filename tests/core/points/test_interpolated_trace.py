@@ -148,3 +148,4 @@ def test_paint_transfer_reads_the_interpolated_canonical_points(card):
     both = torch.isfinite(xc).all(-1) & torch.isfinite(res["x_can"]).all(-1)
     assert int(both.sum()) > 100
     assert torch.allclose(xc[both], res["x_can"][both], atol=1e-5)
+
