@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except MemoryError:
         print(f"pointgt {args.command}: error: out of memory; the inputs are too large for this machine (try "
-              "--downscale, a smaller --size or fewer points)", file=sys.stderr)
+              "--downscale with --train-scales off, a smaller --size or fewer points)", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
         # A command may say what its outputs hold now (e.g. fit interrupted between its two saves).

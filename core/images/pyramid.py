@@ -16,8 +16,10 @@ from core.util.errors import InputError
 
 
 def parse_scales(text: str, flag: str = "--train-scales") -> list[int]:
-    """"1,2,4" -> [1, 2, 4] (sorted, distinct, each >= 1); "" -> []. A malformed list raises InputError naming
-    `flag`."""
+    """"1,2,4" -> [1, 2, 4] (sorted, distinct, each >= 1); "" or "off" -> []. A malformed list raises InputError
+    naming `flag`."""
+    if str(text).strip().lower() == "off":
+        return []
     if str(text).strip().lower() == "auto":
         raise InputError(f"{flag} auto: `pointgt fit` turns it into factors from --downscale; give the factors "
                          "here (e.g. 1,2,4)")

@@ -110,10 +110,11 @@ class TrainConfig:
                                 "of one level (the images area-averaged by that factor, the camera scaled to match, "
                                 "searched and rendered as a frame of that size); the coarsest level is the training "
                                 "size (visual hull, profile, atlas, test renders), the finest the training footprint "
-                                "renders are scaled against; empty = off (train on the loaded images as they are); "
-                                "auto (`pointgt fit`) = read the images at up to 4x the training size --downscale "
-                                "sets and train on their pyramid down to it, two thirds of the steps on the training "
-                                "size (--downscale 4: levels 1,2,4 of the full-size images, weights 1,1,4)")
+                                "renders are scaled against; empty or off = train on the loaded images as they are; "
+                                "auto (`pointgt fit`'s default) = with --downscale N > 1, read the images at up to "
+                                "4x the training size --downscale sets and train on their pyramid down to it, two "
+                                "thirds of the steps on the training size (--downscale 4: levels 1,2,4 of the "
+                                "full-size images, weights 1,1,4); with N = 1 nothing finer exists and auto is off")
     train_scale_weights: str = opt("", "share of the steps per level of --train-scales, comma-separated in its "
                                        "(sorted) order, fine to coarse; empty = equal shares")
     train_scale_settle: float = opt(0.0, "fraction of training, at its end, spent on the coarsest level of "

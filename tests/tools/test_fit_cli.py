@@ -117,8 +117,9 @@ def test_fit_multi_scale_trains_from_the_loaded_size_at_the_coarsest(tmp_path, c
 
 def test_fit_train_scales_auto_trains_from_the_finer_images_down_to_the_downscale(tmp_path, capsys):
     """`pointgt fit --downscale 2 --train-scales auto` on 24² images: the training size is 12² as --downscale says,
-    stage 1 trains on the pyramid 24² / 12² (two thirds of the steps on 12², or the user's --train-scale-weights); without
-    auto --downscale 2 trains on the 12² images alone, and auto with --downscale 1 finds nothing finer."""
+    stage 1 trains on the pyramid 24² / 12² (two thirds of the steps on 12², or the user's --train-scale-weights);
+    auto is the default; with --train-scales off --downscale 2 trains on the 12² images alone, and auto with
+    --downscale 1 finds nothing finer (said only when the user asked for auto)."""
     root = tmp_path / "card"
     write_split(root, render_split("card", fibonacci_cameras(6, seed=0), 24))
     write_split(root, render_split("card", fibonacci_cameras(2, seed=5), 24, split="test"))
@@ -140,9 +141,15 @@ def test_fit_train_scales_auto_trains_from_the_finer_images_down_to_the_downscal
     _, printed, levels = fit("weights", "--downscale", "2", "--train-scales", "auto", "--train-scale-weights", "0,1")
     assert levels == {"1": 0, "2": 12}  # auto's levels with the user's shares (all on the coarsest)
 
-    plain, printed, levels = fit("plain", "--downscale", "2")
+    default, printed, levels = fit("default", "--downscale", "2")
+    assert "multi-scale training on levels 24x24, 12x12; training size 12x12 (--train-scales auto" in printed
+    assert default.meta["train"]["config"]["train_scales"] == "1,2" and sorted(levels) == ["1", "2"]
+    plain, printed, levels = fit("plain", "--downscale", "2", "--train-scales", "off")
     assert "multi-scale" not in printed and "train_images" not in plain.meta["scene"] and levels is None
     assert plain.meta["scene"]["width"] == 12 and plain.meta["train"]["config"]["train_scales"] == ""
     native, printed, levels = fit("native", "--train-scales", "auto")
     assert "--downscale 1 leaves no finer images" in printed and levels is None
     assert native.meta["scene"]["width"] == 24 and "train_images" not in native.meta["scene"]
+    quiet, printed, levels = fit("quiet")  # the default at the loaded size: nothing finer, nothing said
+    assert "multi-scale" not in printed and "finer images" not in printed and levels is None
+    assert quiet.meta["train"]["config"]["train_scales"] == ""

@@ -37,6 +37,8 @@ def add_arguments(p):
     add_to_parser(p, ModelConfig)
     add_to_parser(p, TrainConfig)
     add_to_parser(p, AtlasConfig, prefix="atlas")
+    # images larger than the training size train multi-scale unless the user says otherwise (None: not given)
+    p.set_defaults(train_scales=None)
 
 
 def _outputs(out: Path) -> list[tuple[Path, str]]:
@@ -63,6 +65,9 @@ def run(args) -> int:
     for path, flag in _outputs(out):
         check_output_file(path, flag)
     check_flag(args.downscale, "--downscale", min=1, max=64)
+    explicit_scales = args.train_scales is not None
+    if not explicit_scales:  # the default: images larger than the training size train on their pyramid
+        args.train_scales = "auto"
     load_kw = from_args(LoadConfig, args).loader_kwargs()
     if args.points is not None:
         args.num_points = args.points
@@ -82,11 +87,13 @@ def run(args) -> int:
         load, auto_scales, auto_weights = auto_train_scales(args.downscale)
         if auto_scales and args.stage in ("papr", "all"):
             read_factor, auto = load, auto_scales
-        elif args.stage in ("papr", "all"):
+        elif args.stage in ("papr", "all") and explicit_scales:
             print(f"[fit] --train-scales auto: --downscale {args.downscale} leaves no finer images within "
                   f"{AUTO_MAX_FACTOR}x the training size; training on the loaded images alone")
         weights = (train_cfg.train_scale_weights or auto_weights) if auto else train_cfg.train_scale_weights
         train_cfg = dataclasses.replace(train_cfg, train_scales=auto or "", train_scale_weights=weights)
+    if train_cfg.train_scales.strip().lower() == "off":
+        train_cfg = dataclasses.replace(train_cfg, train_scales="")
     scales = parse_scales(train_cfg.train_scales)  # multi-scale training (--train-scales), [] = off
     if scales:
         parse_weights(train_cfg.train_scale_weights, len(scales))
@@ -100,9 +107,9 @@ def run(args) -> int:
                             progress=not args.no_progress, **load_kw)
     except PointGTError as exc:
         if auto:  # the finer images did not fit (memory) or divide: say what read them
-            raise type(exc)(f"{exc}; --train-scales auto with --downscale {args.downscale} reads the images at "
-                            f"1/{read_factor} of their size (levels {auto}); leave out --train-scales auto to "
-                            f"read them at the training size only") from exc
+            raise type(exc)(f"{exc}; --train-scales auto{'' if explicit_scales else ' (the default)'} with "
+                            f"--downscale {args.downscale} reads the images at 1/{read_factor} of their size (levels "
+                            f"{auto}); add --train-scales off to read them at the training size only") from exc
         raise
     train, test = data["train"], data["test"]
     print(f"[fit] {args.data}: {len(train)} train / {len(test)} test views at {train.width}x{train.height}")

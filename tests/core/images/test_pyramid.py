@@ -65,7 +65,7 @@ def test_sizes_and_lists_that_do_not_fit_are_refused_naming_the_flag():
     with pytest.raises(InputError, match="--train-scales"):
         downscale_split(split, 2)
     assert sorted(pyramid(split, [1, 3])) == [1, 3]
-    assert parse_scales("4, 1,2") == [1, 2, 4] and parse_scales("") == []
+    assert parse_scales("4, 1,2") == [1, 2, 4] and parse_scales("") == [] and parse_scales(" Off") == []
     for bad in ("1,x", "0,2", "2,2", "1,65", "1.5"):
         with pytest.raises(InputError, match="--train-scales"):
             parse_scales(bad)
