@@ -138,7 +138,9 @@ def test_correspondence_gap_equals_distance_of_surface_point_to_its_ray(tiny):
         # compression, which leaves fewer object rays on this bend); the diagnostics are what is tested here.
         # Rendered at twice the test size: at 40² the sharp temperature leaves only 43-54 rays of foreground
         # weight > 0.5 in this view (the tiny card trained with and without ray jitter), at 80² 162-222
-        state = EditState(bundle, points=bent, atlas=atlas, cfg=EditConfig(temperature=t, f_compression="tangent"))
+        # (render_mode pixels: every ray traced; an upsampled frame's rays blend the training scale's)
+        state = EditState(bundle, points=bent, atlas=atlas, cfg=EditConfig(temperature=t, f_compression="tangent",
+                                                                          render_mode="pixels"))
         out = render_edited(state, test.c2w[0], 2 * test.height, 2 * test.width, 2 * test.focal)
         d = diagnostics(out, state)
         assert d["rays_object"] > 50

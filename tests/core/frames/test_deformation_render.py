@@ -344,7 +344,8 @@ def test_reach_surround_adds_only_rays_the_reach_candidates_surround(tiny):
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
     n = bundle.model.num_points
-    inside = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0, f_reach_surround=True)
+    # render_mode pixels: every ray traced at the frame's size (the upsampled mode would trace the training scale)
+    inside = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0, f_reach_surround=True, render_mode="pixels")
     today = EditState(bundle)
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**inside))
     for i in range(len(test)):
@@ -413,7 +414,8 @@ def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny, rule)
     n = bundle.model.num_points
     flag = dict(f_reach_gate_own=True, f_reach_between=False) if rule == "own" else \
         dict(f_reach_gate_own=False, f_reach_between=True)
-    own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, **flag)
+    # render_mode pixels: every ray traced at the frame's size (the upsampled mode would trace the training scale)
+    own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, render_mode="pixels", **flag)
     today = EditState(bundle)
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**own))
     for i in range(len(test)):
