@@ -193,10 +193,11 @@ def interpolate_trace(low: Trace, c2w: torch.Tensor, height: int, width: int, fo
         return (t0.long().clamp(0, low_size - 1), (t0.long() + 1).clamp(0, low_size - 1), (t - t0).to(fdt))
     r0, r1, fy = axis(height, h)
     c0, c1, fx = axis(width, w)
-    def grid(a, b):  # [H, 1] and [1, W] -> [R]
+
+    def grid(a, b):  # a row value [H] and a column value [W] -> per ray [R], row-major
         return (a[:, None] + b[None, :]).reshape(-1)
     corners = torch.stack([grid(r0 * w, c0), grid(r0 * w, c1), grid(r1 * w, c0), grid(r1 * w, c1)], 1)  # [R, 4]
-    wy, wx = (fy[:, None] + 0 * fx[None, :]).reshape(-1), (0 * fy[:, None] + fx[None, :]).reshape(-1)
+    wy, wx = fy.repeat_interleave(width), fx.repeat(height)
     bil = torch.stack([(1 - wy) * (1 - wx), (1 - wy) * wx, wy * (1 - wx), wy * wx], 1)  # [R, 4]
     flat = corners.reshape(-1)
 

@@ -332,7 +332,7 @@ def patch_neighbors(points: torch.Tensor, model_cfg: ModelConfig, c2w: torch.Ten
     level frame — the neighbours `render_frame` at that size gives those pixels."""
     o, d = rays_for_pixels(c2w, px, level.height, level.width, level.focal)
     idx = select_neighbors(points, model_cfg.neighbors, model_cfg.k, c2w, level.height * zoom, level.width * zoom,
-                           (level.focal if zoom == 1 else scaled_focal(level.focal, zoom)), px * zoom, o, d, model_cfg.neighbor_radius_px)
+                           scaled_focal(level.focal, zoom), px * zoom, o, d, model_cfg.neighbor_radius_px)
     return o, d, idx
 
 
