@@ -154,10 +154,14 @@ class EditState:
     requires M == N), atlas [H, W, 3] painted atlas (None = unedited). Non-finite positions (a broken rig) are
     counted and treated as absent points. With f_fill, points and ids (and F) grow by the added points
     (`filled_points`, appended after the given ones).
+    paint_from: an earlier state of the same model, atlas and texture settings (a new pose of one painted
+    object): its prepared painted textures are reused instead of checking, comparing and unpacking the atlas
+    again (`atlas` is then not read; the caller vouches that it is the same image). Ignored when the model or the
+    colour / mask_threshold settings differ.
     """
 
     def __init__(self, bundle, points=None, ids=None, atlas=None, cfg: EditConfig | None = None,
-                 deformation: DeformationConfig | None = None):
+                 deformation: DeformationConfig | None = None, paint_from: "EditState | None" = None):
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
@@ -226,7 +230,14 @@ class EditState:
         self.atlas_image = None
         self.mask_image = None
         self._edit_textures = None
-        atl = bundle.atlas
+        if not self._reuse_paint(paint_from):
+            self._prepare_paint(atlas)
+
+    def _prepare_paint(self, atlas) -> None:
+        """The painted atlas checked against the model's, its changed texels as a mask (none: no texture work),
+        or for colour 'atlas' the whole atlas."""
+        dev = self.bundle.model.xyz.device
+        atl = self.bundle.atlas
         if atlas is not None:
             if atl is None:
                 raise InputError("an edited atlas was given but this model has no atlas; run `pointgt atlas` first")
@@ -242,6 +253,18 @@ class EditState:
             if self.atlas_image is None:
                 self.atlas_image = atl.packed_image().to(dev)
             self.mask_image = torch.ones_like(self.atlas_image)
+
+    def _reuse_paint(self, other: "EditState | None") -> bool:
+        """Take `other`'s prepared atlas and mask images and per-chart textures (see paint_from); False when
+        `other` is None or differs in model or texture settings."""
+        if other is None or other.bundle is not self.bundle or other.cfg.colour != self.cfg.colour \
+                or other.cfg.mask_threshold != self.cfg.mask_threshold:
+            return False
+        if other._edit_textures is None and other.atlas_image is not None:
+            _ = other.edit_textures  # unpacked once, for every state that shares them
+        self.atlas_image, self.mask_image = other.atlas_image, other.mask_image
+        self._edit_textures = other._edit_textures
+        return True
 
     def _fill(self) -> torch.Tensor | None:
         """f_fill: fit F on the given points, add points where neighbour pairs were pulled apart

@@ -78,7 +78,8 @@ def _same(a, b) -> bool:
 
 class StateCache:
     """One EditState per object name, rebuilt only when its model, settings, positions, ids or atlas change
-    (building one compares the atlas with the model's and moves the points to the device)."""
+    (building one compares the atlas with the model's and moves the points to the device); a new pose of an
+    unchanged atlas keeps the prepared painted textures (EditState's paint_from)."""
 
     def __init__(self):
         self._items: dict = {}
@@ -86,13 +87,16 @@ class StateCache:
     def get(self, inputs: ObjectInputs, bundle, cfg: EditConfig) -> tuple[EditState, bool]:
         """(state, rebuilt)."""
         old = self._items.get(inputs.name)
+        paint_from = None
         if old is not None:
             o_bundle, o_cfg, o_pos, o_ids, o_atlas, state = old
-            if (o_bundle is bundle and o_cfg == cfg and _same(o_pos, inputs.positions) and _same(o_ids, inputs.ids)
-                    and _same(o_atlas, inputs.atlas)):
+            same_atlas = o_bundle is bundle and _same(o_atlas, inputs.atlas)
+            if same_atlas and o_cfg == cfg and _same(o_pos, inputs.positions) and _same(o_ids, inputs.ids):
                 return state, False
+            paint_from = state if same_atlas else None
         state = EditState(bundle, points=torch.from_numpy(np.ascontiguousarray(inputs.positions)),
-                          ids=torch.from_numpy(np.ascontiguousarray(inputs.ids)), atlas=inputs.atlas, cfg=cfg)
+                          ids=torch.from_numpy(np.ascontiguousarray(inputs.ids)), atlas=inputs.atlas, cfg=cfg,
+                          paint_from=paint_from)
         # copies: the caller may reuse its buffers
         self._items[inputs.name] = (bundle, cfg, inputs.positions.copy(), inputs.ids.copy(),
                                     None if inputs.atlas is None else inputs.atlas.copy(), state)

@@ -75,6 +75,27 @@ def test_state_cache_rebuilds_only_when_inputs_change(monkeypatch):
     assert new3 and new4 and s3 is not s2 and len(built) == 3
 
 
+def test_state_cache_passes_the_prepared_paint_to_a_new_pose(monkeypatch):
+    """A new pose of an unchanged atlas builds its state from the previous one's painted textures (paint_from);
+    a changed atlas does not."""
+    import pointgt_blender.bridge.frame_renderer as fr
+
+    made = []
+    monkeypatch.setattr(fr, "EditState", lambda *a, **k: made.append(k.get("paint_from")) or object())
+    cache = StateCache()
+    bundle, cfg = object(), fr.EditConfig()
+    pos = np.zeros((4, 3), np.float32)
+    atlas = np.full((2, 2, 3), 0.5, np.float32)
+    s1, _ = cache.get(_inputs(pos, atlas=atlas), bundle, cfg)
+    pos[1, 2] = 1e-3  # a new pose
+    s2, _ = cache.get(_inputs(pos, atlas=atlas.copy()), bundle, cfg)
+    painted = atlas.copy()
+    painted[0, 0] = 0.9  # a stroke
+    cache.get(_inputs(pos, atlas=painted), bundle, cfg)
+    cache.get(_inputs(pos, atlas=painted), object(), cfg)  # another model (its file changed)
+    assert made == [None, s1, None, None]
+
+
 def test_prepare_passes_the_objects_antialias_setting(monkeypatch):
     """The object's Anti-aliasing setting reaches EditConfig; changing it rebuilds the state (a new preview)."""
     import pointgt_blender.bridge.frame_renderer as fr

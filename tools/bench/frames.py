@@ -14,7 +14,8 @@ With --model, the model is used as it is (its own decoder only).
 Frames (`--frames` orbit views, median after one warm-up view, every state interleaved per view):
 - plain: canonical points, unedited atlas (the training-time render);
 - deformed + painted: the bend of `tools.bench.render` and a baked global retexture; a fresh EditState per frame,
-  as the add-on makes one whenever the pose changes, so the local deformation gradients are fitted every frame.
+  as the add-on makes one whenever the pose changes, so the local deformation gradients are fitted every frame
+  (and, as in the add-on, the painted atlas prepared once is passed on: EditState's paint_from).
 Threads: `--threads-list` (0 = all the machine's cores); the profile runs on the first entry.
 
 Cold first frame: a separate process (`--cold` on, the default) imports torch and the renderer, loads the model
@@ -73,13 +74,13 @@ class Case:
         self.label, self.bundle, self.edited = label, bundle, edited
         self.points, self.painted, self.mode = points, painted, mode
 
-    def state(self):
+    def state(self, paint_from=None):
         from core.frames.edited import EditConfig, EditState
 
         cfg = EditConfig(render_mode=self.mode)
         if not self.edited:
             return EditState(self.bundle, cfg=cfg)
-        return EditState(self.bundle, points=self.points, atlas=self.painted, cfg=cfg)
+        return EditState(self.bundle, points=self.points, atlas=self.painted, cfg=cfg, paint_from=paint_from)
 
 
 def time_cases(cases: list[Case], cams, size: int, focal, profile: bool = False) -> list[dict]:
@@ -89,6 +90,7 @@ def time_cases(cases: list[Case], cams, size: int, focal, profile: bool = False)
     from core.frames.edited import render_edited
 
     plain = {i: c.state() for i, c in enumerate(cases) if not c.edited}
+    last = {}  # edited cases: the previous frame's state, whose prepared painted textures the next one reuses
     times = [[] for _ in cases]
     accs = [{} for _ in cases]
     for v, cam in enumerate([cams[0]] + list(cams)):
@@ -97,11 +99,13 @@ def time_cases(cases: list[Case], cams, size: int, focal, profile: bool = False)
             t = time.perf_counter()
             if profile:
                 with timed_parts(c.bundle, acc, stage_parts(c.bundle)):
-                    st = plain.get(i) or c.state()
+                    st = plain.get(i) or c.state(last.get(i))
                     out = render_edited(st, cam, size, size, focal)
             else:
-                st = plain.get(i) or c.state()
+                st = plain.get(i) or c.state(last.get(i))
                 out = render_edited(st, cam, size, size, focal)
+            if c.edited:
+                last[i] = st
             wall = time.perf_counter() - t
             rgb = out["rgb"]
             assert bool(rgb.isfinite().all()) and 0 <= float(rgb.min()) <= float(rgb.max()) <= 1

@@ -1,4 +1,6 @@
 """Edited rendering on a tiny trained model: skips, texture persistence, edit order, part removal/duplication."""
+import copy
+
 import pytest
 import torch
 
@@ -103,6 +105,25 @@ def test_edit_order_is_interchangeable(tiny):
     s2 = EditState(bundle, points=s2.points, atlas=paint, cfg=cfg)
     a, b = _render(s1, test), _render(s2, test)
     assert torch.equal(a["rgb"], b["rgb"])
+
+
+def test_a_new_pose_reuses_the_prepared_paint(tiny):
+    """paint_from (the add-on's next pose of one painted object): the same frame as a state built from the atlas,
+    the previous state's textures reused; a state of other texture settings prepares its own."""
+    bundle, _, test = tiny
+    paint = bake(bundle.atlas, _half_split)
+    first = EditState(bundle, atlas=paint)
+    _render(first, test)  # unpacks the per-chart textures
+    pts = bundle.model.xyz.detach() * torch.tensor([1.0, 1.4, 1.0])
+    fresh = EditState(bundle, points=pts, atlas=paint)
+    shared = EditState(bundle, points=pts, atlas=None, paint_from=first)  # atlas not read
+    assert shared.edit_textures is first.edit_textures and shared.textured
+    a, b = _render(fresh, test), _render(shared, test)
+    assert a["stats"]["texture_rays"] > 0 and torch.equal(a["rgb"], b["rgb"])
+    for cfg in (EditConfig(colour="atlas"), EditConfig(mask_threshold=0.5)):
+        own = EditState(bundle, points=pts, atlas=paint, cfg=cfg, paint_from=first)
+        assert own.edit_textures is not first.edit_textures
+    assert not EditState(copy.copy(bundle), atlas=None, paint_from=first).textured  # another bundle
 
 
 def test_removed_part_keeps_texture_on_the_rest(tiny):
