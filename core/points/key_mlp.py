@@ -117,9 +117,9 @@ def _backward_span(feats, g, gf, a, b, freqs, chunk, w1, b1, w2, b2, w3):
         gb1 += g1.sum(0)
         if gf is not None:
             gxt = torch.mm(w1.t(), g1.t(), out=buf.gxt[:, :c])            # [D·(1 + 2F), c]
-            if freqs > 0:
-                xst = buf.xst[:, :c]
-                d_xs = gxt[dim:dim + nf] * torch.cos(xst) - gxt[dim + nf:] * torch.sin(xst)  # [D·F, c]
+            if freqs > 0:  # the features' own sines and cosines (still in xt) are the derivatives' factors
+                sin_xs, cos_xs = buf.xt[dim:dim + nf, :c], buf.xt[dim + nf:, :c]
+                d_xs = gxt[dim:dim + nf] * cos_xs - gxt[dim + nf:] * sin_xs  # [D·F, c]
                 gf[s:e] = (gxt[:dim] + (d_xs.view(dim, freqs, c) * buf.scales[:, None]).sum(1)).t()
             else:
                 gf[s:e] = gxt.t()
