@@ -21,11 +21,17 @@ def subpixel_chart_uv(atlas, points: torch.Tensor, valid: torch.Tensor, depth: t
     H, W, _ = points.shape
     n = atlas.n
     feat = torch.zeros(H, W, 3 * n, dtype=points.dtype, device=points.device)
+    finite = True
     if bool(valid.any()):
         probs, uv = atlas.chart_uv(points[valid], placed=False)
-        feat[valid] = torch.cat([probs, uv.reshape(-1, 2 * n)], 1).to(points.dtype)
+        out = torch.cat([probs, uv.reshape(-1, 2 * n)], 1).to(points.dtype)
+        finite = bool(torch.isfinite(out).all())
+        feat[valid] = out
     sp = subpixel_points(feat, valid, depth, sub, max_depth_step)
-    on = torch.isfinite(sp).all(-1)
+    if finite:  # NaN exactly on the sub-pixels of pixels off the object
+        on = valid.repeat_interleave(sub, 0).repeat_interleave(sub, 1)
+    else:  # a non-finite network output spreads to the sub-pixels that blend it: leave those out too
+        on = torch.isfinite(sp).all(-1)
     v = sp[on]
     probs, uv = atlas.place(v[:, :n], v[:, n:].reshape(-1, n, 2))
     return probs, uv, on

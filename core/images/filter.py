@@ -48,20 +48,26 @@ def subpixel_points(points: torch.Tensor, valid: torch.Tensor, depth: torch.Tens
     (r + (a + 0.5) / S, c + (b + 0.5) / S) in pixel units; NaN where the owning pixel is not valid.
     """
     H, W, C = points.shape
-    dev = points.device
-    step = torch.as_tensor(max_depth_step, dtype=points.dtype, device=dev).expand(H, W)
+    dev, dt = points.device, points.dtype
+    step = torch.as_tensor(max_depth_step, dtype=dt, device=dev).expand(H, W)
     pts = torch.where(valid[..., None], points, torch.zeros_like(points))
     dep = torch.where(valid, depth, torch.zeros_like(depth))
-    out = torch.full((sub * H, sub * W, C), float("nan"), dtype=points.dtype, device=dev)
-    rr = torch.arange(H, device=dev)[:, None]
-    cc = torch.arange(W, device=dev)[None, :]
-    # neighbours by shifted views of edge-padded maps (no gathers); `inside` drops the padding
-    pts_p = F.pad(pts.permute(2, 0, 1)[None], (1, 1, 1, 1), mode="replicate")[0].permute(1, 2, 0)
+    out = torch.empty((sub * H, sub * W, C), dtype=dt, device=dev)
+    # neighbours by shifted views of edge-padded maps (no gathers); the validity map is padded with False, so a
+    # neighbour outside the image never counts
+    pts_p = F.pad(pts.permute(2, 0, 1)[None], (1, 1, 1, 1), mode="replicate")[0].permute(1, 2, 0).contiguous()
     dep_p = F.pad(dep[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
-    val_p = F.pad(valid[None, None].to(points.dtype), (1, 1, 1, 1))[0, 0] > 0.5
+    val_p = F.pad(valid[None, None].to(dt), (1, 1, 1, 1))[0, 0] > 0.5
 
     def shifted(m, oy, ox):
         return m[1 + oy:1 + oy + H, 1 + ox:1 + ox + W]
+    ok: dict = {}  # per neighbour offset (at most 9): 1 where that neighbour joins, else 0 [H, W]
+
+    def joins(oy, ox):
+        if (oy, ox) not in ok:
+            ok[oy, ox] = (shifted(val_p, oy, ox) & ((shifted(dep_p, oy, ox) - dep).abs() <= step)).to(dt)
+        return ok[oy, ox]
+    invalid = ~valid[..., None]
     for a in range(sub):
         fy = (a + 0.5) / sub - 0.5  # offset from the pixel centre, in (-0.5, 0.5)
         dy = 1 if fy >= 0 else -1
@@ -70,17 +76,17 @@ def subpixel_points(points: torch.Tensor, valid: torch.Tensor, depth: torch.Tens
             fx = (b + 0.5) / sub - 0.5
             dx = 1 if fx >= 0 else -1
             wx = abs(fx)
-            num = torch.zeros_like(points)
-            den = torch.zeros(H, W, dtype=points.dtype, device=dev)
+            num = torch.zeros_like(pts)
+            den = torch.zeros(H, W, dtype=dt, device=dev)
             for oy, oyw in ((0, 1 - wy), (dy, wy)):
                 for ox, oxw in ((0, 1 - wx), (dx, wx)):
-                    inside = ((rr + oy >= 0) & (rr + oy < H) & (cc + ox >= 0) & (cc + ox < W))
-                    ok = inside & shifted(val_p, oy, ox) & ((shifted(dep_p, oy, ox) - dep).abs() <= step)
-                    w = oyw * oxw * ok.to(points.dtype)
-                    num += w[..., None] * shifted(pts_p, oy, ox)
-                    den += w
-            sp = num / den.clamp_min(1e-12)[..., None]  # the pixel itself always counts (weight >= 1/4)
-            out[a::sub, b::sub] = torch.where(valid[..., None], sp, torch.full_like(sp, float("nan")))
+                    if oyw * oxw == 0.0:  # a tap of weight 0 (sub-pixels on the pixel centre's row or column)
+                        continue
+                    w = joins(oy, ox)
+                    num.addcmul_(w[..., None], shifted(pts_p, oy, ox), value=oyw * oxw)
+                    den.add_(w, alpha=oyw * oxw)
+            sp = num.div_(den.clamp_min_(1e-12)[..., None])  # the pixel itself always counts (weight >= 1/4)
+            out[a::sub, b::sub] = sp.masked_fill_(invalid, float("nan"))
     return out
 
 

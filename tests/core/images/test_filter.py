@@ -137,6 +137,33 @@ def test_subpixel_chart_uv_matches_the_nets_at_interpolated_points():
     assert torch.allclose(probs.sum(-1), torch.ones(len(probs)), atol=1e-5)
 
 
+def test_subpixel_chart_uv_leaves_out_what_a_non_finite_output_reaches(monkeypatch):
+    """A chart network output that is not finite at one pixel: that pixel's sub-pixels and the neighbours' that
+    blend it are left out (`on` False), every other sub-pixel is kept and finite."""
+    from core.atlas.atlas import Atlas
+    from core.atlas.subpixel import subpixel_chart_uv
+
+    torch.manual_seed(0)
+    atlas = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=16, depth_chart=2, width_map=16, depth_map=2,
+                  fourier_chart=1, fourier_map=1)
+    H, W, sub = 6, 7, 2
+    r, c = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    pts = torch.stack([0.01 * c, 0.01 * r, 0.5 + 0 * c], -1)
+    valid = torch.ones(H, W, dtype=torch.bool)
+    clean = subpixel_chart_uv(atlas, pts, valid, pts[..., 2], sub, 0.1)[2]
+    assert bool(clean.all())
+    real = atlas.chart_uv
+
+    def broken(x, placed=True):
+        probs, uv = real(x, placed=placed)
+        return probs, uv.clone().index_fill_(0, torch.tensor([2 * W + 3]), float("nan"))  # pixel (2, 3)
+    monkeypatch.setattr(atlas, "chart_uv", broken)
+    probs, uv, on = subpixel_chart_uv(atlas, pts, valid, pts[..., 2], sub, 0.1)
+    assert not bool(on[4:6, 6:8].any())  # the pixel's own sub-pixels
+    assert not bool(on[3, 6]) and not bool(on[6, 8])  # neighbours' sub-pixels towards it
+    assert bool(on[0, 0]) and int(on.sum()) == len(probs) and torch.isfinite(uv).all()
+
+
 def _subpixel_loop_reference(points, valid, depth, sub, step):
     """Per sub-pixel, plainly: bilinear weights of the pixel and its 3 neighbours towards the sub-pixel, keeping
     neighbours inside the image, valid and within `step` in depth of the owning pixel; renormalised."""
