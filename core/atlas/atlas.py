@@ -10,7 +10,7 @@ from torch import nn
 from core.atlas.config import MAX_CHART_RES
 from core.atlas.islands import IslandLayout
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet
-from core.atlas.packing import GridLayout, pack, sample_charts, texel_uv, unpack, uv_to_pixel
+from core.atlas.packing import GridLayout, blend_charts, pack, texel_uv, unpack, uv_to_pixel
 from core.atlas.sides import ChartSides
 from core.atlas.surface import SurfaceProjection
 from core.atlas.texture import kernel_texture, local_linear_points
@@ -184,7 +184,7 @@ class Atlas(nn.Module):
         """
         tex = self.textures if image is None else unpack(torch.as_tensor(image).float().to(self.device), self.layout)
         probs, uv = self.chart_uv(x)
-        return (probs[..., None] * sample_charts(tex, uv)).sum(1)
+        return blend_charts(tex, uv, probs)
 
     @torch.no_grad()
     def atlas_pixel_coords(self, x) -> tuple[torch.Tensor, torch.Tensor]:

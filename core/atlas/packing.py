@@ -98,6 +98,15 @@ def sample_charts(textures: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return out[:, :, 0].permute(2, 0, 1)
 
 
+def blend_charts(textures: torch.Tensor, uv: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
+    """Chart lookups blended by the chart probabilities: Σ_c probs[:, c] · sample_charts(textures, uv)[:, c].
+    textures [n, C, R, R], uv [M, n, 2], probs [M, n] -> [M, C] (summed over the charts in the lookup's own layout,
+    without the [M, n, C] array)."""
+    grid = (uv * 2 - 1).permute(1, 0, 2)[:, None]  # [n, 1, M, 2]
+    out = F.grid_sample(textures, grid, mode="bilinear", padding_mode="border", align_corners=False)[:, :, 0]
+    return (out * probs.t().to(out.dtype)[:, None]).sum(0).t()  # [n, C, M] -> [M, C]
+
+
 def uv_to_pixel(uv: torch.Tensor, chart: torch.Tensor, layout: GridLayout) -> torch.Tensor:
     """uv [M, 2] in chart[M] -> packed-image pixel coordinates [M, 2] as (col, row), continuous."""
     o = layout.origins(uv.device)[chart]  # [M, 2] (row, col)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from core.atlas.packing import sample_charts, unpack
+from core.atlas.packing import blend_charts, unpack
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
@@ -558,10 +558,12 @@ class EditState:
 
     @property
     def edit_textures(self) -> torch.Tensor:
-        """Painted texture and its mask per chart, stacked: [n, 6, R, R] (one bilinear lookup serves both)."""
+        """Painted texture and its mask per chart, stacked: [n, 4, R, R] (rgb, mask; one bilinear lookup serves
+        both)."""
         if self._edit_textures is None:
             layout = self.bundle.atlas.layout
-            self._edit_textures = torch.cat([unpack(self.atlas_image, layout), unpack(self.mask_image, layout)], 1)
+            self._edit_textures = torch.cat([unpack(self.atlas_image, layout),
+                                             unpack(self.mask_image, layout)[:, :1]], 1).contiguous()
         return self._edit_textures
 
 
@@ -576,7 +578,7 @@ def _lookup(state: EditState, x: torch.Tensor, texture_fn=None) -> torch.Tensor:
 
 def _painted(state: EditState, probs: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Painted colour and mask [M, 4] (rgb, mask) from chart probabilities [M, n] and coordinates [M, n, 2]."""
-    return (probs[..., None] * sample_charts(state.edit_textures, uv)).sum(1)[:, :4]  # rgb, first mask channel
+    return blend_charts(state.edit_textures, uv, probs)
 
 
 def _filtered_lookup(state: EditState, tr: Trace, sel: torch.Tensor, xc: torch.Tensor, height: int, width: int,

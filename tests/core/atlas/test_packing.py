@@ -1,7 +1,7 @@
 import numpy as np
 import torch
 
-from core.atlas.packing import GridLayout, dilate_unused, pack, sample_charts, texel_uv, unpack, utilisation, uv_to_pixel
+from core.atlas.packing import GridLayout, blend_charts, dilate_unused, pack, sample_charts, texel_uv, unpack, utilisation, uv_to_pixel
 
 
 def _bilinear_ref(tex, u, v):
@@ -43,6 +43,20 @@ def test_sample_charts_matches_bilinear_reference():
         for c in range(2):
             ref = _bilinear_ref(tex[c], float(uv[m, c, 0]), float(uv[m, c, 1]))
             assert torch.allclose(out[m, c], ref, atol=1e-5)
+
+
+def test_blend_charts_is_the_probability_weighted_sum_of_the_lookups():
+    g = torch.Generator().manual_seed(3)
+    tex = torch.rand(3, 4, 9, 9, generator=g)  # rgb + mask channels
+    uv = torch.rand(50, 3, 2, generator=g) * 1.2 - 0.1
+    probs = torch.softmax(torch.randn(50, 3, generator=g), 1)
+    out = blend_charts(tex, uv, probs)
+    ref = torch.zeros(50, 4)
+    for m in range(50):
+        for c in range(3):
+            ref[m] += probs[m, c] * _bilinear_ref(tex[c], float(uv[m, c, 0]), float(uv[m, c, 1]))
+    assert out.shape == (50, 4) and torch.allclose(out, ref, atol=1e-5)
+    assert torch.equal(out, (probs[..., None] * sample_charts(tex, uv)).sum(1))  # same sums, same order
 
 
 def test_texel_centres_sample_exact_texels_and_pixel_coords():
