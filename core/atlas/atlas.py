@@ -9,7 +9,7 @@ from torch import nn
 
 from core.atlas.config import MAX_CHART_RES
 from core.atlas.islands import IslandLayout
-from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet
+from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet, fourier_encode
 from core.atlas.packing import GridLayout, blend_charts, pack, texel_uv, unpack, uv_to_pixel
 from core.atlas.sides import ChartSides
 from core.atlas.surface import SurfaceProjection
@@ -98,7 +98,12 @@ class Atlas(nn.Module):
         """Raw chart outputs at network-frame points xn [M, 3] (already on the mid-surface when there is one):
         (probs [M, n] softmax, uv [M, n, 2] t_c) over the layout's charts — split by side when `sides` is set
         (a sub-chart without islands hands its points to the other side of its chart)."""
-        p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
+        if (type(self.chart) is ChartNet and type(self.tex) is TexCoordNet
+                and self.chart.fourier == self.tex.fourier):  # one Fourier encoding serves both networks
+            enc = fourier_encode(xn, self.tex.fourier)
+            p, uv = torch.softmax(self.chart(xn, enc), dim=-1), self.tex(xn, enc)
+        else:
+            p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
         if self.sides is None:
             return p, uv
         rev = self.sides.reversed(self.tex, xn, self.denormalise(xn))
