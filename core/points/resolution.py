@@ -216,9 +216,16 @@ def interpolate_trace(low: Trace, c2w: torch.Tensor, height: int, width: int, fo
     x = torch.where(active[:, None], (b[..., None] * at(low.x)).sum(1), origins.to(fdt))
     bg = torch.where(active, bg.clamp(0.0, 1.0), torch.ones_like(bg))
     owner = corners.gather(1, ref)[:, 0]
-    idx = low.idx.index_select(0, owner).masked_fill_(~active[:, None], -1)
-    fg_weights = low.fg_weights.index_select(0, owner).masked_fill_(~active[:, None], 0.0)
-    weights = fg_weights * (1.0 - bg)[:, None].to(fg_weights.dtype)
+    # neighbour lists [R, K] only for the active rays (the rest: no neighbours): a frame's background rays are
+    # most of it at sizes where this mode runs
+    act = torch.nonzero(active).squeeze(1)
+    src = owner.index_select(0, act)
+    k = low.idx.shape[1]
+    idx = torch.full((n, k), -1, dtype=low.idx.dtype, device=dev).index_copy_(0, act, low.idx.index_select(0, src))
+    fg_act = low.fg_weights.index_select(0, src)
+    fg_weights = torch.zeros((n, k), dtype=fg_act.dtype, device=dev).index_copy_(0, act, fg_act)
+    weights = torch.zeros_like(fg_weights).index_copy_(
+        0, act, fg_act * (1.0 - bg.index_select(0, act))[:, None].to(fg_act.dtype))
     return Trace(origins=origins, dirs=dirs, idx=idx, weights=weights, fg_weights=fg_weights, bg=bg, x=x,
                  active=active, shape=(height, width), non_finite_points=low.non_finite_points,
                  coarse=CoarseLink(low, corners, b))
