@@ -13,7 +13,7 @@ from core.atlas import losses
 from core.atlas.atlas import Atlas, check_points
 from core.atlas.config import AtlasConfig
 from core.atlas.distortion import distortion_terms, uv_jacobian
-from core.atlas.packing import dilate_unused, sample_charts
+from core.atlas.packing import blend_charts, dilate_unused
 from core.atlas.surface import SurfaceProjection
 from core.atlas.texture import filled_kernel_texture
 from core.images.metrics import psnr
@@ -211,7 +211,7 @@ def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasCo
     ar = torch.arange(n, device=dev)
     u_rec = atlas.tex(flat).view(n, cfg.uv_batch, n, 2)[ar, :, ar]  # [n, U, 2]
     logits_s = atlas.chart(flat).view(n, cfg.uv_batch, n)
-    pred = (probs[..., None] * sample_charts(atlas.textures, uv)).sum(1)
+    pred = blend_charts(atlas.textures, uv, probs)
     out = {
         "cycle3d": losses.cycle_3d(xb, x_rec, probs),
         "cycle2d": losses.cycle_2d(u, u_rec),
@@ -313,7 +313,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     def log(step: int, phase: str) -> float:
         probs, uv = atlas.place(*_predict(atlas, xn[ev]))
         with torch.no_grad():
-            p = psnr((probs[..., None] * sample_charts(atlas.textures, uv)).sum(1), rgb[ev])
+            p = psnr(blend_charts(atlas.textures, uv, probs), rgb[ev])
         hist["steps"].append(step)
         hist["seconds"].append(time.perf_counter() - t0)
         hist["psnr"].append(p)
@@ -373,7 +373,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         topt = torch.optim.Adam([atlas.textures], lr=cfg.texture_lr)  # (set_layout made new textures)
         for step in range(cfg.texture_steps):
             idx = torch.randint(len(xn), (min(8 * cfg.batch, len(xn)),), generator=gen).to(dev)
-            pred = (probs_all[idx, :, None] * sample_charts(atlas.textures, uv_all[idx])).sum(1)
+            pred = blend_charts(atlas.textures, uv_all[idx], probs_all[idx])
             loss = (pred - rgb[idx]).pow(2).mean()
             topt.zero_grad(set_to_none=True)
             loss.backward()
