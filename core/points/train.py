@@ -52,6 +52,9 @@ class TrainConfig:
     patches: int = opt(16, "image patches per step", min=1, max=4096)
     patch_size: int = opt(16, "patch side in pixels", min=1, max=4096)
     fg_patch_frac: float = opt(0.75, "fraction of patches centred on foreground pixels", min=0.0, max=1.0)
+    views_per_step: int = opt(1, "training views a step draws its patches from (the patches shared out among them "
+                                 "as evenly as they go), so one step's gradient sees the object from several "
+                                 "directions", min=1, max=1024)
     lr_points: float = opt(0.1, "point position learning rate, in units of the initial point spacing", min=0.0)
     lr_features: float = opt(1e-2, "point feature learning rate", min=0.0)
     lr_influence: float = opt(1e-2, "point influence learning rate", min=0.0)
@@ -366,6 +369,22 @@ def attend_and_shade(model: PointModel, origins: torch.Tensor, dirs: torch.Tenso
     return att, ({"rgb": out, "feature": None} if model.decoder is None else {"rgb": None, "feature": out})
 
 
+def step_views(first: int, n: int, total: int, gen: torch.Generator) -> list[int]:
+    """The training views of one step (`TrainConfig.views_per_step`): `first` (already drawn) and up to n - 1 others
+    drawn without repeats from the remaining total - 1; fewer when there are fewer views."""
+    n = max(1, min(n, total))
+    if n == 1:
+        return [first]
+    rest = torch.randperm(total - 1, generator=gen)[: n - 1]
+    return [first] + [int(r) + (int(r) >= first) for r in rest]
+
+
+def share_patches(n_patches: int, n_views: int) -> list[int]:
+    """Patches per view when a step's n_patches are shared out among n_views (<= n_patches): as even as they go,
+    the first views one more."""
+    return [n_patches // n_views + (j < n_patches % n_views) for j in range(n_views)]
+
+
 def sample_patches(alpha: torch.Tensor, n: int, size: int, fg_frac: float, gen: torch.Generator):
     """Top-left corners of n patches in an [H, W] image, a fraction centred on foreground pixels.
     Returns pixel centres px [n*size*size, 2] (col, row) and integer rows/cols [n*size*size]."""
@@ -662,34 +681,42 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     op_threads = cfg.op_threads or (1 if workers > 1 else threads)
 
     def level_loss(lv, patches: int):
-        """One level's part of a step: `patches` patches of one random view of level lv rendered, decoded and
-        compared with its images. Returns (loss, idx [R, K], attention)."""
+        """One level's part of a step: `patches` patches of random views of level lv (--views-per-step of them)
+        rendered, decoded and compared with their images. Returns (loss, idx [R, K], attention)."""
         images, alphas = lv.images, lv.alphas
         v = int(torch.randint(images.shape[0], (1,), generator=gen))
         zoom = 1
         if cfg.zoom_frac > 0 and float(torch.rand(1, generator=gen)) < cfg.zoom_frac:
             zoom = int(torch.randint(2, cfg.zoom_max + 1, (1,), generator=gen))
         n_patches = max(1, patches // (zoom * zoom))
-        px, rows, cols, size = sample_patches(alphas[v], n_patches, cfg.patch_size, cfg.fg_patch_frac, gen)
-        if cfg.ray_jitter > 0:
-            px = jitter_patches(px, n_patches, cfg.ray_jitter, gen)
-        if cfg.ray_jitter > 0 and cfg.jitter_target == "bilinear":  # the images where the shifted rays are
-            gt = sample_bilinear(images[v], px).to(dev)
-            gt_a = sample_bilinear(alphas[v], px).to(dev)
-        else:
-            gt = images[v][rows, cols].to(dev)
-            gt_a = alphas[v][rows, cols].to(dev)
-        c2w = c2ws[v].to(dev)
-        px = px.to(dev)
-        if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
-            px = zoom_pixels(px, size, zoom)
+        views = step_views(v, min(cfg.views_per_step, n_patches), images.shape[0], gen)
+        n_views = len(views)
+        parts = []  # per view: c2w, its patches' pixel centres, targets
+        for vj, n_j in zip(views, share_patches(n_patches, n_views)):
+            px, rows, cols, size = sample_patches(alphas[vj], n_j, cfg.patch_size, cfg.fg_patch_frac, gen)
+            if cfg.ray_jitter > 0:
+                px = jitter_patches(px, n_j, cfg.ray_jitter, gen)
+            if cfg.ray_jitter > 0 and cfg.jitter_target == "bilinear":  # the images where the shifted rays are
+                gt = sample_bilinear(images[vj], px).to(dev)
+                gt_a = sample_bilinear(alphas[vj], px).to(dev)
+            else:
+                gt = images[vj][rows, cols].to(dev)
+                gt_a = alphas[vj][rows, cols].to(dev)
+            px = px.to(dev)
+            if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
+                px = zoom_pixels(px, size, zoom)
+            parts.append((c2ws[vj].to(dev), px, gt, gt_a))
+        gt = torch.cat([p[2] for p in parts]) if n_views > 1 else parts[0][2]
+        gt_a = torch.cat([p[3] for p in parts]) if n_views > 1 else parts[0][3]
+        if zoom > 1:
             pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
         search = model.xyz.detach()
         p_drop = point_dropout(frac, cfg.dropout, cfg.dropout_end)
         if p_drop > 0:
             drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
             search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
-        o, d, idx = patch_neighbors(search, model_cfg, c2w, lv, px, zoom)
+        found = [patch_neighbors(search, model_cfg, c2w, lv, px, zoom) for c2w, px, _, _ in parts]
+        o, d, idx = found[0] if n_views == 1 else (torch.cat(x) for x in zip(*found))
         att, sh = attend_and_shade(model, o, d, idx, bg, cfg.key_path, workers)
         zs = size * zoom
         if model.decoder is None:

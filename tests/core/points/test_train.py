@@ -1,4 +1,5 @@
 """Stage-1 training on tiny analytic scenes (seconds each)."""
+import dataclasses
 import math
 
 import torch
@@ -380,3 +381,42 @@ def test_fit_with_parameter_average_trains_the_same_and_saves_the_average(tmp_pa
     extreme = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=5, ema=0.9999), show_progress=False)
     assert torch.isfinite(extreme[0].features).all()
     assert math.isfinite(extreme[1][-1]["psnr"]) and math.isfinite(extreme[1][-1]["raw"]["psnr"])
+
+
+def test_step_views_are_distinct_and_include_the_first():
+    gen = torch.Generator().manual_seed(0)
+    for first in (0, 3, 9):
+        for n in (1, 4, 10, 50):
+            views = train_mod.step_views(first, n, 10, gen)
+            assert views[0] == first and len(views) == min(n, 10)
+            assert len(set(views)) == len(views) and all(0 <= v < 10 for v in views)
+    assert train_mod.step_views(0, 5, 1, gen) == [0]  # a single view: nothing else to draw
+    for n_patches, n_views in ((16, 1), (16, 5), (16, 16), (7, 3)):
+        counts = train_mod.share_patches(n_patches, n_views)
+        assert sum(counts) == n_patches and len(counts) == n_views and max(counts) - min(counts) <= 1
+
+
+def test_views_per_step_draws_each_steps_patches_from_that_many_views(monkeypatch):
+    cams = fibonacci_cameras(4, seed=3)
+    split = render_split("sphere", cams, 32)
+    seen = []  # per neighbour search: the camera and how many rays
+    real = train_mod.patch_neighbors
+
+    def spy(points, model_cfg, c2w, level, px, zoom=1):
+        if torch.is_grad_enabled():  # a training step's search (test renders run without gradients)
+            seen.append((c2w.clone(), px.shape[0]))
+        return real(points, model_cfg, c2w, level, px, zoom)
+    monkeypatch.setattr(train_mod, "patch_neighbors", spy)
+    cfg = _tiny_cfg(steps=6, patches=4, patch_size=8, views_per_step=3)
+    model, hist = fit_points(split, split, TINY_MODEL, cfg, show_progress=False)
+    assert len(seen) == 6 * 3  # three searches a step, one per view
+    for s in range(6):
+        step = seen[3 * s: 3 * s + 3]
+        assert sorted(n for _, n in step) == [64, 64, 128]  # the 4 patches shared 2 / 1 / 1, 8² rays each
+        cams_of_step = {tuple(c.flatten().tolist()) for c, _ in step}
+        assert len(cams_of_step) == 3  # three different training views
+    assert torch.isfinite(model.xyz).all() and math.isfinite(hist[-1]["psnr"])
+    again = fit_points(split, split, TINY_MODEL, cfg, show_progress=False)[0]
+    assert torch.equal(model.xyz, again.xyz)  # deterministic for a seed
+    one = fit_points(split, split, TINY_MODEL, dataclasses.replace(cfg, views_per_step=1), show_progress=False)[0]
+    assert not torch.equal(model.features, one.features)
