@@ -1,12 +1,12 @@
 """Stage-1 step time: seconds per training step of `pointgt fit` on a scene, per key-MLP path, split by part.
 
     python -m tools.bench.train_step --data DIR [--steps 40] [--repeats 3] [--paths torch,chunked]
-        [--workers 0] [--op-threads 0] [--threads 1 | --fit-threads 1,2] [--json OUT]
+        [--workers 0] [--op-threads 0] [--views-per-step 1] [--threads 1 | --fit-threads 1,2] [--json OUT]
 
 Loads the scene and applies the scene profile as `pointgt fit` does, then runs `fit_points` for --steps steps with
 each `--key-path` (and each `--workers` and `--op-threads` value: `TrainConfig.workers`, e.g. `1,0` to compare
 the step on the training thread alone with its rays and decoder patches shared out to one worker per
-thread, and `TrainConfig.op_threads`) in turn (A B A B ..., so a drifting
+thread, `TrainConfig.op_threads`, and `TrainConfig.views_per_step`) in turn (A B A B ..., so a drifting
 machine load hits all alike), --repeats times. Per fit:
 wall seconds per step from the fit's own training clock (what a `--minutes` budget counts) and CPU seconds per
 step of the training thread (the fit's thread CPU time minus its test evaluations and set-up — visual hull,
@@ -139,6 +139,8 @@ def main(argv=None) -> int:
                     help="comma-separated TrainConfig.workers values, each run with every key path")
     ap.add_argument("--op-threads", default="0",
                     help="comma-separated TrainConfig.op_threads values, each run with every other variant")
+    ap.add_argument("--views-per-step", default="1",
+                    help="comma-separated TrainConfig.views_per_step values, each run with every other variant")
     ap.add_argument("--seed", type=int, default=0)
     args = parse(ap, argv, threads=1)
 
@@ -157,7 +159,8 @@ def main(argv=None) -> int:
     fit_threads = args.fit_threads.split(",") if args.fit_threads else [args.threads]
     lists = {"threads": [int(t) for t in fit_threads], "key_path": args.paths.split(","),
              "workers": [int(k) for k in args.workers.split(",")],
-             "op_threads": [int(k) for k in args.op_threads.split(",")]}
+             "op_threads": [int(k) for k in args.op_threads.split(",")],
+             "views_per_step": [int(k) for k in args.views_per_step.split(",")]}
     variants = [dict(zip(lists, v)) for v in itertools.product(*lists.values())]
     shown = [k for k, vals in lists.items() if len(vals) > 1] or ["key_path"]  # what tells the variants apart
     name = [", ".join(str(v[k]) if k == "key_path" else f"{k.replace('_', ' ')} {v[k]}" for k in shown)
