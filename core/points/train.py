@@ -52,9 +52,10 @@ class TrainConfig:
     patches: int = opt(16, "image patches per step", min=1, max=4096)
     patch_size: int = opt(16, "patch side in pixels", min=1, max=4096)
     fg_patch_frac: float = opt(0.75, "fraction of patches centred on foreground pixels", min=0.0, max=1.0)
-    views_per_step: int = opt(1, "training views a step draws its patches from (the patches shared out among them "
-                                 "as evenly as they go), so one step's gradient sees the object from several "
-                                 "directions", min=1, max=1024)
+    views_per_step: int = opt(1, "distinct training views a step draws its patches from, the patches shared out "
+                                 "among them as evenly as they go (at most one view per patch, and no more than "
+                                 "the training views), so each step's gradient sees the object from several "
+                                 "directions; 1 = all patches of one view", min=1, max=1024)
     lr_points: float = opt(0.1, "point position learning rate, in units of the initial point spacing", min=0.0)
     lr_features: float = opt(1e-2, "point feature learning rate", min=0.0)
     lr_influence: float = opt(1e-2, "point influence learning rate", min=0.0)
