@@ -691,9 +691,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             zoom = int(torch.randint(2, cfg.zoom_max + 1, (1,), generator=gen))
         n_patches = max(1, patches // (zoom * zoom))
         views = step_views(v, min(cfg.views_per_step, n_patches), images.shape[0], gen)
-        n_views = len(views)
         parts = []  # per view: c2w, its patches' pixel centres, targets
-        for vj, n_j in zip(views, share_patches(n_patches, n_views)):
+        for vj, n_j in zip(views, share_patches(n_patches, len(views))):
             px, rows, cols, size = sample_patches(alphas[vj], n_j, cfg.patch_size, cfg.fg_patch_frac, gen)
             if cfg.ray_jitter > 0:
                 px = jitter_patches(px, n_j, cfg.ray_jitter, gen)
@@ -707,8 +706,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             if zoom > 1:  # the rays of a frame zoom times larger; the losses compare their average per pixel
                 px = zoom_pixels(px, size, zoom)
             parts.append((c2ws[vj].to(dev), px, gt, gt_a))
-        gt = torch.cat([p[2] for p in parts]) if n_views > 1 else parts[0][2]
-        gt_a = torch.cat([p[3] for p in parts]) if n_views > 1 else parts[0][3]
+        gt, gt_a = torch.cat([p[2] for p in parts]), torch.cat([p[3] for p in parts])
         if zoom > 1:
             pix_of_ray = pool_index(n_patches, size, zoom).to(dev)
         search = model.xyz.detach()
@@ -717,7 +715,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             drop = torch.rand(search.shape[0], generator=gen).to(dev) < p_drop
             search = torch.where(drop[:, None], torch.full_like(search, float("nan")), search)
         found = [patch_neighbors(search, model_cfg, c2w, lv, px, zoom) for c2w, px, _, _ in parts]
-        o, d, idx = found[0] if n_views == 1 else (torch.cat(x) for x in zip(*found))
+        o, d, idx = (torch.cat(x) for x in zip(*found))
         att, sh = attend_and_shade(model, o, d, idx, bg, cfg.key_path, workers)
         zs = size * zoom
         if model.decoder is None:
