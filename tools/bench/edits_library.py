@@ -83,6 +83,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads per fit and per atlas fit")
     ap.add_argument("--json", default=None, help="write all figures here")
     ap.add_argument("--markdown", default=None, help="write the table here")
+    ap.add_argument("--samples", type=int, default=0,
+                    help="Cycles samples per pixel of the scenes it makes (0 = make-scene's default)")
     args = ap.parse_args(argv)
     renderers = args.renderers or f"paper,{default_renderer()}"
     work = Path(args.work)
@@ -97,7 +99,8 @@ def main(argv=None) -> int:
         model = model_path(work, name, None)
         if not model.exists():
             run_command(py + ["tools.bench.scenes", "--work", str(work), "--scenes", name, "--no-pair",
-                              "--threads", str(args.threads), *budget], print, check=True)
+                              "--threads", str(args.threads), "--samples", str(args.samples), *budget], print,
+                        check=True)
         if not model.with_suffix(".atlas_history.json").exists():
             run_command(py + ["tools.cli", "atlas", str(model), str(work / name), "--atlas-threads",
                               str(args.threads), "--no-progress"], print, check=True)

@@ -26,7 +26,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the camera sets")
     parser.add_argument("--lit", action="store_true", help="lit variant: Principled BSDF + sun instead of emission "
                                                             "(scenes marked lit in --list are always lit)")
-    parser.add_argument("--samples", type=int, default=None, help="Cycles samples (default 16, or 64 with --lit)")
+    parser.add_argument("--samples", type=int, default=None, help="Cycles samples per pixel (default 64: the frames' "
+                                                                  "own noise far below a model's error)")
     parser.add_argument("--pose", default=None, help="render the existing scene in DIR in this pose (e.g. bend, rest)")
     parser.add_argument("--magnitude", type=float, default=1.0, help="pose magnitude: 0 = rest, 1 = the named pose")
     parser.add_argument("--texture", default=None,

@@ -63,7 +63,7 @@ def make_scene(name: str, out, size: int = 128, views_train: int = 60, views_val
         raise InputError(f"{out / 'scene.json'} already exists; pass --force to re-render it or choose another --out")
     sdef = library.SCENES[name]
     lit = bool(lit or sdef.lit)
-    samples = int(samples or render.DEFAULT_SAMPLES[lit])
+    samples = int(samples or render.DEFAULT_SAMPLES)
     t0 = time.perf_counter()
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
