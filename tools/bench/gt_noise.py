@@ -1,8 +1,8 @@
 """How noisy Blender's ground truth is: each library scene's test views at several Cycles sample counts against a
 many-sample reference rendered with another seed.
 
-A render scored against frames that carry Monte Carlo noise cannot score above the noise itself, and a model
-trained on noisy frames fits noise; this measures, per scene, the object PSNR of frames rendered with N samples
+A render scored against frames that carry Monte Carlo noise reads that noise as its own error; this measures,
+per scene, the object PSNR of frames rendered with N samples
 (the scene's own seed, 0) against a reference of --reference samples (seed 1, so no sample is shared), on the
 reference's object pixels and the N-sample frame's foreground (`core.images.metrics.score_frame`), with the render
 seconds per view. `pointgt make-scene`'s default sample count (`tools/scenes/render.py` DEFAULT_SAMPLES) is
