@@ -42,6 +42,21 @@ QUICK = DemoSize(size=40, views_train=16, views_test=4, minutes=0.5, atlas_steps
                  frames=4, eval_views=2, poses=("bend",), magnitudes=(1.0,), temperatures=(1.0,))
 
 
+def reuse_message(scene_dir: Path, name: str, default_samples: int) -> str:
+    """What the demo says when it reuses the scene in scene_dir: with its Cycles samples per pixel (from
+    scene.json), and how to render it again where it has fewer than the default (its frames' own noise then
+    lowers every score, docs/results.md "Noise in the ground truth")."""
+    try:
+        samples = int(json.loads((scene_dir / "scene.json").read_text())["render"]["samples"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return "reusing the existing scene"
+    msg = f"reusing the existing scene ({samples} Cycles samples per pixel)"
+    if samples < default_samples:
+        msg += (f"; its frames' own noise lowers every score: run the demo into a new --out folder (or delete "
+                f"{scene_dir.parent}) to render {name} with {default_samples}")
+    return msg
+
+
 def _banner(i: int, n: int, text: str) -> None:
     print(f"\n=== [{i}/{n}] {text}", flush=True)
 
@@ -82,7 +97,8 @@ def run_demo(args) -> int:
     _banner(1, n, f"scene '{name}' rendered by Blender (Cycles) -> {scene_dir}")
     t0 = time.perf_counter()
     if (scene_dir / "scene.json").exists():
-        print("reusing the existing scene")
+        from tools.scenes.render import DEFAULT_SAMPLES
+        print(reuse_message(scene_dir, name, DEFAULT_SAMPLES))
     else:
         make_scene(name, scene_dir, size=sz.size, views_train=sz.views_train, views_test=sz.views_test)
     stage_done("scene", t0)

@@ -20,3 +20,20 @@ def test_render_scaled_matches_the_split_frame_and_scales():
     down = big["rgb"].reshape(test.height, 4, test.width, 4, 3).mean((1, 3))
     assert float((down - ref).abs().mean()) < 0.05
     assert big["seconds"] > 0
+
+
+def test_reuse_message_names_the_scenes_samples_and_how_to_render_more(tmp_path):
+    import json
+
+    from tools.demo import reuse_message
+
+    scene = tmp_path / "out" / "scene"
+    scene.mkdir(parents=True)
+    assert reuse_message(scene, "cloth", 64) == "reusing the existing scene"          # no scene.json: plain
+    (scene / "scene.json").write_text("{not json")
+    assert reuse_message(scene, "cloth", 64) == "reusing the existing scene"
+    (scene / "scene.json").write_text(json.dumps({"render": {"samples": 16}}))
+    few = reuse_message(scene, "cloth", 64)
+    assert "16 Cycles samples" in few and "new --out folder" in few and str(tmp_path / "out") in few and "64" in few
+    (scene / "scene.json").write_text(json.dumps({"render": {"samples": 64}}))
+    assert reuse_message(scene, "cloth", 64) == "reusing the existing scene (64 Cycles samples per pixel)"
