@@ -20,6 +20,18 @@ def add_scene(ap: argparse.ArgumentParser, every_help: str) -> None:
     ap.add_argument("--every", type=int, default=2, help=every_help)
 
 
+def add_samples(ap: argparse.ArgumentParser) -> None:
+    """--samples: Cycles samples per pixel of the scenes a bench makes (0 = make-scene's default); pass it on with
+    `samples_flag`."""
+    ap.add_argument("--samples", type=int, default=0,
+                    help="Cycles samples per pixel of the scenes it makes (0 = make-scene's default)")
+
+
+def samples_flag(samples: int) -> list[str]:
+    """The --samples flag of `add_samples` for a make-scene (or scene-making bench) command line: none for 0."""
+    return ["--samples", str(samples)] if samples else []
+
+
 def parse(ap: argparse.ArgumentParser, argv=None, threads: int = 1) -> argparse.Namespace:
     """Add --threads (default `threads`; 0 = torch's default) and --json, parse argv, apply --threads."""
     ap.add_argument("--threads", type=int, default=threads, help="torch threads (0 = torch's default)")

@@ -65,7 +65,7 @@ def markdown(per_scene: dict[str, list[dict]], head: str) -> str:
 
 
 def main(argv=None) -> int:
-    from tools.bench import run_command, write_json
+    from tools.bench import add_samples, run_command, samples_flag, write_json
     from tools.bench.scenes import model_path
     from tools.eval_edits import default_renderer
     from tools.machine import machine_line
@@ -83,8 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=1, help="torch threads per fit and per atlas fit")
     ap.add_argument("--json", default=None, help="write all figures here")
     ap.add_argument("--markdown", default=None, help="write the table here")
-    ap.add_argument("--samples", type=int, default=0,
-                    help="Cycles samples per pixel of the scenes it makes (0 = make-scene's default)")
+    add_samples(ap)
     args = ap.parse_args(argv)
     renderers = args.renderers or f"paper,{default_renderer()}"
     work = Path(args.work)
@@ -99,7 +98,7 @@ def main(argv=None) -> int:
         model = model_path(work, name, None)
         if not model.exists():
             run_command(py + ["tools.bench.scenes", "--work", str(work), "--scenes", name, "--no-pair",
-                              "--threads", str(args.threads), "--samples", str(args.samples), *budget], print,
+                              "--threads", str(args.threads), *samples_flag(args.samples), *budget], print,
                         check=True)
         if not model.with_suffix(".atlas_history.json").exists():
             run_command(py + ["tools.cli", "atlas", str(model), str(work / name), "--atlas-threads",

@@ -20,6 +20,7 @@ import json
 import time
 from pathlib import Path
 
+from core.util.atomic import atomic_write_text
 from tools.bench import parse, parser, write_json
 from tools.machine import machine_line
 
@@ -42,8 +43,8 @@ def render_test_views(scene_dir: Path, samples: int, seed: int, out: Path) -> fl
     t0 = time.perf_counter()
     rendered = render.render_views(scene, scene.camera, c2ws, out, "test", log=lambda *_: None)
     seconds = (time.perf_counter() - t0) / max(len(c2ws), 1)
-    (out / "transforms_test.json").write_text(json.dumps({"camera_angle_x": frames["camera_angle_x"],
-                                                           "frames": rendered}, indent=2) + "\n")
+    atomic_write_text(out / "transforms_test.json", json.dumps({"camera_angle_x": frames["camera_angle_x"],
+                                                                "frames": rendered}, indent=2) + "\n")
     return seconds
 
 

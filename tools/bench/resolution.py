@@ -50,7 +50,7 @@ import sys
 import time
 from pathlib import Path
 
-from tools.bench import run_command, write_json
+from tools.bench import add_samples, run_command, samples_flag, write_json
 from tools.machine import machine_line
 
 DEFAULT_SCENES = "tube,crate,suzanne"
@@ -238,8 +238,7 @@ def main(argv=None) -> int:
                          f"{', '.join(RENDER_MODES)}")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (fits and renders)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--samples", type=int, default=0,
-                    help="Cycles samples per pixel of the scenes it makes (0 = make-scene's default)")
+    add_samples(ap)
     ap.add_argument("--json", default=None, help="write all figures here")
     ap.add_argument("--markdown", default=None, help="write the table here")
     args = ap.parse_args(argv)
@@ -291,7 +290,7 @@ def main(argv=None) -> int:
                 run_command(py + ["make-scene", name, "--out", str(folder), "--size", str(args.size * f),
                                   "--views-train", str(train), "--views-val", "0", "--views-test", str(args.views_test),
                                   "--seed", str(args.seed), "--force",
-                                  *(["--samples", str(args.samples)] if args.samples else [])], print, check=True)
+                                  *samples_flag(args.samples)], print, check=True)
         suffix = (f"_hires{hires}" if hires else "") + (f"_{args.tag}" if args.tag else "")
         model_path = Path(args.model) if args.model else work / name / f"model_{args.steps}{suffix}.pgt"
         if not model_path.exists():

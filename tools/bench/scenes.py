@@ -21,7 +21,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from tools.bench import run_command, write_json
+from tools.bench import add_samples, run_command, samples_flag, write_json
 from tools.machine import machine_line
 
 
@@ -84,8 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=None, help="a step budget instead (fair on a shared machine)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per fit")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--samples", type=int, default=0,
-                    help="Cycles samples per pixel of the scenes it makes (0 = make-scene's default)")
+    add_samples(ap)
     ap.add_argument("--no-pair", action="store_true", help="only the default fit (no decoder on/off pair)")
     ap.add_argument("--fit-args", default="", help="more `pointgt fit` flags for every fit (one string)")
     ap.add_argument("--tag", default="", help="name of the --fit-args setting: its model files are "
@@ -113,7 +112,7 @@ def main(argv=None) -> int:
         if not (scene / "scene.json").exists():
             run_command(py + ["make-scene", name, "--out", str(scene), "--size", str(args.size), "--views-train",
                               str(args.views_train), "--views-test", str(args.views_test), "--views-val", "0",
-                              *(["--samples", str(args.samples)] if args.samples else [])], print)
+                              *samples_flag(args.samples)], print)
         row = {"scene": name, "other": []}
         common = ["fit", str(scene), "--stage", "papr", "--threads", str(args.threads), "--no-progress",
                   "--seed", str(args.seed), "--allow-blank", *budget, *extra]
