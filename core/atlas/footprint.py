@@ -122,42 +122,54 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
 
 def solve_footprint_texture(F: torch.Tensor, B: torch.Tensor, y: torch.Tensor, t0: torch.Tensor,
                             lam: float = 1.0, iters: int = 100) -> tuple[torch.Tensor, dict]:
-    """Conjugate gradients on (AᵀA + λ·d·I) t = Aᵀy + λ·d·t0 with A = F @ B, d = mean diagonal of AᵀA (so λ does
-    not depend on the number of views). t0 [T, 3] the prior (linear light). Returns (t [T, 3] in [0, 1], info with
-    the training RMSE before and after)."""
+    """Conjugate gradients on (AᵀA + λ·d·I) t = Aᵀy + λ·d·t0 with A = F @ B, d = the mean of AᵀA·1 over all T
+    texels (so λ does not depend on the number of views). t0 [T, 3] the prior (linear light). Returns (t [T, 3] in
+    [0, 1], info with the training RMSE before and after).
+    Texels no lookup reads (B's empty columns) have a zero row in AᵀA, so they keep t0 exactly; the iterations run
+    on the read texels alone (an island atlas reads n views of one square image, so most of its T texels are
+    never read)."""
+    T = t0.shape[0]
+    cols = torch.unique(B.col_indices())  # sorted: the remapped column indices stay sorted in every row
+    remap = torch.full((T,), -1, dtype=torch.long, device=t0.device)
+    remap[cols] = torch.arange(len(cols), device=t0.device)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-        Bt, Ft = B.t().to_sparse_csr(), F.t().to_sparse_csr()
+        Bu = torch.sparse_csr_tensor(B.crow_indices(), remap[B.col_indices()], B.values(), (B.shape[0], len(cols)),
+                                     check_invariants=False)
+        Bt, Ft = Bu.t().to_sparse_csr(), F.t().to_sparse_csr()
 
     def A(t):
-        return F @ (B @ t)
+        return F @ (Bu @ t)
 
     def At(r):
         return Bt @ (Ft @ r)
 
-    d = float(At(A(torch.ones_like(t0[:, :1]))).mean())
+    d = float(At(A(torch.ones_like(t0[cols, :1]))).sum()) / max(T, 1)
     reg = lam * max(d, 1e-12)
 
     def op(t):
         return At(A(t)) + reg * t
 
-    t = t0.clone()
-    r = At(y) + reg * t0 - op(t)
+    u0 = t0[cols]
+    u = u0.clone()
+    r = At(y) + reg * u0 - op(u)
     p = r.clone()
     rs = (r * r).sum(0)
     for _ in range(iters):
         Ap = op(p)
         a = rs / (p * Ap).sum(0).clamp_min(1e-30)
-        t = t + a * p
+        u = u + a * p
         r = r - a * Ap
         rs_new = (r * r).sum(0)
         if float(rs_new.max()) < 1e-20:
             break
         p = r + (rs_new / rs.clamp_min(1e-30)) * p
         rs = rs_new
-    rmse = lambda tt: float(((A(tt) - y) ** 2).mean().sqrt())  # noqa: E731
+    rmse = lambda uu: float(((A(uu) - y) ** 2).mean().sqrt())  # noqa: E731
+    t = t0.clone()
+    t[cols] = u
     t = torch.nan_to_num(t, nan=0.5).clamp(0, 1)
-    return t, {"rmse_before": rmse(t0), "rmse_after": rmse(t), "pixels": int(y.shape[0])}
+    return t, {"rmse_before": rmse(u0), "rmse_after": rmse(t[cols]), "pixels": int(y.shape[0])}
 
 
 @torch.no_grad()
