@@ -300,8 +300,7 @@ class Atlas(nn.Module):
             best, best_miss = x0.clone(), torch.full((len(x0),), float("inf"), device=self.device)
             for it in range(iters + 1):
                 raw = self.tex(self.normalise(self.on_surface(xs)))[ar, net]
-                pix = self.layout.place(raw[:, None].expand(-1, self.n, -1).contiguous())[:, 0] * A \
-                    if self.n == 1 else self._place_one(raw, ch) * A
+                pix = self.layout.place_one(raw, ch) * A
                 r = pix - tg
                 # keep the iterate that lands nearest its texel: where the map is not smooth enough for
                 # Gauss-Newton (a fold, the mid-surface's anchor planes changing) a step can land farther away
@@ -323,17 +322,6 @@ class Atlas(nn.Module):
                 q = q * (reach / d.norm(dim=-1, keepdim=True).clamp_min(reach))  # stay near the samples
                 xs = x0 + (q[:, :, None] * B).sum(1)
             out[s:s + chunk] = best
-        return out
-
-    def _place_one(self, raw: torch.Tensor, chart: torch.Tensor) -> torch.Tensor:
-        """Placement of raw t_c [K, 2] of chart[K] only -> image coordinates [K, 2] in [0, 1]."""
-        out = torch.empty_like(raw)
-        for c in range(self.n):
-            m = chart == c
-            if bool(m.any()):
-                uv = torch.zeros(int(m.sum()), self.n, 2, device=raw.device, dtype=raw.dtype)
-                uv[:, c] = raw[m]
-                out[m] = self.layout.place(uv)[:, c]
         return out
 
     @torch.no_grad()

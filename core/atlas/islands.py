@@ -148,22 +148,35 @@ class IslandLayout:
     def place(self, uv: torch.Tensor) -> torch.Tensor:
         """Chart coordinates uv [M, n, 2] (u -> column, v -> row, [0, 1]^2 per chart) -> image coordinates
         [M, n, 2] in [0, 1] (pixel = uv * size), each clamped into its chart's nearest island."""
-        dev = uv.device
         out = torch.empty_like(uv)
-        G = self.cells.shape[1]
-        aff, nearest = self.affine.to(dev).to(uv.dtype), self.nearest.to(dev)
-        cells, offset = self.cells.to(dev), self.offset.to(dev).to(uv.dtype)
-        orient, orients = self.orient.to(dev), ORIENT.to(dev).to(uv.dtype)
         for c in range(self.n):
-            u = torch.nan_to_num(uv[:, c], nan=0.0, posinf=1.0, neginf=0.0).clamp(-1.0, 2.0)
-            t = u @ aff[c, :, :2].T + aff[c, :, 2]
-            k = t.floor().long().clamp(0, G - 1)
-            nb = nearest[c, k[:, 1], k[:, 0]]  # [M, 2] (row, col)
-            lo = nb.flip(-1).to(uv.dtype) - CLAMP_MARGIN  # (col, row)
-            t = torch.maximum(torch.minimum(t, lo + 1 + 2 * CLAMP_MARGIN), lo)
-            isl = cells[c, nb[:, 0], nb[:, 1]].clamp_min(0)
-            out[:, c] = ((orients[orient[isl]] @ t[..., None])[..., 0] + offset[isl]) / self.size
+            out[:, c] = self._place_chart(c, uv[:, c])
         return out
+
+    def place_one(self, uv: torch.Tensor, chart: torch.Tensor) -> torch.Tensor:
+        """uv [M, 2] coordinates of chart[M] (long) only -> image coordinates [M, 2] in [0, 1], as `place` gives
+        them for that chart (each point placed once, not once per chart)."""
+        out = torch.empty_like(uv)
+        for c in range(self.n):
+            m = chart == c
+            if bool(m.any()):
+                out[m] = self._place_chart(c, uv[m])
+        return out
+
+    def _place_chart(self, c: int, uv: torch.Tensor) -> torch.Tensor:
+        """uv [M, 2] of chart c -> image coordinates [M, 2] in [0, 1], clamped into c's nearest island."""
+        dev = uv.device
+        G = self.cells.shape[1]
+        u = torch.nan_to_num(uv, nan=0.0, posinf=1.0, neginf=0.0).clamp(-1.0, 2.0)
+        aff = self.affine[c].to(dev).to(uv.dtype)
+        t = u @ aff[:, :2].T + aff[:, 2]
+        k = t.floor().long().clamp(0, G - 1)
+        nb = self.nearest[c].to(dev)[k[:, 1], k[:, 0]]  # [M, 2] (row, col)
+        lo = nb.flip(-1).to(uv.dtype) - CLAMP_MARGIN  # (col, row)
+        t = torch.maximum(torch.minimum(t, lo + 1 + 2 * CLAMP_MARGIN), lo)
+        isl = self.cells[c].to(dev)[nb[:, 0], nb[:, 1]].clamp_min(0)
+        rot = ORIENT.to(dev).to(uv.dtype)[self.orient.to(dev)[isl]]
+        return ((rot @ t[..., None])[..., 0] + self.offset.to(dev).to(uv.dtype)[isl]) / self.size
 
     def orient_of_pixels(self, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
         """The orientation matrix [K, 2, 2] of the island nearest each pixel (rows, cols [K] long): chart texel

@@ -150,6 +150,10 @@ def test_transposed_and_turned_islands_place_lookups_texels_and_outlines_consist
         assert np.array_equal(island_mask(arrays, other.shape), other.island_pixels.numpy())
         back = IslandLayout.from_arrays(arrays, lay.n, lay.size, lay.pad)
         assert torch.equal(back.orient, other.orient) and torch.equal(back.place(uv), other.place(uv))
+        # placing each point in one chart only gives that chart's column of the full placement
+        chart = torch.arange(len(uv)) % lay.n
+        assert torch.equal(other.place_one(uv[torch.arange(len(uv)), chart], chart),
+                           other.place(uv)[torch.arange(len(uv)), chart])
         n, rr, kk = np.nonzero(lay.cells.numpy() >= 0)  # cell centres land in the pixel cell_pixels names
         isl = lay.cells.numpy()[n, rr, kk]
         c, r = cell_pixels(kk, rr, other.offset.numpy()[isl], other.orient.numpy()[isl])
@@ -341,14 +345,14 @@ def test_texel_map_newton_keeps_its_best_step_where_the_map_folds():
     # start from the samples themselves, aimed at a texel 1.5 texels off where they land, along the surface
     chart = probs.argmax(-1)[:4000]
     start = x[:4000]
-    pix0 = a._place_one(a.tex(a.normalise(start))[torch.arange(4000), chart], chart) * A
+    pix0 = a.layout.place_one(a.tex(a.normalise(start))[torch.arange(4000), chart], chart) * A
     target = pix0 + torch.tensor([1.5, -1.0])
     slope = torch.zeros(4000, 2, 3)
     slope[:, 0, 0], slope[:, 1, 1] = 1.6 / A, 1.6 / A   # about one texel per unit step, in the sheet's plane
     out = a._newton_to_texels(start, slope, chart, target)
 
     def miss(p):
-        return (a._place_one(a.tex(a.normalise(p))[torch.arange(len(p)), chart], chart) * A - target).norm(dim=-1)
+        return (a.layout.place_one(a.tex(a.normalise(p))[torch.arange(len(p)), chart], chart) * A - target).norm(dim=-1)
 
     before, after = miss(start), miss(out)
     assert torch.isfinite(out).all()
