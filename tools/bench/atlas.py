@@ -180,7 +180,8 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                    "round_trip": round_trip(atlas),
                    "round_trip_all": hist.get("texel_stats", {}).get("round_trip_1", float("nan")),
                    "islands": hist.get("islands", 0), "layout_seconds": hist.get("island_seconds", float("nan")),
-                   "island_share": float(atlas.layout.island_pixels.float().mean()) if atlas.islands else float("nan")}
+                   "island_share": float(atlas.layout.island_pixels.float().mean()) if atlas.islands else float("nan"),
+                   "footprint_seconds": hist.get("footprint", {}).get("seconds", float("nan"))}
             if "sides" in hist:  # charts split by side: share of the samples on a reversed sub-chart
                 row["side_reversed"] = hist["sides"]["reversed"]
             if folds and atlas.bake_samples is not None:
