@@ -286,9 +286,11 @@ class Atlas(nn.Module):
             return out
         reach = max_move * float(slope.norm(dim=-1).median())  # max_move texels of the typical texel size
 
-        def chart_texels(pts, ch, ar):  # raw t_c -> chart texel coordinates (before the island offset) [K, 2]
-            raw = self.tex(self.normalise(self.on_surface(pts)))[ar, net]
+        def to_texels(raw, ch):  # raw t_c [K, 2] -> chart texel coordinates (before the island offset) [K, 2]
             return (aff[ch, :, :2] @ raw[..., None])[..., 0] + aff[ch, :, 2]
+
+        def chart_texels(pts, ch, ar):
+            return to_texels(self.tex(self.normalise(self.on_surface(pts)))[ar, net], ch)
 
         for s in range(0, len(x), chunk):
             x0, B, ch, tg = x[s:s + chunk], slope[s:s + chunk], chart[s:s + chunk], target[s:s + chunk]
@@ -311,7 +313,7 @@ class Atlas(nn.Module):
                     break
                 if rot is not None:  # the miss in chart texels: image offsets turned back (orthogonal matrices)
                     r = (rot.transpose(1, 2) @ r[..., None])[..., 0]
-                t0 = chart_texels(xs, ch, ar)
+                t0 = to_texels(raw, ch)  # the map at xs, evaluated above
                 Mq = torch.stack([(chart_texels(xs + h * B[:, k], ch, ar) - t0) / h for k in range(2)], -1)
                 det = torch.linalg.det(Mq)
                 ok = (det.abs() > 0.05) & torch.isfinite(det) & torch.isfinite(r).all(-1)
