@@ -122,9 +122,9 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
 
 def solve_footprint_texture(F: torch.Tensor, B: torch.Tensor, y: torch.Tensor, t0: torch.Tensor,
                             lam: float = 1.0, iters: int = 100) -> tuple[torch.Tensor, dict]:
-    """Conjugate gradients on (AᵀA + λ·d·I) t = Aᵀy + λ·d·t0 with A = F @ B, d = the mean of AᵀA·1 over all T
-    texels (so λ does not depend on the number of views). t0 [T, 3] the prior (linear light). Returns (t [T, 3] in
-    [0, 1], info with the training RMSE before and after).
+    """Conjugate gradients on (AᵀA + λ·d·I) t = Aᵀy + λ·d·t0 with A = F @ B, d = the mean of AᵀA·1 over all
+    T texels (so λ does not depend on the number of views). t0 [T, 3] the prior (linear light). Returns
+    (t [T, 3] in [0, 1], info with the training RMSE before and after).
     Texels no lookup reads (B's empty columns) have a zero row in AᵀA, so they keep t0 exactly; the iterations run
     on the read texels alone (an island atlas reads n views of one square image, so most of its T texels are
     never read)."""
