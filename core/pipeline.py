@@ -62,6 +62,7 @@ def footprint_views(model, split) -> list[FootprintView]:
 
 def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True, progress_callback=None):
     """Fit stage 2 into `bundle` (sets bundle.atlas and bundle.meta['atlas_fit']); returns the fit history."""
+    lambdas = cfg.lambda_candidates()  # a bad list fails here, before the fit
     t0 = time.perf_counter()
     # Model colours need direct RGB values; with a UNet decoder the per-ray colour needs whole images: use pixels.
     colour = cfg.sample_colour if bundle.model.decoder is None else "image"
@@ -76,11 +77,13 @@ def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True,
     if cfg.footprint:
         t1 = time.perf_counter()
         info = refit_texture_footprint(atlas, footprint_views(bundle.model, split), lam=cfg.footprint_lambda,
-                                       iters=cfg.footprint_iters)
+                                       iters=cfg.footprint_iters, lambdas=lambdas)
         history["footprint"] = {**info, "seconds": round(time.perf_counter() - t1, 2)}
         if show_progress and info.get("pixels"):
             print(f"texture refit for pixel-filtered lookups: {info['pixels']} pixels, RMSE (linear) "
-                  f"{info['rmse_before']:.4f} -> {info['rmse_after']:.4f} in {history['footprint']['seconds']:.1f} s",
+                  f"{info['rmse_before']:.4f} -> {info['rmse_after']:.4f} (lambda {info['lambda']:g}"
+                  + (f", chosen by held-out views: {info['holdout_psnr']} dB" if info.get("holdout_psnr") else "")
+                  + f") in {history['footprint']['seconds']:.1f} s",
                   flush=True)
     bundle.meta["atlas_fit"] = {k: v for k, v in history.items() if not isinstance(v, list)}
     return history

@@ -35,9 +35,13 @@ class AtlasConfig:
                                above=0.0)
     footprint: bool = opt(True, "then refit the texture so that pixel-filtered lookups (2x2 points per pixel, "
                                 "as edited frames render) reproduce the training pixels (needs the stage-1 model)")
-    footprint_lambda: float = opt(1.0, "footprint refit: pull towards the kernel texture (relative to the data term)",
-                                  min=0.0)
-    footprint_iters: int = opt(100, "footprint refit: conjugate-gradient iterations", min=0)
+    footprint_lambda: float = opt(1.0, "footprint refit: pull towards the kernel texture (relative to the data "
+                                       "term), when footprint_lambdas does not choose it", min=0.0)
+    footprint_lambdas: str = opt("", "footprint refit: candidate pulls, comma-separated (e.g. 0.25,1,4,16,64); the "
+                                     "one whose fit on the other training views renders every 4th view best is "
+                                     "used (empty: footprint_lambda)")
+    footprint_iters: int = opt(100, "footprint refit: at most this many conjugate-gradient iterations (fewer once "
+                                    "converged)", min=0)
     texture_steps: int = opt(300, "descent texture: refinement steps after the maps converge (maps frozen)", min=0)
     width_chart: int = opt(64, "hidden width of the chart-assignment MLP", min=1, max=4096)
     depth_chart: int = opt(3, "hidden layers of the chart-assignment MLP", min=1, max=16)
@@ -165,6 +169,22 @@ class AtlasConfig:
     def resolution(self, n: int) -> int:
         """Chart texture side R (paper: 256*sqrt(2/n), so the atlas memory is fixed)."""
         return int(self.texture_res) if self.texture_res > 0 else int(round(256 * math.sqrt(2.0 / n)))
+
+    def lambda_candidates(self) -> list[float]:
+        """The footprint refit's candidate λ (footprint_lambdas parsed: finite, >= 0); [] when empty."""
+        out = []
+        for part in self.footprint_lambdas.replace(" ", "").split(","):
+            if not part:
+                continue
+            try:
+                v = float(part)
+            except ValueError:
+                v = float("nan")
+            if not math.isfinite(v) or v < 0:
+                raise InputError(f"footprint_lambdas (--atlas-footprint-lambdas): each candidate must be a finite "
+                                 f"number >= 0 (comma-separated, e.g. 0.25,1,4,16,64), got {part!r}")
+            out.append(v)
+        return out
 
     def max_cycle(self, islands: bool) -> float:
         """Texel map: the largest miss (texels) of a texel's point mapped back, for an island or a grid atlas."""

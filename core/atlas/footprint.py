@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
@@ -58,12 +59,21 @@ def _bilinear_rows(probs: torch.Tensor, uv: torch.Tensor, R: int, min_prob: floa
     return torch.cat(rows), torch.cat(cols), torch.cat(vals)
 
 
-def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min: float = 0.99):
-    """The linear system pixels = F @ B @ texels (linear light) over the views' fully covered pixels.
+class FootprintSystem(NamedTuple):
+    """pixels = F @ B @ texels (linear light). F [P, Q] sparse filter rows, normalised over each footprint's object
+    sub-pixels; B [Q, T] sparse lookup rows (T = n*R*R texels); y [P, 3] target linear colours; view [P] long, the
+    index of the view each pixel comes from."""
 
-    Returns (F [P, Q] sparse filter rows, normalised over each footprint's object sub-pixels; B [Q, n*R*R] sparse
-    lookup rows; y [P, 3] target linear colours). Only pixels with ground-truth alpha > alpha_min whose own ray hits
-    the object are used (their colour is the object's, not a mix with the background)."""
+    F: torch.Tensor
+    B: torch.Tensor
+    y: torch.Tensor
+    view: torch.Tensor
+
+
+def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min: float = 0.99):
+    """The linear system pixels = F @ B @ texels (linear light) over the views' fully covered pixels: a
+    FootprintSystem, or None when no view has such a pixel. Only pixels with ground-truth alpha > alpha_min whose
+    own ray hits the object are used (their colour is the object's, not a mix with the background)."""
     dev = atlas.device
     R, n = atlas.layout.R, atlas.n
     k1 = blackman_harris_taps(sub, FILTER_WIDTH).to(dev)
@@ -72,9 +82,9 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
     k2 = (k1[:, None] * k1[None, :]).reshape(-1)  # [m*m]
     ky, kx = torch.meshgrid(torch.arange(m, device=dev), torch.arange(m, device=dev), indexing="ij")
     ky, kx = ky.reshape(-1), kx.reshape(-1)
-    f_rows, f_cols, f_vals, b_rows, b_cols, b_vals, ys = [], [], [], [], [], [], []
+    f_rows, f_cols, f_vals, b_rows, b_cols, b_vals, ys, vids = [], [], [], [], [], [], [], []
     n_pix = n_sub = 0
-    for v in views:
+    for vi, v in enumerate(views):
         H, W = v.valid.shape
         step = 3.0 * v.depth.abs() / v.focal  # same surface: depth within 3 pixel footprints (as edited frames)
         # the same sub-pixel lookups as edited frames (core/frames/edited.py): chart nets per pixel, interpolated
@@ -107,6 +117,7 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
         b_cols.append(c)
         b_vals.append(val)
         ys.append(srgb_to_linear(v.image.to(dev)[pr, pc].clamp(0, 1)))
+        vids.append(torch.full((len(pr),), vi, dtype=torch.long, device=dev))
         n_pix += len(pr)
         n_sub += len(used)
     if n_pix == 0:
@@ -117,77 +128,140 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
                                     (n_pix, n_sub), check_invariants=False).coalesce().to_sparse_csr()
         B = torch.sparse_coo_tensor(torch.stack([torch.cat(b_rows), torch.cat(b_cols)]), torch.cat(b_vals),
                                     (n_sub, n * R * R), check_invariants=False).coalesce().to_sparse_csr()
-    return F, B, torch.cat(ys)
+    return FootprintSystem(F, B, torch.cat(ys), torch.cat(vids))
+
+
+class _ReadTexels:
+    """The system restricted to the texels some lookup reads (B's used columns, remapped), with the transposes the
+    normal equations need, built once and shared by every solve on it."""
+
+    def __init__(self, F: torch.Tensor, B: torch.Tensor, T: int):
+        self.cols = torch.unique(B.col_indices())  # sorted: the remapped column indices stay sorted in every row
+        remap = torch.full((T,), -1, dtype=torch.long, device=B.device)
+        remap[self.cols] = torch.arange(len(self.cols), device=B.device)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+            self.Bu = torch.sparse_csr_tensor(B.crow_indices(), remap[B.col_indices()], B.values(),
+                                              (B.shape[0], len(self.cols)), check_invariants=False)
+            self.Bt, self.Ft = self.Bu.t().to_sparse_csr(), F.t().to_sparse_csr()
+        self.F, self.T = F, T
+
+    def A(self, u: torch.Tensor) -> torch.Tensor:
+        """[U, C] read texels -> [P, C] filtered pixels."""
+        return self.F @ (self.Bu @ u)
+
+    def At(self, r: torch.Tensor) -> torch.Tensor:
+        """[P, C] pixels -> [U, C] read texels."""
+        return self.Bt @ (self.Ft @ r)
+
+    def solve(self, y: torch.Tensor, u0: torch.Tensor, lam: float, iters: int, tol: float,
+              weight: torch.Tensor | None = None, start: torch.Tensor | None = None) -> torch.Tensor:
+        """Conjugate gradients on (AᵀWA + λ·d·I) u = AᵀWy + λ·d·u0 with W = diag(weight [P] in {0, 1}, default
+        all 1), d = the sum of AᵀWA·1 over all T texels / T; from `start` (default u0); stops after `iters` iterations or
+        when every channel's residual is below tol × its right-hand side. Returns u [U, C]."""
+        w = None if weight is None else weight.to(y.dtype)[:, None]
+        AtWA = (lambda u: self.At(self.A(u))) if w is None else (lambda u: self.At(w * self.A(u)))  # noqa: E731
+        d = float(AtWA(torch.ones_like(u0[:, :1])).sum()) / max(self.T, 1)
+        reg = lam * max(d, 1e-12)
+        rhs = self.At(y if w is None else w * y) + reg * u0
+        stop = (tol * rhs.norm(dim=0)).square().clamp_min(1e-20)
+        u = (u0 if start is None else start).clone()
+        r = rhs - AtWA(u) - reg * u
+        p = r.clone()
+        rs = (r * r).sum(0)
+        for _ in range(iters):
+            if bool((rs <= stop).all()):
+                break
+            Ap = AtWA(p) + reg * p
+            a = rs / (p * Ap).sum(0).clamp_min(1e-30)
+            u = u + a * p
+            r = r - a * Ap
+            rs_new = (r * r).sum(0)
+            p = r + (rs_new / rs.clamp_min(1e-30)) * p
+            rs = rs_new
+        return u
 
 
 def solve_footprint_texture(F: torch.Tensor, B: torch.Tensor, y: torch.Tensor, t0: torch.Tensor,
-                            lam: float = 1.0, iters: int = 100) -> tuple[torch.Tensor, dict]:
+                            lam: float = 1.0, iters: int = 100, tol: float = 1e-5) -> tuple[torch.Tensor, dict]:
     """Conjugate gradients on (AᵀA + λ·d·I) t = Aᵀy + λ·d·t0 with A = F @ B, d = the mean of AᵀA·1 over all
-    T texels (so λ does not depend on the number of views). t0 [T, 3] the prior (linear light). Returns
-    (t [T, 3] in [0, 1], info with the training RMSE before and after).
+    T texels (so λ does not depend on the number of views). t0 [T, 3] the prior (linear light); at most `iters`
+    iterations, fewer once the residual is below tol × the right-hand side. Returns (t [T, 3] in [0, 1], info with
+    the training RMSE before and after).
     Texels no lookup reads (B's empty columns) have a zero row in AᵀA, so they keep t0 exactly; the iterations run
     on the read texels alone (an island atlas reads n views of one square image, so most of its T texels are
     never read)."""
-    T = t0.shape[0]
-    cols = torch.unique(B.col_indices())  # sorted: the remapped column indices stay sorted in every row
-    remap = torch.full((T,), -1, dtype=torch.long, device=t0.device)
-    remap[cols] = torch.arange(len(cols), device=t0.device)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-        Bu = torch.sparse_csr_tensor(B.crow_indices(), remap[B.col_indices()], B.values(), (B.shape[0], len(cols)),
-                                     check_invariants=False)
-        Bt, Ft = Bu.t().to_sparse_csr(), F.t().to_sparse_csr()
+    sys_ = _ReadTexels(F, B, t0.shape[0])
+    u0 = t0[sys_.cols]
+    u = sys_.solve(y, u0, lam, iters, tol)
+    return _finish(sys_, y, t0, u0, u)
 
-    def A(t):
-        return F @ (Bu @ t)
 
-    def At(r):
-        return Bt @ (Ft @ r)
-
-    d = float(At(A(torch.ones_like(t0[cols, :1]))).sum()) / max(T, 1)
-    reg = lam * max(d, 1e-12)
-
-    def op(t):
-        return At(A(t)) + reg * t
-
-    u0 = t0[cols]
-    u = u0.clone()
-    r = At(y) + reg * u0 - op(u)
-    p = r.clone()
-    rs = (r * r).sum(0)
-    for _ in range(iters):
-        Ap = op(p)
-        a = rs / (p * Ap).sum(0).clamp_min(1e-30)
-        u = u + a * p
-        r = r - a * Ap
-        rs_new = (r * r).sum(0)
-        if float(rs_new.max()) < 1e-20:
-            break
-        p = r + (rs_new / rs.clamp_min(1e-30)) * p
-        rs = rs_new
-    rmse = lambda uu: float(((A(uu) - y) ** 2).mean().sqrt())  # noqa: E731
+def _finish(sys_: _ReadTexels, y, t0, u0, u) -> tuple[torch.Tensor, dict]:
+    rmse = lambda uu: float(((sys_.A(uu) - y) ** 2).mean().sqrt())  # noqa: E731
     t = t0.clone()
-    t[cols] = u
+    t[sys_.cols] = u
     t = torch.nan_to_num(t, nan=0.5).clamp(0, 1)
-    return t, {"rmse_before": rmse(u0), "rmse_after": rmse(t[cols]), "pixels": int(y.shape[0])}
+    return t, {"rmse_before": rmse(u0), "rmse_after": rmse(t[sys_.cols]), "pixels": int(y.shape[0])}
+
+
+def holdout_psnr(pred_linear: torch.Tensor, y_linear: torch.Tensor) -> float:
+    """PSNR (dB) in display colours of predicted against target pixels, both [P, 3] linear light."""
+    mse = (linear_to_srgb(pred_linear.clamp(0, 1)) - linear_to_srgb(y_linear.clamp(0, 1))).square().mean()
+    return float(-10.0 * torch.log10(mse.clamp_min(1e-12)))
+
+
+def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor, lambdas: list[float], iters: int = 100,
+                            tol: float = 1e-5, holdout: int = 4, sys_: _ReadTexels | None = None
+                            ) -> tuple[float | None, dict[float, float]]:
+    """The refit's λ for this scene: fit the texels on the views but every `holdout`-th (views holdout-1,
+    2·holdout-1, ...) for each candidate in `lambdas`, and keep the one whose render of the held-out views' pixels
+    is closest to them (display-colour PSNR). t0 [T, 3] the prior (linear light). Returns (λ, {λ: held-out PSNR});
+    (None, {}) when there are fewer than `holdout` views or no held-out pixel (nothing to choose by).
+    Candidates are solved from the largest λ down, each starting from the previous answer."""
+    view = system.view
+    n_views = int(view.max()) + 1 if view.numel() else 0
+    held = (view % holdout) == holdout - 1
+    if n_views < holdout or not bool(held.any()) or bool(held.all()) or not lambdas:
+        return None, {}
+    sys_ = sys_ or _ReadTexels(system.F, system.B, t0.shape[0])
+    u0 = t0[sys_.cols]
+    fit = (~held).to(system.y.dtype)
+    scores: dict[float, float] = {}
+    u = None
+    for lam in sorted(set(float(x) for x in lambdas), reverse=True):
+        u = sys_.solve(system.y, u0, lam, iters, tol, weight=fit, start=u)
+        scores[lam] = holdout_psnr(sys_.A(u.clamp(0, 1))[held], system.y[held])
+    best = max(scores, key=lambda k: (scores[k], k))  # ties: the stronger pull
+    return best, scores
 
 
 @torch.no_grad()
 def refit_texture_footprint(atlas, views: list[FootprintView], sub: int = 2, lam: float = 1.0,
-                            iters: int = 100) -> dict:
+                            iters: int = 100, lambdas: list[float] | None = None, tol: float = 1e-5) -> dict:
     """Replace atlas.textures by the footprint fit (kept in display space; texels no pixel reaches keep their
-    kernel-texture colour, dilated as fit_atlas left them).
-    Returns info (pixels, RMSE before/after in linear light); {'pixels': 0} when no view has a covered pixel."""
+    kernel-texture colour, dilated as fit_atlas left them). With `lambdas` (two or more candidates), λ is chosen
+    among them from held-out training views (choose_footprint_lambda); `lam` is used when they cannot choose.
+    Returns info (pixels, RMSE before/after in linear light, the λ used, the held-out PSNR of each candidate);
+    {'pixels': 0} when no view has a covered pixel."""
     system = footprint_system(atlas, views, sub)
     if system is None:
         return {"pixels": 0}
-    F, B, y = system
     n, R = atlas.n, atlas.layout.R
     tex = atlas.textures.detach()
     t0 = srgb_to_linear(tex.clamp(0, 1)).permute(0, 2, 3, 1).reshape(-1, 3)
-    t, info = solve_footprint_texture(F, B, y, t0, lam, iters)
+    sys_ = _ReadTexels(system.F, system.B, t0.shape[0])
+    scores: dict[float, float] = {}
+    if lambdas is not None and len(set(lambdas)) > 1:
+        chosen, scores = choose_footprint_lambda(system, t0, lambdas, iters, tol, sys_=sys_)
+        lam = lam if chosen is None else chosen
+    u0 = t0[sys_.cols]
+    t, info = _finish(sys_, system.y, t0, u0, sys_.solve(system.y, u0, lam, iters, tol))
+    info = {**info, "lambda": float(lam)}
+    if scores:
+        info["holdout_psnr"] = {f"{k:g}": round(v, 3) for k, v in sorted(scores.items())}
     touched = torch.zeros(n * R * R, dtype=torch.bool, device=tex.device)
-    touched[B.col_indices()] = True
+    touched[system.B.col_indices()] = True
     new = linear_to_srgb(t).reshape(n, R, R, 3).permute(0, 3, 1, 2)
     # texels no pixel reaches keep the kernel texture's dilated colour (t stays at t0 there)
     atlas.textures.copy_(torch.where(touched.view(n, 1, R, R), new, tex))

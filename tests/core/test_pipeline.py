@@ -46,10 +46,16 @@ def test_stage2_runs_on_a_capture_camera_with_intrinsics():
     split = render_split("card", fibonacci_cameras(4, seed=0), 36, height=28, intrinsics=k)
     atlas_cfg = AtlasConfig(device="cpu", charts="4", steps=10, texture_steps=5, texture_res=16, batch=256,
                             uv_batch=32, distortion_batch=32, width_chart=16, depth_chart=2, width_map=16, depth_map=2,
-                            eval_samples=256, layout="islands", log_every=10_000)
+                            eval_samples=256, layout="islands", log_every=10_000, footprint_lambdas="0.5,4")
     fit_atlas_stage(b, split, atlas_cfg, show_progress=False)
     assert torch.isfinite(b.atlas.packed_image()).all()
-    assert b.meta["atlas_fit"]["footprint"]["pixels"] > 0
+    fp = b.meta["atlas_fit"]["footprint"]
+    assert fp["pixels"] > 0
+    # the refit's λ chosen from the held-out fourth view, each candidate's score kept with the model
+    assert fp["lambda"] in (0.5, 4.0) and set(fp["holdout_psnr"]) == {"0.5", "4"}
+    # a bad candidate list fails before any fitting
+    with pytest.raises(InputError, match="footprint-lambdas"):
+        fit_atlas_stage(b, split, AtlasConfig(device="cpu", footprint_lambdas="1,-2"), show_progress=False)
 
 
 def test_a_capture_with_its_own_cameras_per_frame_and_a_lens_fits_like_its_pinhole_twin(tmp_path):

@@ -15,6 +15,9 @@ texture evaluated exactly at the surface points) and the decal, object PSNR on t
 (--no-scores: the layout figures only, no renders; --work DIR keeps the ground truth out of the scene folders).
 --island-sides splits every chart by side
 (core/atlas/sides.py; side_reversed: the samples' share on a reversed sub-chart); --folds adds the maps' fold report.
+--footprint-variants "1;25;0.25,1,4,16,64" fits the maps once per scene and layout, then refits the texture through
+the pixel filter once per variant (a single λ, or candidates that footprint_lambdas chooses among from held-out
+training views) and adds a row per variant (atlas-coloured and decal scored; the retexture does not depend on it).
 """
 from __future__ import annotations
 
@@ -137,11 +140,13 @@ def scene_mirror(scene, work):
 
 
 def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=None, log=print,
-               scores: bool = True, folds: bool = False, work=None) -> list[dict]:
+               scores: bool = True, folds: bool = False, work=None,
+               footprint_variants: list[str] | None = None) -> list[dict]:
     """The per-scene figures (module doc) for every scene of the library found under root (or those in only);
     scores False: the layout figures only (utilisation, round trip, islands, seconds), no renders; folds: also
     `core.atlas.fit.fold_report` on the atlas's stored samples (reversed, crease). work: a folder for the ground
-    truth (`scene_mirror`); None writes it into the scene folders."""
+    truth (`scene_mirror`); None writes it into the scene folders. footprint_variants: after the row of cfg's own
+    refit, one row per variant (footprint_lambdas strings), the texture refitted from the same kernel texture."""
     import time
     from pathlib import Path
 
@@ -171,7 +176,14 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
         for layout in layouts:
             bundle = load_bundle(model, "cpu")
             t0 = time.perf_counter()
-            hist = fit_atlas_stage(bundle, train, dataclasses.replace(cfg, layout=layout), show_progress=False)
+            if footprint_variants:  # the kernel texture kept for the variants' refits
+                hist = fit_atlas_stage(bundle, train, dataclasses.replace(cfg, layout=layout, footprint=False),
+                                       show_progress=False)
+                kernel_texture = bundle.atlas.textures.detach().clone()
+                hist["footprint"] = (footprint_variant(bundle, train, cfg, cfg.footprint_lambdas, kernel_texture)
+                                     if cfg.footprint else {})
+            else:
+                hist = fit_atlas_stage(bundle, train, dataclasses.replace(cfg, layout=layout), show_progress=False)
             seconds = time.perf_counter() - t0
             atlas = bundle.atlas
             H, W = atlas.layout.shape
@@ -181,7 +193,10 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                    "round_trip_all": hist.get("texel_stats", {}).get("round_trip_1", float("nan")),
                    "islands": hist.get("islands", 0), "layout_seconds": hist.get("island_seconds", float("nan")),
                    "island_share": float(atlas.layout.island_pixels.float().mean()) if atlas.islands else float("nan"),
-                   "footprint_seconds": hist.get("footprint", {}).get("seconds", float("nan"))}
+                   "footprint_seconds": hist.get("footprint", {}).get("seconds", float("nan")),
+                   "footprint_lambda": hist.get("footprint", {}).get("lambda", float("nan"))}
+            if hist.get("footprint", {}).get("holdout_psnr"):  # footprint_lambdas: each candidate's held-out PSNR
+                row["footprint_holdout_psnr"] = hist["footprint"]["holdout_psnr"]
             if "sides" in hist:  # charts split by side: share of the samples on a reversed sub-chart
                 row["side_reversed"] = hist["sides"]["reversed"]
             if folds and atlas.bake_samples is not None:
@@ -200,7 +215,41 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
             rows.append(row)
             log(f"[{name}/{layout}] " + "  ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
                                                   for k, v in row.items() if k not in ("scene", "layout")))
+            for variant in footprint_variants or []:
+                info = footprint_variant(bundle, train, cfg, variant, kernel_texture)
+                vrow = {**{k: row[k] for k in ("scene", "layout", "size", "utilisation")},
+                        "footprint_variant": variant, "footprint_lambda": info.get("lambda", float("nan")),
+                        "footprint_seconds": info["seconds"]}
+                if info.get("holdout_psnr"):
+                    vrow["footprint_holdout_psnr"] = info["holdout_psnr"]
+                if scores:
+                    vrow["atlas_colour"] = score_frames(EditState(bundle, cfg=EditConfig(colour="atlas")),
+                                                        test)["psnr_object"]
+                    edits = edited_atlases(bundle, spec, retexture)
+                    vrow["decal"] = score_frames(EditState(bundle, atlas=edits["decal"]), gts["decal"])["psnr_object"]
+                rows.append(vrow)
+                log(f"[{name}/{layout} footprint {variant}] " + "  ".join(
+                    f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in vrow.items()
+                    if k not in ("scene", "layout", "footprint_variant")))
     return rows
+
+
+def footprint_variant(bundle, train, cfg, lambdas: str, kernel_texture: torch.Tensor) -> dict:
+    """Put the kernel texture back into bundle.atlas and refit it through the pixel filter with `lambdas` (one λ,
+    or candidates chosen from held-out views; empty: cfg.footprint_lambda). Returns the refit's info with seconds."""
+    import time
+
+    from core.atlas.footprint import refit_texture_footprint
+    from core.pipeline import footprint_views
+
+    with torch.no_grad():
+        bundle.atlas.textures.copy_(kernel_texture)
+    cands = dataclasses.replace(cfg, footprint_lambdas=lambdas).lambda_candidates()
+    t0 = time.perf_counter()
+    info = refit_texture_footprint(bundle.atlas, footprint_views(bundle.model, train),
+                                   lam=cands[0] if len(cands) == 1 else cfg.footprint_lambda,
+                                   iters=cfg.footprint_iters, lambdas=cands if len(cands) > 1 else None)
+    return {**info, "seconds": round(time.perf_counter() - t0, 2)}
 
 
 def markdown_rows(rows: list[dict]) -> str:
@@ -210,6 +259,8 @@ def markdown_rows(rows: list[dict]) -> str:
             "retexture / perfect atlas (gap) | decal |")
     out = [head, "|" + "---|" * 10]
     for r in rows:
+        if "footprint_variant" in r:  # --footprint-variants rows: in the JSON and the log only
+            continue
         scored = "atlas_colour" in r
         gap = r["retexture_perfect"] - r["retexture"] if scored else 0.0
         out.append(f"| {r['scene']} | {r['layout']} | {r['size']} | {r.get('islands') or '–'} | "
@@ -237,6 +288,8 @@ def main(argv=None) -> int:
     ap.add_argument("--work", help="per-scene mode: folder for the ground truth the scores need (test-view subsets, "
                     "Cycles renders); default: inside each scene folder")
     ap.add_argument("--no-scores", action="store_true", help="per-scene mode: layout figures only, no renders")
+    ap.add_argument("--footprint-variants", default="", help="per-scene mode: ';'-separated footprint refits to "
+                    "compare on the same maps (each a λ or comma-separated candidates; module doc)")
     ap.add_argument("--folds", action="store_true", help="per-scene mode: also the share of samples whose chart map "
                     "is reversed on the surface (core.atlas.fit.fold_report)")
     args, cfg = parse_with_config(ap, AtlasConfig, argv)  # AtlasConfig.threads: the fit and everything else
@@ -244,9 +297,12 @@ def main(argv=None) -> int:
         from tools.machine import machine_info
 
         machine = machine_info()
+        variants = [v.strip() for v in args.footprint_variants.split(";") if v.strip()]
+        for v in variants:  # a bad list fails before any fit
+            dataclasses.replace(cfg, footprint_lambdas=v).lambda_candidates()
         rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
                           only=[x for x in args.scenes.split(",") if x], scores=not args.no_scores,
-                          folds=args.folds, work=args.work)
+                          folds=args.folds, work=args.work, footprint_variants=variants)
         print(markdown_rows(rows))
         print(f"machine: {machine}")
         rows = [dict(r, machine=machine) for r in rows]
