@@ -36,10 +36,11 @@ class AtlasConfig:
     footprint: bool = opt(True, "then refit the texture so that pixel-filtered lookups (2x2 points per pixel, "
                                 "as edited frames render) reproduce the training pixels (needs the stage-1 model)")
     footprint_lambda: float = opt(1.0, "footprint refit: pull towards the kernel texture (relative to the data "
-                                       "term), when footprint_lambdas does not choose it", min=0.0)
-    footprint_lambdas: str = opt("", "footprint refit: candidate pulls, comma-separated (e.g. 0.25,1,4,16,64); the "
-                                     "one whose fit on the other training views renders every 4th view best is "
-                                     "used (empty: footprint_lambda)")
+                                       "term), when footprint_lambdas is empty or cannot choose (fewer than 4 "
+                                       "training views)", min=0.0)
+    footprint_lambdas: str = opt("1,4,16,64", "footprint refit: candidate pulls, comma-separated; the one whose fit "
+                                              "on the other training views renders every 4th view best is used (one: "
+                                              "that λ; empty: footprint_lambda; docs/atlas.md)")
     footprint_iters: int = opt(100, "footprint refit: at most this many conjugate-gradient iterations (fewer once "
                                     "converged)", min=0)
     texture_steps: int = opt(300, "descent texture: refinement steps after the maps converge (maps frozen)", min=0)

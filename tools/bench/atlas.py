@@ -246,9 +246,8 @@ def footprint_variant(bundle, train, cfg, lambdas: str, kernel_texture: torch.Te
         bundle.atlas.textures.copy_(kernel_texture)
     cands = dataclasses.replace(cfg, footprint_lambdas=lambdas).lambda_candidates()
     t0 = time.perf_counter()
-    info = refit_texture_footprint(bundle.atlas, footprint_views(bundle.model, train),
-                                   lam=cands[0] if len(cands) == 1 else cfg.footprint_lambda,
-                                   iters=cfg.footprint_iters, lambdas=cands if len(cands) > 1 else None)
+    info = refit_texture_footprint(bundle.atlas, footprint_views(bundle.model, train), lam=cfg.footprint_lambda,
+                                   iters=cfg.footprint_iters, lambdas=cands)
     return {**info, "seconds": round(time.perf_counter() - t0, 2)}
 
 

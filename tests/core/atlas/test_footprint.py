@@ -158,6 +158,10 @@ def test_refit_reports_the_lambda_it_used():
     assert info["lambda"] in (0.5, 8.0) and set(info["holdout_psnr"]) == {"0.5", "8"}
     info = refit_texture_footprint(atlas, [view] * 4, sub, lam=2.0, lambdas=[])
     assert info["lambda"] == 2.0 and "holdout_psnr" not in info
+    info = refit_texture_footprint(atlas, [view] * 4, sub, lam=2.0, lambdas=[25.0])  # one candidate: that λ
+    assert info["lambda"] == 25.0 and "holdout_psnr" not in info
+    info = refit_texture_footprint(atlas, [view] * 3, sub, lam=2.0, lambdas=[0.5, 8.0])  # too few views to choose
+    assert info["lambda"] == 2.0 and "holdout_psnr" not in info
     assert torch.isfinite(atlas.textures).all()
 
 
