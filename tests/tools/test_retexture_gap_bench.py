@@ -41,7 +41,7 @@ def test_lookup_stats_place_the_lookups_without_a_surface_point():
     atlas = bundle.atlas
     spacing = float(bundle.meta["atlas_fit"]["spacing"])
     st = lookup_stats(bundle, test, spacing)
-    for k in ("no_point", "far", "off_island", "no_point_other_chart"):
+    for k in ("no_point", "far", "off_island", "no_point_other_chart", "bad_other_chart_near"):
         assert 0.0 <= st[k] <= 1.0, (k, st)
     assert st["off_island"] == 0.0                       # grid layout: no islands, no padding between them
     saved = atlas.texel_xyz.clone()
@@ -51,5 +51,6 @@ def test_lookup_stats_place_the_lookups_without_a_surface_point():
     finally:
         atlas.texel_xyz.copy_(saved)
     assert empty["no_point"] == 1.0 and empty["far"] == 0.0
+    assert empty["bad_other_chart_near"] == 0.0  # no texel holds a point: no other chart can help
     assert math.isfinite(empty["no_point_sample_dist"]) and empty["no_point_sample_dist"] < 5.0, empty
     assert empty["no_point_sample_texels"] < 5.0 and empty["no_point_other_chart"] < 0.5, empty

@@ -37,7 +37,10 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
     distance in sample spacings. Of the lookups without a point: the share outside every island (`off_island`, the
     padding; island layouts only), the share whose chart is not the chart of the stored surface sample nearest their
     (projected) point (`no_point_other_chart`), that sample's median distance in sample spacings
-    (`no_point_sample_dist`) and how many texels from the lookup it lands (`no_point_sample_texels`, median)."""
+    (`no_point_sample_dist`) and how many texels from the lookup it lands (`no_point_sample_texels`, median). Of the
+    lookups that are far or without a point, the share for which another chart's texel at that chart's
+    coordinates holds a surface point within 3 sample spacings (`bad_other_chart_near`: what choosing the chart
+    by the texel map instead of by the chart network could win back)."""
     from scipy.spatial import cKDTree
 
     from core.edits.correspondence import ray_canonical_points
@@ -49,7 +52,9 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
     island = atlas.layout.island_pixels if atlas.islands else None
     S = atlas.bake_samples
     tree = cKDTree(S.numpy()) if S is not None and len(S) else None
-    no_point, far, dists, total, off_island, other = 0, 0, [], 0, 0, 0
+    from core.atlas.packing import uv_to_pixel
+
+    no_point, far, dists, total, off_island, other, bad_alt = 0, 0, [], 0, 0, 0, 0
     near_d, near_t = [], []
     for i in range(gt.images.shape[0]):
         tr = trace_frame(bundle.model, gt.c2w[i], gt.height, gt.width, gt.focal)
@@ -74,6 +79,20 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
             near_d.append(torch.from_numpy(dn) / max(spacing, 1e-12))
             near_t.append((atlas.atlas_pixel_coords(near)[1] - pix[~ok]).norm(dim=-1).cpu())
         far += int((d > 3).sum())
+        bad = ~ok
+        bad[ok] = d > 3
+        if bool(bad.any()):  # the other charts' texels at those points
+            xb = x[bad]
+            probs, uv = atlas.chart_uv(xb)
+            chosen = probs.argmax(-1)
+            near = torch.zeros(len(xb), dtype=torch.bool, device=xb.device)
+            for k in range(probs.shape[1]):
+                ck = torch.full_like(chosen, k)
+                pk = uv_to_pixel(uv[:, k], ck, atlas.layout)
+                pt = tp[pk[:, 1].floor().long().clamp(0, H - 1), pk[:, 0].floor().long().clamp(0, W - 1)]
+                dk = (pt - xb).norm(dim=-1) / max(spacing, 1e-12)
+                near |= (chosen != k) & torch.isfinite(dk) & (dk <= 3)
+            bad_alt += int(near.sum())
         dists.append(d)
         total += int(x.shape[0])
     d = torch.cat(dists) if dists else torch.zeros(0)
@@ -81,7 +100,8 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
     return {"no_point": no_point / max(total, 1), "far": far / max(total, 1),
             "dist_median": float(d.median()) if d.numel() else float("nan"),
             "off_island": off_island / max(total, 1), "no_point_other_chart": other / max(no_point, 1),
-            "no_point_sample_dist": med(near_d), "no_point_sample_texels": med(near_t)}
+            "no_point_sample_dist": med(near_d), "no_point_sample_texels": med(near_t),
+            "bad_other_chart_near": bad_alt / max(no_point + far, 1)}
 
 
 def normal_ratio(atlas, max_samples: int = 3000) -> float:
