@@ -19,6 +19,7 @@ import torch
 from core.atlas.subpixel import subpixel_chart_uv
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import FILTER_WIDTH, blackman_harris_taps
+from core.images.metrics import psnr
 
 
 @dataclass
@@ -205,12 +206,6 @@ def _finish(sys_: _ReadTexels, y, t0, u0, u) -> tuple[torch.Tensor, dict]:
     return t, {"rmse_before": rmse(u0), "rmse_after": rmse(t[sys_.cols]), "pixels": int(y.shape[0])}
 
 
-def holdout_psnr(pred_linear: torch.Tensor, y_linear: torch.Tensor) -> float:
-    """PSNR (dB) in display colours of predicted against target pixels, both [P, 3] linear light."""
-    mse = (linear_to_srgb(pred_linear.clamp(0, 1)) - linear_to_srgb(y_linear.clamp(0, 1))).square().mean()
-    return float(-10.0 * torch.log10(mse.clamp_min(1e-12)))
-
-
 def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor, lambdas: list[float], iters: int = 100,
                             tol: float = 1e-3, holdout: int = 4, sys_: _ReadTexels | None = None
                             ) -> tuple[float | None, dict[float, float]]:
@@ -232,7 +227,8 @@ def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor, lambdas: 
     u = None
     for lam in sorted(set(float(x) for x in lambdas), reverse=True):
         u = sys_.solve(system.y, u0, lam, iters, tol, weight=fit, start=u)
-        scores[lam] = holdout_psnr(sys_.A(u.clamp(0, 1))[held], system.y[held])
+        scores[lam] = psnr(linear_to_srgb(sys_.A(u.clamp(0, 1))[held].clamp(0, 1)),
+                           linear_to_srgb(system.y[held].clamp(0, 1)))  # display colours
     best = max(scores, key=lambda k: (scores[k], k))  # ties: the stronger pull
     return best, scores
 

@@ -153,7 +153,7 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
     from core.bundle import load_bundle
     from core.frames.edited import EditConfig, EditState
     from core.images.dataset import load_split
-    from core.pipeline import fit_atlas_stage
+    from core.pipeline import fit_atlas_stage, footprint_views
     from tools.eval_edits import edited_atlases, ground_truth, score_frames, view_subset_dir
     from tools.scenes.library import scene_names
     from tools.scenes.poses import load_scene_spec
@@ -180,7 +180,8 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                 hist = fit_atlas_stage(bundle, train, dataclasses.replace(cfg, layout=layout, footprint=False),
                                        show_progress=False)
                 kernel_texture = bundle.atlas.textures.detach().clone()
-                hist["footprint"] = (footprint_variant(bundle, train, cfg, cfg.footprint_lambdas, kernel_texture)
+                fp_views = footprint_views(bundle.model, train)  # traced once, refitted through per variant
+                hist["footprint"] = (footprint_variant(bundle, fp_views, cfg, cfg.footprint_lambdas, kernel_texture)
                                      if cfg.footprint else {})
             else:
                 hist = fit_atlas_stage(bundle, train, dataclasses.replace(cfg, layout=layout), show_progress=False)
@@ -216,7 +217,7 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
             log(f"[{name}/{layout}] " + "  ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
                                                   for k, v in row.items() if k not in ("scene", "layout")))
             for variant in footprint_variants or []:
-                info = footprint_variant(bundle, train, cfg, variant, kernel_texture)
+                info = footprint_variant(bundle, fp_views, cfg, variant, kernel_texture)
                 vrow = {**{k: row[k] for k in ("scene", "layout", "size", "utilisation")},
                         "footprint_variant": variant, "footprint_lambda": info.get("lambda", float("nan")),
                         "footprint_seconds": info["seconds"]}
@@ -234,20 +235,20 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
     return rows
 
 
-def footprint_variant(bundle, train, cfg, lambdas: str, kernel_texture: torch.Tensor) -> dict:
-    """Put the kernel texture back into bundle.atlas and refit it through the pixel filter with `lambdas` (one λ,
-    or candidates chosen from held-out views; empty: cfg.footprint_lambda). Returns the refit's info with seconds."""
+def footprint_variant(bundle, views, cfg, lambdas: str, kernel_texture: torch.Tensor) -> dict:
+    """Put the kernel texture back into bundle.atlas and refit it through the pixel filter on `views`
+    (`core.pipeline.footprint_views`) with `lambdas` (one λ, or candidates chosen from held-out views; empty:
+    cfg.footprint_lambda). Returns the refit's info with seconds (the views' tracing not included)."""
     import time
 
     from core.atlas.footprint import refit_texture_footprint
-    from core.pipeline import footprint_views
 
     with torch.no_grad():
         bundle.atlas.textures.copy_(kernel_texture)
     cands = dataclasses.replace(cfg, footprint_lambdas=lambdas).lambda_candidates()
     t0 = time.perf_counter()
-    info = refit_texture_footprint(bundle.atlas, footprint_views(bundle.model, train), lam=cfg.footprint_lambda,
-                                   iters=cfg.footprint_iters, lambdas=cands)
+    info = refit_texture_footprint(bundle.atlas, views, lam=cfg.footprint_lambda, iters=cfg.footprint_iters,
+                                   lambdas=cands)
     return {**info, "seconds": round(time.perf_counter() - t0, 2)}
 
 

@@ -43,6 +43,7 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
     by the texel map instead of by the chart network could win back)."""
     from scipy.spatial import cKDTree
 
+    from core.atlas.packing import uv_to_pixel
     from core.edits.correspondence import ray_canonical_points
     from core.points.render import trace_frame
 
@@ -52,7 +53,9 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
     island = atlas.layout.island_pixels if atlas.islands else None
     S = atlas.bake_samples
     tree = cKDTree(S.numpy()) if S is not None and len(S) else None
-    from core.atlas.packing import uv_to_pixel
+
+    def cell(pix):  # continuous (col, row) -> the texel's (row, col)
+        return pix[:, 1].floor().long().clamp(0, H - 1), pix[:, 0].floor().long().clamp(0, W - 1)
 
     no_point, far, dists, total, off_island, other, bad_alt = 0, 0, [], 0, 0, 0, 0
     near_d, near_t = [], []
@@ -62,9 +65,10 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
         if not bool(hit.any()):
             continue
         x = ray_canonical_points(tr)[hit]
-        _, pix = atlas.atlas_pixel_coords(x)
-        c = pix[:, 0].floor().long().clamp(0, W - 1)
-        r = pix[:, 1].floor().long().clamp(0, H - 1)
+        probs, uv = atlas.chart_uv(x)  # as atlas_pixel_coords: the most probable chart's pixel
+        chart = probs.argmax(-1)
+        pix = uv_to_pixel(uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0], chart, atlas.layout)
+        r, c = cell(pix)
         p = tp[r, c]
         ok = torch.isfinite(p).all(-1)
         d = (p[ok] - x[ok]).norm(dim=-1) / max(spacing, 1e-12)
@@ -75,23 +79,20 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
             xs = atlas.on_surface(x[~ok])
             dn, j = tree.query(xs.cpu().numpy(), k=1)
             near = S[torch.from_numpy(j)].to(xs.device)
-            other += int((atlas.chart_uv(x[~ok])[0].argmax(-1) != atlas.chart_uv(near)[0].argmax(-1)).sum())
+            near_chart, near_pix = atlas.atlas_pixel_coords(near)
+            other += int((chart[~ok] != near_chart).sum())
             near_d.append(torch.from_numpy(dn) / max(spacing, 1e-12))
-            near_t.append((atlas.atlas_pixel_coords(near)[1] - pix[~ok]).norm(dim=-1).cpu())
+            near_t.append((near_pix - pix[~ok]).norm(dim=-1).cpu())
         far += int((d > 3).sum())
         bad = ~ok
         bad[ok] = d > 3
         if bool(bad.any()):  # the other charts' texels at those points
-            xb = x[bad]
-            probs, uv = atlas.chart_uv(xb)
-            chosen = probs.argmax(-1)
-            near = torch.zeros(len(xb), dtype=torch.bool, device=xb.device)
+            near = torch.zeros(int(bad.sum()), dtype=torch.bool, device=x.device)
             for k in range(probs.shape[1]):
-                ck = torch.full_like(chosen, k)
-                pk = uv_to_pixel(uv[:, k], ck, atlas.layout)
-                pt = tp[pk[:, 1].floor().long().clamp(0, H - 1), pk[:, 0].floor().long().clamp(0, W - 1)]
-                dk = (pt - xb).norm(dim=-1) / max(spacing, 1e-12)
-                near |= (chosen != k) & torch.isfinite(dk) & (dk <= 3)
+                ck = torch.full_like(chart[bad], k)
+                pt = tp[cell(uv_to_pixel(uv[bad, k], ck, atlas.layout))]
+                dk = (pt - x[bad]).norm(dim=-1) / max(spacing, 1e-12)
+                near |= (chart[bad] != k) & torch.isfinite(dk) & (dk <= 3)
             bad_alt += int(near.sum())
         dists.append(d)
         total += int(x.shape[0])
