@@ -59,7 +59,11 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     """Triangle mesh of the texel map. texel_points [H, W, 3] (NaN = no surface), charts of R x R texels in cells
     of R + 2 pad. Returns vertices [V, 3] float32 (the texels' points), triangles [F, 3] int32 and the uv of every
     triangle corner [F, 3, 2] float32 (texel centres; v = 0 at the image's bottom row, Blender's convention).
-    Squares with an edge longer than `max_edge` times the median edge are skipped. Cracks are then closed where the
+    Squares with an edge longer than `max_edge` times the median edge are skipped. In an island atlas (one cell,
+    pad 0) a square is whole only when every texel along its sides is on the surface, and the squares an island's
+    border crosses are cut at the border (`_border_triangles`), so each island's mesh reaches its border and the
+    seams between islands are narrow enough to weld; the step grows when that overruns the face budget. Cracks are
+    then closed where the
     surface goes on: with `close` > 0, holes and notches of a grid chart's texel mask narrower than about
     2 `close` sampling steps get surface points interpolated from their neighbours first (`close_texel_map`);
     chart pieces are welded along their seams (`stitch_charts`, `stitch` times the median edge as the tolerance;
@@ -79,30 +83,18 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
         tp = close_texel_map(tp, cell, int(close) * step)
         valid = np.isfinite(tp).all(-1)
         step = max(step, math.ceil(math.sqrt(2.0 * int(valid.sum()) / budget)))
-    offs = np.arange(0, R, step)
-    rows = (np.arange(H // cell)[:, None] * cell + pad + offs[None]).reshape(-1)
-    cols = (np.arange(W // cell)[:, None] * cell + pad + offs[None]).reshape(-1)
-    P = tp[rows][:, cols]                                        # [nr, nc, 3]
-    ok = valid[rows][:, cols]
-    same_r = (rows[:-1] // cell) == (rows[1:] // cell)
-    same_c = (cols[:-1] // cell) == (cols[1:] // cell)
-    quad = ok[:-1, :-1] & ok[1:, :-1] & ok[:-1, 1:] & ok[1:, 1:] & same_r[:, None] & same_c[None, :]
-    a, b, c, d = P[:-1, :-1], P[1:, :-1], P[1:, 1:], P[:-1, 1:]  # corners (i, j), (i+1, j), (i+1, j+1), (i, j+1)
-    with np.errstate(invalid="ignore"):
-        edges = np.stack([np.linalg.norm(b - a, axis=-1), np.linalg.norm(c - b, axis=-1),
-                          np.linalg.norm(d - c, axis=-1), np.linalg.norm(a - d, axis=-1)], -1)
-    if not quad.any():
-        raise InputError("the texel map holds no surface patch of 2 x 2 samples; too sparse for a proxy mesh")
-    med = float(np.median(edges[quad]))
-    quad &= (edges.max(-1) <= max_edge * max(med, 1e-12))
-    qi, qj = np.nonzero(quad)
-    corners = np.stack([np.stack([qi, qj], -1), np.stack([qi + 1, qj], -1), np.stack([qi + 1, qj + 1], -1),
-                        np.stack([qi, qj + 1], -1)], 1)               # [Q, 4, 2] sample-grid indices
-    flat = corners[..., 0] * len(cols) + corners[..., 1]           # [Q, 4]
-    used, inverse = np.unique(flat.reshape(-1), return_inverse=True)
-    ids = inverse.reshape(-1, 4).astype(np.int32)
-    tris = np.concatenate([ids[:, [0, 1, 2]], ids[:, [0, 2, 3]]]).astype(np.int32)
-    gr, gc = rows[used // len(cols)], cols[used % len(cols)]
+    key_tris, med = _sample_faces(tp, valid, R, pad, cell, step, grid, max_edge)
+    for _ in range(16):  # an island atlas's border triangles can overrun the budget: then a coarser step
+        if grid or len(key_tris) <= budget:
+            break
+        step = max(step + 1, math.ceil(step * math.sqrt(len(key_tris) / budget)))
+        try:
+            key_tris, med = _sample_faces(tp, valid, R, pad, cell, step, grid, max_edge)
+        except InputError:  # too coarse for any whole square: keep the finer mesh
+            break
+    used, inverse = np.unique(key_tris.reshape(-1), return_inverse=True)
+    tris = inverse.reshape(-1, 3).astype(np.int32)
+    gr, gc = used // W, used % W
     verts = tp[gr, gc].astype(np.float32)
     uv = np.stack([(gc + 0.5) / W, 1.0 - (gr + 0.5) / H], -1).astype(np.float32)
     corner_uv = uv[tris]
@@ -117,6 +109,120 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     if fill > 0:
         verts, tris, corner_uv = fill_holes(verts, tris, corner_uv, face_chart, int(fill), fill * med)
     return verts, tris, corner_uv
+
+
+def _sample_faces(tp: np.ndarray, valid: np.ndarray, R: int, pad: int, cell: int, step: int, grid: bool,
+                  max_edge: float) -> tuple[np.ndarray, float]:
+    """Triangles [F, 3] (texel keys r * W + c) of the texels sampled every `step` texels in every chart cell, and
+    the median edge of the whole squares. Two triangles per square whose four corners are on the surface and whose
+    edges are at most `max_edge` median edges long (grid layout: inside one chart cell; island layout: with every
+    texel along its sides on the surface, and the squares an island's border crosses cut at it)."""
+    H, W = valid.shape
+    offs = np.arange(0, R, step)
+    rows = (np.arange(H // cell)[:, None] * cell + pad + offs[None]).reshape(-1)
+    cols = (np.arange(W // cell)[:, None] * cell + pad + offs[None]).reshape(-1)
+    P = tp[rows][:, cols]                                        # [nr, nc, 3]
+    ok = valid[rows][:, cols]
+    same_r = (rows[:-1] // cell) == (rows[1:] // cell)
+    same_c = (cols[:-1] // cell) == (cols[1:] // cell)
+    quad = ok[:-1, :-1] & ok[1:, :-1] & ok[:-1, 1:] & ok[1:, 1:] & same_r[:, None] & same_c[None, :]
+    if not grid:
+        h_full, v_full = _full_sides(valid, rows, cols)
+        quad &= h_full[:-1] & h_full[1:] & v_full[:, :-1] & v_full[:, 1:]
+    a, b, c, d = P[:-1, :-1], P[1:, :-1], P[1:, 1:], P[:-1, 1:]  # corners (i, j), (i+1, j), (i+1, j+1), (i, j+1)
+    with np.errstate(invalid="ignore"):
+        edges = np.stack([np.linalg.norm(b - a, axis=-1), np.linalg.norm(c - b, axis=-1),
+                          np.linalg.norm(d - c, axis=-1), np.linalg.norm(a - d, axis=-1)], -1)
+    if not quad.any():
+        raise InputError("the texel map holds no surface patch of 2 x 2 samples; too sparse for a proxy mesh")
+    med = float(np.median(edges[quad]))
+    quad &= (edges.max(-1) <= max_edge * max(med, 1e-12))
+    qi, qj = np.nonzero(quad)
+    corners = np.stack([np.stack([qi, qj], -1), np.stack([qi + 1, qj], -1), np.stack([qi + 1, qj + 1], -1),
+                        np.stack([qi, qj + 1], -1)], 1)               # [Q, 4, 2] sample-grid indices
+    key = rows[corners[..., 0]].astype(np.int64) * W + cols[corners[..., 1]]   # [Q, 4] texel keys r * W + c
+    key_tris = np.concatenate([key[:, [0, 1, 2]], key[:, [0, 2, 3]]])
+    if not grid:  # island atlas: the squares an island's border crosses, cut at the border
+        bt = _border_triangles(valid, rows, cols, ~quad, h_full, v_full)
+        if len(bt):
+            with np.errstate(invalid="ignore"):
+                q = tp.reshape(-1, 3)[bt]                                 # [T, 3, 3]
+                longest = np.linalg.norm(q - q[:, [1, 2, 0]], axis=-1).max(-1)
+            key_tris = np.concatenate([key_tris, bt[longest <= max_edge * max(med, 1e-12)]])
+    return key_tris, med
+
+
+def _full_sides(valid: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whether every texel along each side of the sampling grid is on the surface: horizontal sides [nr, nc - 1]
+    (row rows[i] from cols[j] to cols[j + 1]) and vertical sides [nr - 1, nc]. valid [H, W] bool."""
+    H, W = valid.shape
+    csr = np.concatenate([np.zeros((H, 1), np.int64), np.cumsum(valid, axis=1)], 1)   # [H, W + 1] run counts
+    csc = np.concatenate([np.zeros((1, W), np.int64), np.cumsum(valid, axis=0)], 0)   # [H + 1, W]
+    r, c = np.asarray(rows), np.asarray(cols)
+    h_full = (csr[r][:, c[1:] + 1] - csr[r][:, c[:-1]]) == (c[1:] - c[:-1] + 1)[None]
+    v_full = (csc[r[1:] + 1][:, c] - csc[r[:-1]][:, c]) == (r[1:] - r[:-1] + 1)[:, None]
+    return h_full, v_full
+
+
+def _border_triangles(valid: np.ndarray, rows: np.ndarray, cols: np.ndarray, open_square: np.ndarray,
+                      h_full: np.ndarray, v_full: np.ndarray) -> np.ndarray:
+    """Triangles [T, 3] (texel keys r * W + c) of the sampling squares that an island's border crosses, cut at the
+    border: the squares of the sampled rows x cols grid not meshed whole (`open_square` [nr - 1, nc - 1]) are walked
+    around their four corners; a side whose texels are not all on the surface ends, from each corner on the surface,
+    at the last texel of the run of surface texels that starts there, so the mesh reaches to within a texel of the
+    island's border instead of stopping up to a sampling step inside it. The walk is cut at every such side into
+    chains (corner and end texels in order around the square), each of at least three texels a fan of triangles.
+    Without this the islands' meshes stop short of their borders and their seams are too wide to weld.
+    valid [H, W] bool (texels on the surface); h_full, v_full: `_full_sides`."""
+    H, W = valid.shape
+    ok = valid[np.ix_(rows, cols)]
+
+    def run_end(p, q):
+        """The last surface texel of the straight run from texel p towards texel q (p on the surface)."""
+        (pr, pc), (qr, qc) = p, q
+        dr, dc = int(np.sign(qr - pr)), int(np.sign(qc - pc))
+        n = abs(qr - pr) + abs(qc - pc)
+        steps = np.arange(1, n + 1)
+        line = valid[pr + dr * steps, pc + dc * steps]                  # the texels after p, up to q
+        k = int(np.argmin(line)) if not line.all() else len(line)     # surface texels after p before a gap
+        return (pr + dr * k, pc + dc * k)
+
+    out = []
+    for i, j in zip(*np.nonzero(open_square & (ok[:-1, :-1] | ok[1:, :-1] | ok[1:, 1:] | ok[:-1, 1:]))):
+        cs = [(i, j), (i + 1, j), (i + 1, j + 1), (i, j + 1)]          # the same order as the whole squares
+        full = [bool(v_full[i, j]), bool(h_full[i + 1, j]), bool(v_full[i, j + 1]), bool(h_full[i, j])]
+        items: list = []
+        for k in range(4):
+            a, b = cs[k], cs[(k + 1) % 4]
+            ta, tb = (int(rows[a[0]]), int(cols[a[1]])), (int(rows[b[0]]), int(cols[b[1]]))
+            if ok[a]:
+                items.append(ta)
+            if not full[k]:
+                if ok[a]:
+                    items.append(run_end(ta, tb))
+                items.append(None)
+                if ok[b]:
+                    items.append(run_end(tb, ta))
+        if None not in items:
+            continue
+        s0 = items.index(None)
+        items = items[s0 + 1:] + items[:s0 + 1]
+        chain: list = []
+        for it in items:
+            if it is not None:
+                if not chain or chain[-1] != it:
+                    chain.append(it)
+                continue
+            if len(chain) >= 3:
+                keys = [tr * W + tc for tr, tc in chain]
+                out += [[keys[0], keys[m], keys[m + 1]] for m in range(1, len(keys) - 1)]
+            chain = []
+    if not out:
+        return np.zeros((0, 3), np.int64)
+    t = np.asarray(out, np.int64)
+    tr, tc = t // W, t % W
+    area = (tr[:, 1] - tr[:, 0]) * (tc[:, 2] - tc[:, 0]) - (tc[:, 1] - tc[:, 0]) * (tr[:, 2] - tr[:, 0])
+    return t[area != 0]                                                # no triangle flat in the atlas
 
 
 def close_texel_map(texel_points: np.ndarray, cell: int, k: int) -> np.ndarray:

@@ -160,3 +160,47 @@ def test_extreme_scales_give_the_same_mesh(scale):
     vs, ts, uvs = proxy_arrays(tp * np.float32(scale), R, pad, target_faces=100000)
     assert np.isfinite(vs).all() and np.array_equal(t, ts) and np.array_equal(uv, uvs)
     np.testing.assert_allclose(vs, v * scale, rtol=1e-4, atol=1e-6 * scale)
+
+
+def _island_map(h=0.1):
+    """An island atlas (one square cell of 40 texels, no padding of cells): one plane (x in [0, 2.6), y in
+    [0, 2)) cut at x = 1.3 into two islands placed 6 texels apart in the image — the left half at columns 2..14,
+    the right half at columns 21..34, rows 2..21 — NaN elsewhere."""
+    tp = np.full((40, 40, 3), np.nan, np.float32)
+    r, c = np.mgrid[0:40, 0:40].astype(np.float32)
+    left = (r >= 2) & (r <= 21) & (c >= 2) & (c <= 14)
+    right = (r >= 2) & (r <= 21) & (c >= 21) & (c <= 34)
+    tp[left] = np.stack([(c - 2) * h, (r - 2) * h, 0 * r], -1)[left]
+    tp[right] = np.stack([(c - 21 + 13) * h, (r - 2) * h, 0 * r], -1)[right]
+    return tp
+
+
+def test_island_meshes_reach_their_borders_and_weld_across_the_seam():
+    """Sampled every 5 texels, neither island's grid of samples reaches its border (the nearest sampled columns
+    are 4 texels inside both borders, so the seam between the meshes would be 1.8 steps wide): the squares the
+    borders cross are cut at the border, every border row and column carries vertices, the two islands weld into
+    one piece that covers the plane, manifold and within the face budget; each face's UVs stay in one island."""
+    from pointgt_blender.scene.proxy_mesh import mesh_components
+
+    tp = _island_map()
+    v0, t0, uv0 = proxy_arrays(tp, 40, 0, target_faces=80, stitch=0.0, fill=0)
+    v, t, uv = proxy_arrays(tp, 40, 0, target_faces=80, fill=0)
+    col = np.floor(uv[..., 0] * 40).astype(int)
+    row = np.floor((1.0 - uv[..., 1]) * 40).astype(int)
+    assert {2, 14, 21, 34} <= set(col.reshape(-1).tolist()) and {2, 21} <= set(row.reshape(-1).tolist())
+    assert len(np.unique(mesh_components(len(v0), t0))) == 2
+    assert len(np.unique(mesh_components(len(v), t)[np.unique(t)])) == 1
+    _, most = _boundary_edges(t)
+    assert most == 2 and 0 < len(t) <= 80 and np.isfinite(v).all()
+    area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1).sum()
+    assert 0.9 * 2.6 * 1.9 < area <= 2.6 * 1.9 + 1e-5  # rows 2..21 span 1.9
+    assert ((col.min(1) <= 14) == (col.max(1) <= 14)).all()  # no face's UVs span the two islands
+    np.testing.assert_array_equal(v0[t0], tp[np.floor((1.0 - uv0[..., 1]) * 40).astype(int),
+                                             np.floor(uv0[..., 0] * 40).astype(int)])  # corners on their texels
+
+
+def test_island_proxy_keeps_to_the_face_budget():
+    tp = _island_map(h=0.01)
+    for target in (40, 120, 400):
+        v, t, uv = proxy_arrays(tp, 40, 0, target_faces=target)
+        assert 0 < len(t) <= target and np.isfinite(v).all() and np.isfinite(uv).all()
