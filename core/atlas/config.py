@@ -59,10 +59,11 @@ class AtlasConfig:
     w_range: float = opt(1.0, "weight of the UV range hinge", min=0.0)
     w_distortion: float = opt(0.4, "weight of the normal-free distortion loss L_scaling + L_area", min=0.0)
     w_texture: float = opt(1.0, "weight of the colour MSE in the joint map + texture optimisation", min=0.0)
-    w_normal: float = opt(0.0, "weight of the normal-flatness loss: the texture coordinates' derivative along each "
+    w_normal: float = opt(0.5, "weight of the normal-flatness loss: the texture coordinates' derivative along each "
                                "sample's surface normal (PCA of its 256 neighbours), squared, in the frame where the "
                                "tangent derivatives are 1, so a texel holds one place of the samples' slab "
-                               "(0 = off; 0.5 measured in docs/atlas.md)", min=0.0)
+                               "(0 = off; the default 0.5 is measured across the scene library in docs/atlas.md)",
+                          min=0.0)
     mid_surface: bool = opt(False, "after the maps, project every point onto the samples' mid-surface (anchor planes "
                                    "from the PCA of mid_surface_neighbours samples) before the chart networks — for "
                                    "the texture, the texel map, baking and every lookup alike — so a point's place "
@@ -92,9 +93,9 @@ class AtlasConfig:
                            min=0, max=MAX_CHART_RES)
     pad: int = opt(4, "grid layout: padding texels around each chart square (edge-replicated, no bleeding)",
                    min=0, max=64)
-    layout: str = opt("grid", "packed image: islands (each chart cut to the region the surface uses, packed "
-                      "tightly, one chart per point; denser, but the Blender proxy rigs poorly on its separate "
-                      "pieces, docs/atlas.md) or grid (the paper's fixed chart squares)",
+    layout: str = opt("islands", "packed image: islands (each chart cut to the region the surface uses, packed "
+                      "tightly, one chart per point: several times the grid's texels on the surface and every "
+                      "texel's point maps back to it, docs/atlas.md) or grid (the paper's fixed chart squares)",
                       choices=("islands", "grid"))
     image_size: int = opt(0, "islands: side of the square atlas image in texels; 0 = chosen per scene from the "
                              "surface area and the training images' pixel footprint on it", min=0, max=MAX_CHART_RES)
@@ -122,7 +123,7 @@ class AtlasConfig:
     island_min_fill: float = opt(0.6, "islands (island_split > 0): an island longer than a quarter of that cut "
                                        "length that fills less of its bounding box than this (curved, hollow) is cut "
                                        "too", min=0.0, max=1.0)
-    island_sides: bool = opt(False, "islands: split every chart by side — the sign of its map's orientation against "
+    island_sides: bool = opt(True, "islands: split every chart by side — the sign of its map's orientation against "
                                     "the surface's normals given one side picks one of two sub-charts at each "
                                     "point, for baking and lookups alike — so a chart that lays two sides of a part "
                                     "over each other gives each side its own islands (docs/atlas.md)")

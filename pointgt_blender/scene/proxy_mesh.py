@@ -98,6 +98,8 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     verts = tp[gr, gc].astype(np.float32)
     uv = np.stack([(gc + 0.5) / W, 1.0 - (gr + 0.5) / H], -1).astype(np.float32)
     corner_uv = uv[tris]
+    if not grid:  # texels that share a surface point (the nearest-sample fallback of the island texel map)
+        verts, tris, corner_uv, gr, gc = _merge_coincident(verts, tris, corner_uv, gr, gc, 1e-5 * med)
     # grid layout: the chart square a texel lies in; island layout (one cell): the connected piece
     chart = (gr // cell) * (W // cell) + gc // cell if grid else mesh_components(len(verts), tris)
     face_chart = chart[tris[:, 0]]
@@ -150,6 +152,40 @@ def _sample_faces(tp: np.ndarray, valid: np.ndarray, R: int, pad: int, cell: int
                 longest = np.linalg.norm(q - q[:, [1, 2, 0]], axis=-1).max(-1)
             key_tris = np.concatenate([key_tris, bt[longest <= max_edge * max(med, 1e-12)]])
     return key_tris, med
+
+
+def _merge_coincident(verts: np.ndarray, tris: np.ndarray, corner_uv: np.ndarray, gr: np.ndarray, gc: np.ndarray,
+                      tol: float):
+    """Vertices [V, 3] at the same point merged into one (Surface Deform refuses a target with overlapping
+    vertices); triangles [F, 3] that then lose a corner, repeat another triangle, have an edge shorter than `tol`
+    or a height under `tol` (flat), or are a third triangle on an edge are dropped, with their corner UVs [F, 3, 2]; unused vertices go (gr, gc
+    [V]: their texels, kept alongside). Returns (verts, tris, corner_uv, gr, gc)."""
+    _, first, inv = np.unique(verts, axis=0, return_index=True, return_inverse=True)
+    t = first[inv.reshape(-1)][tris] if len(first) < len(verts) else tris.copy()
+    with np.errstate(invalid="ignore"):
+        side = np.linalg.norm(verts[t] - verts[t[:, [1, 2, 0]]], axis=-1)              # [F, 3]
+        twice_area = np.linalg.norm(np.cross(verts[t[:, 1]] - verts[t[:, 0]], verts[t[:, 2]] - verts[t[:, 0]]), axis=1)
+        short = (side.min(1) <= tol) | (twice_area <= tol * side.max(1))              # coincident or flat corners
+    keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0]) & ~short
+    _, once = np.unique(np.sort(t, axis=1), axis=0, return_index=True)
+    keep &= np.isin(np.arange(len(t)), once)
+    if keep.all() and len(first) == len(verts):
+        return verts, tris, corner_uv, gr, gc
+    idx = np.nonzero(keep)[0]
+    e = np.sort(np.concatenate([t[idx][:, [0, 1]], t[idx][:, [1, 2]], t[idx][:, [2, 0]]]), axis=1)
+    _, e_inv = np.unique(e, axis=0, return_inverse=True)
+    e_inv = e_inv.reshape(3, -1)
+    seen = np.zeros(int(e_inv.max()) + 1 if e_inv.size else 0, np.int64)
+    ok = np.ones(len(idx), bool)
+    for k in range(len(idx)):  # in order: a triangle that would be the third on an edge is dropped
+        es = e_inv[:, k]
+        if (seen[es] >= 2).any():
+            ok[k] = False
+        else:
+            seen[es] += 1
+    idx = idx[ok]
+    used, new = np.unique(t[idx].reshape(-1), return_inverse=True)
+    return (verts[used], new.reshape(-1, 3).astype(np.int32), corner_uv[idx], gr[used], gc[used])
 
 
 def _full_sides(valid: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -204,3 +204,21 @@ def test_island_proxy_keeps_to_the_face_budget():
     for target in (40, 120, 400):
         v, t, uv = proxy_arrays(tp, 40, 0, target_faces=target)
         assert 0 < len(t) <= target and np.isfinite(v).all() and np.isfinite(uv).all()
+
+
+def test_island_texels_that_share_a_point_give_no_overlapping_vertices():
+    """The island texel map's nearest-sample fallback gives texels the same surface point (here the left island's
+    border column repeats a sampled column inside it, and a border texel of the right island one of the left): Surface Deform refuses a target with overlapping vertices, so the proxy has none, and no triangle
+    with coincident or collinear corners; it stays manifold and one piece."""
+    from pointgt_blender.scene.proxy_mesh import mesh_components
+
+    tp = _island_map()
+    tp[2:22, 14] = tp[2:22, 10]
+    tp[10, 21] = tp[10, 10]
+    v, t, uv = proxy_arrays(tp, 40, 0, target_faces=80, fill=0)
+    assert len(np.unique(v, axis=0)) == len(v)
+    side = np.linalg.norm(v[t] - v[t[:, [1, 2, 0]]], axis=-1)
+    twice_area = np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+    assert side.min() > 0 and (twice_area > 1e-6 * side.max(1)).all()
+    _, most = _boundary_edges(t)
+    assert most == 2 and len(np.unique(mesh_components(len(v), t)[np.unique(t)])) == 1

@@ -240,13 +240,15 @@ ATLAS_CASES = {
         m["atlas"].update(version=4, surface={"bandwidth": "wide", "k": 8})),
     # charts split by side (version 5) without their arrays, with a majority that is not +-1, a step that is not
     # positive, or on a grid layout
-    "atlas_sides_missing": lambda a, m: m["atlas"].update(version=5, sides=dict(_SIDES)),
+    "atlas_sides_missing": lambda a, m: (
+        [a.pop(k) for k in [k for k in a if k.startswith("atlas/sides/")]],
+        m["atlas"].update(version=5, sides=dict(_SIDES))),
     "atlas_sides_bad_majority": lambda a, m: (
         a.update(_sides_arrays(m, 0.5)), m["atlas"].update(version=5, sides=dict(_SIDES))),
     "atlas_sides_bad_step": lambda a, m: (
         a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, sides=dict(_SIDES, step=-1.0))),
     "atlas_sides_on_grid": lambda a, m: (
-        a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, sides=dict(_SIDES))),
+        a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, layout="grid", sides=dict(_SIDES))),
 }
 # load_bundle prefixes the atlas's own ModelFileError with the model file's path.
 

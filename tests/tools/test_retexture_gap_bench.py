@@ -29,7 +29,7 @@ def test_normal_ratio_reads_the_slope_across_the_slab(a, b):
 
 
 def test_lookup_stats_place_the_lookups_without_a_surface_point():
-    """On a tiny card model: shares lie in [0, 1]; a grid atlas has no island padding to land in; with the texel map
+    """On a tiny card model: shares lie in [0, 1]; a lookup in the padding between islands is one without a point; with the texel map
     emptied every lookup is one without a point, and the stored sample nearest each lies near it and lands within a
     few texels of it through the same chart."""
     import math
@@ -43,7 +43,8 @@ def test_lookup_stats_place_the_lookups_without_a_surface_point():
     st = lookup_stats(bundle, test, spacing)
     for k in ("no_point", "far", "off_island", "no_point_other_chart", "bad_other_chart_near"):
         assert 0.0 <= st[k] <= 1.0, (k, st)
-    assert st["off_island"] == 0.0                       # grid layout: no islands, no padding between them
+    # padding texels hold no point: a lookup off every island is one without a point (a grid atlas has none)
+    assert st["off_island"] <= st["no_point"] and (atlas.islands or st["off_island"] == 0.0)
     saved = atlas.texel_xyz.clone()
     try:
         atlas.texel_xyz.fill_(float("nan"))
