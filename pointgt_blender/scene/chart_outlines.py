@@ -14,7 +14,7 @@ from core.util.errors import ModelFileError
 
 from .state import STATE
 
-KEYS = ("atlas/islands/cells", "atlas/islands/offset", "atlas/texel_points")
+KEYS = ("atlas/islands/cells", "atlas/islands/offset", "atlas/islands/orient", "atlas/texel_points")
 
 
 def read_outlines(path: str) -> np.ndarray:

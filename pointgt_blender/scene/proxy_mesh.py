@@ -23,6 +23,10 @@ from core.modelfile.pgt import PgtFile
 from core.util.errors import InputError, ModelFileError
 
 TEXELS = "atlas/texel_points"
+SMALL_PIECE = 0.02  # island atlases: a piece with fewer than this share of the faces is welded more eagerly
+# island atlases: the weld tolerance is this many times `stitch` (the vertices on two sides of a seam between islands
+# lie on each island's own sampling lines, up to about two median edges apart: the test card's cracks are 1.7-1.8)
+ISLAND_STITCH = 4.0 / 3.0
 
 
 def read_texel_map(path: str) -> tuple[np.ndarray, int, int]:
@@ -62,9 +66,9 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     Squares with an edge longer than `max_edge` times the median edge are skipped. In an island atlas (one cell,
     pad 0) a square is whole only when every texel along its sides is on the surface, and the squares an island's
     border crosses are cut at the border (`_border_triangles`), so each island's mesh reaches its border and the
-    seams between islands are narrow enough to weld; the step grows when that overruns the face budget. Cracks are
-    then closed where the
-    surface goes on: with `close` > 0, holes and notches of a grid chart's texel mask narrower than about
+    seams between islands are narrow enough to weld (at ISLAND_STITCH times the tolerance); the step grows when
+    that overruns the face budget; a piece with fewer than SMALL_PIECE of the faces still apart after welding is
+    welded to the others at twice the tolerance. Cracks are then closed where the surface goes on: with `close` > 0, holes and notches of a grid chart's texel mask narrower than about
     2 `close` sampling steps get surface points interpolated from their neighbours first (`close_texel_map`);
     chart pieces are welded along their seams (`stitch_charts`, `stitch` times the median edge as the tolerance;
     0: not welded); holes left with at most `fill` edges and a perimeter of at most `fill` median edges are
@@ -104,7 +108,14 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     chart = (gr // cell) * (W // cell) + gc // cell if grid else mesh_components(len(verts), tris)
     face_chart = chart[tris[:, 0]]
     if stitch > 0:
-        verts, tris = stitch_charts(verts, tris, chart, stitch * med)
+        tol = stitch * med * (1.0 if grid else ISLAND_STITCH)
+        verts, tris = stitch_charts(verts, tris, chart, tol)
+        if not grid:  # small pieces still apart (an island's fragment): welded to the rest at twice the tolerance
+            comp = mesh_components(len(verts), tris)
+            faces = np.bincount(comp[tris[:, 0]], minlength=len(verts))[comp]
+            small = faces < SMALL_PIECE * len(tris)
+            if small[tris[:, 0]].any() and not small[tris[:, 0]].all():
+                verts, tris = stitch_charts(verts, tris, np.where(small, comp, -1), 2.0 * tol)
     flip = orient_faces(tris, verts)
     tris[flip] = tris[flip][:, [0, 2, 1]]
     corner_uv[flip] = corner_uv[flip][:, [0, 2, 1]]

@@ -4,9 +4,8 @@ Presets (seconds each on one CPU thread; quality is low but real, trained rather
 - "card": 1000 points, 40² views, 12 train / 4 test — the edit, pipeline and evaluation tests;
 - "fast": 600 points, small networks and atlas, 32² views, 8 train / 2 test — the stability suite and the point
   renderer's tests (they check finiteness and ranges, not picture quality);
-- "addon": the "fast" networks trained longer on the 8 train views alone (without ray jitter), with a finer grid
-  atlas — the add-on tests, which save it to a file Blender opens (`save_tiny`); "addon_islands" the same with the
-  default island atlas.
+- "addon": the "fast" networks trained longer on the 8 train views alone (without ray jitter), with a finer atlas
+  — the add-on tests, which save it to a file Blender opens (`save_tiny`).
 
 `fit_tiny(preset, train, test)` fits the preset on given splits (a loaded capture).
 `tiny_bundle(preset, ...)` is cached per process: treat the result as read-only. `model_config(preset, **changes)`
@@ -56,17 +55,10 @@ PRESETS = {
     # the add-on's card: ray jitter pinned off. The add-on tests' spots, pieces and drifts are hand-checked on this
     # model's points through the surface proxy; trained with the default jitter (equal quality: 23.50 against
     # 23.53 dB on 8 held-out views) the proxy comes out with more open edges and a painted spot misses the frame
-    # its atlas is the paper's grid: the spots, outlines and pieces those tests check are the grid's
     "addon": Preset(32, 8, 0, model=_SMALL_NETS,
                     train=dict(steps=300, patches=1, patch_size=32, eval_views=1, ray_jitter=0.0),
                     atlas=dict(steps=600, texture_steps=100, texture_res=32, width_map=64, width_chart=16,
-                               depth_map=3, depth_chart=2, layout="grid", island_sides=False, w_normal=0.0)),
-    # the same card with the default atlas (islands split by side, the normal-flatness term): the proxy's rig and
-    # paint on an island atlas (test_addon_pose90.py)
-    "addon_islands": Preset(32, 8, 0, model=_SMALL_NETS,
-                            train=dict(steps=300, patches=1, patch_size=32, eval_views=1, ray_jitter=0.0),
-                            atlas=dict(steps=600, texture_steps=100, texture_res=32, width_map=64, width_chart=16,
-                                       depth_map=3, depth_chart=2)),
+                               depth_map=3, depth_chart=2)),
 }
 _TRAIN = dict(eval_every=1e9, device="cpu", prune_every=0, clone_every=0, reg_start=0.3, seed=0)
 _ATLAS = dict(charts="4", device="cpu")

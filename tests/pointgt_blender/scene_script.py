@@ -295,12 +295,22 @@ def _():
     finally:
         area.type = old_type
         bpy.data.images.remove(other)
-    # geometry: every unit edge of every segment separates two different charts (or a chart and no surface)
-    tex, R, pad = mod("scene.proxy_mesh").read_texel_map(mod("scene.scene_inputs").model_file(o))
+    # geometry: every unit edge of every segment separates two different charts (or a chart and no surface); the
+    # charts of an island atlas are its islands (the cells its island arrays place), of a grid its chart squares
+    path = mod("scene.scene_inputs").model_file(o)
+    tex, R, pad = mod("scene.proxy_mesh").read_texel_map(path)
     H, W = tex.shape[:2]
-    cell = R + 2 * pad
-    rows, cols = np.mgrid[0:H, 0:W]
-    lab = np.where(np.isfinite(tex).all(-1), (rows // cell) * (W // cell) + cols // cell, -1)
+    co = mod("scene.chart_outlines")
+    with co.PgtFile(path) as f:
+        arrays = {k: f.read(k) for k in ("atlas/islands/cells", "atlas/islands/offset", "atlas/islands/orient",
+                                          "atlas/texel_points") if k in f.names}
+        out["islands"] = f.meta["atlas"].get("layout") == "islands"
+    if out["islands"]:
+        lab = co.chart_labels(arrays, (H, W))
+    else:
+        cell = R + 2 * pad
+        rows, cols = np.mgrid[0:H, 0:W]
+        lab = np.where(np.isfinite(tex).all(-1), (rows // cell) * (W // cell) + cols // cell, -1)
     at = np.pad(lab, 1, constant_values=-1)  # at[r + 1, c + 1] = lab[r, c]; -1 outside the image
     px = np.stack([seg[..., 0] * W, (1.0 - seg[..., 1]) * H], -1)  # back to pixel corners, y down
     out["on_grid"] = bool(np.abs(px - np.round(px)).max() < 1e-3)

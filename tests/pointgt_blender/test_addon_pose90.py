@@ -1,7 +1,6 @@
 """The issue's done-when pose: Automatic Weights on the surface proxy, the right bone turned up to 90 degrees,
 paint written through the proxy's UV map; where the paint lands in F12 against where the deformed proxy has it
-(pose90_script.py, one Blender subprocess with the tiny card model, once with a grid atlas and once with the
-default island atlas)."""
+(pose90_script.py, one Blender subprocess with the tiny card model)."""
 from __future__ import annotations
 
 import json
@@ -19,13 +18,11 @@ pytestmark = pytest.mark.blender
 HERE = Path(__file__).parent
 
 
-@pytest.fixture(scope="module", params=["addon", "addon_islands"])
-def record(tmp_path_factory, request):
-    """The run on the card with a grid atlas and with the default island atlas (whose proxy is welded from its
-    islands)."""
+@pytest.fixture(scope="module")
+def record(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("pose90")
     zip_path = build_addon(tmp / "dist")
-    model = save_tiny(tmp / "card.pgt", request.param)
+    model = save_tiny(tmp / "card.pgt", "addon")
     work = tmp / "work"
     work.mkdir()
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(tmp / "blender_user"), OMP_NUM_THREADS="1")
@@ -33,11 +30,11 @@ def record(tmp_path_factory, request):
                            str(work)], capture_output=True, text=True, env=env, timeout=600, cwd=tmp)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULTS: ")]
     assert lines, f"Blender script crashed (exit {proc.returncode}):\n{proc.stdout[-4000:]}\n{proc.stderr[-4000:]}"
-    if os.environ.get("POINTGT_DOC_IMAGES") and request.param == "addon":  # docs/addon.md shows these frames
-        from tests.pointgt_blender.test_addon_scene import _strip
+    if os.environ.get("POINTGT_DOC_IMAGES"):  # docs/addon.md shows these frames
+        from tests.helpers.blender import image_strip
 
-        _strip([work / f"pose{a}_deform_aware.png" for a in (0, 45, 90)],
-               Path(os.environ["POINTGT_DOC_IMAGES"]) / "addon_pose_0_45_90.png", scale=2)
+        image_strip([work / f"pose{a}_deform_aware.png" for a in (0, 45, 90)],
+                    Path(os.environ["POINTGT_DOC_IMAGES"]) / "addon_pose_0_45_90.png")
     return json.loads(lines[-1][len("RESULTS: "):])
 
 
