@@ -68,11 +68,11 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     border crosses are cut at the border (`_border_triangles`), so each island's mesh reaches its border and the
     seams between islands are narrow enough to weld (at ISLAND_STITCH times the tolerance); the step grows when
     that overruns the face budget; a piece with fewer than SMALL_PIECE of the faces still apart after welding is
-    welded to the others at twice the tolerance. Cracks are then closed where the surface goes on: with `close` > 0, holes and notches of a grid chart's texel mask narrower than about
-    2 `close` sampling steps get surface points interpolated from their neighbours first (`close_texel_map`);
-    chart pieces are welded along their seams (`stitch_charts`, `stitch` times the median edge as the tolerance;
-    0: not welded); holes left with at most `fill` edges and a perimeter of at most `fill` median edges are
-    filled (`fill_holes`; 0: not filled)."""
+    welded to the others at twice the tolerance. Cracks are then closed where the surface goes on: with `close` > 0,
+    holes and notches of a grid chart's texel mask narrower than about 2 `close` sampling steps get surface points
+    interpolated from their neighbours first (`close_texel_map`); chart pieces are welded along their seams
+    (`stitch_charts`, `stitch` times the median edge as the tolerance; 0: not welded); holes left with at most
+    `fill` edges and a perimeter of at most `fill` median edges are filled (`fill_holes`; 0: not filled)."""
     tp = np.asarray(texel_points, dtype=np.float32)
     H, W = tp.shape[:2]
     cell = R + 2 * pad
@@ -169,13 +169,15 @@ def _merge_coincident(verts: np.ndarray, tris: np.ndarray, corner_uv: np.ndarray
                       tol: float):
     """Vertices [V, 3] at the same point merged into one (Surface Deform refuses a target with overlapping
     vertices); triangles [F, 3] that then lose a corner, repeat another triangle, have an edge shorter than `tol`
-    or a height under `tol` (flat), or are a third triangle on an edge are dropped, with their corner UVs [F, 3, 2]; unused vertices go (gr, gc
-    [V]: their texels, kept alongside). Returns (verts, tris, corner_uv, gr, gc)."""
+    or a height under `tol` (flat), or are a third triangle on an edge are dropped, with their corner UVs
+    [F, 3, 2]; unused vertices go (gr, gc [V]: their texels, kept alongside). Returns (verts, tris, corner_uv, gr,
+    gc)."""
     _, first, inv = np.unique(verts, axis=0, return_index=True, return_inverse=True)
     t = first[inv.reshape(-1)][tris] if len(first) < len(verts) else tris.copy()
     with np.errstate(invalid="ignore"):
         side = np.linalg.norm(verts[t] - verts[t[:, [1, 2, 0]]], axis=-1)              # [F, 3]
-        twice_area = np.linalg.norm(np.cross(verts[t[:, 1]] - verts[t[:, 0]], verts[t[:, 2]] - verts[t[:, 0]]), axis=1)
+        twice_area = np.linalg.norm(np.cross(verts[t[:, 1]] - verts[t[:, 0]], verts[t[:, 2]] - verts[t[:, 0]]),
+                                    axis=1)
         short = (side.min(1) <= tol) | (twice_area <= tol * side.max(1))              # coincident or flat corners
     keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0]) & ~short
     _, once = np.unique(np.sort(t, axis=1), axis=0, return_index=True)

@@ -208,8 +208,9 @@ def test_island_proxy_keeps_to_the_face_budget():
 
 def test_island_texels_that_share_a_point_give_no_overlapping_vertices():
     """The island texel map's nearest-sample fallback gives texels the same surface point (here the left island's
-    border column repeats a sampled column inside it, and a border texel of the right island one of the left): Surface Deform refuses a target with overlapping vertices, so the proxy has none, and no triangle
-    with coincident or collinear corners; it stays manifold and one piece."""
+    border column repeats a sampled column inside it, and a border texel of the right island one of the left):
+    Surface Deform refuses a target with overlapping vertices, so the proxy has none, and no triangle with
+    coincident or collinear corners; it stays manifold and one piece."""
     from pointgt_blender.scene.proxy_mesh import mesh_components
 
     tp = _island_map()
