@@ -138,12 +138,20 @@ class Atlas(nn.Module):
         if self.islands:
             self.textures.copy_(self.layout.unpack(self.layout.pack(self.textures.detach())))
 
-    def place(self, probs: torch.Tensor, uv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def place(self, probs: torch.Tensor, uv: torch.Tensor,
+              own_chart_only: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw chart outputs (probs [M, n], t_c(x) [M, n, 2]) -> what lookups use: unchanged for the grid layout;
-        for islands one chart per point (one-hot probs) and coordinates in the packed image (pixel = uv * R)."""
+        for islands one chart per point (one-hot probs) and coordinates in the packed image (pixel = uv * R).
+        own_chart_only (islands): only each point's own chart is placed and its coordinates stand in every chart's
+        slot — what a lookup blended by the one-hot probs reads, at 1/n of the cost."""
         if not self.islands:
             return probs, uv
-        return self.layout.hard_probs(probs), self.layout.place(uv)
+        hard = self.layout.hard_probs(probs)
+        if not own_chart_only:
+            return hard, self.layout.place(uv)
+        chart = hard.argmax(-1)
+        own = self.layout.place_one(uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0], chart)
+        return hard, own[:, None].expand(-1, uv.shape[1], 2)
 
     @property
     def device(self) -> torch.device:

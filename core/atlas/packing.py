@@ -101,7 +101,19 @@ def sample_charts(textures: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
 def blend_charts(textures: torch.Tensor, uv: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
     """Chart lookups blended by the chart probabilities: Σ_c probs[:, c] · sample_charts(textures, uv)[:, c].
     textures [n, C, R, R], uv [M, n, 2], probs [M, n] -> [M, C] (summed over the charts in the lookup's own layout,
-    without the [M, n, C] array)."""
+    without the [M, n, C] array). One chart per point (probs one-hot, as island atlases give them): each point
+    is looked up in its own chart only, the same numbers at 1/n of the cost."""
+    n = textures.shape[0]
+    if n > 1 and uv.shape[0] and bool(((probs == 0) | (probs == 1)).all()) and bool((probs.sum(-1) == 1).all()):
+        chart = probs.argmax(-1)
+        out = torch.empty(uv.shape[0], textures.shape[1], dtype=textures.dtype, device=textures.device)
+        for c in range(n):
+            idx = torch.nonzero(chart == c)[:, 0]
+            if idx.numel():
+                g = (uv[idx, c] * 2 - 1)[None, None].to(textures.dtype)  # [1, 1, M_c, 2]
+                out[idx] = F.grid_sample(textures[c:c + 1], g, mode="bilinear", padding_mode="border",
+                                         align_corners=False)[0, :, 0].t()
+        return out
     grid = (uv * 2 - 1).permute(1, 0, 2)[:, None]  # [n, 1, M, 2]
     out = F.grid_sample(textures, grid, mode="bilinear", padding_mode="border", align_corners=False)[:, :, 0]
     return (out * probs.t().to(out.dtype)[:, None]).sum(0).t()  # [n, C, M] -> [M, C]

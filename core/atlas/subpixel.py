@@ -17,7 +17,8 @@ def subpixel_chart_uv(atlas, points: torch.Tensor, valid: torch.Tensor, depth: t
     interpolated and then placed (`Atlas.place`): an island atlas places neighbouring pixels of one chart in
     different islands where the chart was cut, and coordinates interpolated between two islands would land in
     neither. Returns (probs [K, n], uv [K, n, 2] of the K sub-pixels that are on the object, on [S*H, S*W] bool
-    marking them, row-major)."""
+    marking them, row-major); an island atlas's uv holds each sub-pixel's own chart in every slot (what its one-hot
+    probs read, `Atlas.place`)."""
     H, W, _ = points.shape
     n = atlas.n
     feat = torch.zeros(H, W, 3 * n, dtype=points.dtype, device=points.device)
@@ -33,6 +34,6 @@ def subpixel_chart_uv(atlas, points: torch.Tensor, valid: torch.Tensor, depth: t
     else:  # a non-finite network output spreads to the sub-pixels that blend it: leave those out too
         on = torch.isfinite(sp).all(-1)
     v = sp[on]
-    probs, uv = atlas.place(v[:, :n], v[:, n:].reshape(-1, n, 2))
+    probs, uv = atlas.place(v[:, :n], v[:, n:].reshape(-1, n, 2), own_chart_only=True)
     return probs, uv, on
 

@@ -334,6 +334,16 @@ def test_subpixel_lookups_across_a_cut_land_on_an_island():
     d = distance_transform_edt(~a.layout.island_pixels.numpy())
     k = pix.floor().long().clamp(0, a.layout.size - 1)
     assert bool((p[:, 0] == 1).all()) and float(d[k[:, 1], k[:, 0]].max()) <= 1.0
+    # placing each sub-pixel in its own chart only (what the frames do) reads the same texels as placing all charts
+    from core.atlas.packing import blend_charts
+    from core.images.filter import subpixel_points as raw  # the sub-pixels' raw outputs, placed both ways
+    feat = torch.cat([q.reshape(H, W, -1) for q in a.chart_uv(pts.reshape(-1, 3), placed=False)], -1)
+    v = raw(feat, valid, torch.ones(H, W), 4, 10.0)[on]
+    hp, all_uv = a.place(v[:, :2], v[:, 2:].reshape(-1, 2, 2))
+    hp1, own_uv = a.place(v[:, :2], v[:, 2:].reshape(-1, 2, 2), own_chart_only=True)
+    tex = torch.rand(2, 3, a.layout.size, a.layout.size, generator=g)
+    assert torch.equal(hp1, hp) and torch.equal(own_uv, uv_sub)
+    assert torch.equal(blend_charts(tex, own_uv, hp1), blend_charts(tex, all_uv, hp))
 
 
 def test_texel_map_newton_keeps_its_best_step_where_the_map_folds():

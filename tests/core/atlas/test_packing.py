@@ -59,6 +59,23 @@ def test_blend_charts_is_the_probability_weighted_sum_of_the_lookups():
     assert torch.equal(out, (probs[..., None] * sample_charts(tex, uv)).sum(1))  # same sums, same order
 
 
+def test_blend_charts_with_one_chart_per_point_reads_that_chart_only():
+    """One-hot probabilities (island atlases): each point looked up in its own chart only gives exactly the
+    probability-weighted sum over all charts; an infinite or NaN lookup in a chart a point does not use no longer
+    reaches it."""
+    g = torch.Generator().manual_seed(4)
+    tex = torch.rand(4, 4, 9, 9, generator=g)
+    uv = torch.rand(300, 4, 2, generator=g) * 1.2 - 0.1
+    chart = torch.randint(0, 4, (300,), generator=g)
+    probs = torch.nn.functional.one_hot(chart, 4).float()
+    out = blend_charts(tex, uv, probs)
+    assert torch.equal(out, (probs[..., None] * sample_charts(tex, uv)).sum(1))
+    bad = uv.clone()
+    bad[torch.arange(300), (chart + 1) % 4] = float("nan")  # another chart's coordinates unusable
+    assert torch.equal(blend_charts(tex, bad, probs), out)
+    assert blend_charts(tex, uv[:0], probs[:0]).shape == (0, 4)
+
+
 def test_texel_centres_sample_exact_texels_and_pixel_coords():
     L = GridLayout(4, 8, 2)
     tex = torch.rand(4, 3, 8, 8, generator=torch.Generator().manual_seed(2))
