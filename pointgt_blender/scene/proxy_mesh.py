@@ -156,7 +156,7 @@ def _sample_faces(tp: np.ndarray, valid: np.ndarray, R: int, pad: int, cell: int
     key = rows[corners[..., 0]].astype(np.int64) * W + cols[corners[..., 1]]   # [Q, 4] texel keys r * W + c
     key_tris = np.concatenate([key[:, [0, 1, 2]], key[:, [0, 2, 3]]])
     if not grid:  # island atlas: the squares an island's border crosses, cut at the border
-        bt = _border_triangles(valid, rows, cols, ~quad, h_full, v_full)
+        bt = _border_triangles(valid, ok, rows, cols, ~quad, h_full, v_full)
         if len(bt):
             with np.errstate(invalid="ignore"):
                 q = tp.reshape(-1, 3)[bt]                                 # [T, 3, 3]
@@ -180,8 +180,9 @@ def _merge_coincident(verts: np.ndarray, tris: np.ndarray, corner_uv: np.ndarray
                                     axis=1)
         short = (side.min(1) <= tol) | (twice_area <= tol * side.max(1))              # coincident or flat corners
     keep = (t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0]) & ~short
-    _, once = np.unique(np.sort(t, axis=1), axis=0, return_index=True)
-    keep &= np.isin(np.arange(len(t)), once)
+    first_copy = np.zeros(len(t), bool)
+    first_copy[np.unique(np.sort(t, axis=1), axis=0, return_index=True)[1]] = True
+    keep &= first_copy
     if keep.all() and len(first) == len(verts):
         return verts, tris, corner_uv, gr, gc
     idx = np.nonzero(keep)[0]
@@ -213,8 +214,8 @@ def _full_sides(valid: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> tuple[
     return h_full, v_full
 
 
-def _border_triangles(valid: np.ndarray, rows: np.ndarray, cols: np.ndarray, open_square: np.ndarray,
-                      h_full: np.ndarray, v_full: np.ndarray) -> np.ndarray:
+def _border_triangles(valid: np.ndarray, ok: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                      open_square: np.ndarray, h_full: np.ndarray, v_full: np.ndarray) -> np.ndarray:
     """Triangles [T, 3] (texel keys r * W + c) of the sampling squares that an island's border crosses, cut at the
     border: the squares of the sampled rows x cols grid not meshed whole (`open_square` [nr - 1, nc - 1]) are walked
     around their four corners; a side whose texels are not all on the surface ends, from each corner on the surface,
@@ -222,9 +223,9 @@ def _border_triangles(valid: np.ndarray, rows: np.ndarray, cols: np.ndarray, ope
     island's border instead of stopping up to a sampling step inside it. The walk is cut at every such side into
     chains (corner and end texels in order around the square), each of at least three texels a fan of triangles.
     Without this the islands' meshes stop short of their borders and their seams are too wide to weld.
-    valid [H, W] bool (texels on the surface); h_full, v_full: `_full_sides`."""
+    valid [H, W] bool (texels on the surface), ok [nr, nc] the same at the sampled texels; h_full, v_full:
+    `_full_sides`."""
     H, W = valid.shape
-    ok = valid[np.ix_(rows, cols)]
 
     def run_end(p, q):
         """The last surface texel of the straight run from texel p towards texel q (p on the surface)."""
