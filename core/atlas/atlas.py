@@ -10,7 +10,7 @@ from torch import nn
 from core.atlas.config import MAX_CHART_RES
 from core.atlas.islands import IslandLayout
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet, fourier_encode
-from core.atlas.packing import GridLayout, blend_charts, pack, texel_uv, unpack, uv_to_pixel
+from core.atlas.packing import GridLayout, blend_charts, chart_coords, pack, texel_uv, unpack, uv_to_pixel
 from core.atlas.sides import ChartSides
 from core.atlas.surface import SurfaceProjection
 from core.atlas.texture import kernel_texture, local_linear_points
@@ -150,7 +150,7 @@ class Atlas(nn.Module):
         if not own_chart_only:
             return hard, self.layout.place(uv)
         chart = hard.argmax(-1)
-        own = self.layout.place_one(uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0], chart)
+        own = self.layout.place_one(chart_coords(uv, chart), chart)
         return hard, own[:, None].expand(-1, uv.shape[1], 2)
 
     @property
@@ -205,7 +205,7 @@ class Atlas(nn.Module):
         (chart [M] long, pixel [M, 2] as continuous (col, row); pixel (r, c) is centred at (c + 0.5, r + 0.5))."""
         probs, uv = self.chart_uv(x)
         chart = probs.argmax(-1)
-        uv_best = uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0]
+        uv_best = chart_coords(uv, chart)
         return chart, uv_to_pixel(uv_best, chart, self.layout)
 
     @torch.no_grad()
@@ -368,7 +368,7 @@ class Atlas(nn.Module):
         if len(rows):
             p2, uv2 = self.chart_uv(pts)
             c2 = p2.argmax(-1)
-            pix = uv2.gather(1, c2[:, None, None].expand(-1, 1, 2))[:, 0] * A
+            pix = chart_coords(uv2, c2) * A
             centre = torch.stack([cols + 0.5, rows + 0.5], -1).to(pix.dtype)
             miss = torch.where(c2 == owner[rows, cols], (pix - centre).norm(dim=-1), miss)
             dist, _ = cKDTree(samples.cpu().numpy()).query(pts.cpu().numpy(), k=1)
@@ -382,7 +382,7 @@ class Atlas(nn.Module):
         rest_r, rest_c = torch.nonzero(L.island_pixels.to(self.device) & ~torch.isfinite(out).all(-1), as_tuple=True)
         nearest = 0
         if len(rest_r):
-            spix = uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0] * A  # [S, 2] (col, row)
+            spix = chart_coords(uv, chart) * A  # [S, 2] (col, row)
             d, j = cKDTree(spix.cpu().numpy()).query(torch.stack([rest_c + 0.5, rest_r + 0.5], -1).cpu().numpy(),
                                                      k=1, distance_upper_bound=max_cycle)
             hit = np.isfinite(d) & (d <= max_cycle)

@@ -98,6 +98,11 @@ def sample_charts(textures: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return out[:, :, 0].permute(2, 0, 1)
 
 
+def chart_coords(uv: torch.Tensor, chart: torch.Tensor) -> torch.Tensor:
+    """Each point's coordinates in one chart: uv [M, n, 2], chart [M] long -> [M, 2]."""
+    return uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0]
+
+
 def blend_charts(textures: torch.Tensor, uv: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
     """Chart lookups blended by the chart probabilities: Σ_c probs[:, c] · sample_charts(textures, uv)[:, c].
     textures [n, C, R, R], uv [M, n, 2], probs [M, n] -> [M, C] (summed over the charts in the lookup's own layout,

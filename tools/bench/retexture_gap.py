@@ -43,7 +43,7 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
     by the texel map instead of by the chart network could win back)."""
     from scipy.spatial import cKDTree
 
-    from core.atlas.packing import uv_to_pixel
+    from core.atlas.packing import chart_coords, uv_to_pixel
     from core.edits.correspondence import ray_canonical_points
     from core.points.render import trace_frame
 
@@ -67,7 +67,7 @@ def lookup_stats(bundle, gt, spacing: float) -> dict:
         x = ray_canonical_points(tr)[hit]
         probs, uv = atlas.chart_uv(x)  # as atlas_pixel_coords: the most probable chart's pixel
         chart = probs.argmax(-1)
-        pix = uv_to_pixel(uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0], chart, atlas.layout)
+        pix = uv_to_pixel(chart_coords(uv, chart), chart, atlas.layout)
         r, c = cell(pix)
         p = tp[r, c]
         ok = torch.isfinite(p).all(-1)
