@@ -11,7 +11,6 @@ from core.atlas.config import MAX_CHART_RES
 from core.atlas.islands import IslandLayout
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet, fourier_encode
 from core.atlas.packing import GridLayout, blend_charts, chart_coords, pack, texel_uv, unpack, uv_to_pixel
-from core.atlas.layers import ChartLayers
 from core.atlas.sides import ChartSides
 from core.atlas.surface import SurfaceProjection
 from core.atlas.texture import kernel_texture, local_linear_points
@@ -23,7 +22,7 @@ from core.util.errors import InputError, ModelFileError
 # split by side (atlas/sides/..., 2n sub-charts over n chart networks). Files are written at the lowest version that
 # describes them, so older readers load every file they can read correctly.
 FORMAT_VERSION = 5
-READ_VERSIONS = (1, 2, 3, 4, 5, 6)
+READ_VERSIONS = (1, 2, 3, 4, 5)
 _CHUNK = 65536
 MAX_BAKE_SAMPLES = 200_000  # stored surface samples for baking (2.4 MB); more are subsampled
 
@@ -83,9 +82,6 @@ class Atlas(nn.Module):
         # Island charts split by side (core/atlas/sides.py): the layout then has 2 n_net sub-charts, 2c and 2c + 1
         # both read through chart network c. None: one layout chart per network chart.
         self.sides: ChartSides | None = None
-        # Island charts cut into layers (core/atlas/layers.py): layout charts n_sub.. read the chart (sub-chart
-        # when split by side) layers.src[c]. None: no layers.
-        self.layers: ChartLayers | None = None
         self.n_net = n
 
     @property
@@ -94,24 +90,9 @@ class Atlas(nn.Module):
         side."""
         return self.layout.n
 
-    @property
-    def n_sub(self) -> int:
-        """Charts before the cut into layers: 2 n_net when split by side, else n_net."""
-        return self.n_net * (2 if self.sides is not None else 1)
-
     def net_chart(self, chart: torch.Tensor) -> torch.Tensor:
         """Layout chart indices [M] -> the chart network each reads through [M]."""
-        if self.layers is not None:
-            chart = torch.from_numpy(self.layers.src).to(chart.device)[chart]
         return chart // 2 if self.sides is not None else chart
-
-    def _sub_has_islands(self) -> torch.Tensor:
-        """[n_sub] bool: the chart before the cut into layers has islands in some layer."""
-        has = self.layout.has_islands
-        if self.layers is None:
-            return has
-        return torch.zeros(self.n_sub, dtype=torch.long).index_add_(
-            0, torch.from_numpy(self.layers.src), has.long()) > 0
 
     def outputs(self, xn: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw chart outputs at network-frame points xn [M, 3] (already on the mid-surface when there is one):
@@ -123,20 +104,14 @@ class Atlas(nn.Module):
             p, uv = torch.softmax(self.chart(xn, enc), dim=-1), self.tex(xn, enc)
         else:
             p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
-        if self.sides is not None:
-            rev = self.sides.reversed(self.tex, xn, self.denormalise(xn))
-            if self.islands:
-                has = self._sub_has_islands().to(rev.device).view(-1, 2)  # [n_net, 2] (majority, reversed)
-                rev = torch.where(has[:, 1], rev, torch.zeros_like(rev))
-                rev = torch.where(has[:, 0], rev, torch.ones_like(rev) & has[:, 1])
-            p, uv = ChartSides.expand(p, uv, rev)
-        if self.layers is not None:
-            sub = p.argmax(-1)
-            final = self.layers.assign(self.denormalise(xn), sub)
-            if self.islands:  # a layer without islands leaves its points on the chart's first layer
-                final = torch.where(self.layout.has_islands.to(final.device)[final], final, sub)
-            p, uv = self.layers.expand(p, uv, final)
-        return p, uv
+        if self.sides is None:
+            return p, uv
+        rev = self.sides.reversed(self.tex, xn, self.denormalise(xn))
+        if self.islands:
+            has = self.layout.has_islands.to(rev.device).view(-1, 2)       # [n_net, 2] (majority, reversed)
+            rev = torch.where(has[:, 1], rev, torch.zeros_like(rev))
+            rev = torch.where(has[:, 0], rev, torch.ones_like(rev) & has[:, 1])
+        return ChartSides.expand(p, uv, rev)
 
     @property
     def islands(self) -> bool:
@@ -149,7 +124,7 @@ class Atlas(nn.Module):
 
     def set_layout(self, layout: IslandLayout) -> None:
         """Switch to an island layout: new textures [n, 3, size, size] (0.5) and an empty texel map."""
-        want = self.n_sub if self.layers is None else self.layers.N
+        want = self.n_net * (2 if self.sides is not None else 1)
         if layout.n != want:
             raise InputError(f"island layout has {layout.n} charts, the atlas {want}")
         self.layout = layout
@@ -434,8 +409,6 @@ class Atlas(nn.Module):
             version, extra = 4, {"surface": self.surface.meta()}
         if self.sides is not None:
             version, extra = 5, dict(extra, sides=self.sides.meta())
-        if self.layers is not None:
-            version, extra = 6, dict(extra, layers=True)
         return dict(version=version, n=self.n_net, R=L.R, pad=L.pad, half=self.half,
                     height=L.shape[0], width=L.shape[1], layout=getattr(L, "kind", "grid"),
                     uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch, **extra)
@@ -457,8 +430,6 @@ class Atlas(nn.Module):
             arrays.update(self.surface.to_arrays())
         if self.sides is not None:
             arrays.update(self.sides.to_arrays())
-        if self.layers is not None:
-            arrays.update(self.layers.to_arrays())
         return arrays
 
     @classmethod
@@ -481,15 +452,8 @@ class Atlas(nn.Module):
                                          f"{atlas.n_net} charts")
                 if kind != "islands":
                     raise ModelFileError("atlas: charts split by side need the island layout")
-            if meta.get("layers"):
-                if kind != "islands":
-                    raise ModelFileError("atlas: charts cut into layers need the island layout")
-                atlas.layers = ChartLayers.from_arrays(arrays)
-                if atlas.layers.n != atlas.n_sub:
-                    raise ModelFileError(f"atlas: 'atlas/layers/src' starts with {atlas.layers.n} charts, the "
-                                         f"atlas has {atlas.n_sub}")
             if kind == "islands":
-                n_layout = atlas.n_sub if atlas.layers is None else atlas.layers.N
+                n_layout = int(meta["n"]) * (2 if atlas.sides is not None else 1)
                 atlas.set_layout(IslandLayout.from_arrays(arrays, n_layout, int(meta["R"]), int(meta["pad"])))
             if "surface" in meta:
                 atlas.surface = SurfaceProjection.from_arrays(arrays, meta["surface"])

@@ -140,15 +140,6 @@ class AtlasConfig:
                                               "docs/atlas.md)", min=0.0, max=1.0)
     island_sides_anchors: int = opt(20000, "island_sides without mid_surface: anchor planes built for the normals "
                                            "(at most this many)", min=16, max=1 << 20)
-    island_layers: bool = opt(False, "islands: cut every chart into layers, one place of the surface per block of "
-                                     "texels — a chart map that lays two places over each other with the same "
-                                     "orientation gives each its own islands; a point's layer is that of the "
-                                     "nearest stored sample of its chart, for baking and lookups alike "
-                                     "(docs/atlas.md)")
-    island_layers_radius: float = opt(6.0, "island_layers: samples of one 2 x 2 texel block farther apart than this "
-                                           "many sample spacings are different places", above=0.0, max=1000.0)
-    island_layers_min_samples: int = opt(200, "island_layers: smaller layers join their neighbouring layer",
-                                         min=1, max=10_000_000)
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
                                  min=1, max=1_000_000)
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings",

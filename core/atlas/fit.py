@@ -96,45 +96,30 @@ def pixel_footprint(xyz, centres, focal: float) -> float:
 
 
 def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: float, k_area: float, R: int,
-                  cfg: AtlasConfig, pixel_size: float | None) -> tuple[object, dict, object]:
+                  cfg: AtlasConfig, pixel_size: float | None) -> tuple[object, dict]:
     """Cut the charts to the surface they cover and pack them (core/atlas/islands.py) at one texel density for all
     charts. probs [S, n] and uv [S, n, 2] of the samples xyz [S, 3] (raw chart outputs); k_area: uv units per world
     unit the distortion loss aims at; R: the grid's chart side (sets the density when nothing else does).
     Texel size: pixel_size / texels_per_pixel when the images' footprint is known, else the grid's density; a fixed
     cfg.image_size, or a side above cfg.max_image_size, coarsens it until the islands fit.
-    cfg.island_layers: the charts are first cut into layers (core/atlas/layers.py); the layout then has one chart
-    per layer. Returns (layout, info: texel size, per-chart scale, islands, seconds, layers, ChartLayers or None)."""
+    Returns (layout, info: texel size, per-chart scale, islands, seconds)."""
     from core.atlas.islands import build_islands, occupancy
-    from core.atlas.layers import ChartLayers, layer_samples
     from core.atlas.texture import texel_spacing
 
     t0 = time.perf_counter()
     n = probs.shape[1]
-    spacing, _, sel, elem = sample_spacing(xyz, per_sample=True)
+    owner = probs.argmax(-1)
+    _, _, sel, elem = sample_spacing(xyz, per_sample=True)
+    own_sel = owner.cpu().numpy()[sel]
+    area_c = np.array([elem[own_sel == c].sum() for c in range(n)]) * area / max(elem.sum(), 1e-30)
     if cfg.image_size > 0:
         h = math.sqrt(area / (0.7 * cfg.image_size ** 2))
     elif pixel_size:
         h = pixel_size / max(cfg.texels_per_pixel, 1e-6)
     else:
         h = math.sqrt(area / (n * R * R * cfg.chart_fill))
-    layers, info = None, {}
-    if cfg.island_layers:  # one place per block of texels: the charts' layers become charts of their own
-        owner = probs.argmax(-1)
-        ch = owner.cpu().numpy()
-        t = np.clip(uv.detach().cpu().numpy()[np.arange(len(ch)), ch], 0.0, 1.0) / (k_area * h)
-        final, src = layer_samples(xyz, ch, t, n, spacing, cfg.island_layers_radius * spacing,
-                                   cfg.island_layers_min_samples)
-        if len(src) > n:
-            layers = ChartLayers.from_samples(xyz, final, src, cfg.seed)
-            fin = layers.assign(torch.from_numpy(xyz).float(), owner.cpu()).to(probs.device)
-            probs, uv = layers.expand(probs, uv, fin)
-            n = layers.N
-        info["layers"] = {"charts": len(src), "layered": float((final >= len(np.unique(src))).mean()),
-                          "seconds": round(time.perf_counter() - t0, 2)}
-    owner = probs.argmax(-1)
-    own_sel = owner.cpu().numpy()[sel]
-    area_c = np.array([elem[own_sel == c].sum() for c in range(n)]) * area / max(elem.sum(), 1e-30)
     uvn = uv.detach().cpu().numpy()
+    info = {}
     for attempt in range(40):
         s0 = 1.0 / (k_area * h)  # texels per uv unit where the distortion loss holds
         scale, fill = np.full(n, s0), np.ones(n)
@@ -151,9 +136,9 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
                                transpose=cfg.island_transpose, split=cfg.island_split,
                                min_fill=cfg.island_min_fill, packer=cfg.island_packer)
         if layout is not None and (cfg.image_size > 0 or layout.size <= cfg.max_image_size):
-            info.update({"texel_size": h, "chart_scale": scale.tolist(), "islands": layout.islands,
-                         "atlas_size": layout.size, "island_seconds": time.perf_counter() - t0})
-            return layout, info, layers
+            info = {"texel_size": h, "chart_scale": scale.tolist(), "islands": layout.islands,
+                    "atlas_size": layout.size, "island_seconds": time.perf_counter() - t0}
+            return layout, info
         grow = 1.06 if layout is None else max(1.02, 1.01 * layout.size / cfg.max_image_size)
         h *= grow
     raise InputError(f"island layout: the charts do not fit a {cfg.image_size or cfg.max_image_size} texel atlas")
@@ -370,13 +355,11 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         chart_sides(atlas, xyz, xn, cfg, spacing, hist)
     probs_all, uv_all = _predict(atlas, xn)
     if cfg.layout == "islands":
-        layout, info, atlas.layers = island_layout(probs_all, uv_all, xyz.numpy().astype(np.float64), area,
-                                                   k_area, R, cfg, pixel_size)
+        layout, info = island_layout(probs_all, uv_all, xyz.numpy().astype(np.float64), area, k_area, R, cfg,
+                                     pixel_size)
         atlas.set_layout(layout)
         hist.update(info)
         R = layout.size
-        if atlas.layers is not None:  # the samples' outputs over the layers' charts
-            probs_all, uv_all = _predict(atlas, xn)
     probs_all, uv_all = atlas.place(probs_all, uv_all)
     if cfg.texture_mode == "kernel":
         # Kernel regression: each texel is the weighted mean colour of the samples around it (texture.py says why).

@@ -39,7 +39,7 @@ def _round_trip(atlas) -> tuple[float, int]:
     return float((miss <= 1.0).float().mean()), int(ok.sum())
 
 
-def _planar_island_atlas(xyz, split: bool, crease: float = 0.0, min_share: float = 0.05, layers: bool = False):
+def _planar_island_atlas(xyz, split: bool, crease: float = 0.0, min_share: float = 0.05):
     """A one-chart atlas with the planar map, its islands, kernel texture and texel map built as fit_atlas does."""
     from core.atlas.fit import chart_sides, island_layout, sample_spacing
     from core.atlas.texture import filled_kernel_texture
@@ -48,18 +48,16 @@ def _planar_island_atlas(xyz, split: bool, crease: float = 0.0, min_share: float
     atlas = Atlas(1, 16, 2, torch.zeros(3), 1.0)
     atlas.tex = _PlanarMap()
     cfg = AtlasConfig(layout="islands", island_sides=split, island_sides_crease=crease, image_size=96,
-                      mid_surface_neighbours=256, island_sides_min_share=min_share, island_layers=layers)
+                      mid_surface_neighbours=256, island_sides_min_share=min_share)
     spacing, area = sample_spacing(xyz.numpy().astype(np.float64))
     xn, hist = atlas.normalise(xyz), {}
     if split:
         chart_sides(atlas, xyz, xn, cfg, spacing, hist)
     with torch.no_grad():
         probs, uv = atlas.outputs(xn)
-        layout, info, atlas.layers = island_layout(probs, uv, xyz.numpy().astype(np.float64), area,
-                                                   math.sqrt(0.5 / area), 16, cfg, None)
+        layout, info = island_layout(probs, uv, xyz.numpy().astype(np.float64), area, math.sqrt(0.5 / area), 16,
+                                     cfg, None)
         atlas.set_layout(layout)
-        if atlas.layers is not None:
-            probs, uv = atlas.outputs(xn)
         tex, _, _ = filled_kernel_texture(*atlas.place(probs, uv), rgb, layout.size, 1.0, labels=atlas.blur_labels)
         atlas.textures.copy_(tex)
         atlas.canonicalise_textures()
