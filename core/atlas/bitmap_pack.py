@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.fft import next_fast_len
+from scipy.fft import irfft2, next_fast_len, rfft2
 
 from core.atlas.islands import bisect_side
 from core.atlas.outlines import ORIENT_NP, cell_pixels
@@ -116,15 +116,15 @@ def _place_all(shapes, order, S: int, g: int):
             band = max(32, hmax)
             H, W = band + hmax - 1, S + 2 * g  # the window of a band's spots, for every orientation
             fh, fw = next_fast_len(H, real=True), next_fast_len(W, real=True)
-            specs = [np.conj(np.fft.rfft2(o[3], (fh, fw))) for o in opts]  # each footprint's, once per island
+            specs = [np.conj(rfft2(o[3], (fh, fw))) for o in opts]  # each footprint's, once per island
             while best is None and r0 <= S - min(o[1].shape[0] for o in opts):
-                spec = np.fft.rfft2(occ[r0:r0 + H], (fh, fw))  # rows past the image read as zero-padding
+                spec = rfft2(occ[r0:r0 + H], (fh, fw))  # rows past the image read as zero-padding
                 for (q, t, first, foot), fs in zip(opts, specs):
                     h, w = t.shape
                     n = min(band, S - h - r0 + 1)  # spots r0 .. r0 + n - 1 keep the island inside the image
                     if n <= 0:
                         continue
-                    ov = np.fft.irfft2(spec * fs, (fh, fw))[:n, :W - foot.shape[1] + 1]
+                    ov = irfft2(spec * fs, (fh, fw))[:n, :W - foot.shape[1] + 1]
                     rr, cc = np.nonzero(ov < 0.5)
                     if len(rr) == 0:
                         continue
