@@ -199,19 +199,25 @@ def solve_footprint_texture(F: torch.Tensor, B: torch.Tensor, y: torch.Tensor, t
 
 
 def _finish(sys_: _ReadTexels, y, t0, u0, u) -> tuple[torch.Tensor, dict]:
-    rmse = lambda uu: float(((sys_.A(uu) - y) ** 2).mean().sqrt())  # noqa: E731
-    t = t0.clone()
+    u, info = _finish_read(sys_, y, u0, u)
+    t = torch.nan_to_num(t0, nan=0.5).clamp(0, 1)
     t[sys_.cols] = u
-    t = torch.nan_to_num(t, nan=0.5).clamp(0, 1)
-    return t, {"rmse_before": rmse(u0), "rmse_after": rmse(t[sys_.cols]), "pixels": int(y.shape[0])}
+    return t, info
 
 
-def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor, lambdas: list[float], iters: int = 100,
-                            tol: float = 1e-3, holdout: int = 4, sys_: _ReadTexels | None = None
-                            ) -> tuple[float | None, dict[float, float]]:
+def _finish_read(sys_: _ReadTexels, y, u0, u) -> tuple[torch.Tensor, dict]:
+    """The read texels' solution u [U, 3] made finite and clamped to [0, 1], and the training RMSE before / after."""
+    rmse = lambda uu: float(((sys_.A(uu) - y) ** 2).mean().sqrt())  # noqa: E731
+    u = torch.nan_to_num(u, nan=0.5).clamp(0, 1)
+    return u, {"rmse_before": rmse(u0), "rmse_after": rmse(u), "pixels": int(y.shape[0])}
+
+
+def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor | None, lambdas: list[float],
+                            iters: int = 100, tol: float = 1e-3, holdout: int = 4, sys_: _ReadTexels | None = None,
+                            u0: torch.Tensor | None = None) -> tuple[float | None, dict[float, float]]:
     """The refit's λ for this scene: fit the texels on the views but every `holdout`-th (views holdout-1,
     2·holdout-1, ...) for each candidate in `lambdas`, and keep the one whose render of the held-out views' pixels
-    is closest to them (display-colour PSNR). t0 [T, 3] the prior (linear light). Returns (λ, {λ: held-out PSNR});
+    is closest to them (display-colour PSNR). t0 [T, 3] the prior (linear light; or u0 [U, 3], the read texels' prior alone). Returns (λ, {λ: held-out PSNR});
     (None, {}) when there are fewer than `holdout` views or no held-out pixel (nothing to choose by).
     Candidates are solved from the largest λ down, each starting from the previous answer, to a looser tolerance
     than the final solve (they are only compared, not kept)."""
@@ -221,7 +227,7 @@ def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor, lambdas: 
     if n_views < holdout or not bool(held.any()) or bool(held.all()) or not lambdas:
         return None, {}
     sys_ = sys_ or _ReadTexels(system.F, system.B, t0.shape[0])
-    u0 = t0[sys_.cols]
+    u0 = t0[sys_.cols] if u0 is None else u0
     fit = (~held).to(system.y.dtype)
     scores: dict[float, float] = {}
     u = None
@@ -246,24 +252,23 @@ def refit_texture_footprint(atlas, views: list[FootprintView], sub: int = 2, lam
     if system is None:
         return {"pixels": 0}
     n, R = atlas.n, atlas.layout.R
-    tex = atlas.textures.detach()
-    t0 = srgb_to_linear(tex.clamp(0, 1)).permute(0, 2, 3, 1).reshape(-1, 3)
-    sys_ = _ReadTexels(system.F, system.B, t0.shape[0])
+    # only the texels some pixel reads take part (an island atlas is n views of one image: most of its n R² texels
+    # are never read); texel (c, row, col) is column (c R + row) R + col
+    sys_ = _ReadTexels(system.F, system.B, n * R * R)
+    chart, pix = sys_.cols // (R * R), sys_.cols % (R * R)
+    flat = atlas.textures.detach().view(n, 3, R * R)
+    u0 = srgb_to_linear(flat[chart, :, pix].clamp(0, 1))  # [U, 3] linear light
     scores: dict[float, float] = {}
     if lambdas is not None and len(set(lambdas)) > 1:
-        chosen, scores = choose_footprint_lambda(system, t0, lambdas, iters, sys_=sys_)
+        chosen, scores = choose_footprint_lambda(system, None, lambdas, iters, sys_=sys_, u0=u0)
         lam = lam if chosen is None else chosen
     elif lambdas:  # one candidate: that λ
         lam = float(lambdas[0])
-    u0 = t0[sys_.cols]
-    t, info = _finish(sys_, system.y, t0, u0, sys_.solve(system.y, u0, lam, iters, tol))
+    u, info = _finish_read(sys_, system.y, u0, sys_.solve(system.y, u0, lam, iters, tol))
     info = {**info, "lambda": float(lam)}
     if scores:
         info["holdout_psnr"] = {f"{k:g}": round(v, 3) for k, v in sorted(scores.items())}
-    touched = torch.zeros(n * R * R, dtype=torch.bool, device=tex.device)
-    touched[system.B.col_indices()] = True
-    new = linear_to_srgb(t).reshape(n, R, R, 3).permute(0, 3, 1, 2)
-    # texels no pixel reaches keep the kernel texture's dilated colour (t stays at t0 there)
-    atlas.textures.copy_(torch.where(touched.view(n, 1, R, R), new, tex))
+    # texels no pixel reaches keep the kernel texture's dilated colour
+    flat[chart, :, pix] = linear_to_srgb(u)
     atlas.canonicalise_textures()
     return info
