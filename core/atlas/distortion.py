@@ -62,7 +62,10 @@ def uv_jacobian(uv_fn, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Jacobian of uv_fn at x by autograd, kept differentiable (create_graph=True).
 
     uv_fn: x [G, 3] -> uv [G, n, 2] (each row depends only on its own point). Returns (J [G, n, 2, 3], uv [G, n, 2]).
+    A network with its own `jacobian` (TexCoordNet: forward mode, three directions) gives it that way.
     """
+    if hasattr(uv_fn, "jacobian"):
+        return uv_fn.jacobian(x.detach())
     x = x.detach().requires_grad_(True)
     uv = uv_fn(x)
     G, n, _ = uv.shape

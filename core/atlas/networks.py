@@ -67,6 +67,31 @@ class TexCoordNet(nn.Module):
         y = _run(self.mlp, fourier_encode(x, self.fourier) if encoded is None else encoded)
         return 0.5 + y.view(-1, self.n, 2)
 
+    def jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(J [M, n, 2, 3] = d t_c / dx, uv [M, n, 2]) at x [M, 3], by carrying the three input directions through
+        the network beside the values (forward mode): three extra rows per point instead of one backward pass per
+        output; differentiable with respect to the weights (and x). The same derivative autograd gives."""
+        h = fourier_encode(x, self.fourier)
+        M, d = x.shape
+        eye = torch.eye(d, device=x.device, dtype=x.dtype).expand(M, d, d)      # [M, 3 (direction), 3]
+        if self.fourier > 0:
+            freqs = (2.0 ** torch.arange(self.fourier, device=x.device, dtype=x.dtype)) * math.pi
+            xf = x[..., None] * freqs                                            # [M, 3, degree]
+            ds, dc = torch.cos(xf) * freqs, -torch.sin(xf) * freqs               # d/dx_i of sin / cos(x_i f_k)
+            # direction j moves feature (i, k) only when i == j: [M, 3 (j), 3 (i), degree]
+            tan = torch.cat([eye, (eye[..., None] * ds[:, None]).flatten(-2),
+                             (eye[..., None] * dc[:, None]).flatten(-2)], dim=-1)  # [M, 3, D]
+        else:
+            tan = eye
+        for layer in self.mlp:
+            if isinstance(layer, nn.ReLU):
+                on = (h > 0).to(h.dtype)
+                h, tan = h * on, tan * on[:, None, :]
+            else:
+                h, tan = layer(h), nn.functional.linear(tan, layer.weight)
+        J = tan.permute(0, 2, 1).reshape(M, self.n, 2, d)
+        return J, 0.5 + h.view(-1, self.n, 2)
+
 
 class BatchedLinear(nn.Module):
     """n independent linear layers applied in one batched matmul: [n, M, d_in] -> [n, M, d_out]."""

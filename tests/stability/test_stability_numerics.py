@@ -58,8 +58,9 @@ def test_distortion_through_the_network_has_finite_weight_gradients(name, weight
     ls, la = distortion_terms(J * 7.0, w)
     (ls + la).backward()  # second-order: the loss is a function of the Jacobian
     assert torch.isfinite(ls) and torch.isfinite(la) and bool(torch.isfinite(uv).all())
-    grads = [p.grad for p in net.parameters() if p.grad is not None]  # output biases do not change J
-    assert len(grads) >= 4 and all(bool(torch.isfinite(gr).all()) for gr in grads)
+    # biases change J only through the ReLUs' on/off pattern (a zero derivative): the weights carry the loss
+    grads = [p.grad for p in net.parameters() if p.grad is not None]
+    assert len(grads) >= 3 and all(bool(torch.isfinite(gr).all()) for gr in grads)
     assert any(float(gr.abs().max()) > 0 for gr in grads)  # the loss does reach the weights
 
 

@@ -72,3 +72,25 @@ def test_autograd_jacobian_matches_jacrev_and_double_backward_reaches_weights():
     w = net.mlp[0].weight.grad
     assert w is not None and torch.isfinite(w).all() and w.abs().sum() > 0
     assert not math.isnan(ls.item())
+
+
+@pytest.mark.parametrize("fourier", [0, 1, 4])
+def test_forward_mode_jacobian_matches_autograd_and_its_weight_gradients(fourier):
+    """TexCoordNet.jacobian (three input directions carried through the network) against the batched
+    vector-Jacobian products uv_jacobian uses for any other map: the same J and the same gradient of a loss on J
+    with respect to every weight (float64, to rounding)."""
+    from core.atlas.networks import TexCoordNet
+
+    torch.manual_seed(fourier)
+    net = TexCoordNet(5, 24, 3, fourier).double()
+    x = torch.rand(40, 3, dtype=torch.float64) * 2 - 1
+    J1, uv1 = net.jacobian(x)
+    J2, uv2 = uv_jacobian(lambda z: net(z), x)  # a plain function: the autograd path
+    assert J1.shape == (40, 5, 2, 3) and torch.allclose(J1, J2, atol=1e-12) and torch.allclose(uv1, uv2, atol=1e-12)
+    params = list(net.parameters())
+    g1 = torch.autograd.grad(J1.pow(2).sum() + J1[..., 0, 1].sum(), params, allow_unused=True)
+    g2 = torch.autograd.grad(J2.pow(2).sum() + J2[..., 0, 1].sum(), params, allow_unused=True)
+    for a, b in zip(g1, g2):
+        a = torch.zeros(()) if a is None else a
+        b = torch.zeros(()) if b is None else b
+        assert torch.allclose(a.double(), b.double(), atol=1e-10)
