@@ -409,7 +409,7 @@ def chart_sides(atlas: Atlas, xyz: torch.Tensor, xn: torch.Tensor, cfg: AtlasCon
 
     t0 = time.perf_counter()
     src = atlas.surface if atlas.surface is not None else SurfaceProjection.from_samples(
-        xyz.numpy(), neighbours=cfg.mid_surface_neighbours, max_ratio=cfg.mid_surface_max_ratio, seed=cfg.seed,
+        xyz.numpy(), neighbours=cfg.island_sides_neighbours, max_ratio=cfg.mid_surface_max_ratio, seed=cfg.seed,
         max_anchors=cfg.island_sides_anchors)
     surf = SurfaceProjection(src.centres, src.normals, src.bandwidth, src.k).orient()  # a copy: projection untouched
     h = cfg.island_sides_step * spacing / atlas.half

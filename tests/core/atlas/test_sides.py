@@ -48,7 +48,7 @@ def _planar_island_atlas(xyz, split: bool, crease: float = 0.0, min_share: float
     atlas = Atlas(1, 16, 2, torch.zeros(3), 1.0)
     atlas.tex = _PlanarMap()
     cfg = AtlasConfig(layout="islands", island_sides=split, island_sides_crease=crease, image_size=96,
-                      mid_surface_neighbours=256, island_sides_min_share=min_share)
+                      island_sides_neighbours=256, island_sides_min_share=min_share)
     spacing, area = sample_spacing(xyz.numpy().astype(np.float64))
     xn, hist = atlas.normalise(xyz), {}
     if split:
@@ -187,7 +187,7 @@ def test_a_quick_fit_split_by_side_runs_end_to_end():
     xyz, rgb = synthetic_samples("torus", 4000, seed=4)
     quick = dict(steps=150, batch=256, uv_batch=32, distortion_batch=64, width_map=32, depth_map=2, width_chart=16,
                  depth_chart=1, log_every=1000, eval_samples=256, charts="4", layout="islands", image_size=128,
-                 mid_surface_neighbours=128, island_sides=True, island_sides_min_share=0.0)
+                 island_sides_neighbours=128, island_sides=True, island_sides_min_share=0.0)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
