@@ -187,7 +187,8 @@ def _():
     atlas.pixels.foreach_get(raw)
     before_states = fr.STATES._items["card"][-1]
     raw2 = raw.copy()
-    raw2[:4 * atlas.size[0]] = 0.0  # the bottom row goes black
+    row = raw2[:4 * atlas.size[0]].reshape(-1, 4)
+    row[:, :3] = 1.0 - row[:, :3]  # the bottom row's colours inverted: a change wherever the layout put its islands
     atlas.pixels.foreach_set(raw2)
     atlas.update()
     atlas.update_tag()  # as a paint stroke tags the image; the depsgraph handler asks for a new preview
