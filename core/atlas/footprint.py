@@ -217,8 +217,9 @@ def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor | None, la
                             u0: torch.Tensor | None = None) -> tuple[float | None, dict[float, float]]:
     """The refit's λ for this scene: fit the texels on the views but every `holdout`-th (views holdout-1,
     2·holdout-1, ...) for each candidate in `lambdas`, and keep the one whose render of the held-out views' pixels
-    is closest to them (display-colour PSNR). t0 [T, 3] the prior (linear light; or u0 [U, 3], the read texels' prior alone). Returns (λ, {λ: held-out PSNR});
-    (None, {}) when there are fewer than `holdout` views or no held-out pixel (nothing to choose by).
+    is closest to them (display-colour PSNR). t0 [T, 3] the prior (linear light), or None with u0 [U, 3] the read
+    texels' prior alone. Returns (λ, {λ: held-out PSNR}); (None, {}) when there are fewer than `holdout` views or no
+    held-out pixel (nothing to choose by).
     Candidates are solved from the largest λ down, each starting from the previous answer, to a looser tolerance
     than the final solve (they are only compared, not kept)."""
     view = system.view

@@ -70,7 +70,7 @@ class TexCoordNet(nn.Module):
     def jacobian(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(J [M, n, 2, 3] = d t_c / dx, uv [M, n, 2]) at x [M, 3], by carrying the three input directions through
         the network beside the values (forward mode): three extra rows per point instead of one backward pass per
-        output; differentiable with respect to the weights (and x). The same derivative autograd gives."""
+        output; differentiable with respect to the weights. The same derivative autograd gives."""
         h = fourier_encode(x, self.fourier)
         M, d = x.shape
         eye = torch.eye(d, device=x.device, dtype=x.dtype).expand(M, d, d)      # [M, 3 (direction), 3]
