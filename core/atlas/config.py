@@ -140,7 +140,7 @@ class AtlasConfig:
                                               "docs/atlas.md)", min=0.0, max=1.0)
     island_sides_anchors: int = opt(20000, "island_sides without mid_surface: anchor planes built for the normals "
                                            "(at most this many)", min=16, max=1 << 20)
-    island_sides_neighbours: int = opt(1024, "island_sides without mid_surface: samples per anchor plane of the "
+    island_sides_neighbours: int = opt(256, "island_sides without mid_surface: samples per anchor plane of the "
                                               "normals (PCA; wider: smoother normals, slower)", min=8,
                                        max=1 << 16)
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
