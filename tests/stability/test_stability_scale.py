@@ -5,6 +5,7 @@ import copy
 import pytest
 import torch
 
+from core.atlas.surface import SurfaceProjection
 from core.edits.bake import bake
 from core.frames.edited import EditState, render_edited
 from tests.helpers.tiny import tiny_bundle
@@ -15,7 +16,7 @@ pytestmark = pytest.mark.stability
 
 def scaled_bundle(bundle, s: float):
     """A copy of bundle with every length multiplied by s: points, spacing, training pixel footprint, atlas
-    centre/half and texel map."""
+    centre/half, texel map, bake samples and the anchor planes of the mid-surface and of the side split."""
     b = copy.deepcopy(bundle)
     with torch.no_grad():
         b.model.xyz.mul_(s)
@@ -24,6 +25,12 @@ def scaled_bundle(bundle, s: float):
         b.atlas.centre.mul_(s)
         b.atlas.texel_xyz.mul_(s)
     b.atlas.half *= s
+    if b.atlas.bake_samples is not None:
+        b.atlas.bake_samples = b.atlas.bake_samples * s
+    for owner in (b.atlas, b.atlas.sides):  # anchor planes: the mid-surface's, the side split's normals
+        surf = getattr(owner, "surface", None)
+        if surf is not None:
+            owner.surface = SurfaceProjection(surf.centres * s, surf.normals, surf.bandwidth * s, surf.k)
     return b
 
 
