@@ -136,7 +136,8 @@ class _ReadTexels:
     """The system restricted to the texels some lookup reads (B's used columns, remapped), with the transposes the
     normal equations need, built once and shared by every solve on it."""
 
-    def __init__(self, F: torch.Tensor, B: torch.Tensor, T: int):
+    def __init__(self, F: torch.Tensor, B: torch.Tensor):
+        T = B.shape[1]  # all texels, read or not
         self.cols = torch.unique(B.col_indices())  # sorted: the remapped column indices stay sorted in every row
         remap = torch.full((T,), -1, dtype=torch.long, device=B.device)
         remap[self.cols] = torch.arange(len(self.cols), device=B.device)
@@ -192,7 +193,7 @@ def solve_footprint_texture(F: torch.Tensor, B: torch.Tensor, y: torch.Tensor, t
     Texels no lookup reads (B's empty columns) have a zero row in AᵀA, so they keep t0 exactly; the iterations run
     on the read texels alone (an island atlas reads n views of one square image, so most of its T texels are
     never read)."""
-    sys_ = _ReadTexels(F, B, t0.shape[0])
+    sys_ = _ReadTexels(F, B)
     u0 = t0[sys_.cols]
     u = sys_.solve(y, u0, lam, iters, tol)
     return _finish(sys_, y, t0, u0, u)
@@ -227,7 +228,7 @@ def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor | None, la
     held = (view % holdout) == holdout - 1
     if n_views < holdout or not bool(held.any()) or bool(held.all()) or not lambdas:
         return None, {}
-    sys_ = sys_ or _ReadTexels(system.F, system.B, t0.shape[0])
+    sys_ = sys_ or _ReadTexels(system.F, system.B)
     u0 = t0[sys_.cols] if u0 is None else u0
     fit = (~held).to(system.y.dtype)
     scores: dict[float, float] = {}
@@ -255,7 +256,7 @@ def refit_texture_footprint(atlas, views: list[FootprintView], sub: int = 2, lam
     n, R = atlas.n, atlas.layout.R
     # only the texels some pixel reads take part (an island atlas is n views of one image: most of its n R² texels
     # are never read); texel (c, row, col) is column (c R + row) R + col
-    sys_ = _ReadTexels(system.F, system.B, n * R * R)
+    sys_ = _ReadTexels(system.F, system.B)
     chart, pix = sys_.cols // (R * R), sys_.cols % (R * R)
     flat = atlas.textures.detach().view(n, 3, R * R)
     u0 = srgb_to_linear(flat[chart, :, pix].clamp(0, 1))  # [U, 3] linear light

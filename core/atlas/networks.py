@@ -10,11 +10,16 @@ import torch
 from torch import nn
 
 
+def fourier_freqs(degree: int, like: torch.Tensor) -> torch.Tensor:
+    """The encoding's frequencies 2^k * pi, k < degree: [degree], on like's device and dtype."""
+    return (2.0 ** torch.arange(degree, device=like.device, dtype=like.dtype)) * math.pi
+
+
 def fourier_encode(x: torch.Tensor, degree: int) -> torch.Tensor:
     """x [M, d] -> [M, d * (1 + 2 * degree)]: the raw input plus sin/cos at frequencies 2^k * pi."""
     if degree <= 0:
         return x
-    freqs = (2.0 ** torch.arange(degree, device=x.device, dtype=x.dtype)) * math.pi
+    freqs = fourier_freqs(degree, x)
     xf = x[..., None] * freqs  # [M, d, degree]
     return torch.cat([x, torch.sin(xf).flatten(-2), torch.cos(xf).flatten(-2)], dim=-1)
 
@@ -75,7 +80,7 @@ class TexCoordNet(nn.Module):
         M, d = x.shape
         eye = torch.eye(d, device=x.device, dtype=x.dtype).expand(M, d, d)      # [M, 3 (direction), 3]
         if self.fourier > 0:
-            freqs = (2.0 ** torch.arange(self.fourier, device=x.device, dtype=x.dtype)) * math.pi
+            freqs = fourier_freqs(self.fourier, x)
             xf = x[..., None] * freqs                                            # [M, 3, degree]
             ds, dc = torch.cos(xf) * freqs, -torch.sin(xf) * freqs               # d/dx_i of sin / cos(x_i f_k)
             # direction j moves feature (i, k) only when i == j: [M, 3 (j), 3 (i), degree]
