@@ -280,57 +280,67 @@ class Atlas(nn.Module):
     @torch.no_grad()
     def _newton_to_texels(self, x: torch.Tensor, slope: torch.Tensor, chart: torch.Tensor, target: torch.Tensor,
                           iters: int = 6, max_move: float = 8.0, chunk: int = 32768, h: float = 0.25,
-                          orient: torch.Tensor | None = None) -> torch.Tensor:
+                          orient: torch.Tensor | None = None, tol: float = 0.01) -> torch.Tensor:
         """Move points x [K, 3] within their surface's tangent plane (slope [K, 2, 3]: dx per texel) until their
         chart's forward map (chart [K]) sends them to target [K, 2] pixel (col, row): Gauss-Newton on
         q -> pixel(x + q slope) with derivatives by finite differences of h texels along the slope, at most
-        max_move typical texel sizes from the local-linear point (and kept only if it still lies near a sample).
+        max_move of the point's own texel sizes (its slope's longer side) from the local-linear point (and kept only
+        if it still lies near a sample).
         orient [K, 2, 2]: the target island's orientation (chart texel offsets -> image offsets; None: identity).
-        Ill-conditioned steps are skipped."""
+        Ill-conditioned steps are skipped; a point stops once it lands within tol texels of its target."""
         L, A = self.layout, self.layout.size
         aff = L.affine.to(self.device)
         out = x.clone()
         if len(x) == 0:
             return out
-        reach = max_move * float(slope.norm(dim=-1).median())  # max_move texels of the typical texel size
+        # max_move of each point's own texel sizes: where the map squeezes the surface (an anisotropic texel many
+        # sample spacings long) the local-linear point can lie that far from the texel's preimage
+        reach_all = (max_move * slope.norm(dim=-1).amax(-1)).nan_to_num(0.0).clamp_min(1e-12)  # [K]
 
         def to_texels(raw, ch):  # raw t_c [K, 2] -> chart texel coordinates (before the island offset) [K, 2]
             return (aff[ch, :, :2] @ raw[..., None])[..., 0] + aff[ch, :, 2]
 
-        def chart_texels(pts, ch, ar):
+        def chart_texels(pts, ch, net, ar):
             return to_texels(self.tex(self.normalise(self.on_surface(pts)))[ar, net], ch)
 
         for s in range(0, len(x), chunk):
             x0, B, ch, tg = x[s:s + chunk], slope[s:s + chunk], chart[s:s + chunk], target[s:s + chunk]
+            reach = reach_all[s:s + chunk, None]
             rot = None if orient is None else orient[s:s + chunk].to(x0.dtype)
             net = self.net_chart(ch)
-            ar = torch.arange(len(x0), device=self.device)
             q = torch.zeros(len(x0), 2, device=self.device)
             xs = x0.clone()
             best, best_miss = x0.clone(), torch.full((len(x0),), float("inf"), device=self.device)
+            act = torch.arange(len(x0), device=self.device)  # points still iterating
             for it in range(iters + 1):
-                raw = self.tex(self.normalise(self.on_surface(xs)))[ar, net]
-                pix = self.layout.place_one(raw, ch) * A
-                r = pix - tg
+                ar = torch.arange(len(act), device=self.device)
+                raw = self.tex(self.normalise(self.on_surface(xs[act])))[ar, net[act]]
+                pix = self.layout.place_one(raw, ch[act]) * A
+                r = pix - tg[act]
                 # keep the iterate that lands nearest its texel: where the map is not smooth enough for
                 # Gauss-Newton (a fold, the mid-surface's anchor planes changing) a step can land farther away
                 miss = r.norm(dim=-1).nan_to_num(float("inf"))
-                better = miss < best_miss
-                best[better], best_miss[better] = xs[better], miss[better]
-                if it == iters:
+                better = miss < best_miss[act]
+                best[act[better]], best_miss[act[better]] = xs[act[better]], miss[better]
+                go = miss > tol  # points within tol of their texel stop here
+                if it == iters or not bool(go.any()):
                     break
+                act, raw, r, ar = act[go], raw[go], r[go], ar[:int(go.sum())]
                 if rot is not None:  # the miss in chart texels: image offsets turned back (orthogonal matrices)
-                    r = (rot.transpose(1, 2) @ r[..., None])[..., 0]
-                t0 = to_texels(raw, ch)  # the map at xs, evaluated above
-                Mq = torch.stack([(chart_texels(xs + h * B[:, k], ch, ar) - t0) / h for k in range(2)], -1)
+                    r = (rot[act].transpose(1, 2) @ r[..., None])[..., 0]
+                t0 = to_texels(raw, ch[act])  # the map at xs, evaluated above
+                Ba = B[act]
+                Mq = torch.stack([(chart_texels(xs[act] + h * Ba[:, k], ch[act], net[act], ar) - t0) / h
+                                  for k in range(2)], -1)
                 det = torch.linalg.det(Mq)
                 ok = (det.abs() > 0.05) & torch.isfinite(det) & torch.isfinite(r).all(-1)
                 dq = torch.zeros_like(r)
                 dq[ok] = -torch.linalg.solve(Mq[ok], r[ok][..., None])[..., 0]
-                q = q + dq
-                d = (q[:, :, None] * B).sum(1)
-                q = q * (reach / d.norm(dim=-1, keepdim=True).clamp_min(reach))  # stay near the samples
-                xs = x0 + (q[:, :, None] * B).sum(1)
+                qa = q[act] + dq
+                d = (qa[:, :, None] * Ba).sum(1)
+                qa = qa * (reach[act] / d.norm(dim=-1, keepdim=True).clamp_min(reach[act]))  # stay near the samples
+                q[act] = qa
+                xs[act] = x0[act] + (qa[:, :, None] * Ba).sum(1)
             out[s:s + chunk] = best
         return out
 

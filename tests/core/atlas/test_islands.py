@@ -368,3 +368,26 @@ def test_texel_map_newton_keeps_its_best_step_where_the_map_folds():
     assert torch.isfinite(out).all()
     assert bool((after <= before + 1e-5).all()), float((after - before).max())
     assert float(after.median()) < 0.5 * float(before.median())   # and the steps still converge where they can
+
+
+def test_texel_map_newton_reaches_as_far_as_each_points_own_texels():
+    """The Gauss-Newton steps may move a point up to max_move of its own texel sizes: where the map squeezes the
+    surface a texel is many sample spacings long, and the local-linear point lies that far from the texel's
+    preimage. Points whose slope is 50 times shorter (most of them, so the typical texel is short) do not hold the
+    others back."""
+    a, x, probs = _wobbly_island_atlas()
+    A, n = a.layout.size, 4000
+    chart = probs.argmax(-1)[:n]
+    start = x[:n]
+    pix0 = a.layout.place_one(a.tex(a.normalise(start))[torch.arange(n), chart], chart) * A
+    target = pix0 + torch.tensor([1.5, -1.0])    # 1.8 texels along the surface
+    slope = torch.zeros(n, 2, 3)
+    slope[:, 0, 0], slope[:, 1, 1] = 1.6 / A, 1.6 / A   # about one texel per unit step
+    short = torch.arange(n) >= n // 4
+    slope[short] *= 0.02                          # three quarters of the points: texels 50 times shorter
+    out = a._newton_to_texels(start, slope, chart, target)
+    miss = (a.layout.place_one(a.tex(a.normalise(out))[torch.arange(n), chart], chart) * A - target).norm(dim=-1)
+    assert torch.isfinite(out).all()
+    assert float(miss[~short].median()) < 0.5, float(miss[~short].median())   # converged where the map allows
+    moved = (out - start).norm(dim=-1)
+    assert float(moved[short].max()) <= 8 * 0.02 * 1.6 / A * 2 ** 0.5 + 1e-6    # the short ones stay within theirs
