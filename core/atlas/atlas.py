@@ -106,7 +106,7 @@ class Atlas(nn.Module):
             p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
         if self.sides is None:
             return p, uv
-        rev = self.sides.reversed(self.tex, xn, self.denormalise(xn))
+        rev = self.sides.reversed(self.tex, xn, self.denormalise(xn), uv)  # t_c at xn: the uv above
         if self.islands:
             has = self.layout.has_islands.to(rev.device).view(-1, 2)       # [n_net, 2] (majority, reversed)
             rev = torch.where(has[:, 1], rev, torch.zeros_like(rev))

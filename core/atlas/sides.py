@@ -42,12 +42,13 @@ def tangent_basis(normals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.where(unit, t1, zero), torch.where(unit, t2, zero)
 
 
-def orientation(tex, xn: torch.Tensor, normals: torch.Tensor, h: float) -> torch.Tensor:
+def orientation(tex, xn: torch.Tensor, normals: torch.Tensor, h: float,
+                uv0: torch.Tensor | None = None) -> torch.Tensor:
     """rho [M, n] of every chart's map at network-frame points xn [M, 3] with unit normals [M, 3] (world frame
-    directions; zero: rho 0), by forward differences of width h (network units). tex: xn [M, 3] -> uv [M, n, 2].
-    In [-1, 1]; 0 where the differences are degenerate or not finite."""
+    directions; zero: rho 0), by forward differences of width h (network units). tex: xn [M, 3] -> uv [M, n, 2];
+    uv0: tex(xn) when the caller has it already. In [-1, 1]; 0 where the differences are degenerate or not finite."""
     t1, t2 = tangent_basis(normals.to(xn.dtype))
-    uv0 = tex(xn)
+    uv0 = tex(xn) if uv0 is None else uv0
     a = (tex(xn + h * t1) - uv0) / h                                       # [M, n, 2]
     b = (tex(xn + h * t2) - uv0) / h
     det = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
@@ -83,16 +84,17 @@ class ChartSides:
     def n(self) -> int:
         return len(self.majority)
 
-    def rho(self, tex, xn: torch.Tensor, world: torch.Tensor) -> torch.Tensor:
-        """Orientation [M, n] of every chart at xn (network frame) / world (the same points in world units)."""
+    def rho(self, tex, xn: torch.Tensor, world: torch.Tensor, uv0: torch.Tensor | None = None) -> torch.Tensor:
+        """Orientation [M, n] of every chart at xn (network frame) / world (the same points in world units);
+        uv0: tex(xn) when the caller has it."""
         normals = self.surface.normals_at(world).to(xn.device)
-        return orientation(tex, xn, normals, self.step)
+        return orientation(tex, xn, normals, self.step, uv0)
 
-    def reversed(self, tex, xn: torch.Tensor, world: torch.Tensor) -> torch.Tensor:
-        """[M, n] bool: the point lies on chart c's reversed side."""
+    def reversed(self, tex, xn: torch.Tensor, world: torch.Tensor, uv0: torch.Tensor | None = None) -> torch.Tensor:
+        """[M, n] bool: the point lies on chart c's reversed side (uv0: tex(xn) when the caller has it)."""
         if not bool((self.majority != 0).any()):
             return torch.zeros(xn.shape[0], self.n, dtype=torch.bool, device=xn.device)
-        rho = self.rho(tex, xn, world)
+        rho = self.rho(tex, xn, world, uv0)
         return rho * self.majority.to(rho.device, rho.dtype) < -self.crease
 
     @staticmethod
