@@ -328,10 +328,9 @@ class Atlas(nn.Module):
                 act, raw, r, ar = act[go], raw[go], r[go], ar[:int(go.sum())]
                 if rot is not None:  # the miss in chart texels: image offsets turned back (orthogonal matrices)
                     r = (rot[act].transpose(1, 2) @ r[..., None])[..., 0]
-                t0 = to_texels(raw, ch[act])  # the map at xs, evaluated above
-                Ba = B[act]
-                Mq = torch.stack([(chart_texels(xs[act] + h * Ba[:, k], ch[act], net[act], ar) - t0) / h
-                                  for k in range(2)], -1)
+                cha, neta, xa, Ba = ch[act], net[act], xs[act], B[act]
+                t0 = to_texels(raw, cha)  # the map at xs, evaluated above
+                Mq = torch.stack([(chart_texels(xa + h * Ba[:, k], cha, neta, ar) - t0) / h for k in range(2)], -1)
                 det = torch.linalg.det(Mq)
                 ok = (det.abs() > 0.05) & torch.isfinite(det) & torch.isfinite(r).all(-1)
                 dq = torch.zeros_like(r)
