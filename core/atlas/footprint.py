@@ -38,26 +38,42 @@ class FootprintView:
 
 def _bilinear_rows(probs: torch.Tensor, uv: torch.Tensor, R: int, min_prob: float = 1e-3):
     """Sparse rows of the lookup: (sample ids, texel ids, weights) with weight = bilinear x P(c|x), as
-    packing.sample_charts interpolates (texel centres at (j + 0.5) / R, clamp to edge). probs [S, n], uv [S, n, 2]."""
-    S, n = probs.shape
-    f = uv.clamp(0, 1) * R - 0.5
+    packing.sample_charts interpolates (texel centres at (j + 0.5) / R, clamp to edge). probs [S, n], uv [S, n, 2].
+    Only the (sample, chart) pairs with P > min_prob are expanded; the entries come sorted by sample, then chart,
+    then corner (row-major), so each sample's texel ids ascend but where a corner is clamped at the image's edge."""
+    sid, chart = torch.nonzero(probs > min_prob, as_tuple=True)  # row-major: by sample, then chart
+    p = probs[sid, chart]
+    f = uv[sid, chart].clamp(0, 1) * R - 0.5  # [K, 2]
     base = f.floor()
     frac = f - base
     base = base.long()
-    sid = torch.arange(S, device=uv.device)[:, None].expand(S, n)
-    chart = torch.arange(n, device=uv.device)[None].expand(S, n)
-    rows, cols, vals = [], [], []
-    for dr in (0, 1):
-        for dc in (0, 1):
-            w = (frac[..., 0] if dc else 1 - frac[..., 0]) * (frac[..., 1] if dr else 1 - frac[..., 1])
-            w = w * probs * (probs > min_prob)
-            col = (base[..., 0] + dc).clamp(0, R - 1)
-            row = (base[..., 1] + dr).clamp(0, R - 1)
-            keep = w > 0
-            rows.append(sid[keep])
-            cols.append((chart * R * R + row * R + col)[keep])
-            vals.append(w[keep])
-    return torch.cat(rows), torch.cat(cols), torch.cat(vals)
+    fx, fy = frac[:, 0], frac[:, 1]
+    # corner (dr, dc) in row-major order; weights as bilinear x P
+    w = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1) * p[:, None]  # [K, 4]
+    col = torch.stack([base[:, 0], base[:, 0] + 1, base[:, 0], base[:, 0] + 1], -1).clamp(0, R - 1)
+    row = torch.stack([base[:, 1], base[:, 1], base[:, 1] + 1, base[:, 1] + 1], -1).clamp(0, R - 1)
+    keep = w > 0
+    cols = chart[:, None] * R * R + row * R + col
+    return sid[:, None].expand_as(cols)[keep], cols[keep], w[keep]
+
+
+def _csr(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """A CSR matrix [shape] from COO entries sorted by row (repeated (row, col) entries are summed, as coalesce
+    would). Where each row's columns are ascending already (the common case here) no sort is needed; otherwise a
+    stable sort by (row, col) puts them in order first."""
+    key = rows * shape[1] + cols
+    if key.numel() > 1 and not bool((key[1:] >= key[:-1]).all()):
+        key, order = torch.sort(key, stable=True)
+        rows, cols, vals = rows[order], cols[order], vals[order]
+    if key.numel() > 1 and bool((key[1:] == key[:-1]).any()):
+        uniq, inv = torch.unique_consecutive(key, return_inverse=True)
+        vals = torch.zeros(len(uniq), dtype=vals.dtype, device=vals.device).index_add_(0, inv, vals)
+        rows, cols = uniq // shape[1], uniq % shape[1]
+    crow = torch.zeros(shape[0] + 1, dtype=torch.long, device=rows.device)
+    crow[1:] = torch.cumsum(torch.bincount(rows, minlength=shape[0]), 0)
+    with warnings.catch_warnings():  # CSR is "beta" in torch; the products used here are long supported
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=False)
 
 
 class FootprintSystem(NamedTuple):
@@ -123,12 +139,10 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
         n_sub += len(used)
     if n_pix == 0:
         return None
-    with warnings.catch_warnings():  # CSR is "beta" in torch; the products used here are long supported
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-        F = torch.sparse_coo_tensor(torch.stack([torch.cat(f_rows), torch.cat(f_cols)]), torch.cat(f_vals),
-                                    (n_pix, n_sub), check_invariants=False).coalesce().to_sparse_csr()
-        B = torch.sparse_coo_tensor(torch.stack([torch.cat(b_rows), torch.cat(b_cols)]), torch.cat(b_vals),
-                                    (n_sub, n * R * R), check_invariants=False).coalesce().to_sparse_csr()
+    # rows come in pixel (sub-pixel) order and each row's columns ascend (footprint taps in raster order, remapped
+    # monotonically; bilinear corners by chart, then raster order; clamped corners at the edge aside)
+    F = _csr(torch.cat(f_rows), torch.cat(f_cols), torch.cat(f_vals), (n_pix, n_sub))
+    B = _csr(torch.cat(b_rows), torch.cat(b_cols), torch.cat(b_vals), (n_sub, n * R * R))
     return FootprintSystem(F, B, torch.cat(ys), torch.cat(vids))
 
 

@@ -176,3 +176,26 @@ def test_lambda_candidates_parse_and_refuse_bad_lists():
     for bad in ("1,x", "-1", "nan", "1,inf"):
         with pytest.raises(InputError, match="footprint-lambdas"):
             AtlasConfig(footprint_lambdas=bad).lambda_candidates()
+
+
+def test_csr_from_row_sorted_entries_equals_the_coalesced_matrix():
+    """_csr takes entries sorted by row — columns ascending (the fast path) or not, with repeats (clamped bilinear
+    corners) — and gives the matrix COO coalescing gives, repeats summed; _bilinear_rows at and beyond the image's
+    edges (every corner clamp) is one such input."""
+    from core.atlas.footprint import _bilinear_rows, _csr
+
+    g = torch.Generator().manual_seed(3)
+    S, n, R = 400, 3, 8
+    probs = torch.softmax(4 * torch.randn(S, n, generator=g), -1)
+    uv = 1.4 * torch.rand(S, n, 2, generator=g) - 0.2  # a fifth of the corners clamped onto their neighbour
+    for rows, cols, vals in (_bilinear_rows(probs, uv, R),
+                             (torch.tensor([0, 0, 0, 1, 1, 2]), torch.tensor([0, 2, 2, 1, 3, 5]), torch.arange(6.0))):  # ascending, a repeat
+        shape = (int(rows.max()) + 1, n * R * R)
+        ref = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, shape).coalesce()
+        got = _csr(rows, cols, vals, shape).to_sparse_coo().coalesce()
+        assert torch.equal(got.indices(), ref.indices())
+        assert torch.allclose(got.values(), ref.values(), rtol=0, atol=1e-7)
+        assert got._nnz() == _csr(rows, cols, vals, shape).values().numel()  # no repeated entry left
+    r, c, _ = _bilinear_rows(probs, uv, R)
+    key = r * n * R * R + c
+    assert not bool((key[1:] >= key[:-1]).all())  # the test reaches the sorting path
