@@ -123,3 +123,30 @@ def test_banded_fft_placement_matches_a_direct_search(seed):
         if got is not None:
             assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
     assert fits == [False, True, True]
+
+
+def test_spots_the_rounded_fft_calls_free_are_checked_exactly(monkeypatch):
+    """The overlap counts come from single-precision FFTs; a spot they call free by mistake (here: every count of
+    one overlapping cell pushed below 0.5) is refused by the exact check, so the placement is still the direct
+    search's."""
+    from core.atlas import bitmap_pack as bp
+    rng = np.random.default_rng(2)
+    masks = [rng.random((h, w)) < 0.85 for h, w in rng.integers(4, 30, (10, 2))]
+    for m in masks:
+        m[0, :] = m[:, 0] = True
+    g = 1
+    shapes = bp._shapes(masks, g, transpose=True)
+    order = list(range(len(masks)))
+    real = bp.irfft2
+    wrong = []
+
+    def rounded_badly(*a, **k):
+        out = real(*a, **k)
+        bad = np.abs(out - 1) < 0.25
+        wrong.append(int(bad.sum()))
+        return np.where(bad, out - 0.7, out)
+
+    monkeypatch.setattr(bp, "irfft2", rounded_badly)
+    got, want = bp._place_all(shapes, order, 70, g), _place_reference(shapes, order, 70, g)
+    assert got is not None and want is not None and sum(wrong) > 0
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

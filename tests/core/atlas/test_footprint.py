@@ -191,7 +191,7 @@ def test_csr_from_row_sorted_entries_equals_the_coalesced_matrix():
     for rows, cols, vals in (_bilinear_rows(probs, uv, R),
                              (torch.tensor([0, 0, 0, 1, 1, 2]), torch.tensor([0, 2, 2, 1, 3, 5]), torch.arange(6.0))):  # ascending, a repeat
         shape = (int(rows.max()) + 1, n * R * R)
-        ref = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, shape).coalesce()
+        ref = torch.sparse_coo_tensor(torch.stack([rows, cols]), vals, shape, check_invariants=True).coalesce()
         got = _csr(rows, cols, vals, shape).to_sparse_coo().coalesce()
         assert torch.equal(got.indices(), ref.indices())
         assert torch.allclose(got.values(), ref.values(), rtol=0, atol=1e-7)
