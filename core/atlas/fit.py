@@ -332,7 +332,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         if cfg.w_normal > 0 else None
     nets = [p for name, p in atlas.named_parameters() if name != "textures"]
     opt = torch.optim.Adam([{"params": nets, "lr": cfg.lr}, {"params": [atlas.textures], "lr": cfg.texture_lr}],
-                           foreach=True)  # one kernel per step over all tensors: the same numbers, faster on CPU
+                           fused=True)  # one fused kernel per step over all tensors (a third of foreach's time on CPU)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** (s / max(cfg.steps, 1)))
     total = cfg.steps + cfg.texture_steps
     bar = Progress(total, f"atlas ({n} charts)", callback=progress, enabled=not quiet)
@@ -371,7 +371,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         bar.update(cfg.texture_steps)
         p = log(cfg.steps + cfg.texture_steps, "texture")
     else:  # descent: Adam on the per-sample MSE, one bilinear lookup per chart and step
-        topt = torch.optim.Adam([atlas.textures], lr=cfg.texture_lr, foreach=True)  # (set_layout: new textures)
+        topt = torch.optim.Adam([atlas.textures], lr=cfg.texture_lr, fused=True)  # (set_layout: new textures)
         for step in range(cfg.texture_steps):
             idx = torch.randint(len(xn), (min(8 * cfg.batch, len(xn)),), generator=gen).to(dev)
             pred = blend_charts(atlas.textures, uv_all[idx], probs_all[idx])
