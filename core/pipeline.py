@@ -61,7 +61,8 @@ def footprint_views(model, split) -> list[FootprintView]:
 
 
 def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True, progress_callback=None):
-    """Fit stage 2 into `bundle` (sets bundle.atlas and bundle.meta['atlas_fit']); returns the fit history."""
+    """Fit stage 2 into `bundle` (sets bundle.atlas and bundle.meta['atlas_fit']); returns the fit history
+    (stage_seconds: the whole stage; total_seconds: the atlas fit alone; sample_seconds; footprint.seconds)."""
     lambdas = cfg.lambda_candidates()  # a bad list fails here, before the fit
     t0 = time.perf_counter()
     # Model colours need direct RGB values; with a UNet decoder the per-ray colour needs whole images: use pixels.
@@ -85,8 +86,18 @@ def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True,
                   + (f", chosen by held-out views: {info['holdout_psnr']} dB" if info.get("holdout_psnr") else "")
                   + f") in {history['footprint']['seconds']:.1f} s",
                   flush=True)
+    history["stage_seconds"] = round(time.perf_counter() - t0, 2)  # samples, fit and refit: the whole of stage 2
     bundle.meta["atlas_fit"] = {k: v for k, v in history.items() if not isinstance(v, list)}
     return history
+
+
+def stage_time_text(hist: dict) -> str:
+    """'X s (surface samples a s, atlas b s, texture refit c s)' from fit_atlas_stage's history."""
+    parts = [f"surface samples {hist.get('sample_seconds', 0.0):.0f} s", f"atlas {hist['total_seconds']:.0f} s"]
+    if "seconds" in hist.get("footprint", {}):
+        parts.append(f"texture refit {hist['footprint']['seconds']:.0f} s")
+    total = hist.get("stage_seconds", hist["total_seconds"])
+    return f"{total:.0f} s ({', '.join(parts)})"
 
 
 def refresh_texel_map(bundle, split, cfg: AtlasConfig) -> dict:

@@ -1,5 +1,6 @@
 """`pointgt fit` end to end on a tiny analytic scene written to disk: the summary is measured on every test view."""
 import json
+import re
 
 import pytest
 import torch
@@ -45,7 +46,10 @@ def test_texel_map_refresh_keeps_samples_for_baking_and_a_backup(tmp_path, capsy
                  "--no-profile", "--no-progress", "--device", "cpu", "--threads", "1", "--atlas-charts", "4",
                  "--atlas-steps", "30", "--atlas-texture-steps", "5", "--atlas-texture-res", "16",
                  "--no-atlas-footprint"]) == 0
+    said = re.search(r"stage 2: .* in (\d+) s \(surface samples (\d+) s, atlas (\d+) s\)", capsys.readouterr().out)
+    assert said and int(said[1]) >= int(said[3])  # the whole stage, then its parts
     bundle = load_bundle(out, "cpu")
+    assert bundle.meta["atlas_fit"]["stage_seconds"] >= bundle.meta["atlas_fit"]["total_seconds"]
     n_samples = len(bundle.atlas.bake_samples)
     assert n_samples > 100
     bundle.atlas.bake_samples = None  # as written before the samples were stored

@@ -31,7 +31,7 @@ def run(args) -> int:
     from core.config import from_args, to_dict
     from core.frames.report import write_history
     from core.images.dataset import load_split
-    from core.pipeline import fit_atlas_stage, refresh_texel_map
+    from core.pipeline import fit_atlas_stage, refresh_texel_map, stage_time_text
 
     from core.config import check_flag
     from core.util.atomic import check_output_file
@@ -62,6 +62,6 @@ def run(args) -> int:
         raise KeyboardInterrupt(f"nothing was saved; {args.model} is unchanged") from None
     save_bundle(args.model, bundle)
     write_history(Path(args.model).with_suffix(".atlas_history.json"), [], {"atlas": hist, "config": to_dict(cfg)})
-    print(f"stage 2: {hist['n']} charts from {hist['samples']} samples in {hist['total_seconds']:.0f} s "
+    print(f"stage 2: {hist['n']} charts from {hist['samples']} samples in {stage_time_text(hist)} "
           f"(fitting PSNR {hist['psnr'][-1]:.2f} dB) -> {args.model}")
     return 0

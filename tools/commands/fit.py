@@ -187,7 +187,7 @@ def run(args) -> int:
             if not args.allow_blank:
                 return 3
     if args.stage in ("atlas", "all"):
-        from core.pipeline import fit_atlas_stage
+        from core.pipeline import fit_atlas_stage, stage_time_text
 
         try:
             if args.stage == "all":
@@ -208,5 +208,5 @@ def run(args) -> int:
             raise type(exc)(f"{exc}; {note}") from exc
         write_history(out.with_suffix(".atlas_history.json"), [], {"atlas": hist, "config": to_dict(atlas_cfg)})
         print(f"[fit] stage 2: {hist['n']} charts from {hist['samples']} surface samples in "
-              f"{hist['total_seconds']:.0f} s (fitting PSNR {hist['psnr'][-1]:.2f} dB) -> {out}")
+              f"{stage_time_text(hist)} (fitting PSNR {hist['psnr'][-1]:.2f} dB) -> {out}")
     return 0
