@@ -127,11 +127,11 @@ def _place_all(shapes, order, S: int, g: int):
                     if n <= 0:
                         continue
                     ov = irfft2(spec * fs, (fh, fw))[:n, :W - foot.shape[1] + 1]
-                    fh_, fw_ = foot.shape
+                    foot_h, foot_w = foot.shape
                     for r, c in zip(*np.nonzero(ov < 0.5)):  # row-major: the first free spot in reading order
                         r = int(r) + r0
                         # single-precision FFTs: the count is checked exactly before the spot is taken
-                        if not (occ[r:r + fh_, c:c + fw_] * foot).any():
+                        if not (occ[r:r + foot_h, c:c + foot_w] * foot).any():
                             cand = (r, int(c), q, first, foot)
                             if best is None or cand[:2] < best[:2]:  # then over orientations
                                 best = cand
