@@ -103,7 +103,7 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
     Texel size: pixel_size / texels_per_pixel when the images' footprint is known, else the grid's density; a fixed
     cfg.image_size, or a side above cfg.max_image_size, coarsens it until the islands fit.
     Returns (layout, info: texel size, per-chart scale, islands, seconds)."""
-    from core.atlas.islands import build_islands, occupancy
+    from core.atlas.islands import UV_REACH, build_islands, occupancy
     from core.atlas.texture import texel_spacing
 
     t0 = time.perf_counter()
@@ -127,8 +127,9 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
             m = (owner == c).cpu().numpy()
             if not m.any():
                 continue
-            t = np.clip(uvn[m, c], 0, 1) * s0
-            cells = occupancy(t, int(math.ceil(s0)) + 1, 1.0).sum()
+            lo, hi = UV_REACH  # the range the island grid keeps (build_islands)
+            t = (np.clip(uvn[m, c], lo, hi) - lo) * s0
+            cells = occupancy(t, int(math.ceil((hi - lo) * s0)) + 1, 1.0).sum()
             scale[c] = s0 * float(np.clip(math.sqrt(area_c[c] / (h * h) / max(cells, 1)), 0.25, 4.0))
             sp = texel_spacing(uv[torch.from_numpy(m).to(uv.device), c] * float(scale[c]))
             fill[c] = cfg.island_fill * max(1.0, sp)

@@ -31,6 +31,10 @@ from core.util.errors import InputError, ModelFileError
 
 BRUTE_FORCE_SIDE = 1024  # xatlas tries every position up to this atlas side
 CLAMP_MARGIN = 0.5  # texels a lookup may reach past its nearest occupied cell (bilinear reads one more: pad >= 2)
+# Chart coordinates a lookup and the island grid both keep: a map is trained towards [0, 1]^2 but lays some samples
+# outside it; clipping them to the square's border would pile them onto the border's cells (distant places in one
+# texel), so the grid covers this wider range and only farther coordinates are clamped.
+UV_REACH = (-1.0, 2.0)
 ORIENT = torch.from_numpy(ORIENT_NP).float()
 
 
@@ -167,7 +171,7 @@ class IslandLayout:
         """uv [M, 2] of chart c -> image coordinates [M, 2] in [0, 1], clamped into c's nearest island."""
         dev = uv.device
         G = self.cells.shape[1]
-        u = torch.nan_to_num(uv, nan=0.0, posinf=1.0, neginf=0.0).clamp(-1.0, 2.0)
+        u = torch.nan_to_num(uv, nan=0.0, posinf=1.0, neginf=0.0).clamp(*UV_REACH)
         aff = self.affine[c].to(dev).to(uv.dtype)
         t = u @ aff[:, :2].T + aff[:, 2]
         k = t.floor().long().clamp(0, G - 1)
@@ -482,7 +486,7 @@ def build_islands(probs: torch.Tensor, uv: torch.Tensor, scale: np.ndarray, pad:
         if not sel.any():
             per_chart.append(None)
             continue
-        u = np.clip(uvn[sel, c], 0.0, 1.0)
+        u = np.clip(uvn[sel, c], *UV_REACH)
         a = min_area_angle(u[np.linspace(0, len(u) - 1, min(len(u), 20000)).astype(np.int64)]) if rotate else 0.0
         rot = float(scale[c]) * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
         t = u @ rot.T

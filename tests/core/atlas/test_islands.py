@@ -55,6 +55,24 @@ def test_islands_do_not_overlap_and_samples_land_in_their_own_chart_islands():
         assert distance_transform_edt(~mine)[other].min() >= 2 * lay.pad
 
 
+def test_samples_a_map_lays_outside_the_unit_square_keep_their_own_texels():
+    # one chart whose map lays a strip of its samples at u in (1, 1.5): they must not be clipped onto the square's
+    # border (distant places in one column of texels), but keep their place, as inside the square
+    g = torch.Generator().manual_seed(3)
+    uv = torch.rand(8000, 1, 2, generator=g) * torch.tensor([1.5, 1.0])
+    probs = torch.ones(8000, 1)
+    lay = build_islands(probs, uv, np.array([40.0]), pad=2, size=0, fill=1.5, min_cells=4)
+    pix = lay.place(uv)[:, 0] * lay.size
+    # texel distances between samples equal their uv distances x 40 everywhere (one rigid placement per island)
+    i, j = torch.randint(0, 8000, (2, 4000), generator=g)
+    d_uv, d_pix = (uv[i, 0] - uv[j, 0]).norm(dim=-1) * 40, (pix[i] - pix[j]).norm(dim=-1)
+    out = (uv[i, 0, 0] > 1.02) | (uv[j, 0, 0] > 1.02)
+    assert float((d_uv - d_pix)[out].abs().max()) < 1e-3
+    # and each of them in its own island cell
+    p = pix.floor().long()
+    assert bool(lay.island_pixels[p[:, 1], p[:, 0]].all())
+
+
 def test_points_off_the_islands_clamp_next_to_them_and_extreme_inputs_stay_finite():
     probs, uv = _two_chart_samples()
     lay = build_islands(probs, uv, np.array([60.0, 40.0]), pad=2)
