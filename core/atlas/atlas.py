@@ -10,6 +10,7 @@ from torch import nn
 from core.atlas.config import MAX_CHART_RES
 from core.atlas.islands import IslandLayout
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet, fourier_encode
+from core.atlas.pieces import ChartPieces
 from core.atlas.packing import GridLayout, blend_charts, chart_coords, pack, texel_uv, unpack, uv_to_pixel
 from core.atlas.sides import ChartSides
 from core.atlas.surface import SurfaceProjection
@@ -19,10 +20,11 @@ from core.util.errors import InputError, ModelFileError
 # 1: grid layout; 2: island layout ("layout": "islands"); 3: islands some of which are transposed
 # (atlas/islands/orient, which a version-2 reader would ignore and misplace); 4: lookups projected onto the samples'
 # mid-surface first (atlas/surface/..., which an older reader would ignore and read other texels); 5: island charts
-# split by side (atlas/sides/..., 2n sub-charts over n chart networks). Files are written at the lowest version that
-# describes them, so older readers load every file they can read correctly.
-FORMAT_VERSION = 5
-READ_VERSIONS = (1, 2, 3, 4, 5)
+# split by side (atlas/sides/..., 2n sub-charts over n chart networks); 6: sub-charts cut into pieces where their
+# map overlaps itself (atlas/pieces/..., more layout charts than sub-charts). Files are written at the lowest version
+# that describes them, so older readers load every file they can read correctly.
+FORMAT_VERSION = 6
+READ_VERSIONS = (1, 2, 3, 4, 5, 6)
 _CHUNK = 65536
 MAX_BAKE_SAMPLES = 200_000  # stored surface samples for baking (2.4 MB); more are subsampled
 
@@ -82,6 +84,9 @@ class Atlas(nn.Module):
         # Island charts split by side (core/atlas/sides.py): the layout then has 2 n_net sub-charts, 2c and 2c + 1
         # both read through chart network c. None: one layout chart per network chart.
         self.sides: ChartSides | None = None
+        # Sub-charts cut into pieces where their map overlaps itself (core/atlas/pieces.py): each piece is a layout
+        # chart. None: one layout chart per sub-chart.
+        self.pieces: ChartPieces | None = None
         self.n_net = n
 
     @property
@@ -90,9 +95,23 @@ class Atlas(nn.Module):
         side."""
         return self.layout.n
 
+    @property
+    def n_sub(self) -> int:
+        """Sub-charts: the chart networks' charts, two per chart when split by side."""
+        return self.n_net * (2 if self.sides is not None else 1)
+
     def net_chart(self, chart: torch.Tensor) -> torch.Tensor:
         """Layout chart indices [M] -> the chart network each reads through [M]."""
+        if self.pieces is not None:
+            chart = self.pieces.sub_of.to(chart.device)[chart]
         return chart // 2 if self.sides is not None else chart
+
+    def _sub_has_islands(self) -> torch.Tensor:
+        """[n_sub] bool: the sub-chart has islands (any of its pieces)."""
+        has = self.layout.has_islands
+        if self.pieces is None:
+            return has
+        return torch.zeros(self.n_sub, dtype=torch.long).index_add_(0, self.pieces.sub_of, has.long()) > 0
 
     def outputs(self, xn: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw chart outputs at network-frame points xn [M, 3] (already on the mid-surface when there is one):
@@ -104,14 +123,18 @@ class Atlas(nn.Module):
             p, uv = torch.softmax(self.chart(xn, enc), dim=-1), self.tex(xn, enc)
         else:
             p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
-        if self.sides is None:
-            return p, uv
-        rev = self.sides.reversed(self.tex, xn, self.denormalise(xn), uv)  # t_c at xn: the uv above
-        if self.islands:
-            has = self.layout.has_islands.to(rev.device).view(-1, 2)       # [n_net, 2] (majority, reversed)
-            rev = torch.where(has[:, 1], rev, torch.zeros_like(rev))
-            rev = torch.where(has[:, 0], rev, torch.ones_like(rev) & has[:, 1])
-        return ChartSides.expand(p, uv, rev)
+        if self.sides is not None:
+            rev = self.sides.reversed(self.tex, xn, self.denormalise(xn), uv)  # t_c at xn: the uv above
+            if self.islands:
+                has = self._sub_has_islands().to(rev.device).view(-1, 2)    # [n_net, 2] (majority, reversed)
+                rev = torch.where(has[:, 1], rev, torch.zeros_like(rev))
+                rev = torch.where(has[:, 0], rev, torch.ones_like(rev) & has[:, 1])
+            p, uv = ChartSides.expand(p, uv, rev)
+        if self.pieces is not None:
+            has = self.layout.has_islands if self.islands else None
+            p, uv = self.pieces.expand(p, uv, self.denormalise(xn), None if has is None else self._sub_has_islands(),
+                                       has)
+        return p, uv
 
     @property
     def islands(self) -> bool:
@@ -124,7 +147,7 @@ class Atlas(nn.Module):
 
     def set_layout(self, layout: IslandLayout) -> None:
         """Switch to an island layout: new textures [n, 3, size, size] (0.5) and an empty texel map."""
-        want = self.n_net * (2 if self.sides is not None else 1)
+        want = self.pieces.n if self.pieces is not None else self.n_sub
         if layout.n != want:
             raise InputError(f"island layout has {layout.n} charts, the atlas {want}")
         self.layout = layout
@@ -418,6 +441,8 @@ class Atlas(nn.Module):
             version, extra = 4, {"surface": self.surface.meta()}
         if self.sides is not None:
             version, extra = 5, dict(extra, sides=self.sides.meta())
+        if self.pieces is not None:
+            version, extra = 6, dict(extra, pieces={"n": self.pieces.n})
         return dict(version=version, n=self.n_net, R=L.R, pad=L.pad, half=self.half,
                     height=L.shape[0], width=L.shape[1], layout=getattr(L, "kind", "grid"),
                     uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch, **extra)
@@ -439,6 +464,8 @@ class Atlas(nn.Module):
             arrays.update(self.surface.to_arrays())
         if self.sides is not None:
             arrays.update(self.sides.to_arrays())
+        if self.pieces is not None:
+            arrays.update(self.pieces.to_arrays())
         return arrays
 
     @classmethod
@@ -461,8 +488,18 @@ class Atlas(nn.Module):
                                          f"{atlas.n_net} charts")
                 if kind != "islands":
                     raise ModelFileError("atlas: charts split by side need the island layout")
+            if "pieces" in meta:
+                if kind != "islands":
+                    raise ModelFileError("atlas: charts cut into pieces need the island layout")
+                for key in ("centres", "sub", "piece", "first"):
+                    if f"atlas/pieces/{key}" not in arrays:
+                        raise ModelFileError(f"atlas: missing array 'atlas/pieces/{key}' in the model file")
+                atlas.pieces = ChartPieces.from_arrays(arrays)
+                if atlas.pieces.n_sub != atlas.n_sub:
+                    raise ModelFileError(f"atlas: 'atlas/pieces/first' has {atlas.pieces.n_sub} entries for "
+                                         f"{atlas.n_sub} sub-charts")
             if kind == "islands":
-                n_layout = int(meta["n"]) * (2 if atlas.sides is not None else 1)
+                n_layout = atlas.pieces.n if atlas.pieces is not None else atlas.n_sub
                 atlas.set_layout(IslandLayout.from_arrays(arrays, n_layout, int(meta["R"]), int(meta["pad"])))
             if "surface" in meta:
                 atlas.surface = SurfaceProjection.from_arrays(arrays, meta["surface"])

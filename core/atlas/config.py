@@ -143,6 +143,20 @@ class AtlasConfig:
     island_sides_neighbours: int = opt(256, "island_sides without mid_surface: samples per anchor plane of the "
                                               "normals (PCA; wider: smoother normals, slower)", min=8,
                                        max=1 << 16)
+    island_pieces: bool = opt(False, "islands: cut a (sub-)chart into pieces where its map lays one part of the "
+                                     "surface over another with the same orientation (an overlap the side split "
+                                     "cannot separate); each piece gets its own islands, a point reads the piece "
+                                     "of its nearest patch (docs/atlas.md)")
+    island_pieces_voxel: float = opt(4.0, "island_pieces: patch size in sample spacings (the units pieces grow "
+                                          "by)", above=0.0, max=64.0)
+    island_pieces_far: float = opt(6.0, "island_pieces: patches closer than this many sample spacings never "
+                                        "conflict", above=0.0, max=1024.0)
+    island_pieces_texels: float = opt(2.0, "island_pieces: a farther patch holding the same texel conflicts only "
+                                           "where the map's local linear part would put it more than this many "
+                                           "texels away (a map that compresses there is no overlap)", above=0.0,
+                                      max=1024.0)
+    island_pieces_min_samples: int = opt(200, "island_pieces: smaller pieces join their most connected neighbour",
+                                         min=1, max=1 << 24)
     island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
                                  min=1, max=1_000_000)
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings",

@@ -95,6 +95,48 @@ def pixel_footprint(xyz, centres, focal: float) -> float:
     return float(np.median(d)) / float(focal)
 
 
+def _first_texel_size(probs: torch.Tensor, xyz: np.ndarray, area: float, R: int, cfg: AtlasConfig,
+                      pixel_size: float | None) -> tuple[float, np.ndarray]:
+    """The texel size (world units) an island layout tries first, and each chart's world area [n] (samples by
+    their most probable chart in probs [S, n])."""
+    n = probs.shape[1]
+    _, _, sel, elem = sample_spacing(xyz, per_sample=True)
+    own_sel = probs.argmax(-1).cpu().numpy()[sel]
+    area_c = np.array([elem[own_sel == c].sum() for c in range(n)]) * area / max(elem.sum(), 1e-30)
+    if cfg.image_size > 0:
+        h = math.sqrt(area / (0.7 * cfg.image_size ** 2))
+    elif pixel_size:
+        h = pixel_size / max(cfg.texels_per_pixel, 1e-6)
+    else:
+        h = math.sqrt(area / (n * R * R * cfg.chart_fill))
+    return h, area_c
+
+
+def chart_scales(probs: torch.Tensor, uv: torch.Tensor, area_c: np.ndarray, h: float, k_area: float,
+                 cfg: AtlasConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Texels per uv unit [n] that give every chart texel size h (world units) — measured per chart: its world
+    area area_c [n] over the texels its samples cover — and each chart's occupancy radius in texels [n]."""
+    from core.atlas.islands import UV_REACH, occupancy
+    from core.atlas.texture import texel_spacing
+
+    n = probs.shape[1]
+    owner = probs.argmax(-1)
+    uvn = uv.detach().cpu().numpy()
+    s0 = 1.0 / (k_area * h)  # texels per uv unit where the distortion loss holds
+    scale, fill = np.full(n, s0), np.ones(n)
+    for c in range(n):
+        m = (owner == c).cpu().numpy()
+        if not m.any():
+            continue
+        lo, hi = UV_REACH  # the range the island grid keeps (build_islands)
+        t = (np.clip(uvn[m, c], lo, hi) - lo) * s0
+        cells = occupancy(t, int(math.ceil((hi - lo) * s0)) + 1, 1.0).sum()
+        scale[c] = s0 * float(np.clip(math.sqrt(area_c[c] / (h * h) / max(cells, 1)), 0.25, 4.0))
+        sp = texel_spacing(uv[torch.from_numpy(m).to(uv.device), c] * float(scale[c]))
+        fill[c] = cfg.island_fill * max(1.0, sp)
+    return scale, fill
+
+
 def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: float, k_area: float, R: int,
                   cfg: AtlasConfig, pixel_size: float | None) -> tuple[object, dict]:
     """Cut the charts to the surface they cover and pack them (core/atlas/islands.py) at one texel density for all
@@ -103,36 +145,13 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
     Texel size: pixel_size / texels_per_pixel when the images' footprint is known, else the grid's density; a fixed
     cfg.image_size, or a side above cfg.max_image_size, coarsens it until the islands fit.
     Returns (layout, info: texel size, per-chart scale, islands, seconds)."""
-    from core.atlas.islands import UV_REACH, build_islands, occupancy
-    from core.atlas.texture import texel_spacing
+    from core.atlas.islands import build_islands
 
     t0 = time.perf_counter()
-    n = probs.shape[1]
-    owner = probs.argmax(-1)
-    _, _, sel, elem = sample_spacing(xyz, per_sample=True)
-    own_sel = owner.cpu().numpy()[sel]
-    area_c = np.array([elem[own_sel == c].sum() for c in range(n)]) * area / max(elem.sum(), 1e-30)
-    if cfg.image_size > 0:
-        h = math.sqrt(area / (0.7 * cfg.image_size ** 2))
-    elif pixel_size:
-        h = pixel_size / max(cfg.texels_per_pixel, 1e-6)
-    else:
-        h = math.sqrt(area / (n * R * R * cfg.chart_fill))
-    uvn = uv.detach().cpu().numpy()
+    h, area_c = _first_texel_size(probs, xyz, area, R, cfg, pixel_size)
     info = {}
     for attempt in range(40):
-        s0 = 1.0 / (k_area * h)  # texels per uv unit where the distortion loss holds
-        scale, fill = np.full(n, s0), np.ones(n)
-        for c in range(n):  # measured density per chart: its world area over the texels its samples cover
-            m = (owner == c).cpu().numpy()
-            if not m.any():
-                continue
-            lo, hi = UV_REACH  # the range the island grid keeps (build_islands)
-            t = (np.clip(uvn[m, c], lo, hi) - lo) * s0
-            cells = occupancy(t, int(math.ceil((hi - lo) * s0)) + 1, 1.0).sum()
-            scale[c] = s0 * float(np.clip(math.sqrt(area_c[c] / (h * h) / max(cells, 1)), 0.25, 4.0))
-            sp = texel_spacing(uv[torch.from_numpy(m).to(uv.device), c] * float(scale[c]))
-            fill[c] = cfg.island_fill * max(1.0, sp)
+        scale, fill = chart_scales(probs, uv, area_c, h, k_area, cfg)
         layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.image_size, fill, cfg.island_min_texels,
                                transpose=cfg.island_transpose, split=cfg.island_split,
                                min_fill=cfg.island_min_fill, packer=cfg.island_packer)
@@ -356,6 +375,10 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     if cfg.layout == "islands" and cfg.island_sides:
         chart_sides(atlas, xyz, xn, cfg, spacing, hist)
     probs_all, uv_all = _predict(atlas, xn)
+    if cfg.layout == "islands" and cfg.island_pieces:
+        chart_pieces_step(atlas, xn, probs_all, uv_all, xyz.numpy().astype(np.float64), area, k_area, R, cfg,
+                          pixel_size, spacing, hist)
+        probs_all, uv_all = _predict(atlas, xn)
     if cfg.layout == "islands":
         layout, info = island_layout(probs_all, uv_all, xyz.numpy().astype(np.float64), area, k_area, R, cfg,
                                      pixel_size)
@@ -436,6 +459,42 @@ def chart_sides(atlas: Atlas, xyz: torch.Tensor, xn: torch.Tensor, cfg: AtlasCon
                      "reversed": float((rev & torch.from_numpy(split)).float().mean()),
                      "crease": float((rho[torch.arange(len(rho)), chart].abs() < 0.2).float().mean())}
     atlas.sides = sides if bool((major != 0).any()) else None  # nothing split: the atlas of one side per chart
+
+
+def chart_pieces_step(atlas: Atlas, xn: torch.Tensor, probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray,
+                      area: float, k_area: float, R: int, cfg: AtlasConfig, pixel_size: float | None,
+                      spacing: float, hist: dict) -> None:
+    """Cut every sub-chart where its map overlaps itself (core/atlas/pieces.py), from the samples xn [S, 3]
+    (network frame, as lookups read them) with their sub-chart outputs probs [S, n_sub], uv [S, n_sub, 2]; texel
+    coordinates at the density the island layout tries first. Sets atlas.pieces (None when no sub-chart is cut);
+    hist gets "pieces": seconds, layout charts, sub-charts cut."""
+    from core.atlas.pieces import ChartPieces, chart_pieces
+
+    t0 = time.perf_counter()
+    h, area_c = _first_texel_size(probs, xyz, area, R, cfg, pixel_size)
+    scale, _ = chart_scales(probs, uv, area_c, h, k_area, cfg)
+    world = atlas.denormalise(xn).cpu().numpy()
+    sub = probs.argmax(-1).cpu().numpy()
+    uvn = uv.detach().cpu().numpy()
+    centres, subs, pieces, first, nxt = [], [], [], [], 0
+    for s in range(probs.shape[1]):
+        m = sub == s
+        first.append(nxt)
+        if m.sum() < 2 * cfg.island_pieces_min_samples:
+            nxt += 1
+            continue
+        cen, lab = chart_pieces(world[m], uvn[m, s] * scale[s], spacing, cfg.island_pieces_voxel,
+                                cfg.island_pieces_far, cfg.island_pieces_texels, cfg.island_pieces_min_samples)
+        k = int(lab.max()) + 1 if len(lab) else 1
+        if k > 1:  # only cut sub-charts keep their patches (the others' points all read their one piece)
+            centres.append(cen)
+            subs.append(np.full(len(cen), s))
+            pieces.append(nxt + lab)
+        nxt += k
+    cut = len(centres)
+    atlas.pieces = None if not cut else ChartPieces(np.concatenate(centres), np.concatenate(subs),
+                                                    np.concatenate(pieces), np.asarray(first))
+    hist["pieces"] = {"seconds": round(time.perf_counter() - t0, 2), "charts": nxt, "cut": cut}
 
 
 def mid_surface(atlas: Atlas, xyz: torch.Tensor, cfg: AtlasConfig, spacing: float, hist: dict) -> torch.Tensor:

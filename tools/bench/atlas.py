@@ -14,7 +14,8 @@ stage-2 seconds, the atlas-coloured render and, at rest, the retexture (with its
 texture evaluated exactly at the surface points) and the decal, object PSNR on the scene's test views
 (--no-scores: the layout figures only, no renders; --work DIR keeps the ground truth out of the scene folders).
 --island-sides splits every chart by side
-(core/atlas/sides.py; side_reversed: the samples' share on a reversed sub-chart); --folds adds the maps' fold report.
+(core/atlas/sides.py; side_reversed: the samples' share on a reversed sub-chart); --island-pieces cuts charts where
+their maps overlap (core/atlas/pieces.py; layout_charts, pieces_seconds); --folds adds the maps' fold report.
 --footprint-variants "1;25;0.25,1,4,16,64" fits the maps once per scene and layout, then refits the texture through
 the pixel filter once per variant (a single λ, or candidates that footprint_lambdas chooses among from held-out
 training views) and adds a row per variant (atlas-coloured and decal scored; the retexture does not depend on it).
@@ -200,6 +201,8 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                 row["footprint_holdout_psnr"] = hist["footprint"]["holdout_psnr"]
             if "sides" in hist:  # charts split by side: share of the samples on a reversed sub-chart
                 row["side_reversed"] = hist["sides"]["reversed"]
+            if "pieces" in hist:  # charts cut where their maps overlap: layout charts, seconds of the cut
+                row["layout_charts"], row["pieces_seconds"] = hist["pieces"]["charts"], hist["pieces"]["seconds"]
             if folds and atlas.bake_samples is not None:
                 from core.atlas.fit import fold_report
 
