@@ -448,8 +448,9 @@ class Atlas(nn.Module):
                     uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch, **extra)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """All state as named float32 arrays: 'atlas/image' [H, W, 3], 'atlas/texel_points' [H, W, 3],
-        'atlas/centre' [3], the network weights under 'atlas/net/...' and, when known, 'atlas/bake_samples' [S, 3]."""
+        """All state as named arrays (float32; the islands' and pieces' indices int32): 'atlas/image' [H, W, 3],
+        'atlas/texel_points' [H, W, 3], 'atlas/centre' [3], the network weights under 'atlas/net/...' and, when
+        known, 'atlas/bake_samples' [S, 3]."""
         arrays = {"atlas/image": pack(self.textures.detach(), self.layout).cpu().numpy().astype(np.float32),
                   "atlas/texel_points": self.texel_xyz.cpu().numpy().astype(np.float32),
                   "atlas/centre": self.centre.cpu().numpy().astype(np.float32)}

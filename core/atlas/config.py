@@ -143,7 +143,7 @@ class AtlasConfig:
     island_sides_neighbours: int = opt(256, "island_sides without mid_surface: samples per anchor plane of the "
                                               "normals (PCA; wider: smoother normals, slower)", min=8,
                                        max=1 << 16)
-    island_pieces: bool = opt(False, "islands: cut a (sub-)chart into pieces where its map lays one part of the "
+    island_pieces: bool = opt(True, "islands: cut a (sub-)chart into pieces where its map lays one part of the "
                                      "surface over another with the same orientation (an overlap the side split "
                                      "cannot separate); each piece gets its own islands, a point reads the piece "
                                      "of its nearest patch (docs/atlas.md)")

@@ -187,7 +187,7 @@ def test_a_quick_fit_split_by_side_runs_end_to_end():
     xyz, rgb = synthetic_samples("torus", 4000, seed=4)
     quick = dict(steps=150, batch=256, uv_batch=32, distortion_batch=64, width_map=32, depth_map=2, width_chart=16,
                  depth_chart=1, log_every=1000, eval_samples=256, charts="4", layout="islands", image_size=128,
-                 island_sides_neighbours=128, island_sides=True, island_sides_min_share=0.0)
+                 island_sides_neighbours=128, island_sides=True, island_sides_min_share=0.0, island_pieces=False)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
