@@ -24,6 +24,7 @@ from core.util.errors import InputError, ModelFileError
 
 TEXELS = "atlas/texel_points"
 SMALL_PIECE = 0.02  # island atlases: a piece with fewer than this share of the faces is welded more eagerly
+FLOATER = 8.0  # ... and left out when still apart and no vertex of it lies within this many median edges of the rest
 # island atlases: the weld tolerance is this many times `stitch` (the vertices on two sides of a seam between islands
 # lie on each island's own sampling lines, up to about two median edges apart: the test card's cracks are 1.7-1.8)
 ISLAND_STITCH = 4.0 / 3.0
@@ -68,7 +69,8 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
     border crosses are cut at the border (`_border_triangles`), so each island's mesh reaches its border and the
     seams between islands are narrow enough to weld (at ISLAND_STITCH times the tolerance); the step grows when
     that overruns the face budget; a piece with fewer than SMALL_PIECE of the faces still apart after welding is
-    welded to the others at twice the tolerance. Cracks are then closed where the surface goes on: with `close` > 0,
+    welded to the others at twice the tolerance, and left out when even then none of its vertices lies within
+    FLOATER median edges of the rest (stray surface points of the model, far off its surface). Cracks are then closed where the surface goes on: with `close` > 0,
     holes and notches of a grid chart's texel mask narrower than about 2 `close` sampling steps get surface points
     interpolated from their neighbours first (`close_texel_map`); chart pieces are welded along their seams
     (`stitch_charts`, `stitch` times the median edge as the tolerance; 0: not welded); holes left with at most
@@ -116,12 +118,36 @@ def proxy_arrays(texel_points: np.ndarray, R: int, pad: int, target_faces: int =
             small = faces < SMALL_PIECE * len(tris)
             if small[tris[:, 0]].any() and not small[tris[:, 0]].all():
                 verts, tris = stitch_charts(verts, tris, np.where(small, comp, -1), 2.0 * tol)
+                keep = _near_pieces(verts, tris, FLOATER * med)
+                if not keep.all():
+                    tris, corner_uv, face_chart = tris[keep], corner_uv[keep], face_chart[keep]
+                    used, inverse = np.unique(tris.reshape(-1), return_inverse=True)
+                    verts, tris = verts[used], inverse.reshape(-1, 3).astype(np.int32)
     flip = orient_faces(tris, verts)
     tris[flip] = tris[flip][:, [0, 2, 1]]
     corner_uv[flip] = corner_uv[flip][:, [0, 2, 1]]
     if fill > 0:
         verts, tris, corner_uv = fill_holes(verts, tris, corner_uv, face_chart, int(fill), fill * med)
     return verts, tris, corner_uv
+
+
+def _near_pieces(verts: np.ndarray, tris: np.ndarray, reach: float) -> np.ndarray:
+    """Faces [F] bool to keep: all but those of small pieces (under SMALL_PIECE of the faces) with no vertex within
+    `reach` of a larger piece — fragments meshed from a model's stray surface points, far off its surface."""
+    comp = mesh_components(len(verts), tris)
+    fcomp = comp[tris[:, 0]]
+    faces = np.bincount(fcomp, minlength=len(verts))
+    small = faces < SMALL_PIECE * len(tris)
+    keep = ~small[fcomp]
+    if keep.all() or not keep.any():
+        return np.ones(len(tris), bool)
+    big = verts[np.unique(tris[keep])].astype(np.float64)
+    for c in np.unique(fcomp[~keep]):
+        v = verts[np.unique(tris[fcomp == c])].astype(np.float64)
+        d2 = min(float(((big - p) ** 2).sum(-1).min()) for p in v)
+        if d2 <= reach * reach:
+            keep |= fcomp == c
+    return keep
 
 
 def _sample_faces(tp: np.ndarray, valid: np.ndarray, R: int, pad: int, cell: int, step: int, grid: bool,

@@ -223,3 +223,28 @@ def test_island_texels_that_share_a_point_give_no_overlapping_vertices():
     assert side.min() > 0 and (twice_area > 1e-6 * side.max(1)).all()
     _, most = _boundary_edges(t)
     assert most == 2 and len(np.unique(mesh_components(len(v), t)[np.unique(t)])) == 1
+
+
+def test_island_fragments_far_off_the_surface_are_left_out_and_near_ones_kept():
+    """A small island meshed from stray surface points far off the surface (1000 edges above the plane) is left
+    out of the proxy; a small island 6 edges above it (a small part of the object, too far to weld) stays."""
+    from pointgt_blender.scene.proxy_mesh import mesh_components
+
+    h = 0.1
+    tp = np.full((40, 40, 3), np.nan, np.float32)
+    r, c = np.mgrid[0:40, 0:40].astype(np.float32)
+    plane = (r >= 2) & (r <= 31) & (c >= 2) & (c <= 31)
+    near = (r >= 34) & (r <= 37) & (c >= 2) & (c <= 5)
+    far = (r >= 34) & (r <= 37) & (c >= 10) & (c <= 13)
+    tp[plane] = np.stack([(c - 2) * h, (r - 2) * h, 0 * r], -1)[plane]
+    tp[near] = np.stack([(c - 2) * h, (r - 34) * h, 0 * r + 6 * h], -1)[near]
+    tp[far] = np.stack([(c - 10) * h, (r - 34) * h, 0 * r + 1000 * h], -1)[far]
+    v, t, uv = proxy_arrays(tp, 40, 0, target_faces=100000, fill=0)
+    comp = mesh_components(len(v), t)
+    assert len(np.unique(comp[np.unique(t)])) == 2 and len(v) == len(np.unique(t))
+    assert float(v[:, 2].max()) == pytest.approx(6 * h) and np.isfinite(uv).all()
+    col = np.floor(uv[..., 0] * 40).astype(int)
+    assert not ((col >= 10) & (col <= 13) & (np.floor((1 - uv[..., 1]) * 40) >= 34)).any()  # no face of it
+    # the same fragment in a map of its own size is the map: kept
+    v2, t2, _ = proxy_arrays(np.where(far[..., None], tp, np.nan), 40, 0, fill=0)
+    assert len(t2) > 0
