@@ -468,6 +468,7 @@ def chart_pieces_step(atlas: Atlas, xn: torch.Tensor, probs: torch.Tensor, uv: t
     (network frame, as lookups read them) with their sub-chart outputs probs [S, n_sub], uv [S, n_sub, 2]; texel
     coordinates at the density the island layout tries first. Sets atlas.pieces (None when no sub-chart is cut);
     hist gets "pieces": seconds, layout charts, sub-charts cut."""
+    from core.atlas.islands import UV_REACH
     from core.atlas.pieces import ChartPieces, chart_pieces
 
     t0 = time.perf_counter()
@@ -483,7 +484,7 @@ def chart_pieces_step(atlas: Atlas, xn: torch.Tensor, probs: torch.Tensor, uv: t
         if m.sum() < 2 * cfg.island_pieces_min_samples:
             nxt += 1
             continue
-        cen, lab = chart_pieces(world[m], uvn[m, s] * scale[s], spacing, cfg.island_pieces_voxel,
+        cen, lab = chart_pieces(world[m], np.clip(uvn[m, s], *UV_REACH) * scale[s], spacing, cfg.island_pieces_voxel,
                                 cfg.island_pieces_far, cfg.island_pieces_texels, cfg.island_pieces_min_samples)
         k = int(lab.max()) + 1 if len(lab) else 1
         if k > 1:  # only cut sub-charts keep their patches (the others' points all read their one piece)

@@ -16,11 +16,15 @@ samples the layout and texture are built from, the texel map, baking and every l
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
 from core.util.errors import InputError
+
+MAX_CELLS = 1 << 24  # texel cells of the grid the growth claims cells in (coarser beyond)
 
 try:
     import numba
@@ -159,7 +163,10 @@ def chart_pieces(y: np.ndarray, t: np.ndarray, spacing: float, voxel: float = 4.
     A += np.eye(3) * (1e-3 * spacing * spacing) * cnt[:, None, None]
     jac = np.linalg.solve(A, B)
     jac = np.where(np.isfinite(jac), jac, 0.0)
-    # texel cells of each patch (CSR), cells indexed row * W + col on the chart's own grid
+    # texel cells of each patch (CSR), cells indexed row * W + col on the chart's own grid (coarser cells where a
+    # map spreads its samples over more than MAX_CELLS texels, so the grid stays bounded for any map)
+    coarse = max(1.0, math.sqrt(float(np.prod(t.max(0) - t.min(0) + 1.0)) / MAX_CELLS))
+    t, tcen, jac, texels = t / coarse, tcen / coarse, jac / coarse, texels / coarse
     ti = np.floor(t - t.min(0)).astype(np.int64)
     W = int(ti[:, 0].max()) + 1
     pc = np.unique(inv * (W * (int(ti[:, 1].max()) + 1)) + ti[:, 1] * W + ti[:, 0])

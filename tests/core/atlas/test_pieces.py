@@ -99,6 +99,11 @@ def test_chart_pieces_are_finite_on_degenerate_input():
     assert np.isfinite(cen).all() and (lab == 0).all()
     cen, lab = chart_pieces(np.zeros((0, 3)), np.zeros((0, 2)), 0.01)
     assert len(cen) == 0 and len(lab) == 0
+    # a map that spreads its samples over 1e12 texels: the growth's grid stays bounded (no memory blow-up)
+    xyz, _ = _ramp(6000)
+    y = xyz.numpy().astype(np.float64)
+    cen, lab = chart_pieces(y, (y[:, :2] * 0.5 + 0.5) * 1.2e12, 0.01)
+    assert len(lab) == len(cen) > 0 and lab.min() == 0 and np.isfinite(cen).all()
     with pytest.raises(InputError):
         chart_pieces(np.zeros((5, 3)), np.zeros((4, 2)), 0.01)
     with pytest.raises(InputError):
