@@ -241,11 +241,24 @@ class IslandLayout:
 
 def occupancy(t: np.ndarray, G: int, fill: float = 1.0) -> np.ndarray:
     """Occupied cells [G, G] bool of texel coordinates t [M, 2] (col, row): cells with a point, closed over gaps
-    of up to 2 * fill cells (dilate by fill, erode by fill - 1), small enclosed holes filled."""
+    of up to 2 * fill cells (dilate by fill, erode by fill - 1), small enclosed holes filled. Computed on the
+    points' bounding box with a margin wider than fill (the same cells as on the whole grid: every step is local
+    or, for the holes, decided by what the empty margin connects to) and pasted into the grid."""
+    out = np.zeros((G, G), bool)
+    k = np.clip(np.floor(t).astype(np.int64), 0, G - 1)
+    if len(k) == 0:
+        return out
+    m = int(math.ceil(fill)) + 2
+    (c0, r0), (c1, r1) = np.maximum(k.min(0) - m, 0), np.minimum(k.max(0) + m + 1, G)
+    out[r0:r1, c0:c1] = _occupancy_full(k - [c0, r0], (r1 - r0, c1 - c0), fill)
+    return out
+
+
+def _occupancy_full(k: np.ndarray, shape: tuple[int, int], fill: float) -> np.ndarray:
+    """`occupancy` on a whole grid of `shape` for cells k [M, 2] (col, row) inside it."""
     from scipy.ndimage import distance_transform_edt
 
-    hit = np.zeros((G, G), bool)
-    k = np.clip(np.floor(t).astype(np.int64), 0, G - 1)
+    hit = np.zeros(shape, bool)
     hit[k[:, 1], k[:, 0]] = True
     if not hit.any():
         return hit

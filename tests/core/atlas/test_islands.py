@@ -409,3 +409,18 @@ def test_texel_map_newton_reaches_as_far_as_each_points_own_texels():
     assert float(miss[~short].median()) < 0.5, float(miss[~short].median())   # converged where the map allows
     moved = (out - start).norm(dim=-1)
     assert float(moved[short].max()) <= 8 * 0.02 * 1.6 / A + 1e-6    # the short ones stay within their own reach
+
+
+def test_occupancy_on_the_points_bounding_box_equals_the_whole_grid():
+    from core.atlas.islands import _occupancy_full
+
+    g = np.random.default_rng(0)
+    for trial in range(60):
+        G, fill, n = int(g.integers(8, 160)), float(g.choice([0.5, 1.0, 1.5, 2.3, 3.0])), int(g.integers(1, 300))
+        t = g.uniform(-5, G + 5, 2) + g.normal(0, g.uniform(1, G / 3), (n, 2))
+        if trial % 3 == 0:  # a ring: its hole is filled or kept the same way on both
+            a = g.uniform(0, 2 * np.pi, n)
+            t = np.c_[G / 2 + G / 4 * np.cos(a), G / 2 + G / 4 * np.sin(a)]
+        whole = _occupancy_full(np.clip(np.floor(t).astype(np.int64), 0, G - 1), (G, G), fill)
+        assert np.array_equal(occupancy(t, G, fill), whole), trial
+    assert not occupancy(np.zeros((0, 2)), 16).any()
