@@ -123,17 +123,17 @@ class Atlas(nn.Module):
             p, uv = torch.softmax(self.chart(xn, enc), dim=-1), self.tex(xn, enc)
         else:
             p, uv = torch.softmax(self.chart(xn), dim=-1), self.tex(xn)
+        sub_has = self._sub_has_islands() if self.islands else None  # [n_sub]; None before there is a layout
         if self.sides is not None:
             rev = self.sides.reversed(self.tex, xn, self.denormalise(xn), uv)  # t_c at xn: the uv above
-            if self.islands:
-                has = self._sub_has_islands().to(rev.device).view(-1, 2)    # [n_net, 2] (majority, reversed)
+            if sub_has is not None:
+                has = sub_has.to(rev.device).view(-1, 2)                       # [n_net, 2] (majority, reversed)
                 rev = torch.where(has[:, 1], rev, torch.zeros_like(rev))
                 rev = torch.where(has[:, 0], rev, torch.ones_like(rev) & has[:, 1])
             p, uv = ChartSides.expand(p, uv, rev)
         if self.pieces is not None:
-            has = self.layout.has_islands if self.islands else None
-            p, uv = self.pieces.expand(p, uv, self.denormalise(xn), None if has is None else self._sub_has_islands(),
-                                       has)
+            p, uv = self.pieces.expand(p, uv, self.denormalise(xn), sub_has,
+                                       self.layout.has_islands if self.islands else None)
         return p, uv
 
     @property

@@ -32,6 +32,19 @@ except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
 
+def _claim_py(p, cell_ptr, cells, claim, touched, nt):
+    """Patch p claims its texel cells that no patch of the piece holds yet (noted in touched[nt:]); returns nt."""
+    for q in range(cell_ptr[p], cell_ptr[p + 1]):
+        if claim[cells[q]] < 0:
+            claim[cells[q]] = p
+            touched[nt] = cells[q]
+            nt += 1
+    return nt
+
+
+_claim = numba.njit(cache=False, nogil=True)(_claim_py) if numba is not None else _claim_py
+
+
 def _grow_py(order, adj_ptr, adj, cell_ptr, cells, cen, tcen, jac, nrm, n_cells, far2, texels2):
     """Breadth-first growth of pieces over patches (module doc). Returns labels [P] (0..k-1) and k."""
     P = len(order)
@@ -46,11 +59,7 @@ def _grow_py(order, adj_ptr, adj, cell_ptr, cells, cen, tcen, jac, nrm, n_cells,
         nt, qh, qt = 0, 0, 1
         queue[0] = s0
         label[s0] = k
-        for q in range(cell_ptr[s0], cell_ptr[s0 + 1]):
-            if claim[cells[q]] < 0:
-                claim[cells[q]] = s0
-                touched[nt] = cells[q]
-                nt += 1
+        nt = _claim(s0, cell_ptr, cells, claim, touched, nt)
         while qh < qt:
             i = queue[qh]
             qh += 1
@@ -76,11 +85,7 @@ def _grow_py(order, adj_ptr, adj, cell_ptr, cells, cen, tcen, jac, nrm, n_cells,
                 if not ok:
                     continue
                 label[j] = k
-                for q in range(cell_ptr[j], cell_ptr[j + 1]):
-                    if claim[cells[q]] < 0:
-                        claim[cells[q]] = j
-                        touched[nt] = cells[q]
-                        nt += 1
+                nt = _claim(j, cell_ptr, cells, claim, touched, nt)
                 queue[qt] = j
                 qt += 1
         for q in range(nt):
@@ -229,12 +234,9 @@ class ChartPieces:
             raise InputError("chart pieces: every layout chart must be one piece of one sub-chart")
         self.sub_of = torch.from_numpy(sub_of)
         self.n, self.n_sub = n, S
+        # sub-charts with more than one piece (the only ones whose points need a patch query)
+        self.split = [s for s in range(S) if len(np.unique(self.piece[self.sub == s])) > 1]
         self._trees: dict[int, tuple[cKDTree, np.ndarray]] = {}
-
-    @property
-    def split(self) -> list[int]:
-        """Sub-charts with more than one piece."""
-        return [s for s in range(self.n_sub) if len(np.unique(self.piece[self.sub == s])) > 1]
 
     def _tree(self, s: int):
         if s not in self._trees:
