@@ -98,28 +98,57 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
     return bisect_side(lambda side: _place_all(shapes, order, side, g), lo, hi, best, search, tol=0.01)
 
 
+def longest_runs(a: np.ndarray) -> np.ndarray:
+    """a [R, W] bool -> [R] int64, the longest run of True in each row."""
+    idx = np.arange(1, a.shape[1] + 1)
+    if a.shape[1] == 0:
+        return np.zeros(a.shape[0], np.int64)
+    return (idx - np.maximum.accumulate(np.where(a, 0, idx), axis=1)).max(1)
+
+
+def _start_rows(opts, free_run: np.ndarray, S: int) -> np.ndarray:
+    """Rows (ascending) where some orientation's footprint could start: each footprint row needs a run of free
+    cells at least as long as its own longest run of cells in the image row it lands on (necessary, not
+    sufficient: the FFT decides). free_run [S + 2 g]: the longest free run of each row of the grown image."""
+    ok = np.zeros(S, bool)
+    for q, t, first, foot in opts:
+        n = S - t.shape[0] + 1
+        if n <= 0:
+            continue
+        need = longest_runs(foot > 0)
+        ok_q = np.ones(n, bool)
+        for k in np.argsort(-need, kind="stable"):  # the most demanding rows first: most spots fail early
+            ok_q &= free_run[k:k + n] >= need[k]
+            if not ok_q.any():
+                break
+        ok[:n] |= ok_q
+    return np.flatnonzero(ok)
+
+
 def _place_all(shapes, order, S: int, g: int):
     """Greedy placement of every island (in `order`) into an S x S image, each at its first free spot in reading
     order (row, then col) over its orientations: (offsets [I, 2], orient [I]) or None when one does not fit. The
-    search runs over bands of rows from the first row with a free cell down, so an island that fits near the top
-    costs a band, not the image."""
+    search runs over bands of rows from the first row where a footprint could start down (`_start_rows`), so an
+    island that fits near the top costs a band, not the image."""
     # footprints, the image grown by g on every side; single precision: the FFTs run twice as fast, and a spot
     # whose rounded count says free is checked cell by cell
     occ = np.zeros((S + 2 * g, S + 2 * g), np.float32)
+    free_run = np.full(S + 2 * g, S + 2 * g, np.int64)  # longest run of free cells in each row of occ
     offsets = np.zeros((len(shapes), 2), np.int64)
     orient = np.zeros(len(shapes), np.int64)
     for i in order:
         opts = [o for o in shapes[i] if o[1].shape[0] <= S and o[1].shape[1] <= S]
         best = None
         if opts:
-            full = occ[g:S + g, g:S + g].all(1)
-            r0 = int(np.argmin(full)) if not full.all() else S  # rows above are full: no island starts there
+            starts = _start_rows(opts, free_run, S)
             hmax = max(o[3].shape[0] for o in opts)
             band = max(32, hmax)
             H, W = band + hmax - 1, S + 2 * g  # the window of a band's spots, for every orientation
             fh, fw = next_fast_len(H, real=True), next_fast_len(W, real=True)
-            specs = [np.conj(rfft2(o[3], (fh, fw))) for o in opts]  # each footprint's, once per island
-            while best is None and r0 <= S - min(o[1].shape[0] for o in opts):
+            specs = [np.conj(rfft2(o[3], (fh, fw))) for o in opts] if len(starts) else []  # once per island
+            j = 0
+            while best is None and j < len(starts):
+                r0 = int(starts[j])
                 spec = rfft2(occ[r0:r0 + H], (fh, fw))  # rows past the image read as zero-padding
                 for (q, t, first, foot), fs in zip(opts, specs):
                     h, w = t.shape
@@ -136,11 +165,12 @@ def _place_all(shapes, order, S: int, g: int):
                             if best is None or cand[:2] < best[:2]:  # then over orientations
                                 best = cand
                             break
-                r0 += band
+                j = int(np.searchsorted(starts, r0 + band))  # the next band: from the next possible start on
         if best is None:
             return None
         r, c, q, first, foot = best
         occ[r:r + foot.shape[0], c:c + foot.shape[1]] += foot
+        free_run[r:r + foot.shape[0]] = longest_runs(occ[r:r + foot.shape[0]] == 0)
         offsets[i] = np.array([c, r], np.int64) - first
         orient[i] = q
     return offsets, orient

@@ -26,10 +26,7 @@ from core.util.errors import InputError
 
 MAX_CELLS = 1 << 24  # texel cells of the grid the growth claims cells in (coarser beyond)
 
-try:
-    import numba
-except ImportError:  # pragma: no cover - exercised only where numba is missing
-    numba = None
+from core.util.jit import njit
 
 
 def _claim_py(p, cell_ptr, cells, claim, touched, nt):
@@ -42,7 +39,7 @@ def _claim_py(p, cell_ptr, cells, claim, touched, nt):
     return nt
 
 
-_claim = numba.njit(cache=False, nogil=True)(_claim_py) if numba is not None else _claim_py
+_claim = njit(_claim_py)
 
 
 def _grow_py(order, adj_ptr, adj, cell_ptr, cells, cen, tcen, jac, nrm, n_cells, far2, texels2):
@@ -94,7 +91,7 @@ def _grow_py(order, adj_ptr, adj, cell_ptr, cells, cen, tcen, jac, nrm, n_cells,
     return label, k
 
 
-_grow = numba.njit(cache=False, nogil=True)(_grow_py) if numba is not None else _grow_py
+_grow = njit(_grow_py)
 
 
 def _merge_small(label: np.ndarray, k: int, weight: np.ndarray, ei: np.ndarray, ej: np.ndarray,

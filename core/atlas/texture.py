@@ -17,15 +17,19 @@ import torch.nn.functional as F
 from core.atlas.packing import dilate_unused
 
 
-def splat(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: int, min_prob: float = 1e-3
-          ) -> tuple[torch.Tensor, torch.Tensor]:
+def splat(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: int, min_prob: float = 1e-3,
+          box: tuple[int, int, int, int] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Bilinear splat of sample colours into chart textures.
 
     probs [S, n] chart probabilities, uv [S, n, 2] texture coordinates (u -> column, v -> row), rgb [S, C] (any C).
     Returns (colour sums [n, C, R, R], weights [n, R, R]); the weights use the same bilinear footprint as
     `packing.sample_charts` (texel centres at (j + 0.5) / R, clamp to edge) scaled by P(c|x).
+    box (r0, r1, c0, c1): only that window of the R x R textures ([n, C, r1 - r0, c1 - c0], [n, r1 - r0, c1 - c0]);
+    it must hold every texel a sample with P(c|x) > min_prob reaches (`splat_box`).
     """
     S, n = probs.shape
+    r0, r1, c0, c1 = (0, R, 0, R) if box is None else box
+    h, wd = r1 - r0, c1 - c0
     f = uv.clamp(0, 1) * R - 0.5  # continuous texel index [S, n, 2]
     base = f.floor()
     frac = f - base
@@ -35,18 +39,39 @@ def splat(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: int, min_
         for dc in (0, 1):
             wc = frac[..., 0] if dc else 1 - frac[..., 0]
             wr = frac[..., 1] if dr else 1 - frac[..., 1]
-            col = (base[..., 0] + dc).clamp(0, R - 1)
-            row = (base[..., 1] + dr).clamp(0, R - 1)
-            w_all.append(wc * wr * probs * (probs > min_prob))  # [S, n]
-            idx_all.append(torch.arange(n, device=uv.device) * R * R + row * R + col)  # [S, n] flat texel ids
+            col = (base[..., 0] + dc).clamp(0, R - 1) - c0
+            row = (base[..., 1] + dr).clamp(0, R - 1) - r0
+            w = wc * wr * probs * (probs > min_prob)  # [S, n]
+            if box is not None:  # a sample outside the window must carry no weight into it
+                w = torch.where((row >= 0) & (row < h) & (col >= 0) & (col < wd), w, torch.zeros_like(w))
+                row, col = row.clamp(0, h - 1), col.clamp(0, wd - 1)
+            w_all.append(w)
+            idx_all.append(torch.arange(n, device=uv.device) * h * wd + row * wd + col)  # [S, n] flat texel ids
     w = torch.stack(w_all).reshape(-1)
     idx = torch.stack(idx_all).reshape(-1)
     C = rgb.shape[1]
     w = w.to(rgb.dtype)
     col = rgb[None, :, None, :].expand(4, S, n, C).reshape(-1, C)
-    wsum = torch.zeros(n * R * R, device=uv.device, dtype=rgb.dtype).index_add_(0, idx, w)
-    csum = torch.zeros(n * R * R, C, device=uv.device, dtype=rgb.dtype).index_add_(0, idx, col * w[:, None])
-    return csum.T.reshape(C, n, R, R).transpose(0, 1).contiguous(), wsum.view(n, R, R)
+    wsum = torch.zeros(n * h * wd, device=uv.device, dtype=rgb.dtype).index_add_(0, idx, w)
+    csum = torch.zeros(n * h * wd, C, device=uv.device, dtype=rgb.dtype).index_add_(0, idx, col * w[:, None])
+    return csum.T.reshape(C, n, h, wd).transpose(0, 1).contiguous(), wsum.view(n, h, wd)
+
+
+def splat_box(uv: torch.Tensor, R: int, margin: int) -> tuple[int, int, int, int]:
+    """The window (r0, r1, c0, c1) of an R x R texture that holds every texel the bilinear splat of uv [M, 2]
+    (one chart's coordinates) reaches, grown by margin texels (a blur's reach) and clipped to the texture; the
+    whole texture when uv is empty."""
+    if uv.shape[0] == 0:
+        return 0, R, 0, R
+    f = (uv.clamp(0, 1) * R - 0.5).floor()
+    lo = (f.amin(0).long() - margin).clamp(0, R - 1).tolist()
+    hi = (f.amax(0).long() + 2 + margin).clamp(1, R).tolist()
+    return lo[1], hi[1], lo[0], hi[0]
+
+
+def blur_reach(sigma: float) -> int:
+    """Texels a `gaussian_blur` of std sigma reaches on each side (0 when it does not blur)."""
+    return max(1, int(math.ceil(3 * sigma))) if sigma > 0 else 0
 
 
 def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -54,7 +79,7 @@ def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
     colour / weight stays an average). img [B, C, H, W], sigma in texels (<= 0: unchanged)."""
     if sigma <= 0:
         return img
-    r = max(1, int(math.ceil(3 * sigma)))
+    r = blur_reach(sigma)
     x = torch.arange(-r, r + 1, device=img.device, dtype=img.dtype)
     k = torch.exp(-0.5 * (x / sigma) ** 2)
     k = k / k.sum()
@@ -71,7 +96,7 @@ def blur_within(img: torch.Tensor, sigma: float, labels: torch.Tensor | None) ->
     if labels is None or sigma <= 0:
         return gaussian_blur(img, sigma) if labels is None else img * (labels >= 0)
     out = torch.zeros_like(img)
-    r = max(1, int(math.ceil(3 * sigma)))
+    r = blur_reach(sigma)
     H, W = labels.shape
     active = torch.unique(labels[(img != 0).flatten(0, 1).any(0) & (labels >= 0)])
     for lab in active.tolist():
@@ -111,20 +136,29 @@ def kernel_texture(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: 
     to) keeps the kernel inside one island. Returns (textures [n, 3, R, R] (0.5 where no sample is near),
     covered [n, R, R] bool (blurred weight > min_weight), sigma_texels (the mean kernel std in texels)).
     """
-    csum, wsum = splat(probs, uv, rgb, R, min_prob)
     n = probs.shape[1]
     owner = probs.argmax(-1)
-    out, covered, sig_used = [], [], []
-    for c in range(n):  # n <= 8 charts; each chart has its own texel density
+    out = torch.full((n, rgb.shape[1], R, R), 0.5, dtype=rgb.dtype, device=rgb.device)
+    covered = torch.zeros(n, R, R, dtype=torch.bool, device=rgb.device)
+    sig_used = []
+    for c in range(n):  # each chart has its own texel density
         spacing = texel_spacing(uv[owner == c, c] * R)
         s = sigma * spacing
-        num = blur_within(csum[c][None], s, labels)[0]
-        den = blur_within(wsum[c][None, None], s, labels)[0, 0]
-        ok = den > min_weight * max(float(den.max()), 1e-30)
-        out.append(torch.where(ok[None], num / den.clamp_min(1e-30)[None], torch.full_like(num, 0.5)))
-        covered.append(ok)
         sig_used.append(s)
-    return torch.stack(out), torch.stack(covered), float(sum(sig_used) / len(sig_used))
+        sel = probs[:, c] > min_prob
+        if not bool(sel.any()):
+            continue
+        # the window the chart's samples reach, grown by the blur's reach: outside it every sum is zero (an island
+        # layout's charts each cover a small part of the image)
+        r0, r1, c0, c1 = box = splat_box(uv[sel, c], R, blur_reach(s))
+        csum, wsum = splat(probs[sel, c:c + 1], uv[sel, c:c + 1], rgb[sel], R, min_prob, box=box)
+        lab = None if labels is None else labels[r0:r1, c0:c1]
+        num = blur_within(csum, s, lab)[0]
+        den = blur_within(wsum[:, None], s, lab)[0, 0]
+        ok = den > min_weight * max(float(den.max()), 1e-30)
+        out[c, :, r0:r1, c0:c1] = torch.where(ok[None], num / den.clamp_min(1e-30)[None], torch.full_like(num, 0.5))
+        covered[c, r0:r1, c0:c1] = ok
+    return out, covered, float(sum(sig_used) / len(sig_used))
 
 
 def filled_kernel_texture(probs: torch.Tensor, uv: torch.Tensor, rgb: torch.Tensor, R: int, sigma: float,
@@ -163,13 +197,17 @@ def local_linear_points(pix: torch.Tensor, xyz: torch.Tensor, R: int, sigma: flo
     x = xyz.double()
     feats = torch.cat([q, q[:, :1] * q, q[:, 1:] * q[:, 1:], x, q[:, :1] * x, q[:, 1:] * x], 1)  # [S, 2+3+3+6]
     ones = torch.ones(len(p), 1, dtype=torch.float64, device=dev)
-    csum, wsum = splat(ones, (p / R)[:, None], feats, R, 0.0)
     s = sigma * texel_spacing(pix.float())
-    num = blur_within(csum, s, labels)[0]               # [14, R, R]
-    W = blur_within(wsum[:, None], s, labels)[0, 0]     # [R, R]
-    covered = W > min_weight * max(float(W.max()), 1e-30)
+    # the window the samples reach, grown by the blur's reach (outside it every moment is zero)
+    r0, r1, c0, c1 = box = splat_box((p / R).float(), R, blur_reach(s))
+    csum, wsum = splat(ones, (p / R)[:, None], feats, R, 0.0, box=box)
+    lab = None if labels is None else labels[r0:r1, c0:c1]
+    num = blur_within(csum, s, lab)[0]                  # [14, h, w]
+    W = blur_within(wsum[:, None], s, lab)[0, 0]        # [h, w]
+    covered = torch.zeros(R, R, dtype=torch.bool, device=dev)
+    covered[r0:r1, c0:c1] = W > min_weight * max(float(W.max()), 1e-30)
     rows, cols = torch.nonzero(covered, as_tuple=True)
-    m = num[:, rows, cols].T / W[rows, cols, None]      # normalised moments [K, 14]
+    m = num[:, rows - r0, cols - c0].T / W[rows - r0, cols - c0, None]  # normalised moments [K, 14]
     c = torch.stack([cols + 0.5, rows + 0.5], -1).double() - ref  # texel centres, same frame as q
     mu, x_mean = m[:, 0:2], m[:, 5:8]
     Suu = torch.stack([torch.stack([m[:, 2], m[:, 3]], -1), torch.stack([m[:, 3], m[:, 4]], -1)], -2)  # E[q q^T]

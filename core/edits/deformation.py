@@ -37,6 +37,7 @@ import torch
 
 from core.config import opt
 from core.util.errors import InputError
+from core.util.jit import njit
 
 try:  # optional: torch does the same work without it
     import numba
@@ -583,12 +584,7 @@ def _jacobi_eigen(a, v, tol):
 
 def _njit(fn):
     """fn compiled by numba on first call (cached on disk where the cache folder is writable); None without numba."""
-    if numba is None:
-        return None
-    try:
-        return numba.njit(cache=True, nogil=True)(fn)
-    except Exception:  # noqa: BLE001 - an unwritable cache dir: compile without it
-        return numba.njit(cache=False, nogil=True)(fn)
+    return None if numba is None else njit(fn)
 
 
 _jacobi = _njit(_jacobi_eigen) or _jacobi_eigen

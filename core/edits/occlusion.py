@@ -44,6 +44,7 @@ import numpy as np
 import torch
 
 from core.points.trace import Trace
+from core.util.jit import njit
 
 try:  # optional: the torch path is used without it
     import numba
@@ -319,14 +320,6 @@ def _keep_loop(idx, w, active, o, d, pts, can, fi, alpha, tol, min_share, min_hi
             first_out[r] = first
 
 
-def _jit(fn):
-    """numba.njit(fn), compiled on first call (cached on disk where a cache location is writable); fn without numba."""
-    if numba is None:
-        return fn
-    try:
-        return numba.njit(cache=True, nogil=True)(fn)
-    except RuntimeError:  # no writable cache location (read-only install): compile per process
-        return numba.njit(cache=False, nogil=True)(fn)
 
 
 def _in_layer(pts, can, fi, m, l, alpha, tol):
@@ -343,7 +336,7 @@ def _in_layer(pts, can, fi, m, l, alpha, tol):
     return math.sqrt(rx * rx + ry * ry + rz * rz) <= alpha * math.sqrt(cx * cx + cy * cy + cz * cz) + tol
 
 
-_in_layer = _jit(_in_layer)  # a compiled _keep_loop calls the compiled form
+_in_layer = njit(_in_layer)  # a compiled _keep_loop calls the compiled form
 
 
 _kernels: dict = {}
@@ -352,7 +345,7 @@ _kernels: dict = {}
 def _kernel(loop):
     """The compiled form of one of this module's loops, compiled on first use and kept."""
     if loop not in _kernels:
-        _kernels[loop] = _jit(loop)
+        _kernels[loop] = njit(loop)
     return _kernels[loop]
 
 

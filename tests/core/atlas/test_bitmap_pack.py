@@ -150,3 +150,20 @@ def test_spots_the_rounded_fft_calls_free_are_checked_exactly(monkeypatch):
     got, want = bp._place_all(shapes, order, 70, g), _place_reference(shapes, order, 70, g)
     assert got is not None and want is not None and sum(wrong) > 0
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def test_longest_free_runs_per_row():
+    from core.atlas.bitmap_pack import longest_runs
+    rng = np.random.default_rng(4)
+    a = rng.random((40, 23)) < 0.7
+    a[0], a[1] = True, False
+
+    def loop(row):
+        best = run = 0
+        for v in row:
+            run = run + 1 if v else 0
+            best = max(best, run)
+        return best
+
+    assert longest_runs(a).tolist() == [loop(r) for r in a]
+    assert longest_runs(np.zeros((3, 0), bool)).tolist() == [0, 0, 0]

@@ -113,3 +113,48 @@ def test_filled_kernel_texture_fills_every_gutter_texel_from_its_nearest_covered
             cands = raw[0].clamp(0, 1)[:, near[:, 0], near[:, 1]].T       # [T, 3]
             assert bool((cands - tex[0][:, r, c]).abs().max(1).values.min() < 1e-6), (r, c)
     assert torch.allclose(tex[1], torch.full_like(tex[1], 0.5))
+
+
+def _kernel_texture_whole_image(probs, uv, rgb, R, sigma, labels, min_prob=1e-3, min_weight=1e-3):
+    """kernel_texture's definition on the whole R x R image of every chart (no window)."""
+    from core.atlas.texture import blur_within
+    csum, wsum = splat(probs, uv, rgb, R, min_prob)
+    owner = probs.argmax(-1)
+    out, cov = [], []
+    for c in range(probs.shape[1]):
+        s = sigma * texel_spacing(uv[owner == c, c] * R)
+        num = blur_within(csum[c][None], s, labels)[0]
+        den = blur_within(wsum[c][None, None], s, labels)[0, 0]
+        ok = den > min_weight * max(float(den.max()), 1e-30)
+        out.append(torch.where(ok[None], num / den.clamp_min(1e-30)[None], torch.full_like(num, 0.5)))
+        cov.append(ok)
+    return torch.stack(out), torch.stack(cov)
+
+
+def test_kernel_texture_in_the_samples_window_equals_the_whole_image_form():
+    """Each chart's sums are formed only in the window its samples reach grown by the blur's reach (an island
+    layout's charts each cover a small part of the image): the same texture and coverage as on the whole image,
+    with and without island labels, for charts in a corner, at the edge (clamped), spread out and empty."""
+    from core.atlas.texture import splat_box
+    g = torch.Generator().manual_seed(3)
+    R, S = 64, 600
+    uv = torch.rand(S, 4, 2, generator=g)
+    uv[:, 0] = 0.1 + 0.1 * uv[:, 0]          # a small window
+    uv[:, 1] = 0.9 + 0.2 * uv[:, 1]          # past the edge: clamped
+    chart = torch.randint(0, 3, (S,), generator=g)  # chart 3 owns no sample
+    probs = torch.nn.functional.one_hot(chart, 4).float()
+    rgb = torch.rand(S, 3, generator=g)
+    labels = torch.full((R, R), -1, dtype=torch.long)
+    labels[4:20, 4:20], labels[50:, 50:], labels[20:50, 10:60] = 0, 1, 2
+    for lab in (None, labels):
+        for sigma in (0.7, 2.5):
+            got = kernel_texture(probs, uv, rgb, R, sigma, labels=lab)
+            want = _kernel_texture_whole_image(probs, uv, rgb, R, sigma, lab)
+            assert torch.equal(got[1], want[1])
+            assert torch.allclose(got[0], want[0], atol=1e-6)
+    # the window holds every texel a sample's bilinear footprint reaches, and only those grown by the margin
+    r0, r1, c0, c1 = splat_box(uv[chart == 0, 0], R, 2)
+    _, w = splat(probs[chart == 0], uv[chart == 0], rgb[chart == 0], R, 0.0)
+    rows, cols = torch.nonzero(w[0] > 0, as_tuple=True)
+    assert (r0, r1, c0, c1) == (int(rows.min()) - 2, int(rows.max()) + 3, int(cols.min()) - 2, int(cols.max()) + 3)
+    assert splat_box(uv[:0, 0], R, 2) == (0, R, 0, R)
