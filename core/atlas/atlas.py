@@ -194,10 +194,11 @@ class Atlas(nn.Module):
 
     # --- queries (no gradients, chunked) -------------------------------------------------------------
     @torch.no_grad()
-    def chart_uv(self, x, placed: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    def chart_uv(self, x, placed: bool = True, own_chart_only: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """x [M, 3] world -> (probs [M, n] chart probabilities, uv [M, n, 2] per-chart texture coordinates), at
         x projected onto the samples' mid-surface when the atlas has one (`on_surface`).
-        Island layout: probs one-hot (one chart per point), uv already placed in the packed image (see place);
+        Island layout: probs one-hot (one chart per point), uv already placed in the packed image (see place;
+        own_chart_only: each point's own chart's coordinates in every slot, for callers that read only those);
         placed False: the networks' raw outputs (softmax, t_c), to interpolate before `place`."""
         x = check_points(x).to(self.device)
         ps, uvs = [], []
@@ -205,7 +206,7 @@ class Atlas(nn.Module):
             xn = self.normalise(self.on_surface(x[s:s + _CHUNK]))
             p, uv = self.outputs(xn)
             if placed:
-                p, uv = self.place(p, uv)
+                p, uv = self.place(p, uv, own_chart_only=own_chart_only)
             ps.append(p)
             uvs.append(uv)
         if not ps:
@@ -376,7 +377,7 @@ class Atlas(nn.Module):
         Sets `texel_stats` (round trip of all candidates before that fallback, `nearest_sample`: texels it
         filled)."""
         L, A = self.layout, self.layout.size
-        probs, uv = self.chart_uv(samples)
+        probs, uv = self.chart_uv(samples, own_chart_only=True)  # only each point's own chart is read below
         chart = probs.argmax(-1)
         owner = L.owner.to(self.device)
         cand = torch.full((A, A, 3), float("nan"), device=self.device)
@@ -398,7 +399,7 @@ class Atlas(nn.Module):
         keep = torch.zeros(len(rows), dtype=torch.bool, device=self.device)
         miss = torch.full((len(rows),), float("inf"), device=self.device)
         if len(rows):
-            p2, uv2 = self.chart_uv(pts)
+            p2, uv2 = self.chart_uv(pts, own_chart_only=True)
             c2 = p2.argmax(-1)
             pix = chart_coords(uv2, c2) * A
             centre = torch.stack([cols + 0.5, rows + 0.5], -1).to(pix.dtype)

@@ -72,7 +72,7 @@ def splat_function(atlas, fn) -> tuple[torch.Tensor, torch.Tensor]:
     rgb = torch.nan_to_num(rgb.float().to(atlas.device), nan=0.5).clamp(0, 1)
     m = torch.ones(samples.shape[0], device=atlas.device) if mask is None \
         else torch.nan_to_num(mask.float().to(atlas.device), nan=0.0).clamp(0, 1)
-    probs, uv = atlas.chart_uv(samples)
+    probs, uv = atlas.chart_uv(samples, own_chart_only=True)  # islands: one-hot, only the own chart is splatted
     R = atlas.layout.R
     labels = getattr(atlas, "blur_labels", None)   # island atlases: kernels stay inside one island
     num, covered, _ = kernel_texture(probs, uv, rgb * m[:, None], R, atlas.bake_sigma,
