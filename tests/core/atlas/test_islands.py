@@ -362,6 +362,14 @@ def test_subpixel_lookups_across_a_cut_land_on_an_island():
     tex = torch.rand(2, 3, a.layout.size, a.layout.size, generator=g)
     assert torch.equal(hp1, hp) and torch.equal(own_uv, uv_sub)
     assert torch.equal(blend_charts(tex, own_uv, hp1), blend_charts(tex, all_uv, hp))
+    # chart_uv's own-chart placement (the texel map and the bake read only those) gives each point's own chart's
+    # coordinates in every slot, as placing every chart does in the own slot
+    from core.atlas.packing import chart_coords
+    p_all, uv_all = a.chart_uv(pts.reshape(-1, 3))
+    p_own, uv_own = a.chart_uv(pts.reshape(-1, 3), own_chart_only=True)
+    own = chart_coords(uv_all, p_all.argmax(-1))
+    assert torch.equal(p_own, p_all)
+    assert torch.allclose(uv_own, own[:, None].expand_as(uv_own), atol=1e-6)
 
 
 def test_texel_map_newton_keeps_its_best_step_where_the_map_folds():
