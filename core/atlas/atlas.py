@@ -146,20 +146,36 @@ class Atlas(nn.Module):
         return self.layout.label.to(self.device) if self.islands else None
 
     def set_layout(self, layout: IslandLayout) -> None:
-        """Switch to an island layout: new textures [n, 3, size, size] (0.5) and an empty texel map."""
+        """Switch to an island layout: a new texture (0.5) and an empty texel map. An island layout's charts all
+        read one image, so `textures` is that image alone, [1, 3, size, size] (`chart_textures`: the n views)."""
         want = self.pieces.n if self.pieces is not None else self.n_sub
         if layout.n != want:
             raise InputError(f"island layout has {layout.n} charts, the atlas {want}")
         self.layout = layout
-        self.textures = nn.Parameter(torch.full((self.n, 3, layout.size, layout.size), 0.5, device=self.device))
+        self.textures = nn.Parameter(torch.full((1, 3, layout.size, layout.size), 0.5, device=self.device))
         self.texel_xyz = torch.full((*layout.shape, 3), float("nan"), device=self.device)
+
+    @property
+    def chart_textures(self) -> torch.Tensor:
+        """Every chart's texture [n, 3, R, R]: the grid's n squares, or n views (no copy) of an island layout's one
+        image."""
+        return self.textures.expand(self.n, -1, -1, -1) if self.islands else self.textures
+
+    @torch.no_grad()
+    def set_textures(self, textures: torch.Tensor) -> None:
+        """Set the chart textures from [n, 3, R, R]; an island layout keeps each pixel from the chart that owns it
+        (its packed image)."""
+        if self.islands:
+            textures = self.layout.unpack(self.layout.pack(textures))[:1]
+        self.textures.copy_(textures)
 
     @torch.no_grad()
     def canonicalise_textures(self) -> None:
-        """Island layout: make every chart's texture the packed image (what a saved file holds), so lookups before
-        and after saving agree bit for bit. No-op for the grid layout."""
+        """Island layout: make the texture the packed image a saved file holds (pixels beyond every island's
+        padding: the nearest padding pixel's colour), so lookups before and after saving agree bit for bit. No-op
+        for the grid layout."""
         if self.islands:
-            self.textures.copy_(self.layout.unpack(self.layout.pack(self.textures.detach())))
+            self.set_textures(self.chart_textures.detach())
 
     def place(self, probs: torch.Tensor, uv: torch.Tensor,
               own_chart_only: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
@@ -219,7 +235,7 @@ class Atlas(nn.Module):
 
         image: an (edited) packed atlas [H, W, 3] (numpy or torch); None = the fitted one.
         """
-        tex = self.textures if image is None else unpack(torch.as_tensor(image).float().to(self.device), self.layout)
+        tex = self.chart_textures if image is None else unpack(torch.as_tensor(image).float().to(self.device), self.layout)
         probs, uv = self.chart_uv(x)
         return blend_charts(tex, uv, probs)
 
@@ -235,7 +251,7 @@ class Atlas(nn.Module):
     @torch.no_grad()
     def packed_image(self) -> torch.Tensor:
         """The fitted atlas as one image [H, W, 3] float32 in [0, 1], row 0 = top."""
-        return pack(self.textures.detach().clamp(0, 1), self.layout)
+        return pack(self.chart_textures.detach().clamp(0, 1), self.layout)
 
     def texel_points(self) -> torch.Tensor:
         """Canonical 3-D point of every packed-image pixel [H, W, 3]; NaN where no surface (padding, unused)."""
@@ -452,7 +468,7 @@ class Atlas(nn.Module):
         """All state as named arrays (float32; the islands' and pieces' indices int32): 'atlas/image' [H, W, 3],
         'atlas/texel_points' [H, W, 3], 'atlas/centre' [3], the network weights under 'atlas/net/...' and, when
         known, 'atlas/bake_samples' [S, 3]."""
-        arrays = {"atlas/image": pack(self.textures.detach(), self.layout).cpu().numpy().astype(np.float32),
+        arrays = {"atlas/image": pack(self.chart_textures.detach(), self.layout).cpu().numpy().astype(np.float32),
                   "atlas/texel_points": self.texel_xyz.cpu().numpy().astype(np.float32),
                   "atlas/centre": self.centre.cpu().numpy().astype(np.float32)}
         for name, p in self.named_parameters():
@@ -526,7 +542,7 @@ class Atlas(nn.Module):
                 raise ModelFileError(f"atlas: array '{key}' should have shape {shape}, found {got}")
         try:
             state["textures"] = unpack(torch.from_numpy(np.asarray(arrays["atlas/image"], dtype=np.float32).copy()),
-                                       atlas.layout, "atlas/image")
+                                       atlas.layout, "atlas/image")[:atlas.textures.shape[0]]
         except InputError as e:
             raise ModelFileError(str(e)) from e
         state["centre"] = atlas.centre

@@ -231,7 +231,7 @@ def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasCo
     ar = torch.arange(n, device=dev)
     u_rec = atlas.tex(flat).view(n, cfg.uv_batch, n, 2)[ar, :, ar]  # [n, U, 2]
     logits_s = atlas.chart(flat).view(n, cfg.uv_batch, n)
-    pred = blend_charts(atlas.textures, uv, probs)
+    pred = blend_charts(atlas.chart_textures, uv, probs)
     out = {
         "cycle3d": losses.cycle_3d(xb, x_rec, probs),
         "cycle2d": losses.cycle_2d(u, u_rec),
@@ -333,7 +333,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     def log(step: int, phase: str) -> float:
         probs, uv = atlas.place(*_predict(atlas, xn[ev]))
         with torch.no_grad():
-            p = psnr(blend_charts(atlas.textures, uv, probs), rgb[ev])
+            p = psnr(blend_charts(atlas.chart_textures, uv, probs), rgb[ev])
         hist["steps"].append(step)
         hist["seconds"].append(time.perf_counter() - t0)
         hist["psnr"].append(p)
@@ -391,14 +391,14 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         with torch.no_grad():
             tex, _, hist["texture_sigma_texels"] = filled_kernel_texture(probs_all, uv_all, rgb, R,
                                                                          cfg.texture_sigma, labels=atlas.blur_labels)
-            atlas.textures.copy_(tex)
+            atlas.set_textures(tex)
         bar.update(cfg.texture_steps)
         p = log(cfg.steps + cfg.texture_steps, "texture")
     else:  # descent: Adam on the per-sample MSE, one bilinear lookup per chart and step
         topt = torch.optim.Adam([atlas.textures], lr=cfg.texture_lr, fused=True)  # (set_layout: new textures)
         for step in range(cfg.texture_steps):
             idx = torch.randint(len(xn), (min(8 * cfg.batch, len(xn)),), generator=gen).to(dev)
-            pred = blend_charts(atlas.textures, uv_all[idx], probs_all[idx])
+            pred = blend_charts(atlas.chart_textures, uv_all[idx], probs_all[idx])
             loss = (pred - rgb[idx]).pow(2).mean()
             topt.zero_grad(set_to_none=True)
             loss.backward()
@@ -408,7 +408,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
             bar.update(1, psnr=p)
         used = _used_texels(probs_all, uv_all, R)
         with torch.no_grad():
-            atlas.textures.copy_(dilate_unused(atlas.textures.clamp(0, 1), used))
+            atlas.set_textures(dilate_unused(atlas.chart_textures.clamp(0, 1), used))
 
     with torch.no_grad():
         atlas.canonicalise_textures()

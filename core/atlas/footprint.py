@@ -272,8 +272,9 @@ def refit_texture_footprint(atlas, views: list[FootprintView], sub: int = 2, lam
     # are never read); texel (c, row, col) is column (c R + row) R + col
     sys_ = _ReadTexels(system.F, system.B)
     chart, pix = sys_.cols // (R * R), sys_.cols % (R * R)
-    flat = atlas.textures.detach().view(n, 3, R * R)
-    u0 = srgb_to_linear(flat[chart, :, pix].clamp(0, 1))  # [U, 3] linear light
+    tex = atlas.textures.detach()  # an island layout's one image [1, 3, R, R] (every chart reads it), else [n, ...]
+    read = tex.view(3, R * R)[:, pix].T if atlas.islands else tex.view(n, 3, R * R)[chart, :, pix]
+    u0 = srgb_to_linear(read.clamp(0, 1))  # [U, 3] linear light
     scores: dict[float, float] = {}
     if lambdas is not None and len(set(lambdas)) > 1:
         chosen, scores = choose_footprint_lambda(system, None, lambdas, iters, sys_=sys_, u0=u0)
@@ -284,7 +285,11 @@ def refit_texture_footprint(atlas, views: list[FootprintView], sub: int = 2, lam
     info = {**info, "lambda": float(lam)}
     if scores:
         info["holdout_psnr"] = {f"{k:g}": round(v, 3) for k, v in sorted(scores.items())}
-    # texels no pixel reaches keep the kernel texture's dilated colour
-    flat[chart, :, pix] = linear_to_srgb(u)
+    # texels no pixel reaches keep the kernel texture's dilated colour; an island layout keeps each pixel's owner's
+    if atlas.islands:
+        own = chart == atlas.layout.owner.to(chart.device).reshape(-1)[pix]
+        tex.view(3, R * R)[:, pix[own]] = linear_to_srgb(u[own]).T
+    else:
+        tex.view(n, 3, R * R)[chart, :, pix] = linear_to_srgb(u)
     atlas.canonicalise_textures()
     return info

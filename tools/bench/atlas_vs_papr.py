@@ -71,7 +71,7 @@ def with_kernel_texture(atlas, xyz: torch.Tensor, rgb: torch.Tensor, sigma: floa
     probs, uv = out.chart_uv(xyz)
     with torch.no_grad():
         tex, _, _ = filled_kernel_texture(probs, uv, rgb.clamp(0, 1), out.layout.R, sigma, labels=out.blur_labels)
-        out.textures.copy_(tex)
+        out.set_textures(tex)
     return out
 
 

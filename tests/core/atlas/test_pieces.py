@@ -50,7 +50,7 @@ def _ramp_atlas(xyz, pieces: bool):
         atlas.set_layout(layout)
         rgb = torch.rand(len(xyz), 3, generator=torch.Generator().manual_seed(0))
         tex, _, _ = filled_kernel_texture(*atlas.place(probs, uv), rgb, layout.size, 1.0, labels=atlas.blur_labels)
-        atlas.textures.copy_(tex)
+        atlas.set_textures(tex)
         atlas.canonicalise_textures()
         atlas.compute_texel_points(xyz, 3 * spacing, 1.0, "splat", 1.0)
     return atlas, hist

@@ -59,7 +59,7 @@ def _planar_island_atlas(xyz, split: bool, crease: float = 0.0, min_share: float
                                      cfg, None)
         atlas.set_layout(layout)
         tex, _, _ = filled_kernel_texture(*atlas.place(probs, uv), rgb, layout.size, 1.0, labels=atlas.blur_labels)
-        atlas.textures.copy_(tex)
+        atlas.set_textures(tex)
         atlas.canonicalise_textures()
         atlas.compute_texel_points(xyz, 3 * spacing, 1.0, "splat", 1.0)
     return atlas, hist
