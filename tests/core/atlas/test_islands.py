@@ -112,6 +112,13 @@ def test_island_atlas_round_trips_through_its_arrays_and_grid_files_still_load()
     b = Atlas.from_arrays(a.to_arrays(), a.meta())
     assert a.meta()["layout"] == "islands" and b.islands
     assert torch.allclose(a.lookup(x), b.lookup(x), atol=1e-5)
+    # the charts read one image, held once: n views of it without a copy, before and after loading
+    for at in (a, b):
+        size = at.layout.size
+        assert tuple(at.textures.shape) == (1, 3, size, size)
+        assert at.chart_textures.shape[0] == at.n and at.chart_textures.stride(0) == 0
+        assert at.chart_textures.data_ptr() == at.textures.data_ptr()
+    assert torch.equal(b.packed_image(), a.packed_image().clamp(0, 1))
     p, _ = b.chart_uv(x)
     assert torch.equal(p.sum(-1), torch.ones(len(x))) and set(p.unique().tolist()) <= {0.0, 1.0}
     g = Atlas.from_arrays(grid_arrays, grid_meta)  # a version-1 (grid) file: soft charts as before
