@@ -63,7 +63,7 @@ def splat_box(uv: torch.Tensor, R: int, margin: int) -> tuple[int, int, int, int
     whole texture when uv is empty."""
     if uv.shape[0] == 0:
         return 0, R, 0, R
-    f = (uv.clamp(0, 1) * R - 0.5).floor()
+    f = (torch.nan_to_num(uv, nan=0.0).clamp(0, 1) * R - 0.5).floor()  # NaN: where splat's clamp puts it, texel 0
     lo = (f.amin(0).long() - margin).clamp(0, R - 1).tolist()
     hi = (f.amax(0).long() + 2 + margin).clamp(1, R).tolist()
     return lo[1], hi[1], lo[0], hi[0]
