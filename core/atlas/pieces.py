@@ -23,10 +23,9 @@ import torch
 from scipy.spatial import cKDTree
 
 from core.util.errors import InputError
+from core.util.jit import njit
 
 MAX_CELLS = 1 << 24  # texel cells of the grid the growth claims cells in (coarser beyond)
-
-from core.util.jit import njit
 
 
 def _claim_py(p, cell_ptr, cells, claim, touched, nt):

@@ -320,8 +320,6 @@ def _keep_loop(idx, w, active, o, d, pts, can, fi, alpha, tol, min_share, min_hi
             first_out[r] = first
 
 
-
-
 def _in_layer(pts, can, fi, m, l, alpha, tol):
     """Point l is in point m's layer: |F_m⁻¹ (p_l − p_m) − (c_l − c_m)| <= alpha |c_l − c_m| + tol."""
     ex = pts[l, 0] - pts[m, 0]
