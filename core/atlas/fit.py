@@ -42,7 +42,8 @@ def sample_spacing(xyz: np.ndarray, k: int = 8, neighbours: int = 48, max_points
     Area: a disc holding k samples has area pi r_k^2 ~ k / density, so area ~ S pi mean(r_k^2) / k. r_k is
     measured in each sample's tangent plane (PCA of its `neighbours` nearest samples): real samples form a
     slab a few spacings thick (noisy PAPR surface points), where 3-D distances overestimate the area about twice.
-    per_sample: also return (sel [m] indices of the measured samples, their area elements [m], summing to the area).
+    per_sample: also return (sel [m] indices of the measured samples, their area elements [m], summing to the area
+    up to rounding) — what `island_layout` and `chart_pieces_step` take as `elements`.
     """
     S = len(xyz)
     k = min(k, S - 1)
@@ -52,10 +53,10 @@ def sample_spacing(xyz: np.ndarray, k: int = 8, neighbours: int = 48, max_points
     sel = np.random.default_rng(seed).permutation(S)[:max_points]
     nb, _, vec = _local_pca(xyz, tree, xyz[sel], K)  # offsets [m, K+1, 3] (row 0 is the sample itself)
     r = np.sort(np.linalg.norm(np.einsum("mki,mij->mkj", nb, vec[:, :, 1:]), axis=-1), axis=1)[:, k]
+    spacing, area = float(np.median(d1[:, 1])), float(S * math.pi * np.mean(r ** 2) / k)
     if per_sample:
-        elem = S * math.pi * r ** 2 / k / len(sel)
-        return float(np.median(d1[:, 1])), float(elem.sum()), sel, elem
-    return float(np.median(d1[:, 1])), float(S * math.pi * np.mean(r ** 2) / k)
+        return spacing, area, sel, S * math.pi * r ** 2 / k / len(sel)
+    return spacing, area
 
 
 def sample_normals(xyz: np.ndarray, neighbours: int = 256, max_points: int = 20000, seed: int = 0,
@@ -95,12 +96,13 @@ def pixel_footprint(xyz, centres, focal: float) -> float:
     return float(np.median(d)) / float(focal)
 
 
-def _first_texel_size(probs: torch.Tensor, xyz: np.ndarray, area: float, R: int, cfg: AtlasConfig,
-                      pixel_size: float | None) -> tuple[float, np.ndarray]:
+def _first_texel_size(probs: torch.Tensor, elements: tuple[np.ndarray, np.ndarray], area: float, R: int,
+                      cfg: AtlasConfig, pixel_size: float | None) -> tuple[float, np.ndarray]:
     """The texel size (world units) an island layout tries first, and each chart's world area [n] (samples by
-    their most probable chart in probs [S, n])."""
+    their most probable chart in probs [S, n]; elements: the samples' (sel, area elements) from
+    `sample_spacing(xyz, per_sample=True)`)."""
     n = probs.shape[1]
-    _, _, sel, elem = sample_spacing(xyz, per_sample=True)
+    sel, elem = elements
     own_sel = probs.argmax(-1).cpu().numpy()[sel]
     area_c = np.array([elem[own_sel == c].sum() for c in range(n)]) * area / max(elem.sum(), 1e-30)
     if cfg.image_size > 0:
@@ -137,10 +139,11 @@ def chart_scales(probs: torch.Tensor, uv: torch.Tensor, area_c: np.ndarray, h: f
     return scale, fill
 
 
-def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: float, k_area: float, R: int,
-                  cfg: AtlasConfig, pixel_size: float | None) -> tuple[object, dict]:
+def island_layout(probs: torch.Tensor, uv: torch.Tensor, elements: tuple[np.ndarray, np.ndarray], area: float,
+                  k_area: float, R: int, cfg: AtlasConfig, pixel_size: float | None) -> tuple[object, dict]:
     """Cut the charts to the surface they cover and pack them (core/atlas/islands.py) at one texel density for all
-    charts. probs [S, n] and uv [S, n, 2] of the samples xyz [S, 3] (raw chart outputs); k_area: uv units per world
+    charts. probs [S, n] and uv [S, n, 2] of the samples xyz [S, 3] (raw chart outputs); elements, area: from
+    `sample_spacing(xyz, per_sample=True)` (the samples' area elements and their total); k_area: uv units per world
     unit the distortion loss aims at; R: the grid's chart side (sets the density when nothing else does).
     Texel size: pixel_size / texels_per_pixel when the images' footprint is known, else the grid's density; a fixed
     cfg.image_size, or a side above cfg.max_image_size, coarsens it until the islands fit.
@@ -148,7 +151,7 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray, area: 
     from core.atlas.islands import build_islands
 
     t0 = time.perf_counter()
-    h, area_c = _first_texel_size(probs, xyz, area, R, cfg, pixel_size)
+    h, area_c = _first_texel_size(probs, elements, area, R, cfg, pixel_size)
     info = {}
     for attempt in range(40):
         scale, fill = chart_scales(probs, uv, area_c, h, k_area, cfg)
@@ -318,7 +321,7 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
     R = cfg.resolution(n)
     lo, hi = xyz.min(0).values, xyz.max(0).values
     centre, half = 0.5 * (lo + hi), float(0.5 * (hi - lo).max().clamp_min(1e-6))
-    spacing, area = sample_spacing(xyz.numpy().astype(np.float64))
+    spacing, area, *elements = sample_spacing(xyz.numpy().astype(np.float64), per_sample=True)
     # UV scale: the distortion loss pulls sigma1*sigma2 to 1 in a frame where the whole surface covers
     # chart_fill of the n unit squares, i.e. world lengths times sqrt(n * fill / area).
     k_area = math.sqrt(n * cfg.chart_fill / max(area, 1e-12))
@@ -376,12 +379,10 @@ def _fit_atlas(xyz, rgb, cfg: AtlasConfig, progress: Optional[Callable[[float, s
         chart_sides(atlas, xyz, xn, cfg, spacing, hist)
     probs_all, uv_all = _predict(atlas, xn)
     if cfg.layout == "islands" and cfg.island_pieces:
-        chart_pieces_step(atlas, xn, probs_all, uv_all, xyz.numpy().astype(np.float64), area, k_area, R, cfg,
-                          pixel_size, spacing, hist)
+        chart_pieces_step(atlas, xn, probs_all, uv_all, elements, area, k_area, R, cfg, pixel_size, spacing, hist)
         probs_all, uv_all = _predict(atlas, xn)
     if cfg.layout == "islands":
-        layout, info = island_layout(probs_all, uv_all, xyz.numpy().astype(np.float64), area, k_area, R, cfg,
-                                     pixel_size)
+        layout, info = island_layout(probs_all, uv_all, elements, area, k_area, R, cfg, pixel_size)
         atlas.set_layout(layout)
         hist.update(info)
         R = layout.size
@@ -461,18 +462,18 @@ def chart_sides(atlas: Atlas, xyz: torch.Tensor, xn: torch.Tensor, cfg: AtlasCon
     atlas.sides = sides if bool((major != 0).any()) else None  # nothing split: the atlas of one side per chart
 
 
-def chart_pieces_step(atlas: Atlas, xn: torch.Tensor, probs: torch.Tensor, uv: torch.Tensor, xyz: np.ndarray,
-                      area: float, k_area: float, R: int, cfg: AtlasConfig, pixel_size: float | None,
-                      spacing: float, hist: dict) -> None:
+def chart_pieces_step(atlas: Atlas, xn: torch.Tensor, probs: torch.Tensor, uv: torch.Tensor,
+                      elements: tuple[np.ndarray, np.ndarray], area: float, k_area: float, R: int, cfg: AtlasConfig,
+                      pixel_size: float | None, spacing: float, hist: dict) -> None:
     """Cut every sub-chart where its map overlaps itself (core/atlas/pieces.py), from the samples xn [S, 3]
     (network frame, as lookups read them) with their sub-chart outputs probs [S, n_sub], uv [S, n_sub, 2]; texel
-    coordinates at the density the island layout tries first. Sets atlas.pieces (None when no sub-chart is cut);
+    coordinates at the density the island layout tries first (elements, area as `island_layout` takes them). Sets atlas.pieces (None when no sub-chart is cut);
     hist gets "pieces": seconds, layout charts, sub-charts cut."""
     from core.atlas.islands import UV_REACH
     from core.atlas.pieces import ChartPieces, chart_pieces
 
     t0 = time.perf_counter()
-    h, area_c = _first_texel_size(probs, xyz, area, R, cfg, pixel_size)
+    h, area_c = _first_texel_size(probs, elements, area, R, cfg, pixel_size)
     scale, _ = chart_scales(probs, uv, area_c, h, k_area, cfg)
     world = atlas.denormalise(xn).cpu().numpy()
     sub = probs.argmax(-1).cpu().numpy()

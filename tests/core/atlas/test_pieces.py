@@ -38,15 +38,14 @@ def _ramp_atlas(xyz, pieces: bool):
     atlas = Atlas(1, 16, 2, torch.zeros(3), 1.0)
     atlas.tex = _DownMap()
     cfg = AtlasConfig(layout="islands", island_sides=False, image_size=128, island_pieces=pieces)
-    spacing, area = sample_spacing(xyz.numpy().astype(np.float64))
+    spacing, area, *elements = sample_spacing(xyz.numpy().astype(np.float64), per_sample=True)
     xn, hist, k_area = atlas.normalise(xyz), {}, math.sqrt(0.5 / area)
     with torch.no_grad():
         probs, uv = atlas.outputs(xn)
         if pieces:
-            chart_pieces_step(atlas, xn, probs, uv, xyz.numpy().astype(np.float64), area, k_area, 16, cfg, None,
-                              spacing, hist)
+            chart_pieces_step(atlas, xn, probs, uv, elements, area, k_area, 16, cfg, None, spacing, hist)
             probs, uv = atlas.outputs(xn)
-        layout, _ = island_layout(probs, uv, xyz.numpy().astype(np.float64), area, k_area, 16, cfg, None)
+        layout, _ = island_layout(probs, uv, elements, area, k_area, 16, cfg, None)
         atlas.set_layout(layout)
         rgb = torch.rand(len(xyz), 3, generator=torch.Generator().manual_seed(0))
         tex, _, _ = filled_kernel_texture(*atlas.place(probs, uv), rgb, layout.size, 1.0, labels=atlas.blur_labels)

@@ -49,14 +49,13 @@ def _planar_island_atlas(xyz, split: bool, crease: float = 0.0, min_share: float
     atlas.tex = _PlanarMap()
     cfg = AtlasConfig(layout="islands", island_sides=split, island_sides_crease=crease, image_size=96,
                       island_sides_neighbours=256, island_sides_min_share=min_share)
-    spacing, area = sample_spacing(xyz.numpy().astype(np.float64))
+    spacing, area, *elements = sample_spacing(xyz.numpy().astype(np.float64), per_sample=True)
     xn, hist = atlas.normalise(xyz), {}
     if split:
         chart_sides(atlas, xyz, xn, cfg, spacing, hist)
     with torch.no_grad():
         probs, uv = atlas.outputs(xn)
-        layout, info = island_layout(probs, uv, xyz.numpy().astype(np.float64), area, math.sqrt(0.5 / area), 16,
-                                     cfg, None)
+        layout, info = island_layout(probs, uv, elements, area, math.sqrt(0.5 / area), 16, cfg, None)
         atlas.set_layout(layout)
         tex, _, _ = filled_kernel_texture(*atlas.place(probs, uv), rgb, layout.size, 1.0, labels=atlas.blur_labels)
         atlas.set_textures(tex)
