@@ -515,7 +515,7 @@ def _min_sv_at_least(f: torch.Tensor, lo: float) -> torch.Tensor:
     c = f.transpose(1, 2) @ f - (lo * lo) * torch.eye(3, dtype=f.dtype, device=f.device)
     m1 = c[:, 0, 0]
     m2 = c[:, 0, 0] * c[:, 1, 1] - c[:, 0, 1] * c[:, 1, 0]
-    m3 = torch.linalg.det(c)
+    m3 = det3(c)
     return (m1 > 0) & (m2 > 0) & (m3 > 0)
 
 
@@ -550,8 +550,21 @@ def polar(f: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def inverse(f: torch.Tensor) -> torch.Tensor:
-    """F⁻¹ [M, 3, 3] of bounded gradients (their singular values are ≥ 1/max_stretch, so this is finite)."""
+    """F⁻¹ [M, 3, 3] of bounded gradients (their singular values are ≥ 1/max_stretch, so this is finite), in float64:
+    by the adjugate in the compiled loop of `key_inverse` (no cap) on CPU tensors, else torch.linalg.inv (the
+    reference it is tested against)."""
+    loop = _key_compiled(f)
+    if loop is not None:
+        return _run_key_loop(loop, f, torch.full((f.shape[0],), math.inf, dtype=torch.float64), None, 1)
     return torch.linalg.inv(f.double()).to(f.dtype)
+
+
+def det3(a: torch.Tensor) -> torch.Tensor:
+    """Determinants [...] of 3×3 matrices a [..., 3, 3] by the cofactor expansion (in a's dtype): a batched LU
+    (torch.linalg.det) costs ten times as much for thousands of small matrices."""
+    return (a[..., 0, 0] * (a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1])
+            - a[..., 0, 1] * (a[..., 1, 0] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 0])
+            + a[..., 0, 2] * (a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0]))
 
 
 def _jacobi_eigen(a, v, tol):

@@ -20,8 +20,8 @@ from core.atlas.packing import blend_charts, unpack
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
-from core.edits.deformation import (MAX_STRETCH, DeformationConfig, bound_above, expansion_inverse, field_for, inverse,
-                                     key_inverse, stretch)
+from core.edits.deformation import (MAX_STRETCH, DeformationConfig, bound_above, det3, expansion_inverse, field_for,
+                                     inverse, key_inverse, stretch)
 from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, unoccluded
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
@@ -217,16 +217,16 @@ class EditState:
         self.p_can = model.xyz.detach() if self.ids is None else model.xyz.detach()[self.ids]
         if fill_can is not None:  # added points sit between their pair's canonical points, not on their source
             self.p_can = torch.cat([self.p_can[:self.p_can.shape[0] - fill_can.shape[0]], fill_can])
-        self.features = None if self.ids is None else model.features.detach()[self.ids]
-        self.influence = model.influence.detach() if self.ids is None else model.influence.detach()[self.ids]
+        feats, infl = model.features.detach(), model.influence.detach()
         if self._fill_blend is not None:  # f_fill_features = blend: added points mix their pair's two ends
             a, b, t = self._fill_blend
-            p = t.shape[0]
-            t = t.to(self.features.dtype)
-            feats = model.features.detach()
-            self.features[-p:] = (1 - t)[:, None] * feats[a] + t[:, None] * feats[b]
-            infl = model.influence.detach()
-            self.influence[-p:] = (1 - t.to(infl.dtype)) * infl[a] + t.to(infl.dtype) * infl[b]
+            given = self.ids[:self.ids.shape[0] - t.shape[0]]
+            tf, ti = t.to(feats.dtype)[:, None], t.to(infl.dtype)
+            self.features = torch.cat([feats[given], feats[a].mul_(1 - tf).add_(feats[b].mul_(tf))])
+            self.influence = torch.cat([infl[given], infl[a].mul_(1 - ti).add_(infl[b].mul_(ti))])
+        else:
+            self.features = None if self.ids is None else feats[self.ids]
+            self.influence = infl if self.ids is None else infl[self.ids]
         self.atlas_image = None
         self.mask_image = None
         self._edit_textures = None
@@ -383,7 +383,7 @@ class EditState:
         if self.f is None:
             return 1.0
         if self._local_scale is None:  # once per state: render_edited asks twice a frame
-            det = torch.linalg.det(self._f.double()).abs()[torch.isfinite(self.points).all(1)]
+            det = det3(self._f.double()).abs()[torch.isfinite(self.points).all(1)]
             det = det[torch.isfinite(det) & (det > 0)]
             s = float(det.median() ** (1.0 / 3.0)) if det.numel() else 1.0
             self._local_scale = s if math.isfinite(s) and s > 0 else 1.0
