@@ -38,7 +38,7 @@ from core.util.errors import InputError
 
 
 COMPRESSION = ("tangent", "keep", "undo", "auto")
-KEY_STRETCH = ("gap", "full")
+KEY_STRETCH = ("gap", "full", "sparse")
 DEPTH_REFS = ("nearest", "ray")
 FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
@@ -122,7 +122,9 @@ class EditConfig:
                                     "undo: gap (at most the largest growth the fill left between consecutive points "
                                     "on its canonical neighbour pairs: where the fill restored the density, a point "
                                     "reaches no farther than at rest; a neighbourhood the rig tore apart does not "
-                                    "spread its points' reach over the background) | full (all of F's stretch)",
+                                    "spread its points' reach over the background) | sparse (only the growth left "
+                                    "where the fill budget kept a pair sparser than f_fill_ratio: where the fill "
+                                    "restored the density, none) | full (all of F's stretch)",
                              choices=KEY_STRETCH)
     f_occlusion: bool = opt(False, "moved points: each ray keeps the front one of the surface layers among its "
                                    "neighbours (layers told apart by the points' local deformation gradients: a "
@@ -342,13 +344,15 @@ class EditState:
         """The inverse gradients the attention keys use [M, 3, 3]: `inv_f_keys`, but with f_key_stretch gap (and
         f_fill) that of F with each point's singular values capped at the largest growth the fill left between
         consecutive points on its canonical neighbour pairs (1 where nothing grew): the keys undo the stretch the
-        points' spacing still shows, not more. None when nothing moved."""
+        points' spacing still shows, not more; with sparse, capped at that growth only on the pairs the fill budget
+        left sparser than f_fill_ratio (1 elsewhere). None when nothing moved."""
         if self.f is None:
             return None
         if self.cfg.f_key_stretch == "full" or self._gap is None:
             return self.inv_f_keys
         if self._inv_f_att is None:
-            self._inv_f_att = self._timed(lambda: self._rule_inverse(self._gap))
+            cap = self._sparse if self.cfg.f_key_stretch == "sparse" else self._gap
+            self._inv_f_att = self._timed(lambda: self._rule_inverse(cap))
         return self._inv_f_att
 
     def _rule_inverse(self, cap: torch.Tensor | None) -> torch.Tensor:
