@@ -486,7 +486,8 @@ class EditState:
         (core/edits/occlusion.py); the trace itself when the points did not move or the rule is off.
 
         trace: `trace_frame` of these points (their keys, influence and radius as render_edited traces them) with
-        the camera c2w [4, 4] and focal it was traced with: a ray whose neighbours reach behind its front layer
+        the camera c2w [4, 4] and focal it was traced with, owned by the caller (with the camera, the redone rays
+        are written into its tensors): a ray whose neighbours reach behind its front layer
         gets its K neighbours again from the ranked candidates the front layer does not hide (twice K searched
         within the first search's pixel radius), and its attention anew over them, so hidden points neither take
         its neighbour slots nor its colour. index: the trace's own `search_index` (else it is built again).
@@ -525,11 +526,14 @@ class EditState:
         else:
             att = model.attend(pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys,
                                rebase_depth=self.rebase_depth)
-        new = {name: getattr(trace, name).clone() for name in ("idx", "weights", "fg_weights", "bg", "x")}
-        new["idx"][rows] = idx
+        # the redone rows are written into the trace's own tensors (its only holder is `_trace`, which built it for
+        # this call: copying five frame-sized arrays cost more than the rows' search); a new Trace object, so a
+        # depth computed before follows the new x
+        trace.idx[rows] = idx
         for name in ("weights", "fg_weights", "bg", "x"):
-            new[name][rows] = att[name].to(new[name].dtype)
-        return dataclasses.replace(trace, **new)
+            t = getattr(trace, name)
+            t[rows] = att[name].to(t.dtype)
+        return dataclasses.replace(trace)
 
     def canonical_surface(self, trace: Trace, sel: torch.Tensor) -> torch.Tensor:
         """Canonical surface points [S, 3] of the rays sel [S] of a trace of these points, by the configured
