@@ -537,3 +537,40 @@ def test_key_stretch_gap_undoes_only_the_stretch_the_fill_left_open(tiny):
                                                               f_fill_budget=0.5))
             out = render_edited(st, c2w, test.height, test.width, test.focal)
             assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+
+
+def test_key_stretch_sparse_undoes_stretch_only_where_the_budget_left_pairs_sparse(tiny):
+    """f_key_stretch sparse: the keys' stretch cap is the growth left on the pairs the fill budget kept sparser than
+    the fill ratio, 1 elsewhere. A 4× stretch the fill closes leaves the keys undoing no stretch (their inverse
+    shrinks no offset); one the budget leaves sparse undoes up to that growth, as gap does there; the
+    correspondence keeps the whole local map; at rest (forced through the moved path) the frame is today's;
+    extreme poses stay finite."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    today = EditState(bundle)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(f_key_stretch="sparse"))
+    a = render_edited(today, test.c2w[0], test.height, test.width, test.focal)
+    b = render_edited(forced, test.c2w[0], test.height, test.width, test.focal)
+    assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    s = torch.tensor([4.0, 1.0, 1.0])
+    closed = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="sparse", f_fill_budget=8.0))
+    gap = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="gap", f_fill_budget=8.0))
+    assert closed.filled_points > 0 and float(closed._sparse.max()) == 1.0
+    low = torch.linalg.svdvals(closed.inv_f_attention.double()).min(-1).values
+    assert float(low.min()) >= 1 - 1e-4                      # no key shrinks an offset: no stretch undone
+    assert float(torch.linalg.svdvals(gap.inv_f_attention.double()).min(-1).values.min()) < 0.9
+    assert torch.equal(closed.inv_f_keys, gap.inv_f_keys)    # the correspondence keeps the whole local map
+    open_ = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="sparse", f_fill_budget=0.1))
+    sp = open_._sparse.double()
+    assert float(sp.max()) > 2.0
+    low = torch.linalg.svdvals(open_.inv_f_attention.double()).min(-1).values
+    assert bool((low >= 1 / sp - 1e-4).all())
+    assert float(low[sp > 2.0].median()) < 0.6               # where the budget left pairs sparse, stretch is undone
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+        st = EditState(bundle, points=pts, cfg=EditConfig(f_key_stretch="sparse", f_fill_budget=0.5))
+        out = render_edited(st, test.c2w[0], test.height, test.width, test.focal)
+        assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
