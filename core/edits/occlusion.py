@@ -291,6 +291,7 @@ def _keep_loop(idx, w, active, o, d, pts, can, fi, alpha, tol, min_share, min_hi
                 order[i] = j
                 n += 1
         first = -1
+        need = min_share * total
         for i in range(n):
             m = order[i]
             qm = idx[r, m]
@@ -299,7 +300,9 @@ def _keep_loop(idx, w, active, o, d, pts, can, fi, alpha, tol, min_share, min_hi
                 ql = idx[r, l]
                 if ql >= 0 and _in_layer(pts, can, fi, qm, ql, alpha, tol):
                     mass += w[r, l]
-            if mass >= min_share * total:
+                    if mass >= need:  # enough for a front layer: the rest of the sum changes nothing
+                        break
+            if mass >= need:
                 first = m
                 break
         if first < 0:
