@@ -38,7 +38,7 @@ from core.util.errors import InputError
 
 
 COMPRESSION = ("tangent", "keep", "undo", "auto")
-KEY_STRETCH = ("gap", "full", "sparse")
+KEY_STRETCH = ("gap", "full", "sparse", "auto")
 DEPTH_REFS = ("nearest", "ray")
 FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
@@ -124,7 +124,9 @@ class EditConfig:
                                     "reaches no farther than at rest; a neighbourhood the rig tore apart does not "
                                     "spread its points' reach over the background) | sparse (only the growth left "
                                     "where the fill budget kept a pair sparser than f_fill_ratio: where the fill "
-                                    "restored the density, none) | full (all of F's stretch)",
+                                    "restored the density, none) | full (all of F's stretch) | auto (sparse on a "
+                                    "sheet, gap on a thick shell: the model's median spread against "
+                                    "f_thick_spread, as f_compression auto)",
                              choices=KEY_STRETCH)
     f_occlusion: bool = opt(False, "moved points: each ray keeps the front one of the surface layers among its "
                                    "neighbours (layers told apart by the points' local deformation gradients: a "
@@ -345,13 +347,13 @@ class EditState:
         f_fill) that of F with each point's singular values capped at the largest growth the fill left between
         consecutive points on its canonical neighbour pairs (1 where nothing grew): the keys undo the stretch the
         points' spacing still shows, not more; with sparse, capped at that growth only on the pairs the fill budget
-        left sparser than f_fill_ratio (1 elsewhere). None when nothing moved."""
+        left sparser than f_fill_ratio (1 elsewhere); auto: `key_stretch`. None when nothing moved."""
         if self.f is None:
             return None
         if self.cfg.f_key_stretch == "full" or self._gap is None:
             return self.inv_f_keys
         if self._inv_f_att is None:
-            cap = self._sparse if self.cfg.f_key_stretch == "sparse" else self._gap
+            cap = self._sparse if self.key_stretch == "sparse" else self._gap
             self._inv_f_att = self._timed(lambda: self._rule_inverse(cap))
         return self._inv_f_att
 
@@ -365,14 +367,27 @@ class EditState:
         return key_inverse(self._f, cap, n)
 
     @property
+    def key_stretch(self) -> str:
+        """The keys' stretch rule: f_key_stretch, with auto resolved by the model's thickness as `compression` is
+        (gap for a thick shell, sparse for a sheet)."""
+        mode = self.cfg.f_key_stretch
+        if mode != "auto":
+            return mode
+        return "gap" if self._thick() else "sparse"
+
+    def _thick(self) -> bool:
+        """Whether the model's points form a thick shell (median spread of the canonical neighbourhoods at least
+        f_thick_spread) rather than a sheet."""
+        return field_for(self.bundle.model, self.deformation_cfg).median_spread >= self.cfg.f_thick_spread
+
+    @property
     def compression(self) -> str:
         """The compression rule the keys use: f_compression, with auto resolved by the model's thickness
         (`DeformationField.median_spread` against f_thick_spread: undo for a thick shell, tangent for a sheet)."""
         mode = self.cfg.f_compression
         if mode != "auto":
             return mode
-        thick = field_for(self.bundle.model, self.deformation_cfg).median_spread >= self.cfg.f_thick_spread
-        return "undo" if thick else "tangent"
+        return "undo" if self._thick() else "tangent"
 
     @property
     def rebase_depth(self) -> bool:

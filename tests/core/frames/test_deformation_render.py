@@ -574,3 +574,16 @@ def test_key_stretch_sparse_undoes_stretch_only_where_the_budget_left_pairs_spar
         st = EditState(bundle, points=pts, cfg=EditConfig(f_key_stretch="sparse", f_fill_budget=0.5))
         out = render_edited(st, test.c2w[0], test.height, test.width, test.focal)
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+
+
+def test_key_stretch_auto_is_sparse_on_a_sheet_and_gap_on_a_thick_shell(tiny):
+    """f_key_stretch auto resolves by the model's thickness as f_compression auto does: with f_thick_spread above
+    every spread the model is a sheet (sparse), at 0 a thick shell (gap); the keys then equal the explicit rule's."""
+    bundle, _, _ = tiny
+    pts = bundle.model.xyz.detach() * torch.tensor([4.0, 1.0, 1.0])
+    for spread, rule in ((1.01, "sparse"), (0.0, "gap")):
+        cfg = dict(f_fill_budget=0.1, f_thick_spread=spread, f_compression="tangent")
+        auto = EditState(bundle, points=pts, cfg=EditConfig(f_key_stretch="auto", **cfg))
+        same = EditState(bundle, points=pts, cfg=EditConfig(f_key_stretch=rule, **cfg))
+        assert auto.key_stretch == rule
+        assert torch.equal(auto.inv_f_attention, same.inv_f_attention)
