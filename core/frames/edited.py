@@ -118,7 +118,7 @@ class EditConfig:
                                         "ends' features and influence, mixed by where the point lies between them) | "
                                         "nearer (the features and influence of the nearer end)",
                                choices=FILL_FEATURES)
-    f_key_stretch: str = opt("gap", "F-aware keys (f_attention) with f_fill: how much of a point's stretch the keys "
+    f_key_stretch: str = opt("auto", "F-aware keys (f_attention) with f_fill: how much of a point's stretch the keys "
                                     "undo: gap (at most the largest growth the fill left between consecutive points "
                                     "on its canonical neighbour pairs: where the fill restored the density, a point "
                                     "reaches no farther than at rest; a neighbourhood the rig tore apart does not "

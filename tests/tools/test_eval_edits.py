@@ -259,14 +259,18 @@ def test_eval_edits_smoke_on_a_tiny_scene(tmp_path):
     res = json.loads((tmp_path / "e.json").read_text())
     cases = {(r["pose"], r["magnitude"]) for r in res["rows"]}
     assert cases == {("rest", 0.0), ("bend", 1.0)} and res["views"] == 1
-    # per case and renderer (paper, f-attention): geometry, 2 retexture, 2 decal soft, 2 decal threshold
-    assert len(res["rows"]) == 2 * 2 * 7 and {r["renderer"] for r in res["rows"]} == {"paper", "f-attention"}
+    # per case and renderer (by default paper and the default renderer): geometry, 2 retexture, 2 decal soft,
+    # 2 decal threshold
+    from tools.eval_edits import default_renderer
+
+    assert len(res["rows"]) == 2 * 2 * 7 and {r["renderer"] for r in res["rows"]} == {"paper", default_renderer()}
     for r in res["rows"]:
         for k in ("psnr", "psnr_object", "ssim", "seconds_per_frame"):
             assert math.isfinite(r[k]), (r, k)
     assert len(res["retexture_gap"]) == 4 and all(math.isfinite(g["gap_psnr_object"]) for g in res["retexture_gap"])
     assert all(math.isfinite(b["psnr"]) for b in res["blank"])
-    assert set(res["blend_comparison"]) == {f"{r}{c} T=1" for r in ("", "f-attention ") for c in ("naive", "deform-aware")}
+    assert set(res["blend_comparison"]) == {f"{r}{c} T=1" for r in ("", f"{default_renderer()} ")
+                                            for c in ("naive", "deform-aware")}
     table = (tmp_path / "e.md").read_text()
     assert table.count("| bend | 1 | ") == 2 * (7 + 2 + 1)  # per renderer: every case, 2 retexture gaps, ablation
     assert (tmp_path / "scene" / "eval_views1" / "poses" / "bend_decal" / "variant.json").exists()

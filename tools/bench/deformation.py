@@ -88,6 +88,11 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch only where the fill left pairs sparse, "
          "occlusion, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True,
                                      "f_key_stretch": "sparse", "f_occlusion": True},
+    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, deform-aware":
+        {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto"},
+    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, occlusion, "
+         "deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto",
+                          "f_occlusion": True},
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch capped at the fill's gap, no fill past "
          "13.5x, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap",
                                  "f_fill_tear": 13.5},

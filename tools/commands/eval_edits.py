@@ -22,9 +22,10 @@ def add_arguments(p):
     p.add_argument("--temperatures", default="1,0.5", help="attention temperatures (< 1 sharpens attention)")
     from tools.eval_edits import renderers_help
 
-    p.add_argument("--renderers", default="paper,f-attention",
+    p.add_argument("--renderers", default=None,
                    help="comma-separated renderer variants, each named with the EditConfig switches it sets beyond "
-                        "the paper's renderer (what a switch does: `pointgt render --help`): " + renderers_help())
+                        "the paper's renderer (what a switch does: `pointgt render --help`; default: paper and the "
+                        "default renderer, what `pointgt render` does): " + renderers_help())
     p.add_argument("--correspondences", default="naive,deform-aware",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
                         "(also undoes local rotation and stretch)")
@@ -41,7 +42,7 @@ def run(args) -> int:
     import json
 
     from core.util.atomic import atomic_write_text
-    from tools.eval_edits import markdown, parse_floats, run_eval
+    from tools.eval_edits import default_renderer, markdown, parse_floats, run_eval
 
     from core.util.atomic import check_output_file
 
@@ -52,7 +53,8 @@ def run(args) -> int:
     result = run_eval(args.model, args.scene, poses=poses, magnitudes=parse_floats(args.magnitudes, "--magnitudes"),
                       views=args.views, temperatures=parse_floats(args.temperatures, "--temperatures"),
                       antialias=args.antialias,
-                      renderers=[r.strip() for r in args.renderers.split(",") if r.strip()],
+                      renderers=[r.strip() for r in (args.renderers or f"paper,{default_renderer()}").split(",")
+                                 if r.strip()],
                       correspondences=[c.strip() for c in args.correspondences.split(",") if c.strip()],
                       retexture=args.retexture, samples=args.samples, device=args.device,
                       log=lambda m: print(m, flush=True))
