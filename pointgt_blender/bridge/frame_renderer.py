@@ -38,6 +38,7 @@ class ObjectInputs:
     atlas: np.ndarray | None = None
     antialias: int = 2        # painted texels per pixel side (EditConfig.antialias)
     rest_extent: float = 0.0  # bounding-box diagonal of the undeformed points in world space (pose warnings)
+    occlusion: bool = False   # EditConfig.f_occlusion: each ray keeps the front layer where a pose folds the surface
 
 
 class ModelCache:
@@ -124,7 +125,8 @@ def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCach
                              f"{inputs.point_count}; the file was replaced by another model - re-import it")
     if inputs.atlas is not None and bundle.atlas is None:
         inputs = dataclasses.replace(inputs, atlas=None)  # a points-only model: nothing to paint yet
-    cfg = EditConfig(correspondence=CORRESPONDENCE[inputs.correspondence], antialias=int(inputs.antialias))
+    cfg = EditConfig(correspondence=CORRESPONDENCE[inputs.correspondence], antialias=int(inputs.antialias),
+                     f_occlusion=bool(inputs.occlusion))
     state, _ = states.get(inputs, bundle, cfg)
     return state
 

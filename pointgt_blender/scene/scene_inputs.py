@@ -66,7 +66,8 @@ def object_inputs(obj, depsgraph):
     atlas = ATLASES.read(s.atlas) if s.atlas is not None else None
     return ObjectInputs(name=obj.name, model_path=model_file(obj), device=s.device.lower(), k=int(s.neighbors),
                         correspondence=s.correspondence, point_count=int(s.point_count), positions=positions,
-                        ids=ids, atlas=atlas, antialias=int(s.antialias), rest_extent=rest_extent(obj))
+                        ids=ids, atlas=atlas, antialias=int(s.antialias), rest_extent=rest_extent(obj),
+                        occlusion=bool(s.occlusion))
 
 
 def rest_extent(obj) -> float:

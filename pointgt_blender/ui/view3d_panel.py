@@ -38,6 +38,7 @@ class POINTGT_PT_main(SidebarPanel, bpy.types.Panel):
         col.prop(s, "preview_resolution")
         col.prop(s, "neighbors")
         col.prop(s, "correspondence")
+        col.prop(s, "occlusion")
         col.prop(s, "antialias")
         row = col.row(align=True)
         row.prop(s, "device")

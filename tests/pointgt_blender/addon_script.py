@@ -352,5 +352,17 @@ def _():
     return {"result": sorted(res), "cuda_err": cuda_err}
 
 
+@step("occlusion_setting")
+def _():
+    bpy.ops.pointgt.import_model(filepath=model)
+    obj = bpy.context.active_object
+    si = importlib.import_module(PKG + ".scene.scene_inputs")
+    dg = bpy.context.evaluated_depsgraph_get()
+    default = si.object_inputs(obj, dg).occlusion
+    obj.pointgt.occlusion = True
+    on = si.object_inputs(obj, bpy.context.evaluated_depsgraph_get()).occlusion
+    return {"default": default, "on": on}
+
+
 R.pop("_arm", None)
 print("RESULTS: " + json.dumps(R))

@@ -160,6 +160,13 @@ def test_torch_features_work_once_torch_imports(record):
     assert r["cuda_err"] == "" or "CUDA is not available" in r["cuda_err"]
 
 
+def test_the_objects_occlusion_setting_reaches_the_frame_inputs(record):
+    """The Folds (occlusion) checkbox of an imported model is off by default and, when on, reaches the frame's
+    inputs (EditConfig.f_occlusion, tests/pointgt_blender/test_addon_frame_renderer.py)."""
+    r = _get(record, "occlusion_setting")
+    assert r == {"default": False, "on": True}
+
+
 def test_existing_site_packages_folder_is_used_and_released(record):
     r = _get(record, "site_packages_pref")
     assert r["value"] == 7 and r["on_path"] and r["removed"]

@@ -114,6 +114,26 @@ def test_prepare_passes_the_objects_antialias_setting(monkeypatch):
     assert [c.antialias for c in made] == [2, 1]  # the third call changed nothing
 
 
+def test_prepare_passes_the_objects_occlusion_setting(monkeypatch):
+    """The object's Folds (occlusion) setting reaches EditConfig.f_occlusion (off by default); changing it rebuilds
+    the state."""
+    import pointgt_blender.bridge.frame_renderer as fr
+
+    bundle = type("B", (), {"model": type("M", (), {"num_points": 4, "cfg": type("C", (), {"k": 8})()})(),
+                            "atlas": None})()
+    models = type("Models", (), {"get": lambda self, path, device: bundle})()
+    made = []
+    monkeypatch.setattr(fr, "EditState", lambda b, **k: made.append(k["cfg"]) or object())
+    states = StateCache()
+    pos = np.zeros((4, 3), np.float32)
+    assert _inputs(pos).occlusion is False
+    for occ in (False, True, True):
+        inputs = _inputs(pos)
+        inputs.occlusion = occ
+        fr.prepare(inputs, models, states)
+    assert [c.f_occlusion for c in made] == [False, True]  # the third call changed nothing
+
+
 def test_model_cache_reloads_changed_files_and_names_missing_ones(tmp_path, monkeypatch):
     import pointgt_blender.bridge.frame_renderer as fr
 
