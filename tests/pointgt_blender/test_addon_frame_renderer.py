@@ -96,8 +96,11 @@ def test_state_cache_passes_the_prepared_paint_to_a_new_pose(monkeypatch):
     assert made == [None, s1, None, None]
 
 
-def test_prepare_passes_the_objects_antialias_setting(monkeypatch):
-    """The object's Anti-aliasing setting reaches EditConfig; changing it rebuilds the state (a new preview)."""
+@pytest.mark.parametrize("field, values, config, default", [("antialias", (2, 1, 1), "antialias", 2),
+                                                            ("occlusion", (False, True, True), "f_occlusion", False)])
+def test_prepare_passes_the_objects_setting(monkeypatch, field, values, config, default):
+    """The object's Anti-aliasing and Folds (occlusion) settings reach EditConfig (antialias, f_occlusion);
+    changing one rebuilds the state (a new preview)."""
     import pointgt_blender.bridge.frame_renderer as fr
 
     bundle = type("B", (), {"model": type("M", (), {"num_points": 4, "cfg": type("C", (), {"k": 8})()})(),
@@ -107,31 +110,12 @@ def test_prepare_passes_the_objects_antialias_setting(monkeypatch):
     monkeypatch.setattr(fr, "EditState", lambda b, **k: made.append(k["cfg"]) or object())
     states = StateCache()
     pos = np.zeros((4, 3), np.float32)
-    for aa in (2, 1, 1):
+    assert getattr(_inputs(pos), field) == default
+    for v in values:
         inputs = _inputs(pos)
-        inputs.antialias = aa
+        setattr(inputs, field, v)
         fr.prepare(inputs, models, states)
-    assert [c.antialias for c in made] == [2, 1]  # the third call changed nothing
-
-
-def test_prepare_passes_the_objects_occlusion_setting(monkeypatch):
-    """The object's Folds (occlusion) setting reaches EditConfig.f_occlusion (off by default); changing it rebuilds
-    the state."""
-    import pointgt_blender.bridge.frame_renderer as fr
-
-    bundle = type("B", (), {"model": type("M", (), {"num_points": 4, "cfg": type("C", (), {"k": 8})()})(),
-                            "atlas": None})()
-    models = type("Models", (), {"get": lambda self, path, device: bundle})()
-    made = []
-    monkeypatch.setattr(fr, "EditState", lambda b, **k: made.append(k["cfg"]) or object())
-    states = StateCache()
-    pos = np.zeros((4, 3), np.float32)
-    assert _inputs(pos).occlusion is False
-    for occ in (False, True, True):
-        inputs = _inputs(pos)
-        inputs.occlusion = occ
-        fr.prepare(inputs, models, states)
-    assert [c.f_occlusion for c in made] == [False, True]  # the third call changed nothing
+    assert [getattr(c, config) for c in made] == list(values[:2])  # the third call changed nothing
 
 
 def test_model_cache_reloads_changed_files_and_names_missing_ones(tmp_path, monkeypatch):

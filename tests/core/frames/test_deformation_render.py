@@ -495,6 +495,23 @@ def test_auto_compression_picks_tangent_for_a_sheet_and_undo_for_a_thick_shell(t
     assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
 
 
+def _assert_keys_undo_up_to(state, cap):
+    """The keys' inverse gradients of a 4× stretch undo at most cap [M] (> 2 somewhere) of each point's stretch, and
+    most of it where cap > 2."""
+    assert float(cap.max()) > 2.0
+    low = torch.linalg.svdvals(state.inv_f_attention.double()).min(-1).values
+    assert bool((low >= 1 / cap - 1e-4).all())
+    assert float(low[cap > 2.0].median()) < 0.6
+
+
+def _extreme_poses(xyz):
+    """Non-finite and huge positions, a 1000× stretch and a squash to a plane of the points xyz [N, 3]."""
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    return wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])
+
+
 def test_key_stretch_gap_undoes_only_the_stretch_the_fill_left_open(tiny):
     """f_key_stretch gap: the attention keys take F with each point's stretch capped at the largest growth the fill
     left between consecutive points on its pairs. A 4× stretch the fill closes (a generous budget) leaves the keys
@@ -521,17 +538,10 @@ def test_key_stretch_gap_undoes_only_the_stretch_the_fill_left_open(tiny):
     assert float(low_full.median()) < 0.4                # the full F⁻¹ undoes the 4× stretch
     assert torch.equal(closed.inv_f_keys, full.inv_f_keys)  # the correspondence keeps the whole local map
     sparse = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="gap", f_fill_budget=0.1))
-    gap = sparse._gap.double()
-    assert float(gap.max()) > 2.0
-    low = torch.linalg.svdvals(sparse.inv_f_attention.double()).min(-1).values
-    assert bool((low >= 1 / gap - 1e-4).all())
-    assert float(low[gap > 2.0].median()) < 0.6          # where the budget left gaps, more of the stretch is undone
+    _assert_keys_undo_up_to(sparse, sparse._gap.double())  # where the budget left gaps, more stretch is undone
     c2w = test.c2w[0].clone()
     c2w[:3, 3] *= 2.5
-    wild = xyz.clone()
-    wild[::13] = float("nan")
-    wild[1::17] = 1e30
-    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+    for pts in _extreme_poses(xyz):
         for mode in ("tangent", "undo", "keep"):
             st = EditState(bundle, points=pts, cfg=EditConfig(f_key_stretch="gap", f_compression=mode,
                                                               f_fill_budget=0.5))
@@ -562,15 +572,8 @@ def test_key_stretch_sparse_undoes_stretch_only_where_the_budget_left_pairs_spar
     assert float(torch.linalg.svdvals(gap.inv_f_attention.double()).min(-1).values.min()) < 0.9
     assert torch.equal(closed.inv_f_keys, gap.inv_f_keys)    # the correspondence keeps the whole local map
     open_ = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="sparse", f_fill_budget=0.1))
-    sp = open_._sparse.double()
-    assert float(sp.max()) > 2.0
-    low = torch.linalg.svdvals(open_.inv_f_attention.double()).min(-1).values
-    assert bool((low >= 1 / sp - 1e-4).all())
-    assert float(low[sp > 2.0].median()) < 0.6               # where the budget left pairs sparse, stretch is undone
-    wild = xyz.clone()
-    wild[::13] = float("nan")
-    wild[1::17] = 1e30
-    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+    _assert_keys_undo_up_to(open_, open_._sparse.double())  # where the budget left pairs sparse, stretch is undone
+    for pts in _extreme_poses(xyz):
         st = EditState(bundle, points=pts, cfg=EditConfig(f_key_stretch="sparse", f_fill_budget=0.5))
         out = render_edited(st, test.c2w[0], test.height, test.width, test.focal)
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
