@@ -27,6 +27,14 @@ def _half_split(x):
     return red * torch.tensor([1.0, 0.0, 0.0]) + (1 - red) * torch.tensor([0.0, 0.0, 1.0]), None
 
 
+def _extreme_poses(xyz):
+    """Non-finite and huge positions, a 1000× stretch and a squash to a plane of the points xyz [N, 3]."""
+    wild = xyz.clone()
+    wild[::13] = float("nan")
+    wild[1::17] = 1e30
+    return wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])
+
+
 def test_rest_frames_equal_todays_with_every_part_on(tiny):
     bundle, _, test = tiny
     n = bundle.model.num_points
@@ -289,10 +297,7 @@ def test_gap_reach_only_where_the_fill_left_gaps_and_rest_unchanged(tiny):
     ref = render_edited(off, c2w, test.height, test.width, test.focal)
     assert int((got["alpha"] > 0.5).sum()) >= int((ref["alpha"] > 0.5).sum())
     assert int((got["trace"].idx >= 0).sum()) > int((ref["trace"].idx >= 0).sum())
-    wild = xyz.clone()
-    wild[::13] = float("nan")
-    wild[1::17] = 1e30
-    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+    for pts in _extreme_poses(xyz):
         for rule in ("gap", "budget", "frame"):
             st = EditState(bundle, points=pts, cfg=EditConfig(f_radius=True, f_radius_rule=rule, f_fill_budget=0.1))
             out = render_edited(st, c2w, test.height, test.width, test.focal)
@@ -327,10 +332,7 @@ def test_reach_gate_adds_far_points_only_to_rays_the_plain_search_covers(tiny):
     assert torch.equal(tr["gate"].idx[covered], tr["reach"].idx[covered])
     assert torch.allclose(tr["gate"].weights[covered], tr["reach"].weights[covered], atol=1e-6)
     assert int((tr["gate"].idx >= 0).sum()) > int((tr["plain"].idx >= 0).sum())  # the reach still adds points
-    wild = xyz.clone()
-    wild[::13] = float("nan")
-    wild[1::17] = 1e30
-    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+    for pts in _extreme_poses(xyz):
         out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **gate)), c2w,
                             test.height, test.width, test.focal)
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
@@ -370,10 +372,7 @@ def test_reach_surround_adds_only_rays_the_reach_candidates_surround(tiny):
                          model.cfg.neighbor_radius_px, reach=st.reach, reach_gate=1.0, reach_surround=True)
     want = (index.query(pixel_grid(test.height, test.width, "cpu"), model.cfg.k).idx >= 0).any(1)
     assert torch.equal(got, want)
-    wild = xyz.clone()
-    wild[::13] = float("nan")
-    wild[1::17] = 1e30
-    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+    for pts in _extreme_poses(xyz):
         out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **inside)), c2w,
                             test.height, test.width, test.focal)
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
@@ -438,10 +437,7 @@ def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny, rule)
     torn[xyz[:, 0] > xyz[:, 0].median(), 0] += 2.5 * cap * float(cam[:3, 3].norm()) / f
     got, one = _gate_checked(bundle, torn, own, cam, h, w, f, fill=False)
     assert int((got & ~one).sum()) >= 10
-    wild = xyz.clone()
-    wild[::13] = float("nan")
-    wild[1::17] = 1e30
-    for pts in (wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+    for pts in _extreme_poses(xyz):
         out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **own)), c2w,
                             test.height, test.width, test.focal)
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
@@ -502,14 +498,6 @@ def _assert_keys_undo_up_to(state, cap):
     low = torch.linalg.svdvals(state.inv_f_attention.double()).min(-1).values
     assert bool((low >= 1 / cap - 1e-4).all())
     assert float(low[cap > 2.0].median()) < 0.6
-
-
-def _extreme_poses(xyz):
-    """Non-finite and huge positions, a 1000× stretch and a squash to a plane of the points xyz [N, 3]."""
-    wild = xyz.clone()
-    wild[::13] = float("nan")
-    wild[1::17] = 1e30
-    return wild, xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])
 
 
 def test_key_stretch_gap_undoes_only_the_stretch_the_fill_left_open(tiny):
