@@ -25,7 +25,7 @@ import torch
 
 from core.edits.bake import bake
 from core.edits.correspondence import ray_canonical_points
-from core.edits.deformation import MAX_STRETCH
+from core.edits.deformation import MAX_STRETCH, DeformationConfig, field_for
 from core.edits.procedural import evaluate, get_texture
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.images.metrics import blank_floor, mean_scores, object_mask, psnr, score_views
@@ -447,6 +447,7 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
     result = {"model": str(model_path), "scene": str(scene_dir), "scene_name": spec.get("name"),
               "views": len(gts["geometry"]), "width": gts["geometry"].width, "height": gts["geometry"].height,
               "model_points": bundle.model.num_points, "point_spacing": float(bundle.model.spacing),
+              "median_spread": field_for(bundle.model, DeformationConfig()).median_spread,
               "retexture": retexture, "decal": spec["texture"]["params"].get("decal"),
               "poses": poses, "magnitudes": list(magnitudes), "temperatures": list(temperatures), "antialias": antialias,
               "renderers": list(renderers), "correspondences": list(correspondences),
@@ -533,7 +534,10 @@ def markdown(result: dict) -> str:
     """The result as markdown tables: per-case figures, summary per method, persistence gaps, blends, floors."""
     rows = result["rows"]
     lines = [f"Scene `{result['scene_name']}`, {result['views']} views at {result['width']}x{result['height']}, "
-             f"model {result['model_points']} points (spacing {result['point_spacing']:.4f}), "
+             f"model {result['model_points']} points (spacing {result['point_spacing']:.4f}"
+             + (f", median spread {result['median_spread']:.2f}: "
+                f"{'a thick shell' if result['median_spread'] >= EditConfig.f_thick_spread else 'a sheet'}"
+                if "median_spread" in result else "") + "), "
              f"retexture `{result['retexture']}`, total {result['seconds_total']:.0f} s.", ""]
     names = list(dict.fromkeys(r.get("renderer", "paper") for r in rows if r.get("renderer", "paper") in RENDERERS))
     legend = "; ".join(f"{n} = {describe_renderer(n)}" for n in names)

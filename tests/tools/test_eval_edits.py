@@ -271,7 +271,9 @@ def test_eval_edits_smoke_on_a_tiny_scene(tmp_path):
     assert all(math.isfinite(b["psnr"]) for b in res["blank"])
     assert set(res["blend_comparison"]) == {f"{r}{c} T=1" for r in ("", f"{default_renderer()} ")
                                             for c in ("naive", "deform-aware")}
+    assert 0.0 <= res["median_spread"] <= 1.0  # the model's thickness, which the `auto` rules resolve by
     table = (tmp_path / "e.md").read_text()
+    assert "median spread" in table.splitlines()[0]
     assert table.count("| bend | 1 | ") == 2 * (7 + 2 + 1)  # per renderer: every case, 2 retexture gaps, ablation
     assert (tmp_path / "scene" / "eval_views1" / "poses" / "bend_decal" / "variant.json").exists()
 
