@@ -403,6 +403,7 @@ class DeformationField:
             return empty
         dc, dd, w, cid, own_ok, rows = gathered
         m = pts.shape[0]
+        loop = _fill_compiled(pts)
         if dc is self._dc:  # the canonical offsets' lengths, once per model
             if getattr(self, "_dc_len", None) is None:
                 self._dc_len = self._dc.norm(dim=-1)
@@ -410,8 +411,22 @@ class DeformationField:
         else:
             lc = dc.norm(dim=-1)
         ld = dd.norm(dim=-1)                                                         # [M, k]
+        short = 1e-6 * self.scale[cid]
+        if loop is not None:
+            use_rev = canonical_rows and rows.shape == self.nbr.shape
+            rev = self.reverse_slots if use_rev else rows.new_zeros(1, 1)
+            arr = lambda x: np.ascontiguousarray(x.detach().numpy())  # noqa: E731
+            gap_np, sparse_np = arr(torch.ones(m)), arr(torch.ones(m))
+            out = loop(arr(pts), arr(dd), arr(dc), arr(self.canonical), arr(cid), arr(ld), arr(lc), arr(short),
+                       arr(w), arr(rows), arr(rev), use_rev, np.float32(ratio), np.float32(torn), float(ratio),
+                       int(max_per_pair), int(budget * m), gap_pairs == "budget", bool(with_gap), gap_np, sparse_np)
+            new, canonical, source, partner, fraction = (torch.from_numpy(x) for x in out)
+            res = (new, canonical, source)
+            if with_partner:
+                res = res + (partner, fraction)
+            return res + (torch.from_numpy(gap_np), torch.from_numpy(sparse_np)) if with_gap else res
         grow = ld / lc.clamp_min(1e-30)
-        pair = (w > 0) & (lc > 1e-6 * self.scale[cid][:, None]) & (grow <= torn)
+        pair = (w > 0) & (lc > short[:, None]) & (grow <= torn)
         sel = pair & (grow > ratio)
         if with_gap:  # pairs left as they are (grown by at most the ratio, or shrunk): their own growth, both ends
             keep = torch.where(pair & ~sel, grow, torch.ones_like(grow)).clamp_min(1.0).to(torch.float32)
@@ -472,6 +487,151 @@ class DeformationField:
             fraction = torch.where(near_j, t[:, 0], 1.0 - t[:, 0])
             out = out + (partner, fraction)
         return out + (gap, sparse) if with_gap else out
+
+
+def _fill_count(g, r, cap):
+    """Points per pair at ratio r (as `_fill`'s count): g [P] float64 growths -> their sum."""
+    total = 0
+    for p in range(g.shape[0]):
+        c = math.ceil(g[p] / r * (1.0 - 1e-12)) - 1.0
+        total += int(min(max(c, 0.0), cap))
+    return total
+
+
+def _fill_budget_ratio(g, ratio, cap, limit):
+    """_budget_ratio's value (the smallest step g / i >= ratio, i = 1 .. cap, whose count keeps the limit), compiled:
+    the (limit + 1)-th largest step by a partial sort, checked against the next smaller one; a bisection over the
+    distinct steps where the check fails."""
+    steps = np.empty(g.shape[0] * cap)
+    cnt = 0
+    for p in range(g.shape[0]):
+        for i in range(1, cap + 1):
+            v = g[p] / i
+            if v < ratio:  # the steps of one pair fall with i
+                break
+            steps[cnt] = v
+            cnt += 1
+    steps = steps[:cnt]
+    if cnt > limit:
+        at = cnt - 1 - limit
+        part = np.partition(steps, at)
+        r = part[at]
+        below = -1.0
+        for x in range(at):  # everything below r lies left of it
+            if part[x] < r and part[x] > below:
+                below = part[x]
+        if _fill_count_c(g, r, cap) <= limit and (below < 0.0 or _fill_count_c(g, below, cap) > limit):
+            return r
+    cands = np.unique(steps)
+    lo, hi = 0, cands.shape[0] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if _fill_count_c(g, cands[mid], cap) <= limit:
+            hi = mid
+        else:
+            lo = mid + 1
+    return cands[lo]
+
+
+def _fill_loop(pts, dd, dc, canonical, cid, ld, lc, short, w, rows, rev, use_rev, ratio32, torn32, ratio, cap,
+               limit, budget_pairs, with_gap, gap, sparse):
+    """The compiled path of `DeformationField._fill` from the neighbour offsets' lengths (ld, lc [M, k] float32
+    deformed and canonical; short [M, k] float32 the length below which a canonical offset is no pair): the same
+    pairs, budget ratio, points (in the same order, bit for bit) and, with_gap, gap and sparse [M] float32
+    written in place (given as ones). Returns (new [P, 3], canonical [P, 3] float32, source [P], partner [P] int64,
+    fraction [P] float32)."""
+    m, k = ld.shape
+    one = np.float32(1.0)
+    tiny = np.float32(1e-30)
+    pj = np.empty(m * k, dtype=np.int64)
+    ps = np.empty(m * k, dtype=np.int64)
+    g = np.empty(m * k)
+    q = 0
+    for a in range(m):
+        best = one
+        for s in range(k):
+            grow = ld[a, s] / max(lc[a, s], tiny)
+            pair = w[a, s] > 0 and lc[a, s] > short[a] and grow <= torn32
+            sel = pair and grow > ratio32
+            if with_gap:  # pairs left as they are: their own growth, at both ends
+                v = grow if pair and not sel and grow > one else one
+                best = max(best, v)
+                b = rows[a, s]
+                gap[b] = max(gap[b], v)
+            if not sel:
+                continue
+            # each pair once: j -> l when j < l, or when l does not list j back
+            o = rows[a, s]
+            back = False
+            if use_rev:
+                back = rev[a, s] >= 0 and w[o, rev[a, s]] > 0
+            else:
+                for u in range(k):
+                    if rows[o, u] == a and w[o, u] > 0:
+                        back = True
+                        break
+            if a < o or not back:
+                pj[q] = a
+                ps[q] = s
+                g[q] = np.float64(grow)
+                q += 1
+        if with_gap:
+            gap[a] = max(gap[a], best)
+    g = g[:q]
+    n = np.empty(q, dtype=np.int64)
+    if _fill_count_c(g, ratio, cap) > limit:
+        ratio_n = _fill_budget_ratio_c(g, ratio, cap, limit)
+    else:
+        ratio_n = ratio
+    total = 0
+    for p in range(q):
+        c = math.ceil(g[p] / ratio_n * (1.0 - 1e-12)) - 1.0
+        n[p] = int(min(max(c, 0.0), cap))
+        total += n[p]
+        if with_gap:  # growth left between consecutive points of the pair, at both ends
+            left = np.float32(g[p] / np.float64(n[p] + 1))
+            a, b = pj[p], rows[pj[p], ps[p]]
+            gap[a] = max(gap[a], left)
+            gap[b] = max(gap[b], left)
+            if left > ratio32 and (not budget_pairs or n[p] < cap):
+                sparse[a] = max(sparse[a], left)
+                sparse[b] = max(sparse[b], left)
+    new = np.empty((total, 3), dtype=np.float32)
+    can = np.empty((total, 3), dtype=np.float32)
+    source = np.empty(total, dtype=np.int64)
+    partner = np.empty(total, dtype=np.int64)
+    fraction = np.empty(total, dtype=np.float32)
+    e = 0
+    for p in range(q):
+        a, s = pj[p], ps[p]
+        o = rows[a, s]
+        c = cid[a]
+        for i in range(1, n[p] + 1):
+            t = np.float32(i) / np.float32(n[p] + 1)
+            for d in range(3):
+                new[e, d] = pts[a, d] + t * dd[a, s, d]
+                can[e, d] = canonical[c, d] + t * dc[a, s, d]
+            if t <= np.float32(0.5):
+                source[e], partner[e], fraction[e] = a, o, t
+            else:
+                source[e], partner[e], fraction[e] = o, a, one - t
+            e += 1
+    return new, can, source, partner, fraction
+
+
+_fill_count_c = njit(_fill_count)
+_fill_budget_ratio_c = njit(_fill_budget_ratio)
+_compiled_fill_loop = None
+
+
+def _fill_compiled(pts: torch.Tensor):
+    """The compiled fill loop for CPU tensors where numba is installed, else None (the torch path)."""
+    global _compiled_fill_loop
+    if numba is None or pts.device.type != "cpu":
+        return None
+    if _compiled_fill_loop is None:
+        _compiled_fill_loop = njit(_fill_loop)
+    return _compiled_fill_loop
 
 
 def _budget_ratio(g: torch.Tensor, ratio: float, cap: int, limit: int, count) -> float:

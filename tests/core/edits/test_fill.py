@@ -273,3 +273,62 @@ def test_tear_growth_leaves_pairs_grown_past_it_open():
     for bad in (1.0, float("nan")):
         with pytest.raises(InputError):
             fld.fill(q, tear=bad)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_budget_ratio_equals_the_plain_bisection(seed):
+    """The compiled budget ratio (partial sort, checked; bisection where the check fails) picks the same step."""
+    pytest.importorskip("numba")
+    from core.edits.deformation import _fill_budget_ratio_c
+
+    gen = torch.Generator().manual_seed(seed)
+    g = 1.0 + 9.0 * torch.rand(500, generator=gen, dtype=torch.float64)
+    g[:100] = 4.0  # ties: one growth shared by many pairs (a uniform stretch)
+    g[100:110] = 12.0 / 7.0
+    for cap in (1, 3, 8):
+        count = lambda r: (torch.ceil(g / r * (1.0 - 1e-12)) - 1.0).clamp(0, cap).long()  # noqa: E731
+        full = int(count(1.5).sum())
+        for limit in (0, 1, 7, 99, 100, 101, 350, full // 2, full - 1):
+            assert _fill_budget_ratio_c(g.numpy(), 1.5, cap, limit) == _plain_budget_ratio(g, 1.5, cap, limit)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_compiled_fill_equals_the_torch_path(seed, monkeypatch):
+    """The compiled fill (numba, CPU) gives the torch path's points, sources, partners, fractions, gaps and sparse
+    gaps bit for bit: the cached neighbour lists and ids (duplicated and removed points), budgets hit or not,
+    ties, tears, missing points, every option."""
+    pytest.importorskip("numba")
+    import core.edits.deformation as deformation
+
+    gen = torch.Generator().manual_seed(seed)
+    p = _volume(500, seed)
+    bend = 0.3 * torch.sin(4 * p) * torch.rand(500, 1, generator=gen)
+    cases = [(p * torch.tensor([5.0, 1.0, 1.0]) + bend, None),
+             (p * torch.tensor([3.0, 3.0, 1.0]), None),  # a uniform stretch: many equal growths
+             (torch.where(p[:, :1] > 0, p * torch.tensor([9.0, 1.0, 1.0]), p), None)]  # a joint-like tear
+    q = cases[0][0].clone()
+    q[7] = float("nan")  # a missing point
+    cases.append((q, None))
+    ids = torch.cat([torch.arange(500)[torch.arange(500) % 7 != 3], torch.arange(0, 500, 5)])  # removed, copies
+    cases.append((cases[0][0][ids] + 0.01 * torch.rand(ids.shape[0], 3, generator=gen), ids))
+    fld = DeformationField(p)
+    options = [dict(ratio=1.5, max_per_pair=8, budget=b, gap_pairs=gp) for b in (0.2, 1.0, 10.0)
+               for gp in ("all", "budget")]
+    options += [dict(ratio=1.3, max_per_pair=3, budget=0.5, tear=6.0, gap_pairs="budget"),
+                dict(ratio=2.2, max_per_pair=1, budget=1.0)]
+    compiled = deformation._fill_compiled(p)
+    assert compiled is not None
+    for q, ids in cases:
+        g = fld._gather_deformed(q, ids, with_rows=True)
+        for kw in options:
+            for partner, gap in ((True, True), (False, False)):
+                args = (q, g, kw["ratio"], kw["max_per_pair"], kw["budget"], partner, gap)
+                rest = dict(canonical_rows=ids is None, gap_pairs=kw.get("gap_pairs", "all"), tear=kw.get("tear"))
+                fast = fld._fill(*args, **rest)
+                monkeypatch.setattr(deformation, "_fill_compiled", lambda pts: None)
+                ref = fld._fill(*args, **rest)
+                monkeypatch.setattr(deformation, "_fill_compiled", lambda pts: compiled)
+                assert len(fast) == len(ref)
+                for a, b in zip(fast, ref):
+                    assert a.dtype == b.dtype and torch.equal(a, b)
+    assert ref[0].shape[0] > 0
