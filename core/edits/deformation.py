@@ -498,39 +498,73 @@ def _fill_count(g, r, cap):
     return total
 
 
-def _fill_budget_ratio(g, ratio, cap, limit):
-    """_budget_ratio's value (the smallest step g / i >= ratio, i = 1 .. cap, whose count keeps the limit), compiled:
-    the (limit + 1)-th largest step by a partial sort, checked against the next smaller one; a bisection over the
-    distinct steps where the check fails."""
+def _fill_select(g, floor, ratio, cap, limit):
+    """The (limit + 1)-th largest step g / i >= floor (i = 1 .. cap; floor >= ratio) by a partial sort, where it is
+    certainly _budget_ratio's value: it keeps the limit and the next smaller step (the largest below it, none at all
+    only where floor is the ratio itself) does not. -1 where undecided (too few steps above floor, ties, rounding)."""
     steps = np.empty(g.shape[0] * cap)
     cnt = 0
     for p in range(g.shape[0]):
         for i in range(1, cap + 1):
             v = g[p] / i
-            if v < ratio:  # the steps of one pair fall with i
+            if v < floor:  # the steps of one pair fall with i
                 break
             steps[cnt] = v
             cnt += 1
-    steps = steps[:cnt]
-    if cnt > limit:
-        at = cnt - 1 - limit
-        part = np.partition(steps, at)
-        r = part[at]
-        below = -1.0
-        for x in range(at):  # everything below r lies left of it
-            if part[x] < r and part[x] > below:
-                below = part[x]
-        if _fill_count_c(g, r, cap) <= limit and (below < 0.0 or _fill_count_c(g, below, cap) > limit):
-            return r
-    cands = np.unique(steps)
-    lo, hi = 0, cands.shape[0] - 1
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if _fill_count_c(g, cands[mid], cap) <= limit:
-            hi = mid
+    if cnt <= limit:
+        return -1.0
+    at = cnt - 1 - limit
+    part = np.partition(steps[:cnt], at)
+    r = part[at]
+    below = -1.0
+    for x in range(at):  # everything below r lies left of it
+        if part[x] < r and part[x] > below:
+            below = part[x]
+    if below < 0.0 and floor > ratio:
+        return -1.0  # the next smaller step lies below the floor
+    if _fill_count_c(g, r, cap) <= limit and (below < 0.0 or _fill_count_c(g, below, cap) > limit):
+        return r
+    return -1.0
+
+
+def _fill_budget_ratio(g, ratio, cap, limit):
+    """_budget_ratio's value (the smallest step g / i >= ratio, i = 1 .. cap, whose count keeps the limit), compiled:
+    a floor below which it cannot lie first (a few halvings of [ratio, max g] by the count: more than limit + 1
+    steps above it), then the (limit + 1)-th largest step above the floor by a partial sort, checked against the
+    next smaller one (`_fill_select`); over every step where that is undecided; a bisection over the distinct
+    steps where the check still fails."""
+    lo, hi = ratio, ratio
+    for p in range(g.shape[0]):
+        hi = max(hi, g[p])
+    for _ in range(8):
+        mid = 0.5 * (lo + hi)
+        if _fill_count_c(g, mid, cap) > limit + 1:
+            lo = mid
         else:
-            lo = mid + 1
-    return cands[lo]
+            hi = mid
+    r = _fill_select_c(g, lo, ratio, cap, limit)
+    if r < 0.0 and lo > ratio:
+        r = _fill_select_c(g, ratio, ratio, cap, limit)
+    if r >= 0.0:
+        return r
+    steps = np.empty(g.shape[0] * cap)
+    cnt = 0
+    for p in range(g.shape[0]):
+        for i in range(1, cap + 1):
+            v = g[p] / i
+            if v < ratio:
+                break
+            steps[cnt] = v
+            cnt += 1
+    cands = np.unique(steps[:cnt])
+    lo_i, hi_i = 0, cands.shape[0] - 1
+    while lo_i < hi_i:
+        mid_i = (lo_i + hi_i) // 2
+        if _fill_count_c(g, cands[mid_i], cap) <= limit:
+            hi_i = mid_i
+        else:
+            lo_i = mid_i + 1
+    return cands[lo_i]
 
 
 def _fill_loop(pts, dd, dc, canonical, cid, ld, lc, short, w, rows, rev, use_rev, ratio32, torn32, ratio, cap,
@@ -620,6 +654,7 @@ def _fill_loop(pts, dd, dc, canonical, cid, ld, lc, short, w, rows, rev, use_rev
 
 
 _fill_count_c = njit(_fill_count)
+_fill_select_c = njit(_fill_select)
 _fill_budget_ratio_c = njit(_fill_budget_ratio)
 _compiled_fill_loop = None
 
