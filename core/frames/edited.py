@@ -151,6 +151,16 @@ class EditConfig:
                            choices=("auto", *RENDER_MODES))
 
 
+def _rows_then_blend(x: torch.Tensor, given: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
+                     t: torch.Tensor) -> torch.Tensor:
+    """x [N, ...] -> [G + P, ...]: the rows `given` [G], then x[a] (1 − t) + x[b] t for the pairs a, b [P] (t [P]
+    shaped to broadcast over x's rows), written into one tensor."""
+    out = x.new_empty((given.shape[0] + a.shape[0], *x.shape[1:]))
+    torch.index_select(x, 0, given, out=out[:given.shape[0]])
+    torch.add(x[a].mul_(1 - t), x[b].mul_(t), out=out[given.shape[0]:])
+    return out
+
+
 class EditState:
     """Per-model edit inputs, validated once and reused across frames (animation, live preview).
 
@@ -225,9 +235,8 @@ class EditState:
         if self._fill_blend is not None:  # f_fill_features = blend: added points mix their pair's two ends
             a, b, t = self._fill_blend
             given = self.ids[:self.ids.shape[0] - t.shape[0]]
-            tf, ti = t.to(feats.dtype)[:, None], t.to(infl.dtype)
-            self.features = torch.cat([feats[given], feats[a].mul_(1 - tf).add_(feats[b].mul_(tf))])
-            self.influence = torch.cat([infl[given], infl[a].mul_(1 - ti).add_(infl[b].mul_(ti))])
+            self.features = _rows_then_blend(feats, given, a, b, t.to(feats.dtype)[:, None])
+            self.influence = _rows_then_blend(infl, given, a, b, t.to(infl.dtype))
         else:
             self.features = None if self.ids is None else feats[self.ids]
             self.influence = infl if self.ids is None else infl[self.ids]
