@@ -31,7 +31,7 @@ from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
 from core.points.render import pixel_grid, shade_frame, trace_frame
 from core.points.resolution import (RENDER_MODES, check_mode, decoder_scale, filter_sigma, gaussian_blur,
-                                    interpolate_rays, interpolate_trace, low_size, scale_factor,
+                                    interpolate_rays, interpolate_trace, low_size, points_centre, scale_factor,
                                     upsample_frame)
 from core.points.trace import Trace
 from core.util.errors import InputError
@@ -181,6 +181,7 @@ class EditState:
         self.deformation_cfg = deformation or DeformationConfig()
         self._f = self._inv_f = self._inv_f_keys = self._inv_f_att = self._radius_scale = self._reach = None
         self._local_scale = None  # median |det F|^(1/3), once computed
+        self._centre = None  # the points' centre, once computed
         self._fill_blend = None  # f_fill_features = blend: (canonical ids of both ends [P], fraction [P])
         self._gap = None  # f_fill: per point the largest growth left between consecutive points on its pairs
         self._sparse = None  # f_fill: that growth where the budget kept a pair sparser than f_fill_ratio, else 1
@@ -403,6 +404,13 @@ class EditState:
         """Whether the F-aware keys take depths from the ray's nearest neighbour in the canonical frames (f_depth
         nearest; `PointModel.attend`): only for moved points with f_attention."""
         return bool(self.moved and self.cfg.f_attention and self.cfg.f_depth == "nearest")
+
+    @property
+    def centre(self) -> torch.Tensor:
+        """The points' centre [3] (`points_centre`: the mean of the finite ones), once per state."""
+        if self._centre is None:
+            self._centre = points_centre(self.points.detach())
+        return self._centre
 
     @property
     def local_scale(self) -> float:
@@ -682,8 +690,9 @@ def _scales(state: EditState, c2w: torch.Tensor, focal) -> tuple[float, float]:
     if state.points is None:
         return (scale_factor(float(model.train_footprint), c2w, focal, model.xyz.detach()),
                 decoder_scale(model, None, c2w, focal, model.xyz.detach()))
-    return (scale_factor(float(model.train_footprint) * state.local_scale, c2w, focal, state.points.detach()),
-            decoder_scale(model, None, c2w, focal, state.points.detach(), size_scale=state.local_scale))
+    pts, centre = state.points.detach(), state.centre
+    return (scale_factor(float(model.train_footprint) * state.local_scale, c2w, focal, pts, centre),
+            decoder_scale(model, None, c2w, focal, pts, size_scale=state.local_scale, centre=centre))
 
 
 def frame_trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, k: int | None = None) -> Trace:

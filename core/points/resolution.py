@@ -126,12 +126,14 @@ def training_footprint(c2ws: torch.Tensor, focal, points: torch.Tensor) -> float
     return float(torch.tensor(fps, dtype=torch.float64).median()) if fps else 0.0
 
 
-def scale_factor(train_footprint: float, c2w: torch.Tensor, focal, points: torch.Tensor) -> float:
-    """F of a frame: train_footprint / the frame's pixel footprint at the centre of points [N, 3]; 1 when either
-    is unknown, exactly 1 within _SCALE_TOL of it, at most MAX_SCALE."""
+def scale_factor(train_footprint: float, c2w: torch.Tensor, focal, points: torch.Tensor,
+                 centre: torch.Tensor | None = None) -> float:
+    """F of a frame: train_footprint / the frame's pixel footprint at the centre of points [N, 3] (`points_centre`;
+    centre [3]: that centre where the caller has it); 1 when either is unknown, exactly 1 within _SCALE_TOL of it,
+    at most MAX_SCALE."""
     if not (math.isfinite(train_footprint) and train_footprint > 0):
         return 1.0
-    fp = pixel_footprint(c2w, focal, points_centre(points))
+    fp = pixel_footprint(c2w, focal, points_centre(points) if centre is None else centre)
     if fp <= 0:
         return 1.0
     f = train_footprint / fp
@@ -248,13 +250,13 @@ def decoder_footprint(model) -> float:
 
 
 def decoder_scale(model, scale: float | None, c2w: torch.Tensor, focal, points: torch.Tensor,
-                  size_scale: float = 1.0) -> float:
+                  size_scale: float = 1.0, centre: torch.Tensor | None = None) -> float:
     """The scale factor of a frame for the decoder (`decoder_footprint` / the frame's pixel footprint): from the
     camera c2w [4, 4], focal and points [N, 3] like `scale_factor` (the footprint times size_scale: moved points in
-    their own size), or, when the caller gives the frame's scale factor `scale` (against train_footprint), that
+    their own size; centre as there), or, when the caller gives the frame's scale factor `scale` (against train_footprint), that
     times decoder_footprint / train_footprint. 1 for F_dec <= 1 or not finite; at most MAX_SCALE."""
     if scale is None:
-        f = scale_factor(decoder_footprint(model) * size_scale, c2w, focal, points)
+        f = scale_factor(decoder_footprint(model) * size_scale, c2w, focal, points, centre)
     else:
         tf, df = float(model.train_footprint), decoder_footprint(model)
         ratio = df / tf if math.isfinite(tf) and tf > 0 and math.isfinite(df) and df > 0 else 1.0

@@ -10,8 +10,8 @@ every frame. Variants are interleaved per camera and repeat (the machine's load 
 thread; the table gives the median wall and CPU (process) seconds per frame and the CPU ratio to the paper's.
 `--profile`: a second table splits each variant's CPU milliseconds per frame (mean) into stages, by wrapping their
 functions (tools.bench.render's timed_parts): the F fit (neighbour gathering and least squares), the fill, the
-neighbour search, the attention, shading and decoder, the correspondence, the texture lookup; "other" is the rest
-(ray set-up, the inverse gradients, compositing, bookkeeping).
+inverse gradients (the keys' and the occlusion rule's), the neighbour search, the attention, shading and decoder,
+the correspondence, the texture lookup; "other" is the rest (ray set-up, compositing, bookkeeping).
 """
 from __future__ import annotations
 
@@ -111,8 +111,8 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
 }
 
 
-PROFILE_STAGES = ("F fit", "fill", "neighbour search", "attention", "shading + decoder", "correspondence",
-                  "texture lookup")
+PROFILE_STAGES = ("F fit", "fill", "inverse gradients", "neighbour search", "attention", "shading + decoder",
+                  "correspondence", "texture lookup")
 
 
 def _stage_parts(bundle) -> list:
@@ -123,6 +123,8 @@ def _stage_parts(bundle) -> list:
 
     fld = field_for(bundle.model)
     return [(fld, "_gather_deformed", "F fit"), (fld, "_fit", "F fit"), (fld, "_fill", "fill"),
+            (edited_mod, "inverse", "inverse gradients"), (edited_mod, "key_inverse", "inverse gradients"),
+            (edited_mod, "expansion_inverse", "inverse gradients"), (edited_mod, "bound_above", "inverse gradients"),
             (render_mod, "select_neighbors", "neighbour search"), (render_mod, "attend_compiled", "attention"),
             (bundle.model, "attend", "attention"), (edited_mod, "shade_frame", "shading + decoder"),
             (edited_mod, "ray_canonical_points", "correspondence"), (edited_mod, "_filtered_lookup", "texture lookup")]
