@@ -29,7 +29,7 @@ from core.images.filter import filter_down, subpixel_points
 from core.images.cameras import focal_scale, scaled_focal
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
-from core.points.render import pixel_grid, shade_frame, trace_frame
+from core.points.render import held_rows, pixel_grid, shade_frame, trace_frame
 from core.points.resolution import (RENDER_MODES, check_mode, decoder_scale, filter_sigma, gaussian_blur,
                                     interpolate_rays, interpolate_trace, low_size, points_centre, scale_factor,
                                     upsample_frame)
@@ -180,6 +180,7 @@ class EditState:
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
         self._f = self._inv_f = self._inv_f_keys = self._inv_f_att = self._radius_scale = self._reach = None
+        self._inv_f_att_done = None  # [M] bool: the rows of _inv_f_att computed so far
         self._local_scale = None  # median |det F|^(1/3), once computed
         self._centre = None  # the points' centre, once computed
         self._fill_blend = None  # f_fill_features = blend: (canonical ids of both ends [P], fraction [P])
@@ -360,21 +361,39 @@ class EditState:
         left sparser than f_fill_ratio (1 elsewhere); auto: `key_stretch`. None when nothing moved."""
         if self.f is None:
             return None
+        return self.inv_f_attention_at(torch.arange(self._f.shape[0], device=self._f.device))
+
+    def inv_f_attention_at(self, rows: torch.Tensor) -> torch.Tensor | None:
+        """`inv_f_attention` where only the rows [P] long (distinct) are read: [M, 3, 3], right at those rows and at
+        any computed before, zero at the others (a frame's attention reads the points its rays hold: a third of a
+        5×-stretched cloth's points in one view). None when nothing moved."""
+        if self.f is None:
+            return None
         if self.cfg.f_key_stretch == "full" or self._gap is None:
             return self.inv_f_keys
         if self._inv_f_att is None:
+            self._inv_f_att = torch.zeros_like(self._f)  # rows filled as frames need them
+            self._inv_f_att_done = torch.zeros(self._f.shape[0], dtype=torch.bool, device=self._f.device)
+        todo = rows[~self._inv_f_att_done[rows]]
+        if todo.numel():
             cap = self._sparse if self.key_stretch == "sparse" else self._gap
-            self._inv_f_att = self._timed(lambda: self._rule_inverse(cap))
+            self._inv_f_att[todo] = self._timed(lambda: self._rule_inverse(cap, todo))
+            self._inv_f_att_done[todo] = True
         return self._inv_f_att
 
-    def _rule_inverse(self, cap: torch.Tensor | None) -> torch.Tensor:
+    def _rule_inverse(self, cap: torch.Tensor | None, rows: torch.Tensor | None = None) -> torch.Tensor:
         """The compression rule (`compression`) applied to F with its singular values capped at cap [M] (None:
-        none): its inverse [M, 3, 3] (`key_inverse`, compiled)."""
+        none): its inverse [M, 3, 3] (`key_inverse`, compiled); given rows [P] long, of those rows only [P, 3, 3]
+        (each row is computed on its own: the same values)."""
+        f = self._f if rows is None else self._f[rows]
+        if cap is not None and rows is not None:
+            cap = cap[rows]
+        ids = self.ids if rows is None else (rows if self.ids is None else self.ids[rows])
         mode = self.compression
         if mode == "keep":
-            return expansion_inverse(self._f if cap is None else bound_above(self._f, cap))
-        n = None if mode == "undo" else field_for(self.bundle.model, self.deformation_cfg).normals(self.ids)
-        return key_inverse(self._f, cap, n)
+            return expansion_inverse(f if cap is None else bound_above(f, cap))
+        n = None if mode == "undo" else field_for(self.bundle.model, self.deformation_cfg).normals(ids)
+        return key_inverse(f, cap, n)
 
     @property
     def key_stretch(self) -> str:
@@ -550,7 +569,7 @@ class EditState:
         cand = select_neighbors(search, model.cfg.neighbors, 2 * k, c2w.to(pts.device, torch.float32), height, width,
                                 focal, pixel_grid(height, width, pts.device)[rows], o, d, index=index)
         idx = unoccluded(cand, anchor, depth, o, d, pts, self.p_can, self.inv_f, spacing, k)
-        keys = self.inv_f_attention if cfg.f_attention else None
+        keys = self.inv_f_attention_at(held_rows(idx, pts.shape[0])) if cfg.f_attention else None
         pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
         if cfg.attention != "torch" and supported(model, pts.device):  # as trace_frame chooses
             att = attend_compiled(model, pts_math, self.influence, o, d, idx, temperature=cfg.temperature, inv_f=keys,
@@ -674,7 +693,7 @@ def _trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, 
     index = None if soft else state.search_index(c2w, height, width, focal, k)  # shared with the occlusion rule
     radius_scale, reach = state.search_radius()
     tr = trace_frame(model, c2w, height, width, focal, points=state.points, influence=state.influence, k=k,
-                     temperature=cfg.temperature, inv_f=state.inv_f_attention if cfg.f_attention else None,
+                     temperature=cfg.temperature, inv_f=state.inv_f_attention_at if cfg.f_attention else None,
                      rebase_depth=state.rebase_depth,
                      radius_scale=radius_scale, reach=reach, attention=cfg.attention,
                      reach_gate=state.reach_gate, reach_surround=state.reach_surround,

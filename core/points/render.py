@@ -5,6 +5,7 @@ know: attention, surface points, neighbour indices.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from core.images.cameras import pixel_rays, scaled_focal
@@ -17,6 +18,7 @@ from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_
                                     interpolate_trace, scale_factor, upsample_frame)
 from core.points.trace import Trace
 from core.util.errors import InputError
+from core.util.jit import njit
 
 __all__ = ["RENDER_MODES", "pixel_grid", "trace_frame", "shade_frame", "render_frame", "straight_colour"]
 
@@ -28,11 +30,38 @@ def pixel_grid(height: int, width: int, device) -> torch.Tensor:
     return torch.stack([c.reshape(-1), r.reshape(-1)], dim=-1)
 
 
+def _held_loop(idx, m, out):
+    """Mark out[j] (m bools, given False) for every point index j >= 0 in idx [R, K]; returns how many."""
+    n = 0
+    for r in range(idx.shape[0]):
+        for s in range(idx.shape[1]):
+            j = idx[r, s]
+            if j >= 0 and not out[j]:
+                out[j] = True
+                n += 1
+    return n
+
+
+_held_compiled = njit(_held_loop)
+
+
+def held_rows(idx: torch.Tensor, m: int) -> torch.Tensor:
+    """The points [P] long (ascending) that some ray holds as a neighbour: idx [R, K] (-1 = none) of m points.
+    Compiled on CPU tensors where numba is installed, else torch."""
+    if idx.device.type == "cpu" and _held_compiled is not _held_loop:
+        mark = np.zeros(m, dtype=np.bool_)
+        _held_compiled(np.ascontiguousarray(idx.numpy()), m, mark)
+        return torch.from_numpy(np.flatnonzero(mark))
+    mark = torch.zeros(m + 1, dtype=torch.bool, device=idx.device)
+    mark[(idx.clamp_min(-1) + 1).reshape(-1)] = True
+    return torch.nonzero(mark[1:]).squeeze(1)
+
+
 @torch.no_grad()
 def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, focal: float,
                 points: torch.Tensor | None = None, influence: torch.Tensor | None = None,
                 k: int | None = None, temperature: float | None = None, chunk: int = 1024,
-                inv_f: torch.Tensor | None = None, radius_scale: float = 1.0, attention: str = "auto",
+                inv_f=None, radius_scale: float = 1.0, attention: str = "auto",
                 soft_scale: float = 1.0, index=None, reach: torch.Tensor | None = None,
                 rebase_depth: bool = False, reach_gate: float = 0.0, reach_surround: bool = False,
                 reach_gate_own: bool = False, reach_between: bool = False) -> Trace:
@@ -43,7 +72,9 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     `python -m tools.bench.render`);
     influence [M] (default: the model's, which requires M == N);
     inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
-    `PointModel.attend`; rebase_depth: their depths from the ray's nearest neighbour in those frames);
+    `PointModel.attend`; rebase_depth: their depths from the ray's nearest neighbour in those frames), or a
+    function rows [P] long -> [M, 3, 3] right at those rows at least (given the points the rays hold, `held_rows`:
+    the attention reads no other);
     radius_scale: the screen neighbour search's pixel radius cap times this;
     attention: "torch" (PointModel.attend, chunk by chunk) | "compiled" (core/points/attention_compiled.py, CPU
     with numba; the same numbers to float rounding, all rays in one call) | "auto" (compiled where supported);
@@ -89,6 +120,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
                                model.cfg.neighbor_radius_px, radius_scale=radius_scale, index=index,
                                reach=reach, reach_gate=reach_gate, reach_surround=reach_surround,
                                reach_gate_own=reach_gate_own, reach_between=reach_between)
+    if callable(inv_f):
+        inv_f = inv_f(held_rows(idx, pts.shape[0]))
     fi = None if inv_f is None else inv_f.to(dev, torch.float32)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.

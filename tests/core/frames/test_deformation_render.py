@@ -578,3 +578,44 @@ def test_key_stretch_auto_is_sparse_on_a_sheet_and_gap_on_a_thick_shell(tiny):
         same = EditState(bundle, points=pts, cfg=EditConfig(f_key_stretch=rule, **cfg))
         assert auto.key_stretch == rule
         assert torch.equal(auto.inv_f_attention, same.inv_f_attention)
+
+
+@pytest.mark.parametrize("rule", ["gap", "sparse"])
+def test_keys_computed_for_the_held_points_only_equal_the_whole_computation(tiny, rule):
+    """A frame computes the keys' inverse gradients only at the points its rays hold (`held_rows`): those rows equal
+    the whole computation's exactly, the frame equals one traced with the whole tensor, and a later full request
+    completes the rest with the same values."""
+    from core.frames.edited import _trace
+    from core.points.render import held_rows, trace_frame
+
+    bundle, _, test = tiny
+    pts = bundle.model.xyz.detach() * torch.tensor([4.0, 1.0, 1.0])
+    cfg = EditConfig(f_key_stretch=rule, f_fill_budget=0.3, f_occlusion=True)
+    whole = EditState(bundle, points=pts, cfg=cfg).inv_f_attention
+    lazy = EditState(bundle, points=pts, cfg=cfg)
+    c2w = test.c2w[0]
+    tr = _trace(lazy, c2w, test.height, test.width, test.focal, False, 1.0)
+    done = lazy._inv_f_att_done
+    held = held_rows(tr.idx, lazy.points.shape[0])
+    assert bool(done[held].all()) and int(done.sum()) < done.numel()  # some rows not needed by this view
+    assert torch.equal(lazy._inv_f_att[done], whole[done])
+    for inv_f in (lazy.inv_f_attention_at, whole):
+        t = trace_frame(bundle.model, c2w, test.height, test.width, test.focal, points=lazy.points,
+                        influence=lazy.influence, inv_f=inv_f, rebase_depth=lazy.rebase_depth)
+        if inv_f is whole:
+            assert torch.equal(t.weights, ref.weights) and torch.equal(t.x, ref.x)
+        ref = t
+    assert torch.equal(lazy.inv_f_attention, whole) and bool(lazy._inv_f_att_done.all())
+
+
+def test_held_rows_are_the_points_some_ray_holds(monkeypatch):
+    import core.points.render as render
+
+    gen = torch.Generator().manual_seed(0)
+    idx = torch.randint(-1, 50, (300, 7), generator=gen)
+    idx[:40] = -1
+    want = torch.unique(idx[idx >= 0])
+    assert torch.equal(render.held_rows(idx, 80), want)
+    monkeypatch.setattr(render, "_held_compiled", render._held_loop)  # the torch path
+    assert torch.equal(render.held_rows(idx, 80), want)
+    assert render.held_rows(torch.full((5, 3), -1), 10).numel() == 0
