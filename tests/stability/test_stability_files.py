@@ -135,6 +135,49 @@ def test_nan_points_in_a_file_render_a_finite_frame(saved, tmp_path):
     assert np.isfinite(img).all() and img.min() >= 0 and img.max() <= 1
 
 
+def test_points_all_non_finite_are_refused_and_some_are_named(saved, tmp_path, capsys):
+    """Every position NaN / inf: nothing could show, so the render is refused before a frame is written; some
+    of them: a warning names how many are left out, and the frames render."""
+    from core.util.errors import InputError
+
+    xyz = saved[3].model.xyz.detach().numpy().copy()
+    np.save(tmp_path / "none.npy", np.full_like(xyz, np.nan))
+    with pytest.raises(InputError, match="every one of the .* positions is NaN or infinite"):
+        _render(saved, tmp_path, points=tmp_path / "none.npy")
+    assert not (tmp_path / "out").exists()
+    xyz[:5] = np.inf
+    np.save(tmp_path / "some.npy", xyz)
+    assert _render(saved, tmp_path, points=tmp_path / "some.npy") == 0
+    assert f"5 of {len(xyz)} points" in capsys.readouterr().err
+
+
+def test_cameras_that_see_nothing_are_an_error_and_some_empty_frames_a_warning(saved, tmp_path, capsys):
+    """A render where no frame covers a pixel of the object is an error the user hears about (the frames are
+    still written, and the JSON summary counts them); some empty frames are named in a warning."""
+    from core.util.errors import InputError
+
+    root, model, cams, _ = saved
+    meta = json.loads(cams.read_text())
+    away = json.loads(json.dumps(meta))
+    for f in away["frames"]:
+        f["transform_matrix"][0][3] += 1e4  # every camera moved far to the side, looking past the object
+    (tmp_path / "away.json").write_text(json.dumps(away))
+    p = argparse.ArgumentParser()
+    render_cmd.add_arguments(p)
+    argv = [str(model), "--cameras", str(tmp_path / "away.json"), "--out", str(tmp_path / "out"), "--size", "16",
+            "--device", "cpu", "--json", str(tmp_path / "s.json")]
+    with pytest.raises(InputError, match="every frame .* is empty"):
+        render_cmd.run(p.parse_args(argv))
+    assert len(list((tmp_path / "out").glob("*.png"))) == len(away["frames"])
+    assert json.loads((tmp_path / "s.json").read_text())["empty_frames"] == len(away["frames"])
+    both = json.loads(json.dumps(meta))
+    both["frames"] = meta["frames"] + [dict(away["frames"][0], file_path=away["frames"][0]["file_path"] + "_away")]
+    (tmp_path / "both.json").write_text(json.dumps(both))
+    argv[2], argv[4] = str(tmp_path / "both.json"), str(tmp_path / "out2")
+    assert render_cmd.run(p.parse_args(argv)) == 0
+    assert "1 of" in capsys.readouterr().err
+
+
 # ----------------------------------------------------------------------------------------------- atlas images
 def _atlas_u8(bundle):
     return np.rint(bundle.atlas.packed_image().numpy() * 255).astype(np.uint8)

@@ -261,10 +261,15 @@ def test_bad_temperature_is_refused(env, tmp_path, capsys, value):
 
 def test_plain_render_uses_the_temperature(env, tmp_path, capsys):
     frames = {}
-    for t in ("1", "0.05"):
+    for t in ("1", "0.3"):
         assert run_cli(capsys, *render_args(env, tmp_path, "--temperature", t))[0] == 0
         frames[t] = (tmp_path / "frames" / "view.png").read_bytes()
-    assert frames["1"] != frames["0.05"]
+    assert frames["1"] != frames["0.3"]
+    # one that hands every ray to the background renders nothing: the user hears why, the frame is written
+    code, err = run_cli(capsys, *render_args(env, tmp_path, "--temperature", "0.05"))
+    last = err.strip().splitlines()[-1]
+    assert code == 2 and "Traceback" not in err and "empty" in last and "--temperature 0.05" in last
+    assert (tmp_path / "frames" / "view.png").read_bytes() != frames["0.3"]
 
 
 @pytest.mark.parametrize("flag,value", [("--steps", "-5"), ("--minutes", "-1"),

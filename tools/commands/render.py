@@ -7,6 +7,7 @@ painted texture looked up at each ray's canonical correspondence.
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -15,6 +16,7 @@ HELP = ("render a model from the cameras of a transforms JSON (one RGBA PNG per 
         "optionally posed/painted")
 ORDER = 40
 MAX_RENDER_SIZE = 8192  # --size: pixels per side
+EMPTY_ALPHA = 0.5 / 255  # a frame whose largest coverage is at most this is empty (rounds to 0 in the PNG)
 
 
 def add_arguments(p):
@@ -163,8 +165,15 @@ def run(args) -> int:
         except InputError as exc:  # name the files the arrays came from
             files = ", ".join(f for f in (args.points, args.ids, args.atlas) if f)
             raise InputError(f"{files}: {exc}") from exc
+        given = 0 if points is None else int(points.shape[0])
+        if given and state.non_finite_points >= given:
+            raise InputError(f"{args.points}: every one of the {given} positions is NaN or infinite: there is "
+                             "nothing to render; export the deformed points again (a broken rig or driver?)")
+        if state.non_finite_points:
+            print(f"warning: {state.non_finite_points} of {given} points in {args.points} are NaN or infinite; "
+                  "they are left out of every frame", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
-    times, totals = [], {}
+    times, totals, empty = [], {}, []
     with Progress(len(cams.names), "render") as bar:
         for i, name in enumerate(cams.names):
             t0 = time.perf_counter()
@@ -187,6 +196,8 @@ def run(args) -> int:
             rgba = torch.cat([straight_colour(res["rgb"], res["alpha"]), res["alpha"][..., None]], dim=-1)
             rgba = rgba.cpu().numpy()
             write_png(out / f"{name}.png", rgba)
+            if not float(rgba[..., 3].max()) > EMPTY_ALPHA:
+                empty.append(name)
             bar.update(1)
     summary = {"frames": len(times), "seconds_per_frame": float(np.mean(times)), "out": str(out)}
     if state is not None:
@@ -196,7 +207,22 @@ def run(args) -> int:
                        non_finite_lookups_repaired=int(totals.get("non_finite_lookups_repaired", 0)),
                        rays=int(totals.get("rays", 0)), rays_shaded=int(totals.get("rays_shaded", 0)),
                        texture_rays=int(totals.get("texture_rays", 0)))
+    summary["empty_frames"] = len(empty)
     print(f"rendered {len(times)} frames to {out} ({summary['seconds_per_frame']:.3f} s/frame)")
     if args.json:
         atomic_write_text(args.json, json.dumps(summary, indent=1))
+    if empty and len(empty) == len(times):
+        causes = [f"the cameras of {args.cameras} do not see the object (check that they belong to this model's "
+                  "scene: its units and orientation)"]
+        if args.points:
+            causes.append(f"the points of {args.points} are not in the model's space")
+        if args.temperature is not None:
+            causes.append(f"--temperature {args.temperature} hands every ray to the background")
+        raise InputError(f"every frame in {out} is empty (no pixel covers the object): " + "; or ".join(causes)
+                         + ". A model that renders nothing from its own training cameras did not fit: run "
+                         "`pointgt fit` again")
+    if empty:
+        shown = ", ".join(empty[:5]) + (", ..." if len(empty) > 5 else "")
+        print(f"warning: {len(empty)} of {len(times)} frames are empty (no pixel covers the object): {shown}",
+              file=sys.stderr)
     return 0
