@@ -365,8 +365,8 @@ class EditState:
 
     def inv_f_attention_at(self, rows: torch.Tensor) -> torch.Tensor | None:
         """`inv_f_attention` where only the rows [P] long (distinct) are read: [M, 3, 3], right at those rows and at
-        any computed before, zero at the others (a frame's attention reads the points its rays hold: a third of a
-        5×-stretched cloth's points in one view). None when nothing moved."""
+        any computed before, zero at the others (a frame's attention reads only the points its rays hold, often far
+        fewer than all: those out of view, or of a frame traced at the training scale). None when nothing moved."""
         if self.f is None:
             return None
         if self.cfg.f_key_stretch == "full" or self._gap is None:
