@@ -498,41 +498,57 @@ def _fill_count(g, r, cap):
     return total
 
 
-def _fill_select(g, floor, ratio, cap, limit):
-    """The (limit + 1)-th largest step g / i >= floor (i = 1 .. cap; floor >= ratio) by a partial sort, where it is
-    certainly _budget_ratio's value: it keeps the limit and the next smaller step (the largest below it, none at all
-    only where floor is the ratio itself) does not. -1 where undecided (too few steps above floor, ties, rounding)."""
-    steps = np.empty(g.shape[0] * cap)
-    cnt = 0
+def _kth_smallest(a, n, k):
+    """The k-th smallest (0-based) of a[:n] (float64), reordering a[:n] in place: quickselect with a three-way
+    partition around the median of three (many equal values, as a uniform stretch gives, cost no extra passes)."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        x, y, z = a[lo], a[(lo + hi) // 2], a[hi]
+        pivot = max(min(x, y), min(max(x, y), z))
+        lt, i, gt = lo, lo, hi
+        while i <= gt:  # a[lo:lt] < pivot, a[lt:i] == pivot, a[gt+1:hi+1] > pivot
+            v = a[i]
+            if v < pivot:
+                a[i], a[lt] = a[lt], v
+                lt += 1
+                i += 1
+            elif v > pivot:
+                a[i], a[gt] = a[gt], v
+                gt -= 1
+            else:
+                i += 1
+        if k < lt:
+            hi = lt - 1
+        elif k > gt:
+            lo = gt + 1
+        else:
+            return pivot
+    return a[k]
+
+
+def _fill_next_step(g, r, ratio, cap, up):
+    """The step g / i >= ratio (i = 1 .. cap) next above r (up) or next below it (not up); -1 where there is none."""
+    best = -1.0
     for p in range(g.shape[0]):
         for i in range(1, cap + 1):
             v = g[p] / i
-            if v < floor:  # the steps of one pair fall with i
+            if v < ratio:  # the steps of one pair fall with i
                 break
-            steps[cnt] = v
-            cnt += 1
-    if cnt <= limit:
-        return -1.0
-    at = cnt - 1 - limit
-    part = np.partition(steps[:cnt], at)
-    r = part[at]
-    below = -1.0
-    for x in range(at):  # everything below r lies left of it
-        if part[x] < r and part[x] > below:
-            below = part[x]
-    if below < 0.0 and floor > ratio:
-        return -1.0  # the next smaller step lies below the floor
-    if _fill_count_c(g, r, cap) <= limit and (below < 0.0 or _fill_count_c(g, below, cap) > limit):
-        return r
-    return -1.0
+            if up:
+                if v > r and (best < 0.0 or v < best):
+                    best = v
+            elif v < r and v > best:
+                best = v
+    return best
 
 
 def _fill_budget_ratio(g, ratio, cap, limit):
-    """_budget_ratio's value (the smallest step g / i >= ratio, i = 1 .. cap, whose count keeps the limit), compiled:
-    a floor below which it cannot lie first (a few halvings of [ratio, max g] by the count: more than limit + 1
-    steps above it), then the (limit + 1)-th largest step above the floor by a partial sort, checked against the
-    next smaller one (`_fill_select`); over every step where that is undecided; a bisection over the distinct
-    steps where the check still fails."""
+    """_budget_ratio's value, compiled: the smallest step g / i >= ratio (i = 1 .. cap) whose count keeps the limit.
+    A floor below which it cannot lie first (a few halvings of [ratio, max g] by the count: more than limit + 1 steps
+    above it); the (limit + 1)-th largest step above the floor (above the ratio where too few lie above the floor) by
+    a quickselect; from there, the next larger step while the count is above the limit, then the next smaller one
+    while that one keeps it (the count only falls as the ratio rises, so this ends on the same step the bisection
+    over every distinct step finds; usually no step is walked)."""
     lo, hi = ratio, ratio
     for p in range(g.shape[0]):
         hi = max(hi, g[p])
@@ -542,29 +558,37 @@ def _fill_budget_ratio(g, ratio, cap, limit):
             lo = mid
         else:
             hi = mid
-    r = _fill_select_c(g, lo, ratio, cap, limit)
-    if r < 0.0 and lo > ratio:
-        r = _fill_select_c(g, ratio, ratio, cap, limit)
-    if r >= 0.0:
-        return r
     steps = np.empty(g.shape[0] * cap)
-    cnt = 0
-    for p in range(g.shape[0]):
-        for i in range(1, cap + 1):
-            v = g[p] / i
-            if v < ratio:
-                break
-            steps[cnt] = v
-            cnt += 1
-    cands = np.unique(steps[:cnt])
-    lo_i, hi_i = 0, cands.shape[0] - 1
-    while lo_i < hi_i:
-        mid_i = (lo_i + hi_i) // 2
-        if _fill_count_c(g, cands[mid_i], cap) <= limit:
-            hi_i = mid_i
-        else:
-            lo_i = mid_i + 1
-    return cands[lo_i]
+    r = -1.0
+    for floor in (lo, ratio):
+        cnt = 0
+        for p in range(g.shape[0]):
+            for i in range(1, cap + 1):
+                v = g[p] / i
+                if v < floor:
+                    break
+                steps[cnt] = v
+                cnt += 1
+        if cnt > limit:
+            at = cnt - 1 - limit
+            r = _kth_smallest_c(steps, cnt, at)
+            below = -1.0  # the next smaller step: every step above the floor and below r lies left of it
+            for j in range(at):
+                if steps[j] < r and steps[j] > below:
+                    below = steps[j]
+            if _fill_count_c(g, r, cap) <= limit and (below >= 0.0 or floor == ratio) and (
+                    below < 0.0 or _fill_count_c(g, below, cap) > limit):
+                return r  # the common case: r keeps the limit, the next smaller step does not
+            break
+        if floor == ratio and cnt:  # fewer steps than the limit above the ratio: start from the smallest
+            r = _kth_smallest_c(steps, cnt, 0)
+    while _fill_count_c(g, r, cap) > limit:
+        r = _fill_next_step_c(g, r, ratio, cap, True)  # the largest step has count 0: this ends
+    while True:
+        below = _fill_next_step_c(g, r, ratio, cap, False)
+        if below < 0.0 or _fill_count_c(g, below, cap) > limit:
+            return r
+        r = below
 
 
 def _fill_loop(pts, dd, dc, canonical, cid, ld, lc, short, w, rows, rev, use_rev, ratio32, torn32, ratio, cap,
@@ -654,7 +678,8 @@ def _fill_loop(pts, dd, dc, canonical, cid, ld, lc, short, w, rows, rev, use_rev
 
 
 _fill_count_c = njit(_fill_count)
-_fill_select_c = njit(_fill_select)
+_fill_next_step_c = njit(_fill_next_step)
+_kth_smallest_c = njit(_kth_smallest)
 _fill_budget_ratio_c = njit(_fill_budget_ratio)
 _compiled_fill_loop = None
 

@@ -332,3 +332,26 @@ def test_compiled_fill_equals_the_torch_path(seed, monkeypatch):
                 for a, b in zip(fast, ref):
                     assert a.dtype == b.dtype and torch.equal(a, b)
     assert ref[0].shape[0] > 0
+
+
+def test_compiled_selection_helpers_match_plain_numpy():
+    """The budget ratio's quickselect (ties included) and its next-step walk in both directions, against numpy."""
+    pytest.importorskip("numba")
+    import numpy as np
+
+    from core.edits.deformation import _fill_next_step_c, _kth_smallest_c
+
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 7, 500):
+        a = np.round(rng.random(n) * 20) / 4  # many equal values
+        for k in {0, n // 2, n - 1}:
+            b = a.copy()
+            assert _kth_smallest_c(b, n, k) == np.sort(a)[k]
+            assert sorted(b) == sorted(a)  # reordered, nothing lost
+    g = 1.0 + 9.0 * rng.random(300)
+    g[:50] = 4.0
+    steps = np.unique([x / i for x in g for i in range(1, 9) if x / i >= 1.5])
+    for r in (steps[0], steps[len(steps) // 2], steps[-1], 3.0):
+        up, down = steps[steps > r], steps[steps < r]
+        assert _fill_next_step_c(g, r, 1.5, 8, True) == (up[0] if len(up) else -1.0)
+        assert _fill_next_step_c(g, r, 1.5, 8, False) == (down[-1] if len(down) else -1.0)
