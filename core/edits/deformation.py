@@ -594,7 +594,7 @@ def _fill_budget_ratio(g, ratio, cap, limit):
 def _fill_loop(pts, dd, dc, canonical, cid, ld, lc, short, w, rows, rev, use_rev, ratio32, torn32, ratio, cap,
                limit, budget_pairs, with_gap, gap, sparse):
     """The compiled path of `DeformationField._fill` from the neighbour offsets' lengths (ld, lc [M, k] float32
-    deformed and canonical; short [M, k] float32 the length below which a canonical offset is no pair): the same
+    deformed and canonical; short [M] float32 the length below which a point's canonical offset is no pair): the same
     pairs, budget ratio, points (in the same order, bit for bit) and, with_gap, gap and sparse [M] float32
     written in place (given as ones). Returns (new [P, 3], canonical [P, 3] float32, source [P], partner [P] int64,
     fraction [P] float32)."""
