@@ -403,6 +403,10 @@ class DeformationField:
             return empty
         dc, dd, w, cid, own_ok, rows = gathered
         m = pts.shape[0]
+        # no pair grown by at most the tear growth (to float32 rounding) reaches ceil(tear / ratio) points, and no
+        # more than that many times the pairs can be added: larger caps and budgets change nothing (and overflow)
+        cap = min(int(max_per_pair), math.ceil(torn / ratio) + 1)
+        limit = min(int(budget * m), m * rows.shape[1] * cap)
         loop = _fill_compiled(pts)
         if dc is self._dc:  # the canonical offsets' lengths, once per model
             if getattr(self, "_dc_len", None) is None:
@@ -419,7 +423,7 @@ class DeformationField:
             gap_np, sparse_np = arr(torch.ones(m)), arr(torch.ones(m))
             out = loop(arr(pts), arr(dd), arr(dc), arr(self.canonical), arr(cid), arr(ld), arr(lc), arr(short),
                        arr(w), arr(rows), arr(rev), use_rev, np.float32(ratio), np.float32(torn), float(ratio),
-                       int(max_per_pair), int(budget * m), gap_pairs == "budget", bool(with_gap), gap_np, sparse_np)
+                       cap, limit, gap_pairs == "budget", bool(with_gap), gap_np, sparse_np)
             new, canonical, source, partner, fraction = (torch.from_numpy(x) for x in out)
             res = (new, canonical, source)
             if with_partner:
@@ -450,13 +454,11 @@ class DeformationField:
             once = (j < other) | ~back
             j, slot = j[once], slot[once]
         g = grow[j, slot].double()
-        cap = int(max_per_pair)
 
         def count(r: float) -> torch.Tensor:  # points per pair at ratio r (g / r = i exactly gives i − 1)
             return (torch.ceil(g / r * (1.0 - 1e-12)) - 1.0).clamp(0, cap).long()
 
         n = count(ratio)
-        limit = int(budget * m)
         if int(n.sum()) > limit:
             n = count(_budget_ratio(g, ratio, cap, limit, count))
         if with_gap:  # growth left between consecutive points of each filled pair, at both ends

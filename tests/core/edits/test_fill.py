@@ -355,3 +355,21 @@ def test_compiled_selection_helpers_match_plain_numpy():
         up, down = steps[steps > r], steps[steps < r]
         assert _fill_next_step_c(g, r, 1.5, 8, True) == (up[0] if len(up) else -1.0)
         assert _fill_next_step_c(g, r, 1.5, 8, False) == (down[-1] if len(down) else -1.0)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_huge_budgets_and_caps_are_the_largest_that_matter(compiled, monkeypatch):
+    """A budget or a per-pair cap far beyond what any pair can take (1e300, 10**30) gives the points a merely large
+    one gives, on the compiled path and the torch path alike (no overflow, no giant allocation)."""
+    import core.edits.deformation as deformation
+
+    if not compiled:
+        monkeypatch.setattr(deformation, "_fill_compiled", lambda pts: None)
+    p = _volume(300, 2)
+    q = p * torch.tensor([6.0, 1.0, 1.0])
+    fld = DeformationField(p)
+    huge = fld.fill(q, ratio=1.5, budget=1e300, max_per_pair=10 ** 30, with_partner=True, with_gap=True,
+                    gap_pairs="budget")
+    large = fld.fill(q, ratio=1.5, budget=100.0, max_per_pair=100, with_partner=True, with_gap=True,
+                     gap_pairs="budget")
+    assert huge[0].shape[0] > 0 and all(torch.equal(a, b) for a, b in zip(huge, large))
