@@ -171,12 +171,12 @@ def run_demo(args) -> int:
     # 6. ground truth: the same edits rendered by Blender
     _banner(6, n, "edits against Blender's ground truth")
     t0 = time.perf_counter()
-    from tools.eval_edits import CORRESPONDENCES, default_renderer, markdown, run_eval
+    from tools.eval_edits import CORRESPONDENCES, compared_renderers, markdown, run_eval
 
     # the paper's renderer and correspondences beside the deformation-gradient ones (and the default renderer)
     ev = run_eval(model_path, scene_dir, poses=sz.poses, magnitudes=sz.magnitudes, views=sz.eval_views,
                   temperatures=sz.temperatures, device=args.device,
-                  renderers=tuple(dict.fromkeys(("paper", default_renderer()))), correspondences=CORRESPONDENCES)
+                  renderers=compared_renderers(), correspondences=CORRESPONDENCES)
     _write_json(out / "edits.json", ev)
     (out / "edits.md").write_text(markdown(ev))
     report["edits"] = [{k: r[k] for k in ("pose", "magnitude", "renderer", "edit", "correspondence", "temperature",

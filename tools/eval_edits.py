@@ -131,6 +131,12 @@ def default_renderer() -> str:
     return next(k for k, v in RENDERERS.items() if all(getattr(EditConfig, f) == x for f, x in v.items()))
 
 
+def compared_renderers() -> tuple[str, ...]:
+    """The renderers eval-edits, the demo and the regions bench compare by default: the paper's and the default one
+    (once, should they be the same)."""
+    return tuple(dict.fromkeys(("paper", default_renderer())))
+
+
 GT_TEXTURE = {"geometry": None, "retexture": "retexture", "decal": "decal"}  # "retexture" = the chosen texture
 REST = ("rest", 0.0)
 

@@ -272,7 +272,7 @@ def markdown(result: dict) -> str:
 def main(argv=None) -> int:
 
     from tools.bench import parse, parser, write_json
-    from tools.eval_edits import default_renderer
+    from tools.eval_edits import compared_renderers
 
     ap = parser(__doc__)
     ap.add_argument("model", help="model file (.pgt)")
@@ -280,7 +280,7 @@ def main(argv=None) -> int:
     ap.add_argument("--pose", default="arm", help="rig pose of the scene (default: the armature joint)")
     ap.add_argument("--magnitude", type=float, default=1.0, help="pose magnitude")
     ap.add_argument("--views", type=int, default=2, help="test cameras (evenly spaced, as eval-edits)")
-    ap.add_argument("--renderers", default=f"paper,{default_renderer()}",
+    ap.add_argument("--renderers", default=",".join(compared_renderers()),
                     help="comma-separated eval-edits renderer variants (default: the paper's and the default one)")
     ap.add_argument("--joint", type=float, default=0.5, help="half width of the joint band (world units)")
     ap.add_argument("--tau", type=float, default=0.15, help="surface depth error that counts as another part")

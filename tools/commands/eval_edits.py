@@ -42,7 +42,7 @@ def run(args) -> int:
     import json
 
     from core.util.atomic import atomic_write_text
-    from tools.eval_edits import default_renderer, markdown, parse_floats, run_eval
+    from tools.eval_edits import compared_renderers, markdown, parse_floats, run_eval
 
     from core.util.atomic import check_output_file
 
@@ -53,8 +53,8 @@ def run(args) -> int:
     result = run_eval(args.model, args.scene, poses=poses, magnitudes=parse_floats(args.magnitudes, "--magnitudes"),
                       views=args.views, temperatures=parse_floats(args.temperatures, "--temperatures"),
                       antialias=args.antialias,
-                      renderers=[r.strip() for r in (args.renderers or f"paper,{default_renderer()}").split(",")
-                                 if r.strip()],
+                      renderers=([r.strip() for r in args.renderers.split(",") if r.strip()] if args.renderers
+                                 else list(compared_renderers())),
                       correspondences=[c.strip() for c in args.correspondences.split(",") if c.strip()],
                       retexture=args.retexture, samples=args.samples, device=args.device,
                       log=lambda m: print(m, flush=True))
