@@ -13,6 +13,7 @@ from core.atlas import losses
 from core.atlas.atlas import Atlas, check_points
 from core.atlas.config import AtlasConfig
 from core.atlas.distortion import distortion_terms, uv_jacobian
+from core.atlas.networks import ChartNet, TexCoordNet, fourier_encode
 from core.atlas.packing import blend_charts, dilate_unused
 from core.atlas.surface import SurfaceProjection
 from core.atlas.texture import filled_kernel_texture
@@ -224,16 +225,29 @@ def _step_losses(atlas: Atlas, xb: torch.Tensor, rgb: torch.Tensor, cfg: AtlasCo
     """All loss terms on one batch. xb [B, 3] normalised points, rgb [B, 3], normals [B, 3] (w_normal > 0);
     tangent [B, 3]: the mid-surface's normals when the maps are fitted on it (the distortion then measures the
     map along the surface only), else None."""
-    n, dev = atlas.n, xb.device
-    probs = torch.softmax(atlas.chart(xb), -1)  # [B, n]
-    uv = atlas.tex(xb)  # [B, n, 2]
-    x_rec = atlas.surf(uv.permute(1, 0, 2).contiguous()).permute(1, 0, 2)  # [B, n, 3]
-    u = torch.rand(n, cfg.uv_batch, 2, generator=gen).to(dev)
-    xs = atlas.surf(u)  # [n, U, 3]
-    flat = xs.reshape(-1, 3)
+    n, dev, B, U = atlas.n, xb.device, len(xb), cfg.uv_batch
+    # Each network runs once on every row it needs (a row's output depends on that row alone): the samples' and the
+    # random uv through the surface nets together, the samples and the generated points through the chart net
+    # together, one Fourier encoding for the chart and texture-coordinate nets when they share its degree.
+    shared = (type(atlas.chart) is ChartNet and type(atlas.tex) is TexCoordNet
+              and atlas.chart.fourier == atlas.tex.fourier)
+    enc = fourier_encode(xb, atlas.tex.fourier) if shared else None
+    uv = atlas.tex(xb, enc)  # [B, n, 2]
+    u = torch.rand(n, U, 2, generator=gen).to(dev)
+    both = atlas.surf(torch.cat([uv.permute(1, 0, 2), u], dim=1))  # [n, B + U, 3]
+    x_rec = both[:, :B].permute(1, 0, 2)  # [B, n, 3]
+    flat = both[:, B:].reshape(-1, 3)  # [n U, 3]: s_c(u) of chart c in rows c U ... (c + 1) U - 1
     ar = torch.arange(n, device=dev)
-    u_rec = atlas.tex(flat).view(n, cfg.uv_batch, n, 2)[ar, :, ar]  # [n, U, 2]
-    logits_s = atlas.chart(flat).view(n, cfg.uv_batch, n)
+    if shared:
+        enc_s = fourier_encode(flat, atlas.tex.fourier)
+        logits = atlas.chart(None, torch.cat([enc, enc_s]))  # [B + n U, n]
+        u_rec = atlas.tex(None, enc_s)
+    else:
+        logits = atlas.chart(torch.cat([xb, flat]))
+        u_rec = atlas.tex(flat)
+    probs = torch.softmax(logits[:B], -1)  # [B, n]
+    logits_s = logits[B:].view(n, U, n)
+    u_rec = u_rec.view(n, U, n, 2)[ar, :, ar]  # [n, U, 2]
     pred = blend_charts(atlas.chart_textures, uv, probs)
     out = {
         "cycle3d": losses.cycle_3d(xb, x_rec, probs),

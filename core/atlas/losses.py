@@ -23,14 +23,31 @@ def chart_consistency(logits: torch.Tensor) -> torch.Tensor:
     return F.cross_entropy(logits.reshape(n * U, n), target)
 
 
+@torch.no_grad()
+def nearest_pairs(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(index into y of each x's nearest point [B], index into x of each y's nearest point [K]) for x [B, 3] and
+    y [K, 3]. On the CPU both come from the squared distances up to a per-row constant (|y|^2 - 2 x.y for each x,
+    one matrix product per direction, about the two sets' common centre), each searched along its contiguous rows
+    by numpy (torch's argmin over a 512 x 1024 matrix takes ~1 ms a direction on one thread, numpy's 0.05 ms);
+    elsewhere torch.cdist's argmins. Rounding may pick another point whose squared distance is within float32
+    rounding of the squared size of the sets (~1e-7 of it) from the nearest one's."""
+    if x.device.type != "cpu" or x.dtype != torch.float32 or y.dtype != torch.float32:
+        d = torch.cdist(x, y)
+        return d.argmin(dim=1), d.argmin(dim=0)
+    c = 0.5 * (x.mean(0) + y.mean(0))
+    x, y = x - c, y - c
+    xx, yy = x.pow(2).sum(-1), y.pow(2).sum(-1)
+    to_y = torch.addmm(yy, x, y.T, alpha=-2).numpy().argmin(1)  # [B, K] -> [B]
+    to_x = torch.addmm(xx, y, x.T, alpha=-2).numpy().argmin(1)  # [K, B] -> [K]
+    return torch.from_numpy(to_y), torch.from_numpy(to_x)
+
+
 def chamfer(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """Symmetric squared Chamfer distance between samples x [B, 3] and generated surface points y [K, 3].
     The nearest pairs are picked on a distance matrix without gradient and only their squared distances are
     differentiated: the gradient of the min over the full matrix (it reaches the nearest pair alone), without
     back-propagating through all B x K distances (half the time of the term at B 512, K 1024)."""
-    with torch.no_grad():
-        d = torch.cdist(x.detach(), y.detach())
-        to_y, to_x = d.argmin(dim=1), d.argmin(dim=0)  # [B], [K]
+    to_y, to_x = nearest_pairs(x.detach(), y.detach())  # [B], [K]
     return (x - y[to_y]).pow(2).sum(-1).mean() + (x[to_x] - y).pow(2).sum(-1).mean()
 
 

@@ -198,3 +198,30 @@ def test_chamfer_equals_the_min_over_the_full_distance_matrix_value_and_gradient
     ref.backward()
     assert torch.allclose(losses.chamfer(x0, y0), ref.detach(), rtol=1e-6, atol=0)
     assert torch.allclose(x.grad, xr.grad, rtol=1e-5, atol=1e-8) and torch.allclose(y.grad, yr.grad, rtol=1e-5, atol=1e-8)
+
+
+def test_nearest_pairs_equal_cdists_argmins_on_the_cpu_path_and_the_fallback():
+    """losses.nearest_pairs (squared distances by matrix products, numpy's row argmin) picks the same nearest
+    points as torch.cdist's argmins in both directions, at the training's batch shapes and on clustered points
+    (many near ties); float64 inputs take the cdist path."""
+    import torch
+
+    from core.atlas import losses
+
+    g = torch.Generator().manual_seed(3)
+    for B, K, spread in ((512, 1024, 1.0), (300, 500, 1.0), (64, 2000, 1e-3), (1, 7, 1.0)):
+        x = torch.randn(B, 3, generator=g) * spread + 0.5
+        y = torch.randn(K, 3, generator=g) * spread + 0.5
+        to_y, to_x = losses.nearest_pairs(x, y)
+        d2 = torch.cdist(x.double(), y.double()).pow(2)
+        # the picked point is as near as the nearest, up to float32 rounding of the sets' squared size
+        tol = 1e-6 * spread ** 2
+        assert (d2[torch.arange(B), to_y] - d2.min(1).values).max() <= tol
+        assert (d2[to_x, torch.arange(K)] - d2.min(0).values).max() <= tol
+        d = d2
+        if spread == 1.0:  # no near ties: the very same indices
+            assert torch.equal(to_y, d.argmin(1)) and torch.equal(to_x, d.argmin(0))
+    x64, y64 = torch.randn(20, 3, dtype=torch.float64), torch.randn(30, 3, dtype=torch.float64)
+    a, b = losses.nearest_pairs(x64, y64)
+    d = torch.cdist(x64, y64)
+    assert torch.equal(a, d.argmin(1)) and torch.equal(b, d.argmin(0))
