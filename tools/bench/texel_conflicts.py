@@ -28,11 +28,12 @@ def sample_classes(y: np.ndarray, t: np.ndarray, chart: np.ndarray, spacing: flo
     from scipy.spatial import cKDTree
 
     from core.atlas.fit import sample_normals
+    from core.atlas.pieces import solve_columns
 
     normals = sample_normals(y, 48)
     _, nb = cKDTree(y).query(y, k=min(16, len(y)))
     D, T = y[nb] - y[:, None], t[nb] - t[:, None]
-    jac = np.linalg.solve(np.einsum("mki,mkj->mij", D, D) + 1e-12 * np.eye(3), np.einsum("mki,mkj->mij", D, T))
+    jac = solve_columns(np.einsum("mki,mkj->mij", D, D) + 1e-12 * np.eye(3), np.einsum("mki,mkj->mij", D, T))
     cell = np.floor(t).astype(np.int64)
     key = (chart.astype(np.int64) * (cell[:, 1].max() + 2) + cell[:, 1]) * (cell[:, 0].max() + 2) + cell[:, 0]
     order = np.argsort(key, kind="stable")
