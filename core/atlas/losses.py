@@ -28,8 +28,8 @@ def nearest_pairs(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch
     """(index into y of each x's nearest point [B], index into x of each y's nearest point [K]) for x [B, 3] and
     y [K, 3]. On the CPU both come from the squared distances up to a per-row constant (|y|^2 - 2 x.y for each x,
     one matrix product per direction, about the two sets' common centre), each searched along its contiguous rows
-    by numpy (torch's argmin over a 512 x 1024 matrix takes ~1 ms a direction on one thread, numpy's 0.05 ms);
-    elsewhere torch.cdist's argmins. Rounding may pick another point whose squared distance is within float32
+    by numpy (torch's argmin along a dimension of such a matrix is many times slower on one thread: it was the
+    map step's largest single cost); elsewhere torch.cdist's argmins. Rounding may pick another point whose squared distance is within float32
     rounding of the squared size of the sets (~1e-7 of it) from the nearest one's."""
     if x.device.type != "cpu" or x.dtype != torch.float32 or y.dtype != torch.float32:
         d = torch.cdist(x, y)
