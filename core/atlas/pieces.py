@@ -133,7 +133,7 @@ def _merge_small(label: np.ndarray, k: int, weight: np.ndarray, ei: np.ndarray, 
 def solve_columns(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """X with A X = B for stacked small systems A [P, m, m], B [P, m, k], one right-hand side at a time: numpy's
     solve with several right-hand sides takes OpenBLAS's threaded path for every one of the P systems, and with its
-    threads competing for busy cores that is thousands of times slower than a column at a time. Equal to
+    threads competing for busy cores that is far slower than a column at a time. Equal to
     np.linalg.solve(A, B) up to rounding."""
     return np.stack([np.linalg.solve(A, B[..., j:j + 1])[..., 0] for j in range(B.shape[-1])], axis=-1)
 
