@@ -21,10 +21,12 @@ from core.util.errors import InputError, ModelFileError
 # (atlas/islands/orient, which a version-2 reader would ignore and misplace); 4: lookups projected onto the samples'
 # mid-surface first (atlas/surface/..., which an older reader would ignore and read other texels); 5: island charts
 # split by side (atlas/sides/..., 2n sub-charts over n chart networks); 6: sub-charts cut into pieces where their
-# map overlaps itself (atlas/pieces/..., more layout charts than sub-charts). Files are written at the lowest version
-# that describes them, so older readers load every file they can read correctly.
-FORMAT_VERSION = 6
-READ_VERSIONS = (1, 2, 3, 4, 5, 6)
+# map overlaps itself (atlas/pieces/..., more layout charts than sub-charts); 7: an island layout's cell grids stored
+# cropped to each chart's occupied cells (atlas/islands/cell_boxes, cell_crops, grid instead of the whole
+# atlas/islands/cells, which an older reader would miss). Files are written at the lowest version that describes
+# them, so older readers load every file they can read correctly: every island atlas is version 7.
+FORMAT_VERSION = 7
+READ_VERSIONS = (1, 2, 3, 4, 5, 6, 7)
 _CHUNK = 65536
 MAX_BAKE_SAMPLES = 200_000  # stored surface samples for baking (2.4 MB); more are subsampled
 
@@ -452,14 +454,14 @@ class Atlas(nn.Module):
     def meta(self) -> dict:
         """JSON-able description needed to rebuild the atlas from its arrays."""
         L = self.layout
-        version = 1 if not self.islands else (3 if bool((L.orient != 0).any()) else 2)
-        extra = {}
+        # an island layout stores its cell grids cropped (IslandLayout.to_arrays): version 7 whatever it holds
+        version, extra = (7 if self.islands else 1), {}
         if self.surface is not None:
-            version, extra = 4, {"surface": self.surface.meta()}
+            version, extra = max(version, 4), {"surface": self.surface.meta()}
         if self.sides is not None:
-            version, extra = 5, dict(extra, sides=self.sides.meta())
+            extra = dict(extra, sides=self.sides.meta())
         if self.pieces is not None:
-            version, extra = 6, dict(extra, pieces={"n": self.pieces.n})
+            extra = dict(extra, pieces={"n": self.pieces.n})
         return dict(version=version, n=self.n_net, R=L.R, pad=L.pad, half=self.half,
                     height=L.shape[0], width=L.shape[1], layout=getattr(L, "kind", "grid"),
                     uv_convention="u->col, v->row, row 0 = top", bake_sigma=self.bake_sigma, **self.arch, **extra)

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from core.atlas.outlines import ORIENT_NP, cell_pixels
+from core.atlas.outlines import ORIENT_NP, cell_pixels, cells_from_arrays, cells_to_arrays
 from core.util.errors import InputError, ModelFileError
 
 BRUTE_FORCE_SIDE = 1024  # xatlas tries every position up to this atlas side
@@ -218,20 +218,27 @@ class IslandLayout:
 
     # --- storage -------------------------------------------------------------------------------------------------
     def to_arrays(self) -> dict[str, np.ndarray]:
+        """The layout as named arrays (atlas version 7: each chart's cells cropped to its occupied bounding box,
+        `cells_to_arrays`)."""
         return {"atlas/islands/affine": self.affine.numpy().astype(np.float32),
-                "atlas/islands/cells": self.cells.numpy().astype(np.int32),
+                **cells_to_arrays(self.cells.numpy()),
                 "atlas/islands/offset": self.offset.numpy().astype(np.int32),
                 "atlas/islands/orient": self.orient.numpy().astype(np.int32)}
 
     @classmethod
     def from_arrays(cls, arrays: dict, n: int, size: int, pad: int) -> "IslandLayout":
-        for key in ("atlas/islands/affine", "atlas/islands/cells", "atlas/islands/offset"):
+        """Rebuild from `to_arrays` output, or from the whole cell grids of atlas versions 2-6."""
+        for key in ("atlas/islands/affine", "atlas/islands/offset"):
             if key not in arrays:
                 raise ModelFileError(f"atlas: missing array '{key}' (island layout) in the model file")
+        cells = cells_from_arrays(arrays)
+        if cells is None:
+            raise ModelFileError("atlas: missing the island cell arrays ('atlas/islands/cell_boxes', "
+                                 "'atlas/islands/cell_crops', 'atlas/islands/grid') in the model file")
         orient = arrays.get("atlas/islands/orient")  # files written before islands could be transposed have none
         try:
             return cls(n, size, pad, torch.from_numpy(np.asarray(arrays["atlas/islands/affine"], np.float32).copy()),
-                       torch.from_numpy(np.asarray(arrays["atlas/islands/cells"]).astype(np.int64)),
+                       torch.from_numpy(cells),
                        torch.from_numpy(np.asarray(arrays["atlas/islands/offset"]).astype(np.int64)),
                        None if orient is None else torch.from_numpy(np.asarray(orient).astype(np.int64)))
         except (InputError, ValueError, IndexError) as e:

@@ -22,10 +22,73 @@ def cell_pixels(cols: np.ndarray, rows: np.ndarray, offset: np.ndarray, orient: 
     return (px - 1) // 2, (py - 1) // 2
 
 
+# an island atlas's cell grids as stored: atlas version 7 keeps each layout chart's occupied bounding box only
+# (cell_boxes, cell_crops, grid), earlier versions the whole [n, G, G] grid (cells)
+CELL_KEYS = ("atlas/islands/cells", "atlas/islands/grid", "atlas/islands/cell_boxes", "atlas/islands/cell_crops")
+MAX_GRID_CELLS = 1 << 28  # n x G x G of a stored atlas: far above any atlas PointGT fits (2048² images)
+
+
+def cells_to_arrays(cells: np.ndarray) -> dict[str, np.ndarray]:
+    """The stored form of cell grids cells [n, G, G] int (island id, -1 unused): 'atlas/islands/grid' [1] int32
+    (G), 'atlas/islands/cell_boxes' [n, 4] int32 (row, col, height, width of each chart's occupied cells' bounding
+    box; 0 x 0 for a chart without cells) and 'atlas/islands/cell_crops' [K] int32 (the boxes' cells, chart by chart,
+    row-major). Most of a layout chart's G x G grid is unused when the charts are many pieces of different sizes."""
+    cells = np.asarray(cells)
+    n, G = cells.shape[0], cells.shape[1]
+    boxes, crops = np.zeros((n, 4), np.int32), []
+    for c in range(n):
+        occ = cells[c] >= 0
+        rows, cols = np.flatnonzero(occ.any(1)), np.flatnonzero(occ.any(0))
+        if len(rows):
+            r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+            boxes[c] = (r0, c0, r1 - r0, c1 - c0)
+            crops.append(cells[c, r0:r1, c0:c1].reshape(-1))
+    return {"atlas/islands/grid": np.array([G], np.int32), "atlas/islands/cell_boxes": boxes,
+            "atlas/islands/cell_crops": (np.concatenate(crops) if crops else np.zeros(0)).astype(np.int32)}
+
+
+def cells_from_arrays(arrays: dict) -> np.ndarray | None:
+    """Cell grids [n, G, G] int64 from either stored form (`cells_to_arrays`, or the whole 'atlas/islands/cells'
+    of atlas versions 2-6); None when the arrays hold neither. Raises ModelFileError on boxes outside the grid, a
+    crop of the wrong length or a grid larger than any atlas (so a small damaged file never asks for huge memory)."""
+    from core.util.errors import ModelFileError
+
+    if "atlas/islands/cells" in arrays:
+        cells = np.asarray(arrays["atlas/islands/cells"])
+        if cells.ndim != 3 or cells.shape[1] != cells.shape[2]:
+            raise ModelFileError(f"atlas: 'atlas/islands/cells' should be [n, G, G], found {cells.shape}")
+        return cells.astype(np.int64)
+    if not all(k in arrays for k in CELL_KEYS[1:]):
+        return None
+    grid, boxes = np.asarray(arrays["atlas/islands/grid"]), np.asarray(arrays["atlas/islands/cell_boxes"])
+    crops = np.asarray(arrays["atlas/islands/cell_crops"]).reshape(-1)
+    if grid.shape != (1,) or boxes.ndim != 2 or boxes.shape[1] != 4:
+        raise ModelFileError(f"atlas: island cell arrays of the wrong shape ('atlas/islands/grid' {grid.shape}, "
+                             f"should be [1]; 'atlas/islands/cell_boxes' {boxes.shape}, should be [n, 4])")
+    G, n = int(grid[0]), boxes.shape[0]
+    if not 1 <= G or n * G * G > MAX_GRID_CELLS:
+        raise ModelFileError(f"atlas: an island cell grid of {n} x {G} x {G} cells is not one PointGT writes (at "
+                             f"most {MAX_GRID_CELLS}); the file is damaged")
+    b = boxes.astype(np.int64)
+    if (b < 0).any() or (b[:, 0] + b[:, 2] > G).any() or (b[:, 1] + b[:, 3] > G).any():
+        raise ModelFileError(f"atlas: 'atlas/islands/cell_boxes' holds boxes outside the {G} x {G} cell grid; the "
+                             "file is damaged")
+    sizes = b[:, 2] * b[:, 3]
+    if int(sizes.sum()) != len(crops):
+        raise ModelFileError(f"atlas: 'atlas/islands/cell_crops' holds {len(crops)} cells, its boxes "
+                             f"{int(sizes.sum())}; the file is damaged")
+    cells = np.full((n, G, G), -1, np.int64)
+    start = np.concatenate([[0], np.cumsum(sizes)])
+    for c in range(n):
+        r0, c0, h, w = (int(v) for v in b[c])
+        cells[c, r0:r0 + h, c0:c0 + w] = crops[start[c]:start[c + 1]].reshape(h, w)
+    return cells
+
+
 def island_mask(arrays: dict, shape: tuple[int, int]) -> np.ndarray:
-    """Pixels [H, W] bool inside an island: from the island arrays of an island atlas (cells [n, G, G] island id or
-    -1, offset [I, 2] (col, row), orient [I] when present), else (grid atlases) the texels with a surface point
-    ('atlas/texel_points')."""
+    """Pixels [H, W] bool inside an island: from the island arrays of an island atlas (its cell grids in either
+    stored form, `cells_from_arrays`; offset [I, 2] (col, row), orient [I] when present), else (grid atlases) the
+    texels with a surface point ('atlas/texel_points')."""
     return chart_labels(arrays, shape) >= 0
 
 
@@ -51,8 +114,8 @@ def chart_labels(arrays: dict, shape: tuple[int, int], cell: int | None = None) 
     `island_mask`), else the grid cell (`cell` = R + 2 pad texels per chart side) of every texel with a surface
     point; without `cell`, all such texels are chart 0."""
     H, W = shape
-    if "atlas/islands/cells" in arrays and "atlas/islands/offset" in arrays:
-        cells = np.asarray(arrays["atlas/islands/cells"]).astype(np.int64)
+    cells = cells_from_arrays(arrays) if "atlas/islands/offset" in arrays else None
+    if cells is not None:
         off = np.asarray(arrays["atlas/islands/offset"]).astype(np.int64).reshape(-1, 2)
         lab = np.full((H, W), -1, np.int64)
         n, rr, kk = np.nonzero(cells >= 0)

@@ -8,13 +8,13 @@ import os
 
 import numpy as np
 
-from core.atlas.outlines import chart_labels, outline_segments, segments_to_uv
+from core.atlas.outlines import CELL_KEYS, chart_labels, outline_segments, segments_to_uv
 from core.modelfile.pgt import PgtFile
 from core.util.errors import ModelFileError
 
 from .state import STATE
 
-KEYS = ("atlas/islands/cells", "atlas/islands/offset", "atlas/islands/orient", "atlas/texel_points")
+KEYS = (*CELL_KEYS, "atlas/islands/offset", "atlas/islands/orient", "atlas/texel_points")
 
 
 def read_outlines(path: str) -> np.ndarray:

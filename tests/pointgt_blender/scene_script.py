@@ -302,8 +302,7 @@ def _():
     H, W = tex.shape[:2]
     co = mod("scene.chart_outlines")
     with co.PgtFile(path) as f:
-        arrays = {k: f.read(k) for k in ("atlas/islands/cells", "atlas/islands/offset", "atlas/islands/orient",
-                                          "atlas/texel_points") if k in f.names}
+        arrays = {k: f.read(k) for k in co.KEYS if k in f.names}
         out["islands"] = f.meta["atlas"].get("layout") == "islands"
     if out["islands"]:
         lab = co.chart_labels(arrays, (H, W))

@@ -17,7 +17,7 @@ def test_uv_segments_map_through_the_editors_pan_and_zoom():
 def test_island_outlines_follow_each_islands_orientation(tmp_path):
     """The overlay of an island atlas outlines its islands as they are placed, turned or mirrored ones included
     (the island arrays' orientations): the same segments as `core.atlas.outlines` from every island array."""
-    from core.atlas.outlines import chart_labels, outline_segments, segments_to_uv
+    from core.atlas.outlines import cells_from_arrays, chart_labels, outline_segments, segments_to_uv
     from core.modelfile import load_pgt, save_pgt
     from pointgt_blender.scene.chart_outlines import read_outlines
     from tests.helpers.tiny import save_tiny
@@ -25,7 +25,7 @@ def test_island_outlines_follow_each_islands_orientation(tmp_path):
     arrays, meta = load_pgt(save_tiny(tmp_path / "m.pgt", "fast"))
     assert meta["atlas"]["layout"] == "islands"
     orient = np.asarray(arrays["atlas/islands/orient"]).copy()
-    cells = np.asarray(arrays["atlas/islands/cells"])
+    cells = cells_from_arrays(arrays)
     big = int(np.bincount(cells[cells >= 0]).argmax())  # the largest island, turned by a quarter
     orient[big] = (orient[big] + 1) % 4 + (orient[big] // 4) * 4
     arrays["atlas/islands/orient"] = orient.astype(np.asarray(arrays["atlas/islands/orient"]).dtype)

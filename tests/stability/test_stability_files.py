@@ -292,6 +292,13 @@ ATLAS_CASES = {
         a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, sides=dict(_SIDES, step=-1.0))),
     "atlas_sides_on_grid": lambda a, m: (
         a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, layout="grid", sides=dict(_SIDES))),
+    # an island layout's cropped cell grids (version 7): missing, a box outside the grid, a crop of the wrong length,
+    # a grid size no atlas has (refused before anything that large is allocated)
+    "atlas_cells_missing": lambda a, m: _drop(a, "atlas/islands/cell_crops"),
+    "atlas_cells_box_outside": lambda a, m: a.update({"atlas/islands/cell_boxes": a["atlas/islands/cell_boxes"]
+                                                      + np.array([0, 0, 1 << 16, 0], np.int32)}),
+    "atlas_cells_crops_short": lambda a, m: a.update({"atlas/islands/cell_crops": a["atlas/islands/cell_crops"][1:]}),
+    "atlas_cells_grid_huge": lambda a, m: a.update({"atlas/islands/grid": np.array([1 << 24], np.int32)}),
 }
 # load_bundle prefixes the atlas's own ModelFileError with the model file's path.
 

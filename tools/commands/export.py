@@ -60,11 +60,11 @@ def run(args) -> int:
         if args.texels:
             save_npy(args.texels, f.read("atlas/texel_points"))
         if args.outlines:
-            from core.atlas.outlines import island_mask, outline_overlay
+            from core.atlas.outlines import CELL_KEYS, island_mask, outline_overlay
 
             shape = tuple(f.read("atlas/image").shape[:2])
-            keys = [k for k in ("atlas/islands/cells", "atlas/islands/offset", "atlas/islands/orient",
-                                 "atlas/texel_points") if k in names]
+            keys = [k for k in (*CELL_KEYS, "atlas/islands/offset", "atlas/islands/orient", "atlas/texel_points")
+                    if k in names]
             overlay = outline_overlay(island_mask({k: f.read(k) for k in keys}, shape))
             write_png(args.outlines, overlay)
             print(f"wrote {args.outlines} {shape[1]}x{shape[0]} RGBA, {int((overlay[..., 3] > 0).sum())} outline "

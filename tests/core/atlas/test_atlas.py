@@ -84,8 +84,8 @@ def test_bad_inputs_raise_clear_errors():
 def test_round_trip_through_arrays_is_exact(strip_fit):
     a = strip_fit[0]
     arrays, meta = a.to_arrays(), a.meta()
-    ints = ("atlas/islands/cells", "atlas/islands/offset", "atlas/islands/orient", "atlas/pieces/sub",
-            "atlas/pieces/piece", "atlas/pieces/first")
+    ints = ("atlas/islands/grid", "atlas/islands/cell_boxes", "atlas/islands/cell_crops", "atlas/islands/offset",
+            "atlas/islands/orient", "atlas/pieces/sub", "atlas/pieces/piece", "atlas/pieces/first")
     assert all(k.startswith("atlas/") and v.dtype == (np.int32 if k in ints else np.float32) for k, v in arrays.items())
     assert meta["layout"] == "islands" and a.islands
     assert arrays["atlas/image"].shape == (*a.layout.shape, 3)

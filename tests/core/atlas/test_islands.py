@@ -5,8 +5,9 @@ import torch
 
 from core.atlas.atlas import Atlas
 from core.atlas.islands import IslandLayout, build_islands, occupancy
-from core.atlas.outlines import island_mask, outline_overlay
+from core.atlas.outlines import CELL_KEYS, cells_from_arrays, cells_to_arrays, island_mask, outline_overlay
 from core.atlas.texture import local_linear_points
+from core.util.errors import ModelFileError
 
 
 def test_local_linear_points_invert_an_affine_map_where_the_kernel_mean_does_not():
@@ -125,6 +126,46 @@ def test_island_atlas_round_trips_through_its_arrays_and_grid_files_still_load()
     assert not g.islands and grid_meta["version"] == 1
 
 
+def test_cell_grids_are_stored_cropped_and_the_whole_grids_of_older_files_still_load():
+    """Atlas version 7 keeps each layout chart's occupied bounding box only; the whole [n, G, G] grids of versions
+    2-6 give the same layout, and damaged boxes, crops or grid sizes are refused before any large allocation."""
+    cells = np.full((3, 40, 40), -1, np.int32)
+    cells[0, 2:30, 5:9] = 0
+    cells[0, 10, 20] = 1          # a second island of chart 0: its box spans both
+    cells[2, 35:40, 0:3] = 2      # chart 1 has no cells
+    stored = cells_to_arrays(cells)
+    assert stored["atlas/islands/grid"].tolist() == [40]
+    assert stored["atlas/islands/cell_boxes"].tolist() == [[2, 5, 28, 16], [0, 0, 0, 0], [35, 0, 5, 3]]
+    assert stored["atlas/islands/cell_crops"].size == 28 * 16 + 5 * 3 < cells.size // 10
+    np.testing.assert_array_equal(cells_from_arrays(stored), cells)
+    np.testing.assert_array_equal(cells_from_arrays({"atlas/islands/cells": cells}), cells)
+    assert cells_from_arrays({}) is None
+    damaged = [("atlas/islands/cell_boxes", np.array([[2, 5, 28, 36], [0, 0, 0, 0], [35, 0, 5, 3]], np.int32)),
+               ("atlas/islands/cell_boxes", np.array([[-1, 5, 28, 16], [0, 0, 0, 0], [35, 0, 5, 3]], np.int32)),
+               ("atlas/islands/cell_boxes", np.zeros((3, 3), np.int32)),
+               ("atlas/islands/cell_crops", stored["atlas/islands/cell_crops"][:-1]),
+               ("atlas/islands/grid", np.array([1 << 20], np.int32)),
+               ("atlas/islands/grid", np.array([0], np.int32))]
+    for key, value in damaged:
+        with pytest.raises(ModelFileError):
+            cells_from_arrays(dict(stored, **{key: value}))
+    # a fitted island layout: the stored form reloads it exactly, and so does the whole grid of older files
+    torch.manual_seed(0)
+    a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
+    x = torch.rand(3000, 3) * 2 - 1
+    probs, uv = a.chart_uv(x)
+    a.set_layout(build_islands(probs, uv, np.array([50.0, 50.0]), pad=2))
+    arrays = a.to_arrays()
+    assert "atlas/islands/cells" not in arrays and a.meta()["version"] == 7
+    old = {k: v for k, v in arrays.items() if k not in CELL_KEYS}
+    old["atlas/islands/cells"] = a.layout.cells.numpy()
+    for form in (arrays, old):
+        b = Atlas.from_arrays(form, dict(a.meta(), version=6 if form is old else 7))
+        assert torch.equal(b.layout.cells, a.layout.cells) and torch.equal(b.layout.nearest, a.layout.nearest)
+    with pytest.raises(ModelFileError, match="island cell arrays"):
+        Atlas.from_arrays({k: v for k, v in arrays.items() if k != "atlas/islands/cell_crops"}, a.meta())
+
+
 def test_occupancy_closes_gaps_between_sparse_samples():
     t = torch.stack(torch.meshgrid(torch.arange(5, 25, 2.0), torch.arange(5, 25, 2.0), indexing="ij"), -1)
     occ = occupancy(t.reshape(-1, 2).numpy() + 0.5, 32, fill=1.5)
@@ -217,7 +258,7 @@ def test_texel_map_round_trips_on_reoriented_islands():
         a.set_layout(_reoriented(lay, q))
         a.compute_texel_points(x, 3 * spacing, 2.0, "splat", 1.0)
         shares.append(a.texel_stats["round_trip_1"])
-        assert a.meta()["version"] == (2 if q == 0 else 3)  # a version-2 reader would ignore the orientations
+        assert a.meta()["version"] == 7  # island atlases store their cell grids cropped
         back = IslandLayout.from_arrays(a.to_arrays(), 2, a.layout.size, a.layout.pad)
         assert torch.equal(back.orient, a.layout.orient)
     assert min(shares) > 0.93 and max(shares) - min(shares) < 0.01, shares  # without turning back: 0.83-0.91

@@ -140,7 +140,7 @@ def test_an_atlas_cut_into_pieces_saves_and_loads_bit_for_bit():
     atlas, _ = _ramp_atlas(xyz, pieces=True)
     meta = check_saves_and_loads_bit_for_bit(atlas, xyz, _DownMap(), "atlas/pieces/first",
                                              np.array([0, 1], np.int32))  # two sub-charts for one
-    assert meta["version"] == 6 and "pieces" in meta
+    assert meta["version"] == 7 and "pieces" in meta
 
 
 def test_chart_pieces_expand_moves_only_the_own_sub_charts_probability():

@@ -154,7 +154,7 @@ def test_a_chart_with_few_reversed_samples_stays_whole():
     one side per chart (no side rule, the same layout charts as networks)."""
     atlas, hist = _planar_island_atlas(_sphere(4000), split=True, min_share=0.9)
     assert atlas.sides is None and atlas.n == atlas.n_net == 1 and hist["sides"]["split"] == 0
-    assert hist["sides"]["reversed"] == 0.0 and atlas.meta()["version"] in (2, 3)
+    assert hist["sides"]["reversed"] == 0.0 and atlas.meta()["version"] == 7
 
 
 def test_a_split_atlas_saves_and_loads_bit_for_bit():
@@ -162,7 +162,7 @@ def test_a_split_atlas_saves_and_loads_bit_for_bit():
     atlas, _ = _planar_island_atlas(xyz, split=True)
     meta = check_saves_and_loads_bit_for_bit(atlas, xyz, _PlanarMap(), "atlas/sides/majority",
                                              np.array([1.0, -1.0], np.float32))
-    assert meta["version"] == 5 and meta["n"] == 1 and "sides" in meta
+    assert meta["version"] == 7 and meta["n"] == 1 and "sides" in meta
 
 
 def test_a_quick_fit_split_by_side_runs_end_to_end():
