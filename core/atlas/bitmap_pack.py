@@ -4,8 +4,10 @@ Islands go in one at a time, largest first. Each is tried in every allowed orien
 texel grid, or only the identity) at every position of the image where its footprint (its cells grown by pad - 1
 texels in the chessboard metric) overlaps no footprint already placed; the overlap count of all positions at once is
 one FFT correlation of the occupied image with the footprint. In a square of fixed side the first free position in
-reading order wins (over the orientations), so islands interlock (a curved island's hollow takes small islands);
-the smallest side is found by bisection.
+reading order wins (over the orientations), so islands interlock (a curved island's hollow takes small islands).
+A greedy order that fails a square can succeed with another, so a square is tried with up to four (`ORDERS`: the
+largest footprint first or the longest island first, each orientation placed by its first free position or by
+where its bottom row lands) before it counts as too small; the smallest side is found by bisection.
 Two disjoint footprints leave the islands' cells at least 2 pad - 1 apart, the separation bilinear lookups need
 (core/atlas/islands.py). The result has the same form as `pack_islands`'s, so it drops into `build_islands`.
 """
@@ -61,13 +63,29 @@ def _shapes(masks: list[np.ndarray], g: int, transpose: bool) -> list[list[tuple
     return shapes
 
 
-def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: bool = False, search: int = 8):
+# greedy orders a square is tried with (pack_bitmap): (islands by footprint size or by longest side, the
+# orientations compared by their first free position or by the row their bottom lands on)
+ORDERS = (("area", False), ("longest", False), ("area", True), ("longest", True))
+
+
+def _order(shapes, masks, by: str) -> list[int]:
+    """Islands in placement order: the largest footprint first ("area", then the longest side) or the longest side
+    first ("longest", then the footprint); ties by index."""
+    area = [-int(s[0][3].sum()) for s in shapes]
+    longest = [-max(m.shape) for m in masks]
+    key = (lambda i: (area[i], longest[i], i)) if by == "area" else (lambda i: (longest[i], area[i], i))
+    return sorted(range(len(masks)), key=key)
+
+
+def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: bool = False, search: int = 8,
+                orders=ORDERS):
     """Pack island cell masks (each [h, w] bool, cropped) by their exact shapes with `pad` texels of padding.
 
     transpose: each island may take any of the eight symmetries of the texel grid (else only the identity).
     size > 0: into one size x size image (None when they do not all fit); 0: the smallest square found: a first
     square where the padded footprints would fill 80 % (10 % larger until they fit), then up to `search`
-    placements bisect between it and the side the footprints fill exactly, to within 1 % of the side.
+    sides bisect between it and the side the footprints fill exactly, to within 1 % of the side. Each square is
+    tried with the greedy `orders` (`ORDERS`) in turn until one fits every island.
     Returns (offsets [I, 2] int (col, row), orient [I] int (ORIENT_NP), side): mask cell (col, row) goes to pixel
     cell_pixels(col, row, offset, orient), as `pack_islands`."""
     if not masks:
@@ -76,18 +94,28 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
     shapes = _shapes(masks, g, transpose)
     longest = max(max(m.shape) for m in masks)
     cells = sum(int(m.sum()) for m in masks)
-    order = sorted(range(len(masks)), key=lambda i: (-int(shapes[i][0][3].sum()), -max(masks[i].shape), i))
+    if not orders:
+        raise InputError("island packing: no placement order")
+    plans = [(_order(shapes, masks, by), bottom) for by, bottom in orders]
+
+    def place(side: int):
+        for order, bottom in plans:
+            got = _place_all(shapes, order, side, g, bottom)
+            if got is not None:
+                return got
+        return None
+
     if size > 0:
         if longest > size:
             return None
-        got = _place_all(shapes, order, int(size), g)
+        got = place(int(size))
         return None if got is None else (got[0], got[1], int(size))
     # footprints never overlap, so they fit in the image grown by g on every side: no smaller square holds them
     feet = sum(int(o[0][3].sum()) for o in shapes)
     lo = max(math.isqrt(feet) - 2 * g, longest) - 1
     S, best = max(int(math.ceil(math.sqrt(feet / 0.8))), longest + 2 * g), None
     while best is None:  # a first square that holds them: the footprints at 80 % of it, larger until they fit
-        got = _place_all(shapes, order, S, g)
+        got = place(S)
         if got is not None:
             best, hi = (got[0], got[1], S), S
         else:
@@ -95,7 +123,7 @@ def pack_bitmap(masks: list[np.ndarray], pad: int, size: int = 0, transpose: boo
                 raise InputError("island packing: no placement found")
             lo, S = S, int(math.ceil(S * 1.1)) + 1
     # within 1 % of the side: not worth another placement
-    return bisect_side(lambda side: _place_all(shapes, order, side, g), lo, hi, best, search, tol=0.01)
+    return bisect_side(place, lo, hi, best, search, tol=0.01)
 
 
 def longest_runs(a: np.ndarray) -> np.ndarray:
@@ -125,9 +153,10 @@ def _start_rows(opts, free_run: np.ndarray, S: int) -> np.ndarray:
     return np.flatnonzero(ok)
 
 
-def _place_all(shapes, order, S: int, g: int):
+def _place_all(shapes, order, S: int, g: int, bottom: bool = False):
     """Greedy placement of every island (in `order`) into an S x S image, each at its first free spot in reading
-    order (row, then col) over its orientations: (offsets [I, 2], orient [I]) or None when one does not fit. The
+    order (row, then col); over its orientations the one whose spot comes first (bottom: whose bottom row, spot row
+    + height, is highest, then the leftmost): (offsets [I, 2], orient [I]) or None when one does not fit. The
     search runs over bands of rows from the first row where a footprint could start down (`_start_rows`), so an
     island that fits near the top costs a band, not the image."""
     # footprints, the image grown by g on every side; single precision: the FFTs run twice as fast, and a spot
@@ -161,14 +190,14 @@ def _place_all(shapes, order, S: int, g: int):
                         r = int(r) + r0
                         # single-precision FFTs: the count is checked exactly before the spot is taken
                         if not (occ[r:r + foot_h, c:c + foot_w] * foot).any():
-                            cand = (r, int(c), q, first, foot)
+                            cand = (r + h if bottom else r, int(c), r, q, first, foot)
                             if best is None or cand[:2] < best[:2]:  # then over orientations
                                 best = cand
                             break
                 j = int(np.searchsorted(starts, r0 + band))  # the next band: from the next possible start on
         if best is None:
             return None
-        r, c, q, first, foot = best
+        _, c, r, q, first, foot = best
         occ[r:r + foot.shape[0], c:c + foot.shape[1]] += foot
         free_run[r:r + foot.shape[0]] = longest_runs(occ[r:r + foot.shape[0]] == 0)
         offsets[i] = np.array([c, r], np.int64) - first

@@ -114,9 +114,13 @@ class AtlasConfig:
                                        "exact on the texel grid): curved islands pack much tighter")
     island_packer: str = opt("bitmap", "islands: how islands are packed: bitmap (by their exact cells, largest "
                                        "first, each at its first free spot in reading order in any allowed "
-                                       "orientation: interlocks curved islands; core/atlas/bitmap_pack.py) or "
+                                       "orientation, other orders where that fails a square: interlocks curved "
+                                       "islands; core/atlas/bitmap_pack.py) or "
                                        "xatlas (by their outlines; 5-15 points less utilisation on the library, "
                                        "docs/atlas.md)", choices=("bitmap", "xatlas"))
+    island_pack_orders: int = opt(4, "islands, bitmap packer: how many of its greedy placement orders a square is "
+                                     "tried with before it counts as too small (1: the largest island first only; "
+                                     "core/atlas/bitmap_pack.py ORDERS)", min=1, max=4)
     island_split: float = opt(0.6, "islands: an island longer than this share of the side of the square its "
                                    "islands would fill is cut across (at its narrowest) into pieces that pack into "
                                    "a square; 0 keeps every island whole", min=0.0, max=64.0)

@@ -158,7 +158,8 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, elements: tuple[np.ndar
         scale, fill = chart_scales(probs, uv, area_c, h, k_area, cfg)
         layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.image_size, fill, cfg.island_min_texels,
                                transpose=cfg.island_transpose, split=cfg.island_split,
-                               min_fill=cfg.island_min_fill, packer=cfg.island_packer)
+                               min_fill=cfg.island_min_fill, packer=cfg.island_packer,
+                               pack_orders=cfg.island_pack_orders)
         if layout is not None and (cfg.image_size > 0 or layout.size <= cfg.max_image_size):
             info = {"texel_size": h, "chart_scale": scale.tolist(), "islands": layout.islands,
                     "atlas_size": layout.size, "island_seconds": time.perf_counter() - t0}

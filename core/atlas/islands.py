@@ -486,7 +486,8 @@ def min_area_angle(t: np.ndarray, steps: int = 90) -> float:
 
 def build_islands(probs: torch.Tensor, uv: torch.Tensor, scale: np.ndarray, pad: int, size: int = 0,
                   fill=1.0, min_cells: int = 8, rotate: bool = True, transpose: bool = True,
-                  split: float = 0.0, min_fill: float = 0.0, packer: str = "xatlas") -> IslandLayout | None:
+                  split: float = 0.0, min_fill: float = 0.0, packer: str = "xatlas",
+                  pack_orders: int = 4) -> IslandLayout | None:
     """The island layout of samples with chart probabilities probs [S, n] and chart coordinates uv [S, n, 2], each
     chart at scale[c] texels per uv unit (rotated to its smallest bounding box when rotate); fill: occupancy
     radius in texels (one, or [n] per chart). transpose: the packer may transpose islands (pack_islands).
@@ -494,7 +495,8 @@ def build_islands(probs: torch.Tensor, uv: torch.Tensor, scale: np.ndarray, pad:
     and those longer than a quarter of that that fill less than min_fill of their bounding box, are cut into
     pieces (split_island), each its own island of the same chart.
     size > 0: fixed image side (None when the islands do not fit). packer: "xatlas" (pack_islands) or "bitmap"
-    (core/atlas/bitmap_pack.py: by the islands' exact cells)."""
+    (core/atlas/bitmap_pack.py: by the islands' exact cells, each square tried with its first pack_orders greedy
+    orders)."""
     n = probs.shape[1]
     fill = np.broadcast_to(np.asarray(fill, np.float64), (n,))
     owner = probs.argmax(-1).cpu().numpy()
@@ -534,8 +536,8 @@ def build_islands(probs: torch.Tensor, uv: torch.Tensor, scale: np.ndarray, pad:
                   for m, (dk, dr) in split_island(m0, limit, min_fill, max(limit // 4, 4 * pad + 8))]
     masks = [m for _, m, _ in pieces]
     if packer == "bitmap":
-        from core.atlas.bitmap_pack import pack_bitmap
-        packed = pack_bitmap(masks, pad, size, transpose=transpose)
+        from core.atlas.bitmap_pack import ORDERS, pack_bitmap
+        packed = pack_bitmap(masks, pad, size, transpose=transpose, orders=ORDERS[:max(int(pack_orders), 1)])
     elif packer == "xatlas":
         packed = pack_islands(masks, pad, size, transpose=transpose)
     else:

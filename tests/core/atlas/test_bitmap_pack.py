@@ -58,6 +58,31 @@ def test_bitmap_packing_without_transpose_keeps_every_orientation_and_fixed_size
     assert pack_bitmap([np.ones((50, 3), bool)], 2, 40) is None  # longer than the image
 
 
+def test_a_square_the_largest_first_order_cannot_fill_is_tried_with_the_other_orders():
+    """Greedy placement depends on its order: 12 notched blobs the largest-first order cannot put into a 67² square
+    go in with another of ORDERS, so the smallest square found shrinks (72² with that order alone), and the
+    islands stay whole and apart."""
+    from core.atlas.bitmap_pack import ORDERS
+    rng = np.random.default_rng(1)
+    masks = []
+    for _ in range(12):
+        h, w = rng.integers(3, 30, 2)
+        m = rng.random((h, w)) < 0.85
+        m[0, :] = m[:, 0] = True
+        masks.append(m)
+    assert pack_bitmap(masks, 2, 67, transpose=True, orders=ORDERS[:1]) is None
+    assert pack_bitmap(masks, 2, 0, transpose=True, orders=ORDERS[:1])[2] == 72
+    for size in (67, 0):
+        offsets, orient, side = pack_bitmap(masks, 2, size, transpose=True)
+        assert side <= 67
+        lab = _labels(masks, offsets, orient, side)
+        isl = lab >= 0
+        for i in range(len(masks)):
+            assert distance_transform_edt(lab != i)[isl & (lab != i)].min() >= 3
+    with pytest.raises(InputError):
+        pack_bitmap(masks, 2, 0, orders=())
+
+
 def test_bitmap_packing_orients_asymmetric_islands_exactly():
     L = np.zeros((9, 6), bool)
     L[:, :2] = True
