@@ -33,6 +33,12 @@ DTYPES = ("float32", "float16", "int32", "int64", "uint8", "bool")
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
 _ZIP_TIME = (1980, 1, 1, 0, 0, 0)  # fixed member timestamps: saving the same model twice gives the same bytes
 _CHUNK = 1 << 22
+# zip flag bits PointGT never writes and zipfile cannot read without more (a password, patch data): encrypted,
+# compressed patched data, strong encryption; a member that claims one is damaged
+_FOREIGN_FLAGS = 0x1 | 0x20 | 0x40
+# what zipfile raises on a damaged member besides BadZipFile: NotImplementedError for flags it does not support,
+# RuntimeError for an encrypted member
+_ZIP_READ_ERRORS = (zipfile.BadZipFile, EOFError, OSError, zipfile.LargeZipFile, NotImplementedError, RuntimeError)
 
 
 def _zipinfo(member: str) -> zipfile.ZipInfo:
@@ -175,7 +181,7 @@ class PgtFile:
                     digest.update(buf[pos:pos + n])
                     pos += n
                 extra = fh.read(1)
-        except (zipfile.BadZipFile, EOFError, OSError, zipfile.LargeZipFile) as exc:
+        except _ZIP_READ_ERRORS as exc:
             raise ModelFileError(f"{self.path}: array {name!r} is corrupt ({exc}); {_recover_hint(self.path)}") from exc
         if pos != len(buf) or extra:
             raise ModelFileError(f"{self.path}: array {name!r} has the wrong size for shape {entry['shape']}; "
@@ -278,9 +284,12 @@ def _read_header(path: Path, zf: zipfile.ZipFile) -> dict:
     info = zf.getinfo(HEADER)
     if info.file_size > 64 << 20:
         raise ModelFileError(f"{path}: {HEADER} is implausibly large ({info.file_size} bytes); the file is corrupt")
+    if info.flag_bits & _FOREIGN_FLAGS:
+        raise ModelFileError(f"{path}: {HEADER} claims to be encrypted or patched, which PointGT never writes; the "
+                             f"file is corrupt; {_recover_hint(path)}")
     try:
         header = json.loads(zf.read(HEADER).decode("utf-8"))
-    except (zipfile.BadZipFile, EOFError, OSError) as exc:
+    except _ZIP_READ_ERRORS as exc:
         raise ModelFileError(f"{path}: {HEADER} is corrupt ({exc}); {_recover_hint(path)}") from exc
     except (UnicodeDecodeError, ValueError) as exc:
         raise ModelFileError(f"{path}: {HEADER} is not valid JSON ({exc}); {_recover_hint(path)}") from exc
@@ -344,6 +353,9 @@ def _check_entry(path: Path, zf: zipfile.ZipFile, name: str, entry, members: set
     if actual != expected:
         raise ModelFileError(f"{where}: data member holds {actual} bytes but dtype {dtype} and shape {shape} "
                              f"need {expected}; {_recover_hint(path)}")
+    if info.flag_bits & _FOREIGN_FLAGS:
+        raise ModelFileError(f"{where}: its data member claims to be encrypted or patched, which PointGT never "
+                             f"writes; the archive is corrupt; {_recover_hint(path)}")
     # Sizes in the zip directory are claims: a stored member's bytes must really be inside the file.
     if info.compress_type != zipfile.ZIP_STORED or info.compress_size != actual \
             or info.header_offset + info.compress_size > file_size:

@@ -232,6 +232,33 @@ def test_sha256_catches_changes_even_with_a_valid_zip_crc(model):
     assert load_pgt(model, names=["points/xyz"])[0]["points/xyz"].shape == (1000, 3)  # others still readable
 
 
+def _set_central_flag(path, member, bit):
+    """Set a general-purpose flag bit of one member in the zip's central directory (where zipfile reads it)."""
+    data = bytearray(path.read_bytes())
+    name = member.encode()
+    pos = data.find(b"PK\x01\x02")
+    while pos >= 0:
+        n = int.from_bytes(data[pos + 28:pos + 30], "little")
+        if bytes(data[pos + 46:pos + 46 + n]) == name:
+            data[pos + 8] |= bit
+            path.write_bytes(bytes(data))
+            return
+        pos = data.find(b"PK\x01\x02", pos + 46 + n)
+    raise AssertionError(f"{member} not in the central directory")
+
+
+@pytest.mark.parametrize("bit", [0x01, 0x20, 0x40])  # encrypted, compressed patched data, strong encryption
+@pytest.mark.parametrize("which", ["array", "header"])
+def test_members_claiming_encryption_or_patch_data_are_model_file_errors(model, bit, which):
+    """A damaged flag byte makes zipfile raise NotImplementedError or RuntimeError on opening the member; the
+    reader names the file instead."""
+    with zipfile.ZipFile(model) as zf:
+        member = json.loads(zf.read("pointgt.json"))["arrays"]["points/xyz"]["member"]
+    _set_central_flag(model, "pointgt.json" if which == "header" else member, bit)
+    with pytest.raises(ModelFileError, match="m.pgt: .*encrypted or patched"):
+        load_pgt(model)
+
+
 @pytest.mark.parametrize("edit,pattern", [
     (lambda h: h.update(magic="something-else"), "not a PointGT model"),
     (lambda h: h.update(format_version=FORMAT_VERSION + 1), "made by a newer PointGT.*update the add-on"),
