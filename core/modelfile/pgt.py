@@ -36,9 +36,11 @@ _CHUNK = 1 << 22
 # zip flag bits PointGT never writes and zipfile cannot read without more (a password, patch data): encrypted,
 # compressed patched data, strong encryption; a member that claims one is damaged
 _FOREIGN_FLAGS = 0x1 | 0x20 | 0x40
-# what zipfile raises on a damaged member besides BadZipFile: NotImplementedError for flags it does not support,
-# RuntimeError for an encrypted member
-_ZIP_READ_ERRORS = (zipfile.BadZipFile, EOFError, OSError, zipfile.LargeZipFile, NotImplementedError, RuntimeError)
+# what zipfile raises on a damaged archive or member besides BadZipFile: NotImplementedError for a zip version or
+# flags it does not support, RuntimeError for an encrypted member, ValueError (UnicodeDecodeError) for a member name
+# a damaged flag marks as UTF-8
+_ZIP_READ_ERRORS = (zipfile.BadZipFile, EOFError, OSError, zipfile.LargeZipFile, NotImplementedError, RuntimeError,
+                    ValueError)
 
 
 def _zipinfo(member: str) -> zipfile.ZipInfo:
@@ -262,9 +264,11 @@ def _open_zip(path: Path) -> zipfile.ZipFile:
         head = fh.read(4)
     try:
         return zipfile.ZipFile(path, "r")
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError) as exc:
+    except _ZIP_READ_ERRORS as exc:
         if head[:1] == b"\x80":
             what = "it looks like a Python pickle; PointGT never loads pickles (they can run code)"
+        elif head.startswith(b"PK") and isinstance(exc, (NotImplementedError, RuntimeError, ValueError)):
+            what = f"its zip directory is damaged ({exc})"
         elif head.startswith(b"PK"):
             what = "it is a zip archive whose end is missing (truncated: interrupted save or incomplete copy)"
         elif not head:
@@ -288,9 +292,11 @@ def _read_header(path: Path, zf: zipfile.ZipFile) -> dict:
         raise ModelFileError(f"{path}: {HEADER} claims to be encrypted or patched, which PointGT never writes; the "
                              f"file is corrupt; {_recover_hint(path)}")
     try:
-        header = json.loads(zf.read(HEADER).decode("utf-8"))
+        raw = zf.read(HEADER)
     except _ZIP_READ_ERRORS as exc:
         raise ModelFileError(f"{path}: {HEADER} is corrupt ({exc}); {_recover_hint(path)}") from exc
+    try:
+        header = json.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise ModelFileError(f"{path}: {HEADER} is not valid JSON ({exc}); {_recover_hint(path)}") from exc
     except RecursionError as exc:

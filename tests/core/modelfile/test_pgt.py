@@ -232,19 +232,37 @@ def test_sha256_catches_changes_even_with_a_valid_zip_crc(model):
     assert load_pgt(model, names=["points/xyz"])[0]["points/xyz"].shape == (1000, 3)  # others still readable
 
 
-def _set_central_flag(path, member, bit):
-    """Set a general-purpose flag bit of one member in the zip's central directory (where zipfile reads it)."""
-    data = bytearray(path.read_bytes())
+def _central_record(data, member):
+    """Offset of member's record in the zip's central directory (bytes of a .pgt), where zipfile reads its flags."""
     name = member.encode()
     pos = data.find(b"PK\x01\x02")
     while pos >= 0:
         n = int.from_bytes(data[pos + 28:pos + 30], "little")
         if bytes(data[pos + 46:pos + 46 + n]) == name:
-            data[pos + 8] |= bit
-            path.write_bytes(bytes(data))
-            return
+            return pos
         pos = data.find(b"PK\x01\x02", pos + 46 + n)
     raise AssertionError(f"{member} not in the central directory")
+
+
+def test_damaged_zip_directory_fields_are_model_file_errors(model):
+    """Damaged bytes that make zipfile itself fail with something other than BadZipFile: a 'version needed' no
+    zip reader supports (NotImplementedError on opening), a member flagged as UTF-8-named whose local name is not
+    UTF-8 (UnicodeDecodeError on reading it)."""
+    good = model.read_bytes()
+    with zipfile.ZipFile(model) as zf:
+        member = json.loads(zf.read("pointgt.json"))["arrays"]["points/xyz"]["member"]
+        local = zf.getinfo(member).header_offset
+    data = bytearray(good)
+    data[_central_record(data, member) + 6] = 0xFF  # version needed to extract: 25.5
+    model.write_bytes(bytes(data))
+    with pytest.raises(ModelFileError, match="m.pgt: not a readable .pgt model file: its zip directory is damaged"):
+        load_pgt(model)
+    data = bytearray(good)
+    data[_central_record(data, member) + 9] |= 0x08  # flag bit 11: the name is UTF-8
+    data[local + 30] = 0xFF                          # ... but the local header's name is not
+    model.write_bytes(bytes(data))
+    with pytest.raises(ModelFileError, match=r"m.pgt: array 'points/xyz' is corrupt"):
+        load_pgt(model)
 
 
 @pytest.mark.parametrize("bit", [0x01, 0x20, 0x40])  # encrypted, compressed patched data, strong encryption
@@ -254,7 +272,9 @@ def test_members_claiming_encryption_or_patch_data_are_model_file_errors(model, 
     reader names the file instead."""
     with zipfile.ZipFile(model) as zf:
         member = json.loads(zf.read("pointgt.json"))["arrays"]["points/xyz"]["member"]
-    _set_central_flag(model, "pointgt.json" if which == "header" else member, bit)
+    data = bytearray(model.read_bytes())
+    data[_central_record(data, "pointgt.json" if which == "header" else member) + 8] |= bit
+    model.write_bytes(bytes(data))
     with pytest.raises(ModelFileError, match="m.pgt: .*encrypted or patched"):
         load_pgt(model)
 
