@@ -42,6 +42,7 @@ SINGLE_FILE = "transforms.json"
 # NeRF-synthetic ships depth and normal renders next to the test images (r_0_depth_0000.png); they are not frames.
 _AUXILIARY = re.compile(r"_(depth|normal)(_\d+)?$", re.IGNORECASE)
 RIGID_TOL = 1e-3  # max |R^T R - I| entry and |last row - [0,0,0,1]|; NeRF-synthetic matrices are exact to ~1e-7
+MAX_CAMERA_DISTANCE = 1e15  # |camera position| per axis: float32 cameras (and their products) stay finite
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV's k1, k2, k3, p1, p2: undistorted on load
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "camera_model",
@@ -653,11 +654,18 @@ def _image_path(root: Path, file_path: str, where: str) -> Path:
 
 
 def _check_rigid(c2w: np.ndarray, files: list[Path], json_path: Path) -> None:
-    """c2w [V, 4, 4] must be finite rigid transforms: R^T R = I, det R = +1, last row [0, 0, 0, 1]."""
+    """c2w [V, 4, 4] must be finite rigid transforms: R^T R = I, det R = +1, last row [0, 0, 0, 1], camera positions
+    within MAX_CAMERA_DISTANCE of the origin (a larger one turns to inf in the float32 cameras)."""
     finite = np.isfinite(c2w).all(axis=(1, 2))
     if not finite.all():
         i = int(np.argmin(finite))
         raise DataError(f"{json_path}: frame {i} ({files[i].name}): 'transform_matrix' has NaN/inf entries")
+    far = np.nonzero(np.abs(c2w[:, :3, 3]).max(axis=1) > MAX_CAMERA_DISTANCE)[0]
+    if far.size:
+        i = int(far[0])
+        raise DataError(f"{json_path}: frame {i} ({files[i].name}): 'transform_matrix' puts the camera at "
+                        f"{c2w[i, :3, 3].tolist()}, farther than {MAX_CAMERA_DISTANCE:g} units from the origin; "
+                        f"{far.size} frame(s) affected. Fix the camera positions (or the scene's units).")
     rot = c2w[:, :3, :3]
     ortho_err = np.abs(np.swapaxes(rot, 1, 2) @ rot - np.eye(3)).max(axis=(1, 2))
     row_err = np.abs(c2w[:, 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)

@@ -192,6 +192,9 @@ BAD_JSON = [
     ("ragged", lambda d: d["frames"][0]["transform_matrix"][1].pop(), "4x4 list of numbers"),
     ("strings", lambda d: d["frames"][0]["transform_matrix"][1].__setitem__(0, "x"), "4x4 list of numbers"),
     ("nan matrix", _nan_matrix, "NaN/inf"),
+    # finite in float64 but inf in the float32 cameras (found by mutating a scene's transforms file)
+    ("far camera", lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(3, 1e300),
+     r"frame 1 \(r_1\.png\).*farther than 1e\+15 units"),
     ("scaled", _scaled, r"frame 1 \(r_1\.png\).*not orthonormal"),
     ("sheared", _sheared, r"frame 1 .*not orthonormal"),
     ("reflection", _reflected, r"frame 2 .*reflection"),
