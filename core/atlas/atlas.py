@@ -7,7 +7,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import nn
 
-from core.atlas.config import MAX_CHART_RES
+from core.atlas.config import MAX_CHART_RES, WORLD_SCALES
 from core.atlas.islands import IslandLayout
 from core.atlas.networks import ChartNet, SurfaceNet, TexCoordNet, fourier_encode
 from core.atlas.pieces import ChartPieces
@@ -58,9 +58,11 @@ class Atlas(nn.Module):
     def __init__(self, n: int, R: int, pad: int, centre, half: float, width_chart: int = 64, depth_chart: int = 3,
                  width_map: int = 128, depth_map: int = 4, fourier_chart: int = 1, fourier_map: int = 4):
         super().__init__()
-        if not (1 <= n <= MAX_CHARTS and 2 <= R <= MAX_CHART_RES and 0 <= pad <= 64 and 0 < half < float("inf")):
+        if not (1 <= n <= MAX_CHARTS and 2 <= R <= MAX_CHART_RES and 0 <= pad <= 64
+                and WORLD_SCALES[0] <= half <= WORLD_SCALES[1]):
             raise InputError(f"atlas: invalid sizes n={n} R={R} pad={pad} half={half} (limits: 1-{MAX_CHARTS} charts "
-                             f"of 2-{MAX_CHART_RES} texels, pad 0-64)")
+                             f"of 2-{MAX_CHART_RES} texels, pad 0-64, the scene's half-size {WORLD_SCALES[0]:g}-"
+                             f"{WORLD_SCALES[1]:g})")
         for key, val, lo, hi in (("width_chart", width_chart, 1, 4096), ("width_map", width_map, 1, 4096),
                                  ("depth_chart", depth_chart, 0, 16), ("depth_map", depth_map, 0, 16),
                                  ("fourier_chart", fourier_chart, 0, 16), ("fourier_map", fourier_map, 0, 16)):

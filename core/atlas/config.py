@@ -7,6 +7,9 @@ from dataclasses import dataclass
 from core.config import opt
 from core.util.errors import InputError
 
+# world lengths an atlas stores (the scene's half-size, the anchor planes' bandwidth): outside this range their
+# squares and products in float32 / float64 leave the finite numbers (a damaged model file)
+WORLD_SCALES = (1e-30, 1e12)
 MAX_CHART_RES = 4096  # texels per chart side: 8 charts of 4096² pack into a 12k x 12k image (1.7 GB of float32 RGB)
 
 

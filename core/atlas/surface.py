@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from core.atlas.config import WORLD_SCALES
 from core.util.errors import InputError
 
 
@@ -104,9 +105,9 @@ class SurfaceProjection:
         length = np.linalg.norm(nrm, axis=1)
         if not ((length < 1e-6) | (np.abs(length - 1) < 1e-3)).all():
             raise InputError("surface projection: every normal must be a unit vector or zero")
-        if not 0 < float(bandwidth) < float("inf") or not 1 <= int(k) <= 64:
-            raise InputError(f"surface projection: bandwidth must be positive and finite and 1 <= k <= 64, got "
-                             f"{bandwidth!r}, {k!r}")
+        if not WORLD_SCALES[0] <= float(bandwidth) <= WORLD_SCALES[1] or not 1 <= int(k) <= 64:
+            raise InputError(f"surface projection: bandwidth must lie in {WORLD_SCALES[0]:g}-{WORLD_SCALES[1]:g} "
+                             f"(world units) and 1 <= k <= 64, got {bandwidth!r}, {k!r}")
         self.centres, self.normals = c, nrm
         self.bandwidth, self.k = float(bandwidth), int(k)
         self._tree = cKDTree(c) if len(c) else None

@@ -290,6 +290,10 @@ ATLAS_CASES = {
         a.update(_sides_arrays(m, 0.5)), m["atlas"].update(version=5, sides=dict(_SIDES))),
     "atlas_sides_bad_step": lambda a, m: (
         a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, sides=dict(_SIDES, step=-1.0))),
+    # world lengths no scene has, finite but overflowing once squared or scaled (found by mutating a model's meta)
+    "atlas_half_huge": lambda a, m: m["atlas"].update(half=1e300),
+    "atlas_sides_bandwidth_huge": lambda a, m: (
+        a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, sides=dict(_SIDES, bandwidth=1e300))),
     "atlas_sides_on_grid": lambda a, m: (
         a.update(_sides_arrays(m, 1.0)), m["atlas"].update(version=5, layout="grid", sides=dict(_SIDES))),
     # an island layout's cropped cell grids (version 7): missing, a box outside the grid, a crop of the wrong length,
