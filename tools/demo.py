@@ -229,7 +229,7 @@ def render_animation(bundle, scene_dir: Path, out: Path, frames: int, pose: str,
     from core.frames.edited import EditState, render_edited
     from core.images.png import write_png
     from tools.eval_edits import deform_points
-    from tools.scenes.poses import load_scene_spec
+    from tools.scenes.spec import load_scene_spec
 
     spec = load_scene_spec(scene_dir)
     c, h = spec["bbox"]["center"], spec["bbox"]["half_size"]

@@ -243,7 +243,8 @@ def deform_points(points: np.ndarray, scene_dir: Path, pose: str, magnitude: flo
     """
     import bpy
 
-    from tools.scenes.poses import apply_pose, load_scene_spec
+    from tools.scenes.poses import apply_pose
+    from tools.scenes.spec import load_scene_spec
     from tools.scenes.render import quiet_stdout
 
     spec = load_scene_spec(scene_dir)
@@ -396,7 +397,7 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
              log=print) -> dict:
     """Evaluate a model's edits against Blender ground truth; returns the JSON-able result (see module doc)."""
     from core.bundle import load_bundle
-    from tools.scenes.poses import load_scene_spec
+    from tools.scenes.spec import load_scene_spec
 
     scene_dir = Path(scene_dir)
     spec = load_scene_spec(scene_dir)

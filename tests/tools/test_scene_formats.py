@@ -95,7 +95,9 @@ def test_make_scene_format_writes_the_layout_from_an_existing_render(tmp_path):
     from core.images.dataset import load_split
 
     make_scene(tmp_path)
-    (tmp_path / "scene.json").write_text(json.dumps({"format": "pointgt-scene", "name": "crate"}))
+    (tmp_path / "scene.json").write_text(json.dumps({  # the parts of a scene description every reader checks
+        "format": "pointgt-scene", "name": "crate", "bbox": {"center": [0, 0, 0], "half_size": [1, 1, 1]},
+        "texture": {"params": {}}, "poses": {"rest": {"type": "rest"}}}))
     assert main(["make-scene", "crate", "--out", str(tmp_path), "--format", "nerfstudio"]) == 0
     d = load_split(tmp_path / "nerfstudio", "test")
     assert d.layout == "nerfstudio" and torch.equal(d.images, load_split(tmp_path, "test").images)

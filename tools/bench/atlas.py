@@ -157,7 +157,7 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
     from core.pipeline import fit_atlas_stage, footprint_views
     from tools.eval_edits import edited_atlases, ground_truth, score_frames, view_subset_dir
     from tools.scenes.library import scene_names
-    from tools.scenes.poses import load_scene_spec
+    from tools.scenes.spec import load_scene_spec
 
     root, rows = Path(root), []
     for name in scene_names():

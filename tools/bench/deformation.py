@@ -147,7 +147,7 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
     from core.images.dataset import load_split
     from tools.machine import machine_info
     from tools.eval_edits import deform_points
-    from tools.scenes.poses import load_scene_spec
+    from tools.scenes.spec import load_scene_spec
 
     torch.set_num_threads(1)
     scene_dir = Path(scene_dir)

@@ -110,7 +110,8 @@ def true_surface(scene_dir: Path, pose: str, magnitude: float, c2w: np.ndarray, 
     from mathutils.bvhtree import BVHTree
 
     from core.images.cameras import pixel_rays
-    from tools.scenes.poses import apply_pose, load_scene_spec
+    from tools.scenes.poses import apply_pose
+    from tools.scenes.spec import load_scene_spec
     from tools.scenes.render import quiet_stdout
 
     spec = load_scene_spec(scene_dir)
@@ -166,7 +167,8 @@ def run(model_path, scene_dir, pose: str = "arm", magnitude: float = 1.0, views:
     from core.frames.edited import EditConfig, EditState, render_edited
     from tools.eval_edits import RENDERERS, deform_points, ground_truth, view_subset_dir
     from tools.machine import machine_info
-    from tools.scenes.poses import load_scene_spec, pose_spec
+    from tools.scenes.poses import pose_spec
+    from tools.scenes.spec import load_scene_spec
 
     scene_dir = Path(scene_dir)
     spec = load_scene_spec(scene_dir)

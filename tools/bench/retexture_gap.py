@@ -145,7 +145,7 @@ def gap_rows(bundle_path, scene, cfg, densities, views: int, bake_sigmas, antial
     from core.images.dataset import load_split
     from core.pipeline import fit_atlas_stage
     from tools.eval_edits import ground_truth, score_frames, view_subset_dir
-    from tools.scenes.poses import load_scene_spec
+    from tools.scenes.spec import load_scene_spec
 
     spec = load_scene_spec(scene)
     gt = ground_truth(view_subset_dir(scene, views), "rest", 0.0, retexture, None, log)

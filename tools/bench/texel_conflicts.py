@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     from core.edits.bake import bake
     from core.edits.procedural import evaluate
     from core.util.errors import InputError
-    from tools.scenes.poses import load_scene_spec
+    from tools.scenes.spec import load_scene_spec
 
     atlas = load_bundle(args.model, "cpu").atlas
     if atlas is None or not atlas.islands or atlas.bake_samples is None:

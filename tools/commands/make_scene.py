@@ -68,9 +68,10 @@ def run(args) -> int:
     check_flag(args.magnitude, "--magnitude")
 
     from tools.scenes import build  # imports bpy: only now
+    from tools.scenes.spec import load_scene_spec
 
     if args.pose is not None or args.texture is not None:
-        spec = build.poses.load_scene_spec(args.out)
+        spec = load_scene_spec(args.out)
         if spec.get("name") != args.name:
             raise InputError(f"{args.out}/scene.json holds scene '{spec.get('name')}', not '{args.name}'")
         vdir = build.render_variant(args.out, args.pose or "rest", args.magnitude, args.texture,
@@ -85,7 +86,7 @@ def run(args) -> int:
                          views_val=args.views_val, views_test=args.views_test, seed=args.seed, lit=args.lit,
                          samples=args.samples, force=args.force, log=lambda m: print(m, flush=True))
     else:
-        spec = build.poses.load_scene_spec(args.out)
+        spec = load_scene_spec(args.out)
         if spec.get("name") != args.name:
             raise InputError(f"{existing} holds scene '{spec.get('name')}', not '{args.name}'; choose another --out")
     if args.format != "nerf-synthetic":

@@ -13,6 +13,7 @@ from core.edits.procedural import get_texture
 from core.util.atomic import atomic_path, atomic_write_text
 from core.util.errors import DataError, InputError
 from tools.scenes import cameras, library, nodes, poses, render
+from tools.scenes.spec import load_scene_spec
 
 FORMAT_VERSION = 1
 CAMERA_RADIUS = 4.0
@@ -120,7 +121,7 @@ def render_variant(out, pose: str = "rest", magnitude: float = 1.0, texture: str
                    samples: int | None = None, log=print) -> Path:
     """Render the TEST cameras of an existing scene posed/retextured into out/poses/<variant>/; returns that dir."""
     out = Path(out)
-    spec = poses.load_scene_spec(out)
+    spec = load_scene_spec(out)
     blend = out / "scene.blend"
     test_json = out / "transforms_test.json"
     for f in (blend, test_json):

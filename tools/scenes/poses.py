@@ -9,33 +9,18 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import bpy
 import numpy as np
 from mathutils import Matrix
 
-from core.util.errors import DataError, InputError
+from core.util.errors import InputError
 from tools.scenes import pose_math
+from tools.scenes.spec import load_scene_spec
 
 LATTICE_MARGIN = 1.3  # the lattice box is the rest bbox scaled by this: points slightly outside still deform
 LATTICE_SLICES = 24  # along the bend/twist axis
 MIN_EXTENT = 0.2  # lattice size of a (nearly) flat axis
-
-
-def load_scene_spec(scene) -> dict:
-    """scene: a scene directory, its scene.json path, or the already-loaded dict."""
-    if isinstance(scene, dict):
-        return scene
-    path = Path(scene)
-    if path.is_dir():
-        path = path / "scene.json"
-    if not path.exists():
-        raise DataError(f"{path}: no scene.json here; create the scene first with `pointgt make-scene NAME --out DIR`")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise DataError(f"{path}: not valid JSON ({exc})") from exc
 
 
 def pose_spec(spec: dict, pose: str) -> dict:
