@@ -231,8 +231,9 @@ def ground_truth(scene_dir: Path, pose: str, magnitude: float, texture: str | No
 
 
 def _texture_params(scene_dir: Path, texture):
-    spec = json.loads((scene_dir / "scene.json").read_text())
-    return spec["texture"]["params"].get(texture) if texture else None
+    from tools.scenes.spec import load_scene_spec
+
+    return load_scene_spec(scene_dir)["texture"].get("params", {}).get(texture) if texture else None
 
 
 def deform_points(points: np.ndarray, scene_dir: Path, pose: str, magnitude: float) -> np.ndarray:
