@@ -13,7 +13,7 @@ from core.edits.procedural import get_texture
 from core.util.atomic import atomic_path, atomic_write_text
 from core.util.errors import DataError, InputError
 from tools.scenes import cameras, library, nodes, poses, render
-from tools.scenes.spec import load_scene_spec
+from tools.scenes.spec import SCENE_FORMAT, load_scene_spec
 
 FORMAT_VERSION = 1
 CAMERA_RADIUS = 4.0
@@ -73,7 +73,7 @@ def make_scene(name: str, out, size: int = 128, views_train: int = 60, views_val
     me = obj.data
     center, half = list(me.texspace_location), list(me.texspace_size)  # what Generated coordinates use
     spec = {
-        "format": "pointgt-scene", "version": FORMAT_VERSION, "name": name, "description": sdef.help,
+        "format": SCENE_FORMAT, "version": FORMAT_VERSION, "name": name, "description": sdef.help,
         "object": OBJECT_NAME, "vertices": len(me.vertices), "faces": len(me.polygons),
         "bbox": {"center": center, "half_size": half},
         "camera": {"camera_angle_x": CAMERA_ANGLE_X, "radius": CAMERA_RADIUS, "width": size, "height": size,

@@ -8,6 +8,8 @@ from pathlib import Path
 
 from core.util.errors import DataError
 
+SCENE_FORMAT = "pointgt-scene"  # scene.json's "format" (tools/scenes/build.py writes it)
+
 
 def load_scene_spec(scene) -> dict:
     """scene: a scene directory, its scene.json path, or the already-loaded dict."""
@@ -40,8 +42,8 @@ def check_scene_spec(spec, path) -> None:
 
     if not isinstance(spec, dict):
         raise bad(f"holds a {type(spec).__name__}, not a scene description object")
-    if "format" in spec and spec["format"] != "pointgt-scene":
-        raise bad(f"'format' is {spec['format']!r}, not 'pointgt-scene'")
+    if "format" in spec and spec["format"] != SCENE_FORMAT:
+        raise bad(f"'format' is {spec['format']!r}, not {SCENE_FORMAT!r}")
     box = spec.get("bbox")
     if not (isinstance(box, dict) and _numbers(box.get("center"), 3) and _numbers(box.get("half_size"), 3)
             and min(box["half_size"]) > 0):
