@@ -278,6 +278,14 @@ def _open_zip(path: Path) -> zipfile.ZipFile:
         raise ModelFileError(f"{path}: not a readable .pgt model file: {what}; {_recover_hint(path)}") from exc
 
 
+def _refuse_foreign_flags(path: Path, info: zipfile.ZipInfo, what: str) -> None:
+    """A member whose zip flags claim encryption or patch data (_FOREIGN_FLAGS: PointGT never writes them, and
+    zipfile fails on them with NotImplementedError / RuntimeError) is a damaged archive: ModelFileError."""
+    if info.flag_bits & _FOREIGN_FLAGS:
+        raise ModelFileError(f"{what} claims to be encrypted or patched, which PointGT never writes; the archive is "
+                             f"corrupt; {_recover_hint(path)}")
+
+
 def _read_header(path: Path, zf: zipfile.ZipFile) -> dict:
     members = set(zf.namelist())
     if HEADER not in members:
@@ -288,9 +296,7 @@ def _read_header(path: Path, zf: zipfile.ZipFile) -> dict:
     info = zf.getinfo(HEADER)
     if info.file_size > 64 << 20:
         raise ModelFileError(f"{path}: {HEADER} is implausibly large ({info.file_size} bytes); the file is corrupt")
-    if info.flag_bits & _FOREIGN_FLAGS:
-        raise ModelFileError(f"{path}: {HEADER} claims to be encrypted or patched, which PointGT never writes; the "
-                             f"file is corrupt; {_recover_hint(path)}")
+    _refuse_foreign_flags(path, info, f"{path}: {HEADER}")
     try:
         raw = zf.read(HEADER)
     except _ZIP_READ_ERRORS as exc:
@@ -359,9 +365,7 @@ def _check_entry(path: Path, zf: zipfile.ZipFile, name: str, entry, members: set
     if actual != expected:
         raise ModelFileError(f"{where}: data member holds {actual} bytes but dtype {dtype} and shape {shape} "
                              f"need {expected}; {_recover_hint(path)}")
-    if info.flag_bits & _FOREIGN_FLAGS:
-        raise ModelFileError(f"{where}: its data member claims to be encrypted or patched, which PointGT never "
-                             f"writes; the archive is corrupt; {_recover_hint(path)}")
+    _refuse_foreign_flags(path, info, f"{where}: its data member")
     # Sizes in the zip directory are claims: a stored member's bytes must really be inside the file.
     if info.compress_type != zipfile.ZIP_STORED or info.compress_size != actual \
             or info.header_offset + info.compress_size > file_size:
