@@ -26,7 +26,7 @@ from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, un
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
-from core.images.cameras import focal_scale, scaled_focal
+from core.images.cameras import focal_from_fov, focal_scale, look_at, scaled_focal
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
 from core.points.render import held_rows, pixel_grid, shade_frame, trace_frame
@@ -804,3 +804,27 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     stats["scale"] = scale
     return {"rgb": rgb, "alpha": cover,
             "x_can": x_can.reshape(height, width, 3), "stats": stats, "trace": tr}
+
+
+def warm_up(bundle, cfg: EditConfig | None = None, size: int = 16) -> float:
+    """Render tiny deformed frames of `bundle` (size × size pixels, a camera that sees every point) with `cfg`
+    (default: EditConfig()), and with every object ray coloured through the atlas when the bundle has one, and
+    throw them away; returns their seconds. The first deformed or textured frame of a process pays for one-off
+    work (numba compiling or loading the deformation, neighbour, attention and chart-piece loops, the model's
+    canonical neighbourhoods): a caller that times frames, or must answer at once, runs this first. The points
+    move by a thousandth of a spacing, so the deformation path runs without changing anything the bundle caches
+    per pose."""
+    cfg = cfg or EditConfig()
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        xyz = bundle.model.xyz.detach()
+        centre = xyz.mean(0)
+        radius = float((xyz - centre).norm(dim=1).max().clamp_min(1e-6))
+        eye = tuple(float(v) for v in centre + torch.tensor([0.0, -2.5, 1.5], device=xyz.device) * radius)
+        c2w = look_at(eye, target=tuple(float(v) for v in centre)).float().to(xyz.device)
+        moved = xyz + 1e-3 * float(bundle.model.spacing)
+        cfgs = [cfg] + ([dataclasses.replace(cfg, colour="atlas")]
+                        if getattr(bundle, "atlas", None) is not None and cfg.colour != "atlas" else [])
+        for c in cfgs:
+            render_edited(EditState(bundle, points=moved, cfg=c), c2w, size, size, focal_from_fov(size, 0.69))
+    return time.perf_counter() - t0

@@ -1,8 +1,8 @@
 """Move the first frame's one-off costs off the first frame: after a .blend with PointGT objects is opened, a
 background thread imports torch and the renderer, extracts the models packed into the .blend, loads the
-objects' models into the model cache, and runs one tiny deformed frame of each (which loads the compiled
-kernels from numba's cache and builds the model's cached canonical neighbourhoods). No bpy here: the handler
-reads the model paths (and packed models' bytes) in Blender's main thread and hands them over.
+objects' models into the model cache, and runs tiny deformed frames of each (`core.frames.edited.warm_up`, which
+loads the compiled kernels from numba's cache and builds the model's cached canonical neighbourhoods). No bpy
+here: the handler reads the model paths (and packed models' bytes) in Blender's main thread and hands them over.
 
 The first frame then finds all of it done, or waits on the model cache's lock for the part still running instead
 of doing it twice. Errors are kept (`last_error`), never raised: the frame itself reports them as it always did.
@@ -48,22 +48,11 @@ def _run(models: list[tuple[str, str]], extract: list) -> None:
             return
         for fn in extract:
             fn()
-        import torch
-
         from . import frame_renderer
-        from core.frames.edited import EditState, render_edited
-        from core.images.cameras import focal_from_fov, look_at
+        from core.frames.edited import warm_up
 
         for path, device in models:
-            bundle = frame_renderer.MODELS.get(path, device)
-            with torch.no_grad():
-                xyz = bundle.model.xyz.detach()
-                centre = xyz.mean(0)
-                radius = float((xyz - centre).norm(dim=1).max().clamp_min(1e-6))
-                eye = tuple(float(v) for v in centre + torch.tensor([0.0, -2.5, 1.5], device=xyz.device) * radius)
-                c2w = look_at(eye, target=tuple(float(v) for v in centre)).float()
-                moved = xyz + 1e-3 * float(bundle.model.spacing)  # "moved": the deformation path runs too
-                render_edited(EditState(bundle, points=moved), c2w, 16, 16, focal_from_fov(16, 0.69))
+            warm_up(frame_renderer.MODELS.get(path, device))
             done_paths.append(path)
     except Exception as exc:  # never let a background thread take the add-on down
         last_error = f"{type(exc).__name__}: {exc}"

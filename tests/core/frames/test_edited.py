@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from core.edits.bake import bake
-from core.frames.edited import EditConfig, EditState, render_edited
+from core.frames.edited import EditConfig, EditState, render_edited, warm_up
 from core.points.render import render_frame
 from core.util.errors import InputError
 from tests.helpers.tiny import tiny_bundle
@@ -263,3 +263,14 @@ def test_threshold_blend_applies_per_subpixel_before_the_filter(tiny):
     mixed = (((frames["stripes", "threshold"] - plain).abs().amax(-1) > 1e-3)
              & ((frames["stripes", "threshold"] - frames["full", "threshold"]).abs().amax(-1) > 1e-3))
     assert mixed.sum() > 10
+
+
+def test_warm_up_renders_tiny_frames_and_leaves_the_model_alone(tiny):
+    bundle, _, test = tiny
+    before = bundle.model.xyz.detach().clone()
+    ref = _render(EditState(bundle), test)["rgb"]
+    assert warm_up(bundle) > 0 and torch.equal(bundle.model.xyz, before)
+    assert torch.equal(_render(EditState(bundle), test)["rgb"], ref)  # nothing cached that changes a frame
+    no_atlas = copy.copy(bundle)
+    no_atlas.atlas = None  # a model without an atlas: the deformed frame alone, any renderer switch
+    assert warm_up(no_atlas, EditConfig(f_attention=True, f_fill=True), size=8) > 0
