@@ -31,8 +31,8 @@ def add_arguments(p):
     p.add_argument("--allow-blank", action="store_true",
                    help="keep going (exit 0, run stage 2) even when the trained model renders the blank frame")
     p.add_argument("--profile", action=argparse.BooleanOptionalAction, default=True,
-                   help="measure the scene and choose decoder, view dependence, K and chart count from it "
-                        "(settings given on the command line always win)")
+                   help="measure the scene and choose decoder, K and chart count from it, and say when its colours "
+                        "seem to vary with the view (settings given on the command line always win)")
     add_to_parser(p, LoadConfig)
     add_to_parser(p, ModelConfig)
     add_to_parser(p, TrainConfig)
@@ -138,6 +138,11 @@ def run(args) -> int:
         print(f"[fit] scene profile: decoder={profile.decoder} view_dependent={profile.view_dependent} "
               f"k={profile.k} charts={profile.charts} (view variation {m['view_variation']:.3f}, hull flatness "
               f"{m['hull_flatness']:.2f}, {m['pixels_per_point']:.2f} foreground pixels per point); applied {applied or 'nothing (set on the command line)'}")
+        if m.get("view_dependent_hint") and not model_cfg.view_dependent:
+            print(f"[fit] the same surface points change colour across the views (view variation "
+                  f"{m['view_variation']:.3f} > {m['thresholds']['view_variation']}): if the object is glossy or "
+                  f"lit, --view-dependent may fit it better (at about half the steps per minute); on an unlit object "
+                  f"with a busy texture this measure also rises, and plain colours fit better")
     if args.stage in ("papr", "all"):
         t0 = time.perf_counter()
         try:
