@@ -121,8 +121,8 @@ def view_variation(pid: torch.Tensor, rgb: torch.Tensor, contrast: torch.Tensor,
 def scene_profile(train, hull_points: int = 3000, seed: int = 0, device: str = "cpu",
                   num_points: int | None = None) -> SceneProfile:
     """Measure a training split (SplitData: images [V, H, W, 3], alphas [V, H, W], c2w [V, 4, 4], focal) and
-    choose decoder, K and the atlas chart count (view dependence: measured, a hint only). num_points: the model's point count (default:
-    ModelConfig's). Deterministic for a given seed."""
+    choose decoder, K and the atlas chart count (view dependence: measured, a hint only). num_points: the model's
+    point count (default: ModelConfig's). Deterministic for a given seed."""
     views = int(train.images.shape[0])
     if views < 2:
         raise DataError(f"scene profile: needs at least 2 training views to compare, got {views}")
