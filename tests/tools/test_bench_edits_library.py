@@ -1,5 +1,10 @@
 """The library edit benchmark's summary: rest, worst pose and gap per renderer and edit, from eval-edits rows."""
-from tools.bench.edits_library import gaps, markdown
+from pathlib import Path
+
+import pytest
+
+from tools.bench.edits_library import fit_command, gaps, main, markdown
+from tools.bench.scenes import model_path
 
 
 def _row(pose, mag, edit, renderer, psnr_object, corr="deform-aware", blend="soft"):
@@ -23,3 +28,20 @@ def test_worst_pose_gap_and_count_within_3_db():
     assert t["worst_pose"] == "stretch" and abs(t["gap"] - 2.0) < 1e-9 and (t["within"], t["poses"]) == (2, 2)
     text = markdown({"cloth": out}, "head")
     assert "| cloth | paper | 20.00 / stretch 8.00 | 18.00 / stretch 2.00 | 1/2, 2/2 |" in text
+
+
+def test_fit_args_reach_the_scene_bench_under_their_tag():
+    base = fit_command(Path("W"), "suzanne", 1, [], ["--steps", "1000"])
+    assert base == ["tools.bench.scenes", "--work", "W", "--scenes", "suzanne", "--no-pair", "--threads", "1",
+                    "--steps", "1000"]
+    tagged = fit_command(Path("W"), "suzanne", 1, [], ["--steps", "1000"], "--view-dependent", "vd")
+    assert tagged == base + ["--fit-args", "--view-dependent", "--tag", "vd"]
+    # the file the scene bench writes for that setting, which the edits bench then reads
+    assert model_path(Path("W"), "suzanne", None, "vd").name == "suzanne.vd.default.pgt"
+
+
+@pytest.mark.parametrize("argv", [["--fit-args=--view-dependent"], ["--tag", "vd"]])
+def test_fit_args_and_tag_go_together(argv, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["--work", str(tmp_path)] + argv)
+    assert "--fit-args and --tag go together" in capsys.readouterr().err

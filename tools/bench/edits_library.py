@@ -2,6 +2,7 @@
 
     python -m tools.bench.edits_library --work DIR [--scenes cloth,tube,...] [--steps 1000 | --minutes 10]
         [--renderers paper,DEFAULT,...] [--poses bend,...] [--views 4] [--threads 1] [--json OUT] [--markdown OUT]
+        [--fit-args=--view-dependent --tag vd]
 
 Per scene, each step a separate process, exactly what a user runs, and each reused when its output exists:
 `pointgt make-scene` and the default stage-1 fit (as `python -m tools.bench.scenes --no-pair` makes them:
@@ -10,7 +11,8 @@ DIR/NAME, DIR/NAME.default.pgt), `pointgt atlas` with its defaults, then `pointg
 and renderer, the rest frame's object PSNR and, over the posed frames, the worst pose and its gap to rest for the
 geometry-only edit and for the retexture (issue #16's bar: every pose within 3 dB of rest), and the mean seconds
 per frame. The model's quality sets the rest figure: a weak fit has less to lose, so compare renderers within
-one run (same models), and budgets across runs.
+one run (same models), and budgets across runs. `--fit-args` adds `pointgt fit` flags to every stage-1 fit under
+`--tag` (DIR/NAME.TAG.default.pgt, DIR/NAME.TAG.edits.json), as `tools.bench.scenes` does.
 """
 from __future__ import annotations
 
@@ -64,6 +66,15 @@ def markdown(per_scene: dict[str, list[dict]], head: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def fit_command(work: Path, name: str, threads: int, samples: list[str], budget: list[str], fit_args: str = "",
+                tag: str = "") -> list[str]:
+    """`python -m` arguments of the scene library bench that makes scene `name` in `work` and its stage-1 fit:
+    the default fit, or with fit_args under tag (the model file `tools.bench.scenes.model_path` names)."""
+    cmd = ["tools.bench.scenes", "--work", str(work), "--scenes", name, "--no-pair", "--threads", str(threads),
+           *samples, *budget]
+    return cmd + (["--fit-args", fit_args, "--tag", tag] if fit_args else [])
+
+
 def main(argv=None) -> int:
     from tools.bench import add_samples, run_command, samples_flag, write_json
     from tools.bench.scenes import model_path
@@ -81,10 +92,16 @@ def main(argv=None) -> int:
     ap.add_argument("--poses", default=None, help="comma-separated poses (default: every pose of each scene)")
     ap.add_argument("--views", type=int, default=4, help="test views per case (eval-edits --views)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per fit and per atlas fit")
+    ap.add_argument("--fit-args", default="", help="more `pointgt fit` flags for every stage-1 fit (one string; "
+                    "needs --tag), e.g. --fit-args=--view-dependent (a lone flag needs the =)")
+    ap.add_argument("--tag", default="", help="name of the --fit-args setting: its models and edit figures are "
+                    "SCENE.TAG.* files beside the defaults'")
     ap.add_argument("--json", default=None, help="write all figures here")
     ap.add_argument("--markdown", default=None, help="write the table here")
     add_samples(ap)
     args = ap.parse_args(argv)
+    if bool(args.fit_args) != bool(args.tag):
+        ap.error("--fit-args and --tag go together (the tag names the setting's files)")
     renderers = args.renderers or f"paper,{default_renderer()}"
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -95,15 +112,14 @@ def main(argv=None) -> int:
     print(head, flush=True)
     per_scene, figures = {}, {}
     for name in [s for s in args.scenes.split(",") if s]:
-        model = model_path(work, name, None)
+        model = model_path(work, name, None, args.tag)
         if not model.exists():
-            run_command(py + ["tools.bench.scenes", "--work", str(work), "--scenes", name, "--no-pair",
-                              "--threads", str(args.threads), *samples_flag(args.samples), *budget], print,
-                        check=True)
+            run_command(py + fit_command(work, name, args.threads, samples_flag(args.samples), budget, args.fit_args,
+                                         args.tag), print, check=True)
         if not model.with_suffix(".atlas_history.json").exists():
             run_command(py + ["tools.cli", "atlas", str(model), str(work / name), "--atlas-threads",
                               str(args.threads), "--no-progress"], print, check=True)
-        out = work / f"{name}.edits.json"
+        out = work / f"{name}{'.' + args.tag if args.tag else ''}.edits.json"
         want = [r for r in renderers.split(",") if r]
         have = json.loads(out.read_text()) if out.exists() else None
         if have is None or have.get("renderers") != want or (args.poses and have.get("poses") != args.poses.split(",")):
