@@ -9,7 +9,7 @@ Measured from the data (all numbers are returned with the choices, JSON-able):
   (with a hint above VIEW_DEPENDENT_ABOVE on a solid object) but never switches view-dependent values on by
   itself: on concave objects with a busy texture the visual hull lies off the surface and the measure grows with
   the texture (the unlit Suzanne of the scene library measures above the lit blob), while view-dependent values
-  halve the steps a time budget buys and gained at most 0.12 dB on the library at 10 minutes (docs/results.md,
+  halve the steps a time budget buys and gained at most 0.15 dB on the library at 10 minutes (docs/results.md,
   "Scene profile"). `--view-dependent` turns them on.
 - the decoder: the residual UNet (core/points/decoders.py) on every scene. It starts as the decoder-free render,
   so choosing it risks no collapse, and at the default 10-minute budget it is ahead of no decoder, or within
@@ -149,14 +149,14 @@ def scene_profile(train, hull_points: int = 3000, seed: int = 0, device: str = "
                 "surface_flatness": surface_flat, "hull_points": pts.shape[0],
                 "surface_points": int(visible.numel()), "point_spacing": spacing, "zbuffer_cell_px": cell,
                 "thresholds": {"view_variation": VIEW_DEPENDENT_ABOVE, "hull_flatness": THIN_SHEET_BELOW},
-                "view_variation_trusted": not thin, "view_dependent_hint": hint,
-                "view_dependent_rule": "off unless --view-dependent (the measure is a hint only)"}
+                "view_variation_trusted": not thin, "view_dependent_hint": hint}
     # K: the reference uses 40 for thin cloth. Doubling K doubles the attention cost per step; on a CPU under a
     # fixed time budget that loses more than it gains (cloth, 10 min: K = 40 reached 23.0 dB object PSNR in 772
     # steps, K = 20 passed that in its first 3 minutes), so thin sheets get K = 40 only on a GPU.
     gpu = str(device).startswith("cuda")
     measured["k_rule"] = "thin sheet on a GPU: 40; otherwise 20"
     measured["decoder_rule"] = "unet (residual) on every scene"
+    measured["view_dependent_rule"] = "off unless --view-dependent (the measure is a hint only)"
     return SceneProfile(decoder="unet", view_dependent=False,
                         k=K_THIN if (thin and gpu) else K_DEFAULT, charts=str(n_charts), measured=measured)
 

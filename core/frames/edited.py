@@ -824,7 +824,7 @@ def warm_up(bundle, cfg: EditConfig | None = None, size: int = 16) -> float:
         c2w = look_at(eye, target=tuple(float(v) for v in centre)).float().to(xyz.device)
         moved = xyz + 1e-3 * float(bundle.model.spacing)
         cfgs = [cfg] + ([dataclasses.replace(cfg, colour="atlas")]
-                        if getattr(bundle, "atlas", None) is not None and cfg.colour != "atlas" else [])
+                        if bundle.atlas is not None and cfg.colour != "atlas" else [])
         for c in cfgs:
             render_edited(EditState(bundle, points=moved, cfg=c), c2w, size, size, focal_from_fov(size, 0.69))
     return time.perf_counter() - t0
