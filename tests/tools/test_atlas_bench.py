@@ -10,6 +10,14 @@ def test_scene_model_prefers_the_plain_name_then_the_library_bench_default(tmp_p
     assert scene_model(tmp_path, "cloth") == tmp_path / "cloth.pgt"
 
 
+def test_scene_model_with_a_tag_reads_only_that_settings_library_fit(tmp_path):
+    (tmp_path / "cloth.pgt").write_bytes(b"")
+    (tmp_path / "cloth.default.pgt").write_bytes(b"")
+    assert scene_model(tmp_path, "cloth", "vd") is None  # never falls back to another setting's fit
+    (tmp_path / "cloth.vd.default.pgt").write_bytes(b"")
+    assert scene_model(str(tmp_path), "cloth", "vd") == tmp_path / "cloth.vd.default.pgt"
+
+
 def test_markdown_rows_with_and_without_scores():
     base = {"scene": "cloth", "layout": "islands", "size": "257x257", "utilisation": 0.6361, "round_trip": 1.0,
             "seconds": 41.2}

@@ -7,11 +7,11 @@ fitting PSNR against time, distortion statistics with the distortion loss on and
 Any AtlasConfig field is a flag (--steps, --batch, --width-map, --charts 8, ...).
 
 --scene-root DIR: for every scene of `pointgt make-scene --list` that DIR holds (DIR/<name>/ from make-scene and
-DIR/<name>.pgt, a stage-1 model of it, or DIR/<name>.default.pgt, the scene-library bench's default fit), fit stage 2
-in memory with each layout and report the atlas's utilisation
-(texels with a surface point / image pixels), the texel -> surface -> texel round trip (share within 1 texel),
-stage-2 seconds, the atlas-coloured render and, at rest, the retexture (with its perfect-atlas reference: the
-texture evaluated exactly at the surface points) and the decal, object PSNR on the scene's test views
+DIR/<name>.pgt, a stage-1 model of it, or DIR/<name>.default.pgt, the scene-library bench's default fit; with --tag T
+its fit of a --fit-args setting, DIR/<name>.T.default.pgt), fit stage 2 in memory with each layout and report the
+atlas's utilisation (texels with a surface point / image pixels), the texel -> surface -> texel round trip (share
+within 1 texel), stage-2 seconds, the atlas-coloured render and, at rest, the retexture (with its perfect-atlas
+reference: the texture evaluated exactly at the surface points) and the decal, object PSNR on the scene's test views
 (--no-scores: the layout figures only, no renders; --work DIR keeps the ground truth out of the scene folders).
 --island-sides splits every chart by side
 (core/atlas/sides.py; side_reversed: the samples' share on a reversed sub-chart); --island-pieces cuts charts where
@@ -117,9 +117,16 @@ def round_trip(atlas) -> float:
     return float((miss <= 1.0).float().mean())
 
 
-def scene_model(root, name: str):
-    """DIR/<name>.pgt, else the scene-library bench's DIR/<name>.default.pgt (None when neither exists)."""
-    for model in (root / f"{name}.pgt", root / f"{name}.default.pgt"):
+def scene_model(root, name: str, tag: str = ""):
+    """DIR/<name>.pgt, else the scene-library bench's DIR/<name>.default.pgt (None when neither exists); with a tag
+    the library bench's fit of that setting only, DIR/<name>.<tag>.default.pgt (`tools.bench.scenes --tag`)."""
+    from pathlib import Path
+
+    from tools.bench.scenes import model_path
+
+    root = Path(root)
+    candidates = [model_path(root, name, None, tag)] if tag else [root / f"{name}.pgt", root / f"{name}.default.pgt"]
+    for model in candidates:
         if model.exists():
             return model
     return None
@@ -142,7 +149,7 @@ def scene_mirror(scene, work):
 
 def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=None, log=print,
                scores: bool = True, folds: bool = False, work=None,
-               footprint_variants: list[str] | None = None) -> list[dict]:
+               footprint_variants: list[str] | None = None, tag: str = "") -> list[dict]:
     """The per-scene figures (module doc) for every scene of the library found under root (or those in only);
     scores False: the layout figures only (utilisation, round trip, islands, seconds), no renders; folds: also
     `core.atlas.fit.fold_report` on the atlas's stored samples (reversed, crease). work: a folder for the ground
@@ -163,9 +170,11 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
     for name in scene_names():
         if only and name not in only:
             continue
-        scene, model = root / name, scene_model(root, name)
+        scene, model = root / name, scene_model(root, name, tag)
         if not (scene / "transforms_train.json").exists() or model is None:
-            log(f"[{name}] skipped: needs {scene}/ (pointgt make-scene) and {root / name}.pgt (pointgt fit)")
+            want = f"{root / name}.{tag}.default.pgt (tools.bench.scenes --tag)" if tag else \
+                f"{root / name}.pgt (pointgt fit)"
+            log(f"[{name}] skipped: needs {scene}/ (pointgt make-scene) and {want}")
             continue
         train = load_split(scene, "train")
         if scores:
@@ -285,6 +294,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="write all figures to this JSON file")
     ap.add_argument("--png", help="save the packed atlas image (first run) as PNG")
     ap.add_argument("--scene-root", help="per-scene mode: DIR/<scene>/ and DIR/<scene>.pgt for the library scenes")
+    ap.add_argument("--tag", default="", help="per-scene mode: read the scene-library bench's fits of a --fit-args "
+                    "setting, DIR/<scene>.<tag>.default.pgt (`tools.bench.scenes --tag`), instead of DIR/<scene>.pgt "
+                    "or DIR/<scene>.default.pgt")
     ap.add_argument("--layouts", default="islands,grid", help="per-scene mode: layouts to compare")
     ap.add_argument("--views", type=int, default=4, help="per-scene mode: test views scored")
     ap.add_argument("--scenes", default="", help="per-scene mode: only these scenes (comma-separated)")
@@ -305,7 +317,7 @@ def main(argv=None) -> int:
             dataclasses.replace(cfg, footprint_lambdas=v).lambda_candidates()
         rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
                           only=[x for x in args.scenes.split(",") if x], scores=not args.no_scores,
-                          folds=args.folds, work=args.work, footprint_variants=variants)
+                          folds=args.folds, work=args.work, footprint_variants=variants, tag=args.tag)
         print(markdown_rows(rows))
         print(f"machine: {machine}")
         rows = [dict(r, machine=machine) for r in rows]

@@ -4,9 +4,10 @@ retexture baked and looked up in several ways, each scored at rest against Blend
     python -m tools.bench.retexture_gap --scene-root DIR --scenes cloth,tube --steps 600 --threads 1
     python -m tools.bench.retexture_gap ... --texel-densities 4,8 --keep DIR2   (DIR2/<scene>.tpp<D>.pgt)
 
-For every scene DIR/<name>/ with a stage-1 model DIR/<name>.pgt or DIR/<name>.default.pgt (as
-`tools.bench.atlas --scene-root`), stage 2 is fitted in memory with each --texel-densities value (the
-`--atlas-texels-per-pixel` rule; the charts are the same fit, only the layout after them differs) and the rows are:
+For every scene DIR/<name>/ with a stage-1 model DIR/<name>.pgt or DIR/<name>.default.pgt (or with --tag T
+DIR/<name>.T.default.pgt, as `tools.bench.atlas --scene-root`), stage 2 is fitted in memory with each
+--texel-densities value (the `--atlas-texels-per-pixel` rule; the charts are the same fit, only the layout after
+them differs) and the rows are:
   perfect atlas      the texture evaluated exactly at the canonical points the render uses (the reference)
   baked              today's retexture: baked from the stored surface samples, the edit mask from the atlas change
   mask = 1           the same image with every texel counted as painted (the edit mask's share of the gap)
@@ -207,6 +208,8 @@ def main(argv=None) -> int:
     ap.add_argument("--texel-densities", default="4", help="texels per training pixel to fit (comma-separated)")
     ap.add_argument("--bake-sigmas", default="0.5,2", help="bake kernel width factors (comma-separated)")
     ap.add_argument("--antialias", default="1,4", help="lookups per pixel side besides the default 2")
+    ap.add_argument("--tag", default="", help="read DIR/<scene>.<tag>.default.pgt, the scene-library bench's fit of "
+                    "a --fit-args setting (`tools.bench.scenes --tag`), instead of DIR/<scene>.pgt or .default.pgt")
     ap.add_argument("--keep", default="", help="save each fitted model as KEEP/<scene>.tpp<D>.pgt")
     ap.add_argument("--json", default="", help="write the rows to this JSON file")
     args, cfg = parse_with_config(ap, AtlasConfig, argv)
@@ -216,9 +219,10 @@ def main(argv=None) -> int:
     floats = lambda s: [float(x) for x in s.split(",") if x]  # noqa: E731
     rows = []
     for name in [x for x in args.scenes.split(",") if x]:
-        model = scene_model(root, name)
+        model = scene_model(root, name, args.tag)
         if name not in scene_names() or model is None or not (root / name / "transforms_train.json").exists():
-            print(f"[{name}] skipped: needs {root / name}/ and {root / name}.pgt")
+            want = f"{root / name}.{args.tag}.default.pgt" if args.tag else f"{root / name}.pgt"
+            print(f"[{name}] skipped: needs {root / name}/ and {want}")
             continue
         rows += gap_rows(model, root / name, cfg, floats(args.texel_densities), args.views, floats(args.bake_sigmas),
                          [int(a) for a in floats(args.antialias)], keep=args.keep or None)
