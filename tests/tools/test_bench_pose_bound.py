@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from tools.bench.pose_bound import lowpassed, markdown, object_psnr
+from tools.bench.pose_bound import lowpassed, markdown, object_psnr, surface_projector
 
 
 def test_lowpass_keeps_a_linear_texture_and_averages_a_step():
@@ -43,3 +43,15 @@ def test_markdown_gives_the_gap_to_rest():
                      "stretch": {"render x": 23.5, "perfect texture": 29.5}}}
     text = markdown(res)
     assert "| stretch | 23.50 (-6.50) | 29.50 (+0.50) |" in text and "| rest | 30.00 | 29.00 |" in text
+
+
+def test_surface_projector_moves_points_to_the_nearest_point_of_the_mesh():
+    import numpy as np
+
+    verts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]])  # unit square at z = 0
+    project = surface_projector(verts, np.array([[0, 1, 2], [0, 2, 3]]))
+    x = torch.tensor([[0.3, 0.6, 0.25], [0.5, 0.5, -0.1], [2.0, 0.5, 0.3], [float("nan"), 0.0, 0.0]])
+    y = project(x)
+    assert y.dtype == x.dtype and y.shape == x.shape
+    assert torch.allclose(y[:3], torch.tensor([[0.3, 0.6, 0.0], [0.5, 0.5, 0.0], [1.0, 0.5, 0.0]]), atol=1e-6)
+    assert torch.isnan(y[3, 0])  # a non-finite point stays as it is

@@ -10,7 +10,11 @@ Cycles ground truth) is scored (object PSNR) as
   texture at s px    the same texture low-passed first: the mean of 4³ evaluations spread over a cube s training
                      pixels wide around the canonical point (one training pixel = the model's `train_footprint` in
                      world units), for each s of `--footprints`: a texture known only as finely as the training
-                     images show it.
+                     images show it;
+  ... on the surface each of those two with the canonical point first moved to the nearest point of the scene's
+                     own mesh at rest: a 3-D texture that changes across the surface (bands, a 3-D checker) is
+                     otherwise read off the surface wherever the frame's canonical points scatter in depth (the
+                     point cloud's slab), which speckles the "perfect" frame at rest already.
 
 A pose that magnifies the surface (the 5× stretch) shows the texture's detail finer than a training pixel: where
 "texture at 1 px" loses as much against rest as the render, the gap is the training images' resolution, not the
@@ -42,6 +46,49 @@ def lowpassed(fn, width: float, n: int = 4):
                     acc = acc + fn(x + torch.stack([ox, oy, oz])).to(x.dtype)
         return acc / n ** 3
     return blurred
+
+
+def rest_mesh(scene_dir) -> tuple:
+    """The scene's object at rest (Blender): vertices [V, 3] in world space and triangles [T, 3] (vertex ids)."""
+    import bpy
+    import numpy as np
+
+    from tools.scenes.render import quiet_stdout
+    from tools.scenes.spec import load_scene_spec
+
+    spec = load_scene_spec(scene_dir)
+    with quiet_stdout():
+        bpy.ops.wm.open_mainfile(filepath=str(Path(scene_dir) / "scene.blend"))
+    obj = bpy.data.objects[spec["object"]]
+    me = obj.data
+    me.calc_loop_triangles()
+    mw = np.array(obj.matrix_world)
+    verts = np.array([v.co[:] for v in me.vertices], dtype=np.float64).reshape(-1, 3) @ mw[:3, :3].T + mw[:3, 3]
+    tris = np.array([t.vertices[:] for t in me.loop_triangles], dtype=np.int64).reshape(-1, 3)
+    return verts, tris
+
+
+def surface_projector(verts, tris):
+    """x [M, 3] (torch) -> the nearest point of the triangle mesh (verts [V, 3], tris [T, 3]) to each, [M, 3] in x's
+    dtype (non-finite points stay as they are)."""
+    import bpy  # noqa: F401  (Blender's mathutils comes with bpy)
+    import numpy as np
+    import torch
+    from mathutils import Vector
+    from mathutils.bvhtree import BVHTree
+
+    bvh = BVHTree.FromPolygons([tuple(map(float, v)) for v in verts], [tuple(map(int, t)) for t in tris])
+
+    def project(x):
+        xs = x.detach().cpu().double().numpy()
+        out = xs.copy()
+        for i, p in enumerate(xs):
+            if np.isfinite(p).all():
+                loc = bvh.find_nearest(Vector(p))[0]
+                if loc is not None:
+                    out[i] = loc[:]
+        return torch.from_numpy(out).to(device=x.device, dtype=x.dtype)
+    return project
 
 
 def object_psnr(rgb, alpha, image, gt_alpha) -> float:
@@ -80,6 +127,7 @@ def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f
     result = {"model": str(model_path), "scene": spec.get("name"), "texture": base, "views": views,
               "train_footprint": footprint, "machine": machine_info(), "poses": {}}
     can = bundle.model.xyz.detach().numpy()
+    project = surface_projector(*rest_mesh(scene_dir))
     for pose in ["rest", *[p for p in poses if p != "rest"]]:
         gt = ground_truth(view_subset_dir(scene_dir, views), pose, 1.0, None, log=log)
         points = None if pose == "rest" else torch.from_numpy(deform_points(can, scene_dir, pose, 1.0))
@@ -93,6 +141,9 @@ def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f
             fn = lowpassed(texture, width)
             rows[name] = [render_edited(perfect, gt.c2w[i], gt.height, gt.width, gt.focal, texture_fn=fn)
                           for i in range(gt.c2w.shape[0])]
+            rows[f"{name} on the surface"] = [
+                render_edited(perfect, gt.c2w[i], gt.height, gt.width, gt.focal,
+                              texture_fn=lambda x, fn=fn: fn(project(x))) for i in range(gt.c2w.shape[0])]
         scores = {}
         for name, outs in rows.items():
             s = [object_psnr(o["rgb"], o["alpha"], gt.images[i], gt.alphas[i]) for i, o in enumerate(outs)]
