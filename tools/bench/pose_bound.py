@@ -4,6 +4,9 @@ For poses of a built-in scene (`pointgt make-scene`), each geometry-only frame (
 Cycles ground truth) is scored (object PSNR) as
 
   render             the posed points rendered with an eval-edits renderer variant (`--renderers`);
+  ..., base          with --base, the same without the decoder's correction (a residual UNet decoder's last
+                     layers zeroed: the points' own colours and coverage, which it corrects): whether what a pose
+                     loses of the render is the decoder's image-space correction or the points' colours;
   perfect texture    every object ray coloured by the scene's own base texture evaluated exactly at the frame's
                      canonical points (the deform-gradient correspondence, which is exact under an affine map), with
                      the render's coverage: what geometry, coverage and correspondence alone allow;
@@ -99,8 +102,9 @@ def object_psnr(rgb, alpha, image, gt_alpha) -> float:
 
 
 def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f-fill-fold",),
-        footprints=(1.0,), log=print) -> dict:
-    """The figures (module doc) as a JSON-able dict: per pose ("rest" first), row name -> mean object PSNR."""
+        footprints=(1.0,), base: bool = False, log=print) -> dict:
+    """The figures (module doc) as a JSON-able dict: per pose ("rest" first), row name -> mean object PSNR.
+    base: also each renderer without the decoder's correction (models with a residual UNet decoder)."""
     import json
 
     import torch
@@ -117,6 +121,10 @@ def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f
     params = spec["texture"].get("params", {}).get(base)
     bundle = load_bundle(model_path)
     footprint = float(bundle.model.train_footprint)
+    plain = None  # the same model without the decoder's correction (--base)
+    if base and bundle.model.decoder is not None and bundle.model.cfg.decoder_residual:
+        plain = load_bundle(model_path)
+        plain.model.decoder.reset_correction()
     for rd in renderers:
         if rd not in RENDERERS:
             raise SystemExit(f"--renderers: unknown renderer {rd!r}; choose from {', '.join(RENDERERS)}")
@@ -136,6 +144,10 @@ def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f
             state = EditState(bundle, points=points, cfg=EditConfig(**RENDERERS[rd]))
             rows[f"render {rd}"] = [render_edited(state, gt.c2w[i], gt.height, gt.width, gt.focal)
                                     for i in range(gt.c2w.shape[0])]
+            if plain is not None:
+                state = EditState(plain, points=points, cfg=EditConfig(**RENDERERS[rd]))
+                rows[f"render {rd}, base"] = [render_edited(state, gt.c2w[i], gt.height, gt.width, gt.focal)
+                                              for i in range(gt.c2w.shape[0])]
         perfect = EditState(bundle, points=points, cfg=EditConfig(colour="atlas", correspondence="deform-gradient"))
         for name, width in [("perfect texture", 0.0), *[(f"texture at {s:g} px", s * footprint) for s in footprints]]:
             fn = lowpassed(texture, width)
@@ -178,6 +190,8 @@ def main(argv=None) -> int:
     ap.add_argument("--renderers", default=default_renderer(),
                     help="comma-separated eval-edits renderer variants (default: the default renderer)")
     ap.add_argument("--footprints", default="1", help="comma-separated low-pass widths in training pixels")
+    ap.add_argument("--base", action="store_true", help="also each renderer without the decoder's correction (a "
+                    "residual UNet decoder's points' own colours and coverage)")
     args = parse(ap, argv)
     try:
         footprints = [float(v) for v in args.footprints.split(",") if v.strip()]
@@ -186,7 +200,7 @@ def main(argv=None) -> int:
     if any(not (math.isfinite(v) and v >= 0) for v in footprints):
         raise SystemExit(f"--footprints: widths must be finite and >= 0, got {args.footprints!r}")
     res = run(args.model, args.scene, [p for p in args.poses.split(",") if p], args.views,
-              [r for r in args.renderers.split(",") if r], footprints)
+              [r for r in args.renderers.split(",") if r], footprints, base=args.base)
     print(markdown(res))
     write_json(args.json, res)
     return 0
