@@ -79,12 +79,6 @@ class TrainConfig:
     decoder_flip: bool = opt(False, "UNet decoder: each step flips and/or transposes its patches' feature images "
                                     "(one of the 8 symmetries of a square, at random) before the decoder and its "
                                     "output back, so the decoder cannot learn the training views' orientation")
-    decoder_warp: float = opt(0.0, "UNet decoder: share of the training patches whose feature image and target are "
-                                   "both resampled through a random zoom (each axis of a random direction "
-                                   "magnified 1..decoder_warp_scale times) and turn, so the decoder also learns the "
-                                   "feature images of stretched and turned surfaces that a posed frame shows; "
-                                   "0 = off", min=0.0, max=1.0)
-    decoder_warp_scale: float = opt(3.0, "decoder_warp: largest magnification along either axis", min=1.0, max=16.0)
     decoder_stop: float = opt(0.0, "UNet decoder: fraction of training at which its learning rate reaches 0 (held "
                                    "to its schedule until half of this fraction, then a cosine decay), so the "
                                    "points learn the colour late in training; 0 = off", min=0.0, max=1.0)
@@ -199,32 +193,6 @@ def dihedral(x: torch.Tensor, t: int, inverse: bool = False) -> torch.Tensor:
     if t & 4:
         x = x.transpose(-1, -2)
     return torch.flip(x, flips) if flips else x
-
-
-def warp_thetas(n: int, share: float, max_scale: float, gen: torch.Generator) -> torch.Tensor | None:
-    """Random zoom-and-turn maps for `decoder_warp`: [n, 2, 3] affine_grid matrices (output -> input coordinates in
-    [-1, 1]), the identity for a patch not drawn (probability 1 - share); a drawn patch is magnified by s1, s2 in
-    [1, max_scale] (log-uniform) along a random direction and its perpendicular and turned by a random angle. None
-    when no patch is drawn."""
-    drawn = torch.rand(n, generator=gen) < share
-    if not bool(drawn.any()):
-        return None
-    scales = torch.exp(torch.rand(n, 2, generator=gen, dtype=torch.float64) * math.log(max(max_scale, 1.0)))
-    phi, psi = (torch.rand(n, generator=gen, dtype=torch.float64) * 2 * math.pi for _ in range(2))
-
-    def rot(a):
-        c, s = torch.cos(a), torch.sin(a)
-        return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
-    lin = rot(psi) @ rot(phi) @ torch.diag_embed(1.0 / scales) @ rot(phi).transpose(-1, -2)
-    eye = torch.eye(2, dtype=torch.float64).expand(n, 2, 2)
-    lin = torch.where(drawn[:, None, None], lin, eye)
-    return torch.cat([lin, torch.zeros(n, 2, 1, dtype=torch.float64)], -1).float()
-
-
-def warp_images(x: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-    """Images x [n, C, S, S] resampled (bilinear, edges replicated) through theta [n, 2, 3] (`warp_thetas`)."""
-    grid = F.affine_grid(theta.to(x.device, x.dtype), list(x.shape), align_corners=False)
-    return F.grid_sample(x, grid, mode="bilinear", padding_mode="border", align_corners=False)
 
 
 def feature_dropout(feat: torch.Tensor, p: float, keep: int, gen: torch.Generator) -> torch.Tensor:
@@ -750,9 +718,6 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
         o, d, idx = (torch.cat(x) for x in zip(*found))
         att, sh = attend_and_shade(model, o, d, idx, bg, cfg.key_path, workers)
         zs = size * zoom
-        warp = None  # decoder_warp: one zoom-and-turn map per patch (training size only, not the zoomed steps)
-        if model.decoder is not None and cfg.decoder_warp > 0 and zoom == 1:
-            warp = warp_thetas(n_patches, cfg.decoder_warp, cfg.decoder_warp_scale, gen)
         if model.decoder is None:
             rgb = sh["rgb"]
         else:
@@ -760,8 +725,6 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             if cfg.decoder_dropout > 0:  # the residual decoder's base colour and coverage stay
                 feat = feature_dropout(feat, cfg.decoder_dropout, 4 if model.cfg.decoder_residual else 0,
                                        gen)
-            if warp is not None:
-                feat = warp_images(feat, warp)
             sym = int(torch.randint(8, (1,), generator=gen)) if cfg.decoder_flip else 0
             rgb, dec_alpha = model.decode_with_alpha(dihedral(feat, sym), workers=workers)
             rgb = dihedral(rgb, sym, inverse=True).permute(0, 2, 3, 1).reshape(-1, 3)
@@ -773,14 +736,9 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
         if zoom > 1:
             rgb = pool_zoomed(rgb, n_patches, size, zoom)
             cover = pool_zoomed(cover[:, None], n_patches, size, zoom)[:, 0]
-        gt_dec, gt_a_dec = gt, gt_a  # what the decoder's outputs are compared with (warped with its input)
-        if warp is not None:
-            gt_dec = warp_images(gt.reshape(n_patches, size, size, 3).permute(0, 3, 1, 2), warp)
-            gt_dec = gt_dec.permute(0, 2, 3, 1).reshape(-1, 3)
-            gt_a_dec = warp_images(gt_a.reshape(n_patches, 1, size, size).to(gt.dtype), warp).reshape(-1)
-        loss = F.mse_loss(rgb, gt_dec)
+        loss = F.mse_loss(rgb, gt)
         if model.decoder is not None and dec_alpha is not None and cfg.decoder_alpha_weight > 0:
-            loss = loss + cfg.decoder_alpha_weight * F.mse_loss(dec_alpha.reshape(-1), gt_a_dec)
+            loss = loss + cfg.decoder_alpha_weight * F.mse_loss(dec_alpha.reshape(-1), gt_a)
         if cfg.alpha_weight > 0:
             loss = loss + cfg.alpha_weight * F.mse_loss(cover, gt_a)
         if model.decoder is not None and model.cfg.decoder_residual and cfg.base_weight > 0:
@@ -790,7 +748,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             loss = loss + cfg.base_weight * F.mse_loss(base, gt)
         if cfg.ssim_weight > 0:
             pr = rgb.reshape(n_patches, size, size, 3)
-            loss = loss + cfg.ssim_weight * (1 - ssim(pr, gt_dec.reshape(n_patches, size, size, 3)))
+            loss = loss + cfg.ssim_weight * (1 - ssim(pr, gt.reshape(n_patches, size, size, 3)))
         c2r = c2s = torch.zeros((), device=dev)
         if frac >= cfg.reg_start:
             fg_mask = (gt_a[pix_of_ray] if zoom > 1 else gt_a) > 0.5

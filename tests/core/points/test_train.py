@@ -420,36 +420,3 @@ def test_views_per_step_draws_each_steps_patches_from_that_many_views(monkeypatc
     assert torch.equal(model.xyz, again.xyz)  # deterministic for a seed
     one = fit_points(split, split, TINY_MODEL, dataclasses.replace(cfg, views_per_step=1), show_progress=False)[0]
     assert not torch.equal(model.features, one.features)
-
-
-def test_warp_thetas_leave_undrawn_patches_alone_and_magnify_the_drawn_ones():
-    gen = torch.Generator().manual_seed(3)
-    th = train_mod.warp_thetas(400, 0.5, 3.0, gen)
-    ident = (th - torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])).abs().amax((1, 2)) < 1e-7
-    assert 0.35 < float(ident.float().mean()) < 0.65
-    lin = th[~ident][:, :, :2].double()
-    sv = torch.linalg.svdvals(lin)                       # 1 / the magnifications, each in [1/3, 1]
-    assert bool((sv >= 1 / 3 - 1e-6).all()) and bool((sv <= 1 + 1e-6).all())
-    assert bool((th[:, :, 2] == 0).all())                 # about the patch's centre
-    assert train_mod.warp_thetas(8, 0.0, 3.0, gen) is None
-
-
-def test_warp_images_is_exact_for_the_identity_and_magnifies_a_ramp():
-    x = torch.randn(2, 4, 16, 16)
-    eye = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]]).expand(2, 2, 3)
-    assert torch.allclose(train_mod.warp_images(x, eye), x, atol=1e-5)
-    ramp = torch.arange(16.0).view(1, 1, 1, 16).expand(1, 1, 16, 16).contiguous()  # value = column
-    zoom2 = torch.tensor([[[0.5, 0.0, 0.0], [0.0, 0.5, 0.0]]])
-    y = train_mod.warp_images(ramp, zoom2)[0, 0]
-    assert torch.allclose(y[:, 1:] - y[:, :-1], torch.full((16, 15), 0.5), atol=1e-5)  # half the slope
-    assert torch.allclose(y.mean(), ramp.mean(), atol=1e-4)                               # about the centre
-
-
-def test_decoder_warp_trains_and_changes_only_the_decoders_targets():
-    train, test = _two_views()
-    mcfg = model_config("card", num_points=600, decoder="unet")
-    fits = [fit_points(train, test, mcfg, _tiny_cfg(steps=6, decoder_warp=w), show_progress=False)[0]
-            for w in (0.0, 1.0)]
-    assert torch.isfinite(fits[1].features).all() and not torch.equal(fits[0].features, fits[1].features)
-    a = render_frame(fits[1], test.c2w[0], 32, 32, test.focal)["rgb"]
-    assert torch.isfinite(a).all() and torch.equal(a, render_frame(fits[1], test.c2w[0], 32, 32, test.focal)["rgb"])
