@@ -46,7 +46,8 @@ class IslandLayout:
     island id of each texel cell of chart c, -1 where unused; offset [I, 2] int and orient [I] int in 0..7 (None: 0):
     island i's chart texel coordinates t go to pixel (col, row) = ORIENT[orient[i]] @ t + offset[i] (a symmetry of
     the texel grid: turns by 90° and mirrors, exact on the grid).
-    Derived on construction: nearest [n, G, G, 2] (row, col) of each cell's nearest occupied cell, island_pixels
+    Derived on construction: nearest [n, G, G] int32 of each cell's nearest occupied cell as row * G + col
+    (`nearest_cells` gives (row, col)), island_pixels
     [size, size] bool, owner [size, size] chart of the nearest island pixel, region [size, size] bool (islands and
     their padding), label [size, size] the nearest island's id within pad + 1 (-1 beyond; texture kernels stay
     inside one island)."""
@@ -89,12 +90,12 @@ class IslandLayout:
         self.cells = self.cells.to(torch.int32)  # checked above; [n, G, G] per layout chart: half the memory of int64
         G = self.cells.shape[1]
         cells = self.cells.numpy()
-        nearest = np.zeros((n, G, G, 2), np.int32)
+        nearest = np.zeros((n, G, G), np.int32)  # one flat index per cell: half the memory of (row, col) pairs
         for c in range(n):
             occ = cells[c] >= 0
             if occ.any():
                 _, (ri, ci) = distance_transform_edt(~occ, return_indices=True)
-                nearest[c, ..., 0], nearest[c, ..., 1] = ri, ci
+                nearest[c] = ri * G + ci
         self.nearest = torch.from_numpy(nearest)
         # rasterise: cell (r, k) of island i covers pixel (r + oy, k + ox)
         island_chart = np.full(I, -1, np.int64)
@@ -168,6 +169,14 @@ class IslandLayout:
                 out[m] = self._place_chart(c, uv[m])
         return out
 
+    def nearest_cells(self, chart, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+        """The nearest occupied cell [M, 2] (row, col) of chart `chart` (an int, or [M] per cell) to cells (rows,
+        cols) [M] (long, inside the grid)."""
+        G = self.cells.shape[1]
+        chart = torch.as_tensor(chart, device=self.nearest.device)
+        flat = self.nearest[chart, rows.to(self.nearest.device), cols.to(self.nearest.device)].long()
+        return torch.stack([flat // G, flat % G], -1)
+
     def _place_chart(self, c: int, uv: torch.Tensor) -> torch.Tensor:
         """uv [M, 2] of chart c -> image coordinates [M, 2] in [0, 1], clamped into c's nearest island."""
         dev = uv.device
@@ -176,7 +185,7 @@ class IslandLayout:
         aff = self.affine[c].to(dev).to(uv.dtype)
         t = u @ aff[:, :2].T + aff[:, 2]
         k = t.floor().long().clamp(0, G - 1)
-        nb = self.nearest[c].to(dev)[k[:, 1], k[:, 0]]  # [M, 2] (row, col)
+        nb = self.nearest_cells(c, k[:, 1], k[:, 0]).to(dev)  # [M, 2] (row, col)
         lo = nb.flip(-1).to(uv.dtype) - CLAMP_MARGIN  # (col, row)
         t = torch.maximum(torch.minimum(t, lo + 1 + 2 * CLAMP_MARGIN), lo)
         isl = self.cells[c].to(dev)[nb[:, 0], nb[:, 1]].clamp_min(0)

@@ -95,7 +95,8 @@ def main(argv=None) -> int:
     cls = sample_classes(y, t, chart, spacing)
     G = atlas.layout.cells.shape[1]
     k = np.floor(t).astype(np.int64).clip(0, G - 1)
-    near = atlas.layout.nearest.numpy()[chart, k[:, 1], k[:, 0]]
+    near = atlas.layout.nearest_cells(torch.from_numpy(chart), torch.from_numpy(k[:, 1]),
+                                      torch.from_numpy(k[:, 0])).numpy()
     clamped = np.hypot(near[:, 0] - t[:, 1] + 0.5, near[:, 1] - t[:, 0] + 0.5) > 2.0
     total = max(float(err.sum()), 1e-30)
     out = {"model": str(args.model), "samples": int(len(S)), "spacing": spacing, "mse": float(err.mean())}

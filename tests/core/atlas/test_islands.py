@@ -480,3 +480,24 @@ def test_occupancy_on_the_points_bounding_box_equals_the_whole_grid():
         whole = _occupancy_full(np.clip(np.floor(t).astype(np.int64), 0, G - 1), (G, G), fill)
         assert np.array_equal(occupancy(t, G, fill), whole), trial
     assert not occupancy(np.zeros((0, 2)), 16).any()
+
+
+def test_nearest_cells_are_occupied_and_as_near_as_any_occupied_cell():
+    torch.manual_seed(1)
+    a = Atlas(2, 16, 2, torch.zeros(3), 1.0, width_chart=8, depth_chart=1, width_map=8, depth_map=1)
+    probs, uv = a.chart_uv(torch.rand(3000, 3) * 2 - 1)
+    layout = build_islands(probs, uv, np.array([50.0, 50.0]), pad=2)
+    G = layout.cells.shape[1]
+    assert layout.nearest.dtype == torch.int32 and layout.nearest.shape == (layout.n, G, G)
+    rows, cols = (g.reshape(-1) for g in torch.meshgrid(torch.arange(G), torch.arange(G), indexing="ij"))
+    for c in range(layout.n):
+        occ = torch.nonzero(layout.cells[c] >= 0)  # [K, 2]
+        if len(occ) == 0:
+            continue
+        nb = layout.nearest_cells(c, rows, cols)
+        assert bool((layout.cells[c][nb[:, 0], nb[:, 1]] >= 0).all())
+        here = torch.stack([rows, cols], -1).float()
+        best = torch.cdist(here, occ.float()).amin(1)
+        assert torch.allclose((nb.float() - here).norm(dim=-1), best)
+        per_cell = layout.nearest_cells(torch.full_like(rows, c), rows, cols)  # a chart per cell: the same
+        assert torch.equal(per_cell, nb)
