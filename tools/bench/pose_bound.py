@@ -102,9 +102,9 @@ def object_psnr(rgb, alpha, image, gt_alpha) -> float:
 
 
 def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f-fill-fold",),
-        footprints=(1.0,), base: bool = False, log=print) -> dict:
+        footprints=(1.0,), base_rows: bool = False, log=print) -> dict:
     """The figures (module doc) as a JSON-able dict: per pose ("rest" first), row name -> mean object PSNR.
-    base: also each renderer without the decoder's correction (models with a residual UNet decoder)."""
+    base_rows: also each renderer without the decoder's correction (models with a residual UNet decoder)."""
     import json
 
     import torch
@@ -117,12 +117,12 @@ def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f
 
     scene_dir = Path(scene_dir)
     spec = json.loads((scene_dir / "scene.json").read_text())
-    box, base = spec["bbox"], spec["texture"]["base"]
-    params = spec["texture"].get("params", {}).get(base)
+    box, base_texture = spec["bbox"], spec["texture"]["base"]
+    params = spec["texture"].get("params", {}).get(base_texture)
     bundle = load_bundle(model_path)
     footprint = float(bundle.model.train_footprint)
     plain = None  # the same model without the decoder's correction (--base)
-    if base and bundle.model.decoder is not None and bundle.model.cfg.decoder_residual:
+    if base_rows and bundle.model.decoder is not None and bundle.model.cfg.decoder_residual:
         plain = load_bundle(model_path)
         plain.model.decoder.reset_correction()
     for rd in renderers:
@@ -130,9 +130,9 @@ def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f
             raise SystemExit(f"--renderers: unknown renderer {rd!r}; choose from {', '.join(RENDERERS)}")
 
     def texture(x):
-        return evaluate(base, x, box["center"], box["half_size"], params)[0]
+        return evaluate(base_texture, x, box["center"], box["half_size"], params)[0]
 
-    result = {"model": str(model_path), "scene": spec.get("name"), "texture": base, "views": views,
+    result = {"model": str(model_path), "scene": spec.get("name"), "texture": base_texture, "views": views,
               "train_footprint": footprint, "machine": machine_info(), "poses": {}}
     can = bundle.model.xyz.detach().numpy()
     project = surface_projector(*rest_mesh(scene_dir))
@@ -200,7 +200,7 @@ def main(argv=None) -> int:
     if any(not (math.isfinite(v) and v >= 0) for v in footprints):
         raise SystemExit(f"--footprints: widths must be finite and >= 0, got {args.footprints!r}")
     res = run(args.model, args.scene, [p for p in args.poses.split(",") if p], args.views,
-              [r for r in args.renderers.split(",") if r], footprints, base=args.base)
+              [r for r in args.renderers.split(",") if r], footprints, base_rows=args.base)
     print(markdown(res))
     write_json(args.json, res)
     return 0
