@@ -55,3 +55,51 @@ def test_surface_projector_moves_points_to_the_nearest_point_of_the_mesh():
     assert y.dtype == x.dtype and y.shape == x.shape
     assert torch.allclose(y[:3], torch.tensor([[0.3, 0.6, 0.0], [0.5, 0.5, 0.0], [1.0, 0.5, 0.0]]), atol=1e-6)
     assert torch.isnan(y[3, 0])  # a non-finite point stays as it is
+
+
+def test_run_adds_the_decoder_free_rows_only_when_asked(tmp_path, monkeypatch):
+    """`run` with Blender, the model and the renderer stubbed: the rows it scores per pose (the scene's texture name
+    must not switch the decoder-free rows on)."""
+    import json
+    import types
+
+    import core.bundle
+    import core.edits.procedural
+    import core.frames.edited
+    import tools.bench.pose_bound as pb
+    import tools.eval_edits
+
+    (tmp_path / "scene.json").write_text(json.dumps({"name": "s", "bbox": {"center": [0, 0, 0], "half_size": 1.0},
+                                                     "texture": {"base": "flag"}}))
+    resets = []
+
+    class Decoder:
+        def reset_correction(self):
+            resets.append(1)
+
+    def load_bundle(path):
+        cfg = types.SimpleNamespace(decoder_residual=True)
+        return types.SimpleNamespace(model=types.SimpleNamespace(train_footprint=0.01, xyz=torch.zeros(4, 3),
+                                                                 decoder=Decoder(), cfg=cfg))
+
+    gt = types.SimpleNamespace(c2w=torch.eye(4)[None].repeat(2, 1, 1), height=4, width=4, focal=4.0,
+                               images=torch.full((2, 4, 4, 3), 0.5), alphas=torch.ones(2, 4, 4))
+    monkeypatch.setattr(core.bundle, "load_bundle", load_bundle)
+    monkeypatch.setattr(tools.eval_edits, "ground_truth", lambda *a, **k: gt)
+    monkeypatch.setattr(tools.eval_edits, "deform_points", lambda can, *a: can)
+    monkeypatch.setattr(tools.eval_edits, "view_subset_dir", lambda scene, views: scene)
+    monkeypatch.setattr(core.frames.edited, "EditState", lambda *a, **k: None)
+    monkeypatch.setattr(core.frames.edited, "render_edited",
+                        lambda *a, **k: {"rgb": torch.full((4, 4, 3), 0.4), "alpha": torch.ones(4, 4)})
+    monkeypatch.setattr(core.edits.procedural, "evaluate", lambda name, x, *a: (torch.zeros_like(x),))
+    monkeypatch.setattr(pb, "rest_mesh", lambda scene: (None, None))
+    monkeypatch.setattr(pb, "surface_projector", lambda verts, tris: (lambda x: x))
+    renderer = next(iter(tools.eval_edits.RENDERERS))
+    for base_rows in (False, True):
+        res = pb.run(tmp_path / "m.pgt", tmp_path, poses=("arm",), views=2, renderers=(renderer,),
+                     footprints=(1.0,), base_rows=base_rows, log=lambda *a: None)
+        rows = set(res["poses"]["arm"])
+        assert ({f"render {renderer}, base"} <= rows) == base_rows
+        assert {"perfect texture", "perfect texture on the surface", "texture at 1 px on the surface"} <= rows
+        assert res["texture"] == "flag"
+    assert len(resets) == 1  # the decoder's correction zeroed on the second (base) copy only
