@@ -427,10 +427,16 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
     meths = methods(tuple(temperatures), tuple(renderers), tuple(correspondences))
     canonical = bundle.model.xyz.detach().cpu().numpy()
     rows, blanks = [], []
+    def method_config(mt) -> EditConfig:
+        return EditConfig(correspondence=mt.correspondence if mt.correspondence != "-" else "deform-aware",
+                          blend=mt.blend, temperature=mt.temperature, antialias=antialias, **RENDERERS[mt.renderer])
+
     if len(plan) > 1:  # one-off work (compiling the deformation loops) must not land in the first pose's s/frame
-        cfgs = {(mt.renderer, mt.correspondence if mt.correspondence != "-" else "deform-aware") for mt in meths}
-        seconds = sum(warm_up(bundle, EditConfig(correspondence=c, antialias=antialias, **RENDERERS[r]))
-                      for r, c in sorted(cfgs))
+        cfgs = {}  # one per renderer and correspondence (blend and temperature change nothing one-off)
+        for mt in meths:
+            cfg = method_config(mt)
+            cfgs.setdefault((mt.renderer, cfg.correspondence), cfg)
+        seconds = sum(warm_up(bundle, cfg) for _, cfg in sorted(cfgs.items(), key=lambda kv: kv[0]))
         log(f"warm-up (tiny deformed frames of each renderer and correspondence, not timed below): {seconds:.1f} s")
     t_start = time.perf_counter()
     for k, (pose, mag) in enumerate(plan):
@@ -442,10 +448,7 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
         traces: dict = {}  # neighbours + attention per (view, temperature, renderer), shared by this pose's methods
         f_time: dict = {}  # one F fit per pose: its time is charged to every frame that uses F
         for mt in meths:
-            cfg = EditConfig(correspondence=mt.correspondence if mt.correspondence != "-" else "deform-aware",
-                             blend=mt.blend, temperature=mt.temperature, antialias=antialias,
-                             **RENDERERS[mt.renderer])
-            state = EditState(bundle, points=points, atlas=atlases[mt.edit], cfg=cfg)
+            state = EditState(bundle, points=points, atlas=atlases[mt.edit], cfg=method_config(mt))
             if "state" in f_time:  # reuse this pose's fit (same points): F and its measured time
                 state.share_deformation(f_time["state"])
             res = score_frames(state, gts[mt.edit], oracle=(retexture, spec) if mt.edit == "retexture" else None,
