@@ -48,8 +48,11 @@ def test_markdown_gives_the_gap_to_rest():
 def test_surface_projector_moves_points_to_the_nearest_point_of_the_mesh():
     import numpy as np
 
+    import bpy  # noqa: F401  (mathutils)
+    from mathutils.bvhtree import BVHTree
+
     verts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]])  # unit square at z = 0
-    project = surface_projector(verts, np.array([[0, 1, 2], [0, 2, 3]]))
+    project = surface_projector(BVHTree.FromPolygons([tuple(v) for v in verts], [(0, 1, 2), (0, 2, 3)]))
     x = torch.tensor([[0.3, 0.6, 0.25], [0.5, 0.5, -0.1], [2.0, 0.5, 0.3], [float("nan"), 0.0, 0.0]])
     y = project(x)
     assert y.dtype == x.dtype and y.shape == x.shape
@@ -66,6 +69,7 @@ def test_run_adds_the_decoder_free_rows_only_when_asked(tmp_path, monkeypatch):
     import core.bundle
     import core.edits.procedural
     import core.frames.edited
+    import tools.bench.colour_field_bound
     import tools.bench.pose_bound as pb
     import tools.eval_edits
 
@@ -92,8 +96,8 @@ def test_run_adds_the_decoder_free_rows_only_when_asked(tmp_path, monkeypatch):
     monkeypatch.setattr(core.frames.edited, "render_edited",
                         lambda *a, **k: {"rgb": torch.full((4, 4, 3), 0.4), "alpha": torch.ones(4, 4)})
     monkeypatch.setattr(core.edits.procedural, "evaluate", lambda name, x, *a: (torch.zeros_like(x),))
-    monkeypatch.setattr(pb, "rest_mesh", lambda scene: (None, None))
-    monkeypatch.setattr(pb, "surface_projector", lambda verts, tris: (lambda x: x))
+    monkeypatch.setattr(tools.bench.colour_field_bound, "rest_mesh_tree", lambda scene: None)
+    monkeypatch.setattr(pb, "surface_projector", lambda tree: (lambda x: x))
     renderer = next(iter(tools.eval_edits.RENDERERS))
     for base_rows in (False, True):
         res = pb.run(tmp_path / "m.pgt", tmp_path, poses=("arm",), views=2, renderers=(renderer,),

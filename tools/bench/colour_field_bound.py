@@ -37,18 +37,24 @@ from tools.bench import add_scene, parse, parser, write_json
 from tools.machine import machine_line
 
 
-def mesh_ray_caster(scene_dir: Path):
-    """cast(origins [R, 3], dirs [R, 3]) -> hits [R, 3] float64 (NaN = miss) against the scene's rest mesh."""
+def rest_mesh_tree(scene_dir: Path):
+    """A mathutils BVH tree of the scene's object at rest, in world space (opens its scene.blend)."""
     import bpy
-    from mathutils import Vector
     from mathutils.bvhtree import BVHTree
 
-    meta = json.loads((scene_dir / "scene.json").read_text())
-    bpy.ops.wm.open_mainfile(filepath=str(scene_dir / "scene.blend"))
+    meta = json.loads((Path(scene_dir) / "scene.json").read_text())
+    bpy.ops.wm.open_mainfile(filepath=str(Path(scene_dir) / "scene.blend"))
     obj = bpy.data.objects[meta["object"]]
     mw = obj.matrix_world
     verts = [mw @ v.co for v in obj.data.vertices]
-    tree = BVHTree.FromPolygons(verts, [tuple(p.vertices) for p in obj.data.polygons])
+    return BVHTree.FromPolygons(verts, [tuple(p.vertices) for p in obj.data.polygons])
+
+
+def mesh_ray_caster(scene_dir: Path):
+    """cast(origins [R, 3], dirs [R, 3]) -> hits [R, 3] float64 (NaN = miss) against the scene's rest mesh."""
+    from mathutils import Vector
+
+    tree = rest_mesh_tree(scene_dir)
 
     def cast(o: np.ndarray, d: np.ndarray) -> np.ndarray:
         out = np.full((len(o), 3), np.nan)

@@ -51,43 +51,20 @@ def lowpassed(fn, width: float, n: int = 4):
     return blurred
 
 
-def rest_mesh(scene_dir) -> tuple:
-    """The scene's object at rest (Blender): vertices [V, 3] in world space and triangles [T, 3] (vertex ids)."""
-    import bpy
-    import numpy as np
-
-    from tools.scenes.render import quiet_stdout
-    from tools.scenes.spec import load_scene_spec
-
-    spec = load_scene_spec(scene_dir)
-    with quiet_stdout():
-        bpy.ops.wm.open_mainfile(filepath=str(Path(scene_dir) / "scene.blend"))
-    obj = bpy.data.objects[spec["object"]]
-    me = obj.data
-    me.calc_loop_triangles()
-    mw = np.array(obj.matrix_world)
-    verts = np.array([v.co[:] for v in me.vertices], dtype=np.float64).reshape(-1, 3) @ mw[:3, :3].T + mw[:3, 3]
-    tris = np.array([t.vertices[:] for t in me.loop_triangles], dtype=np.int64).reshape(-1, 3)
-    return verts, tris
-
-
-def surface_projector(verts, tris):
-    """x [M, 3] (torch) -> the nearest point of the triangle mesh (verts [V, 3], tris [T, 3]) to each, [M, 3] in x's
-    dtype (non-finite points stay as they are)."""
+def surface_projector(tree):
+    """x [M, 3] (torch) -> the nearest point to each of the mesh in `tree` (a mathutils BVH tree, e.g.
+    `colour_field_bound.rest_mesh_tree`), [M, 3] in x's dtype (non-finite points stay as they are)."""
     import bpy  # noqa: F401  (Blender's mathutils comes with bpy)
     import numpy as np
     import torch
     from mathutils import Vector
-    from mathutils.bvhtree import BVHTree
-
-    bvh = BVHTree.FromPolygons([tuple(map(float, v)) for v in verts], [tuple(map(int, t)) for t in tris])
 
     def project(x):
         xs = x.detach().cpu().double().numpy()
         out = xs.copy()
         for i, p in enumerate(xs):
             if np.isfinite(p).all():
-                loc = bvh.find_nearest(Vector(p))[0]
+                loc = tree.find_nearest(Vector(p))[0]
                 if loc is not None:
                     out[i] = loc[:]
         return torch.from_numpy(out).to(device=x.device, dtype=x.dtype)
@@ -112,6 +89,7 @@ def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f
     from core.bundle import load_bundle
     from core.edits.procedural import evaluate
     from core.frames.edited import EditConfig, EditState, render_edited
+    from tools.bench.colour_field_bound import rest_mesh_tree
     from tools.eval_edits import RENDERERS, deform_points, ground_truth, view_subset_dir
     from tools.machine import machine_info
 
@@ -135,7 +113,7 @@ def run(model_path, scene_dir, poses=("stretch",), views: int = 2, renderers=("f
     result = {"model": str(model_path), "scene": spec.get("name"), "texture": base_texture, "views": views,
               "train_footprint": footprint, "machine": machine_info(), "poses": {}}
     can = bundle.model.xyz.detach().numpy()
-    project = surface_projector(*rest_mesh(scene_dir))
+    project = surface_projector(rest_mesh_tree(scene_dir))
     for pose in ["rest", *[p for p in poses if p != "rest"]]:
         gt = ground_truth(view_subset_dir(scene_dir, views), pose, 1.0, None, log=log)
         points = None if pose == "rest" else torch.from_numpy(deform_points(can, scene_dir, pose, 1.0))
