@@ -245,12 +245,9 @@ def deform_points(points: np.ndarray, scene_dir: Path, pose: str, magnitude: flo
     import bpy
 
     from tools.scenes.poses import apply_pose
-    from tools.scenes.spec import load_scene_spec
-    from tools.scenes.render import quiet_stdout
+    from tools.scenes.render import open_scene
 
-    spec = load_scene_spec(scene_dir)
-    with quiet_stdout():
-        bpy.ops.wm.open_mainfile(filepath=str(scene_dir / "scene.blend"))
+    spec, _ = open_scene(scene_dir)
     pts = np.ascontiguousarray(points, dtype=np.float32).reshape(-1, 3)
     me = bpy.data.meshes.new("pointgt_eval_points")
     me.vertices.add(len(pts))

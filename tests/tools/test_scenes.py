@@ -2,6 +2,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -202,3 +203,42 @@ def test_library_scenes_build_centred_textured_and_posable(tmp_path):
         assert abs(r["radius"] - 0.95) < 1e-4 and r["centre"] < 1e-6, (name, r)
         assert r["finite"] and r["colour_std"] > 0.01, (name, r)
         assert r["poses"] == sorted(["rest", "bend", "twist", "squash", "stretch", "arm"]), name
+
+
+OPEN_SCENE = r'''
+import json, sys
+import bpy  # noqa: F401 (mathutils comes with it)
+import numpy as np
+from mathutils import Vector
+from tools.scenes.render import open_scene, world_vertices
+from tools.bench.colour_field_bound import rest_mesh_tree
+
+scene = sys.argv[1]
+spec, obj = open_scene(scene)
+rest = world_vertices(obj)
+c, h = np.array(spec["bbox"]["center"]), np.array(spec["bbox"]["half_size"])
+out = {"object": obj.name, "verts": len(obj.data.vertices), "shape": list(rest.shape),
+       "lo": (rest.min(0) - (c - h)).tolist(), "hi": ((c + h) - rest.max(0)).tolist(),
+       "finite": bool(np.isfinite(rest).all())}
+tree = rest_mesh_tree(scene)  # opens the file again
+far = c + np.array([0.0, 0.0, 10.0 * h.max() + 1.0])
+hit = tree.ray_cast(Vector(far), Vector((0.0, 0.0, -1.0)))[0]
+print(json.dumps({**out, "hit": None if hit is None else list(hit)}))
+'''
+
+
+@pytest.mark.blender
+def test_open_scene_gives_the_object_and_its_world_vertices(scene_dir, tmp_path):
+    """tools.scenes.render.open_scene opens scene.blend and names the scene's object; world_vertices lie in the
+    scene's bounding box; the benches' rest-mesh BVH (built from them) is hit by a ray down through the centre."""
+    script = tmp_path / "open.py"
+    script.write_text(OPEN_SCENE)
+    res = subprocess.run([sys.executable, str(script), str(scene_dir)], capture_output=True, text=True, timeout=120,
+                         cwd=str(Path(__file__).resolve().parents[2]))
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    spec = json.loads((scene_dir / "scene.json").read_text())
+    assert out["object"] == spec["object"]
+    assert out["shape"] == [out["verts"], 3] and out["verts"] > 3 and out["finite"]
+    assert min(out["lo"]) > -1e-4 and min(out["hi"]) > -1e-4, out  # inside the box it states
+    assert out["hit"] is not None

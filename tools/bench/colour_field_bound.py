@@ -24,7 +24,6 @@ truth ∪ rendered foreground like everywhere else.
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 from dataclasses import replace
@@ -39,14 +38,12 @@ from tools.machine import machine_line
 
 def rest_mesh_tree(scene_dir: Path):
     """A mathutils BVH tree of the scene's object at rest, in world space (opens its scene.blend)."""
-    import bpy
     from mathutils.bvhtree import BVHTree
 
-    meta = json.loads((Path(scene_dir) / "scene.json").read_text())
-    bpy.ops.wm.open_mainfile(filepath=str(Path(scene_dir) / "scene.blend"))
-    obj = bpy.data.objects[meta["object"]]
-    mw = obj.matrix_world
-    verts = [mw @ v.co for v in obj.data.vertices]
+    from tools.scenes.render import open_scene, world_vertices
+
+    _, obj = open_scene(scene_dir)
+    verts = [tuple(v) for v in world_vertices(obj)]
     return BVHTree.FromPolygons(verts, [tuple(p.vertices) for p in obj.data.polygons])
 
 

@@ -35,8 +35,7 @@ def render_test_views(scene_dir: Path, samples: int, seed: int, out: Path) -> fl
 
     frames = json.loads((scene_dir / "transforms_test.json").read_text())
     c2ws = np.asarray([f["transform_matrix"] for f in frames["frames"]], dtype=np.float64)
-    with render.quiet_stdout():
-        bpy.ops.wm.open_mainfile(filepath=str(scene_dir / "scene.blend"))
+    render.open_scene(scene_dir)
     scene = bpy.context.scene
     scene.cycles.samples = int(samples)
     scene.cycles.seed = int(seed)

@@ -111,15 +111,10 @@ def true_surface(scene_dir: Path, pose: str, magnitude: float, c2w: np.ndarray, 
 
     from core.images.cameras import pixel_rays
     from tools.scenes.poses import apply_pose
-    from tools.scenes.spec import load_scene_spec
-    from tools.scenes.render import quiet_stdout
+    from tools.scenes.render import open_scene, world_vertices
 
-    spec = load_scene_spec(scene_dir)
-    with quiet_stdout():
-        bpy.ops.wm.open_mainfile(filepath=str(scene_dir / "scene.blend"))
-    obj = bpy.data.objects[spec["object"]]
-    mw = np.array(obj.matrix_world)
-    rest = np.array([v.co[:] for v in obj.data.vertices]) @ mw[:3, :3].T + mw[:3, 3]
+    spec, obj = open_scene(scene_dir)
+    rest = world_vertices(obj)
     if pose != "rest":
         apply_pose(obj, spec, pose, magnitude)
         mod = obj.modifiers[f"pgt_{pose}"]
@@ -128,7 +123,7 @@ def true_surface(scene_dir: Path, pose: str, magnitude: float, c2w: np.ndarray, 
     deps.update()
     me = obj.evaluated_get(deps).to_mesh()
     me.calc_loop_triangles()
-    posed = np.array([v.co[:] for v in me.vertices]) @ mw[:3, :3].T + mw[:3, 3]
+    posed = world_vertices(obj, me)
     tris = np.array([t.vertices[:] for t in me.loop_triangles])
     bvh = BVHTree.FromPolygons([tuple(p) for p in posed], [tuple(t) for t in tris])
     hits, depths, cans = [], [], []

@@ -89,6 +89,27 @@ def quiet_stdout():
         os.close(devnull)
 
 
+def open_scene(scene_dir):
+    """Opens a scene made by `pointgt make-scene` (its scene.blend, quietly) in place of Blender's current file.
+    Returns (spec, obj): its checked scene.json and the scene's object (the true mesh, at rest)."""
+    from tools.scenes.spec import load_scene_spec
+
+    spec = load_scene_spec(scene_dir)
+    with quiet_stdout():
+        bpy.ops.wm.open_mainfile(filepath=str(Path(scene_dir) / "scene.blend"))
+    return spec, bpy.data.objects[spec["object"]]
+
+
+def world_vertices(obj, mesh=None) -> np.ndarray:
+    """The vertices of `mesh` (default: the object's own mesh, at rest) in world space through the object's
+    matrix -> [V, 3] float64."""
+    me = obj.data if mesh is None else mesh
+    co = np.empty(len(me.vertices) * 3, dtype=np.float32)
+    me.vertices.foreach_get("co", co)
+    mw = np.array(obj.matrix_world, dtype=np.float64)
+    return co.reshape(-1, 3).astype(np.float64) @ mw[:3, :3].T + mw[:3, 3]
+
+
 def render_views(scene, camera, c2ws: np.ndarray, out_dir: Path, split: str, log=print) -> list[dict]:
     """Render one PNG per camera-to-world matrix [V, 4, 4] into out_dir/split/r_<i>.png.
 
