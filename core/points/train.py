@@ -27,6 +27,7 @@ from core.images.cameras import rays_for_pixels, scaled_focal
 from core.points.init import visual_hull_points
 from core.points.key_mlp import KEY_PATHS
 from core.points.ema import ParamEMA
+from core.points.floaters import floater_mask
 from core.points.model import ModelConfig, PointModel, mean_spacing
 from core.points.regularizers import close_to_ray, close_to_surface
 from core.points.neighbors.select import select_neighbors
@@ -104,6 +105,13 @@ class TrainConfig:
     clone_every: int = opt(1000, "clone the points with the largest position gradient every N steps (0 = never)", min=0)
     clone_frac: float = opt(0.1, "fraction of points cloned each time", min=0.0, max=1.0)
     max_points: int = opt(12000, "densification stops at this many points", min=1, max=10_000_000)
+    keep_floaters: bool = opt(False, "keep the fit's floaters: by default the fit ends by removing groups of "
+                                     "fewer than --floater-size points farther than --floater-radius spacings from "
+                                     "every other point (core/points/floaters.py: specks a new view shows over the "
+                                     "background)")
+    floater_size: int = opt(20, "floaters: groups of fewer points than this", min=2, max=100_000)
+    floater_radius: float = opt(3.0, "floaters: the gap, in point spacings (the median nearest-point distance), "
+                                     "that separates a group from the rest", above=0.0, max=1e6)
     zoom_frac: float = opt(0.0, "fraction of steps that render their patches on a finer pixel grid (zoom x zoom "
                                 "sub-pixel rays per pixel, searched and decoded like a frame at zoom x the size) "
                                 "and average them down to the training pixels, so the model is fitted between "
@@ -857,7 +865,13 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     if ema is not None:  # the trained parameters' scores, then the model becomes their average
         raw = evaluate(model, test, eval_ids, background)
         ema.swap(model)
-        model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
+    floaters = 0
+    if not cfg.keep_floaters:
+        drop = floater_mask(model.xyz.detach(), cfg.floater_size, cfg.floater_radius)
+        floaters = int(drop.sum())
+        if floaters:
+            resize_points(model, opt, torch.nonzero(~drop).squeeze(1))
+    model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
     model.decoder_footprint.fill_(training_footprint(coarse.c2w, coarse.focal, model.xyz.detach()))
     # which decode the render mode `auto` uses inside the object beyond the training size (measured, not guessed)
     gain = interior_gain(model, fine, background=background) if len(levels) > 1 else float("nan")
@@ -865,7 +879,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     scores = evaluate(model, test, eval_ids, background)
     reason = collapse_reason(scores, guard.floor, cfg.guard_margin)
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,
-                    "interior_gain": gain if math.isfinite(gain) else None,
+                    "floaters_removed": floaters, "interior_gain": gain if math.isfinite(gain) else None,
                     "guard": {**guard.summary(), "collapsed": reason}})
     if raw is not None:  # the scores above are the average's (what is returned); these the trained parameters'
         history[-1]["raw"] = raw
