@@ -109,6 +109,8 @@ class TrainConfig:
                                      "fewer than --floater-size points farther than --floater-radius spacings from "
                                      "every other point (core/points/floaters.py: specks a new view shows over the "
                                      "background)")
+    floaters_while_pruning: bool = opt(False, "remove floaters at every pruning step too (--prune-every), not only "
+                                              "at the end")
     floater_size: int = opt(20, "floaters: groups of fewer points than this", min=2, max=100_000)
     floater_radius: float = opt(3.0, "floaters: the gap, in point spacings (the median nearest-point distance), "
                                      "that separates a group from the rest", above=0.0, max=1e6)
@@ -839,7 +841,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             # Densification between 10 % and 70 % of training, when geometry is coarse-right but still moving.
             if 0.1 <= frac <= 0.7:
                 if cfg.prune_every and step % cfg.prune_every == 0:
-                    keep = torch.nonzero(dens.prune_mask()).squeeze(1)
+                    kept = dens.prune_mask()
+                    if cfg.floaters_while_pruning and not cfg.keep_floaters:
+                        kept &= ~floater_mask(model.xyz.detach(), cfg.floater_size, cfg.floater_radius)
+                    keep = torch.nonzero(kept).squeeze(1)
                     if keep.numel() >= model_cfg.k and keep.numel() < model.num_points:
                         resize_points(model, opt, keep, ema=ema)
                         dens.reset(model.num_points, dev)
