@@ -105,12 +105,13 @@ class TrainConfig:
     clone_every: int = opt(1000, "clone the points with the largest position gradient every N steps (0 = never)", min=0)
     clone_frac: float = opt(0.1, "fraction of points cloned each time", min=0.0, max=1.0)
     max_points: int = opt(12000, "densification stops at this many points", min=1, max=10_000_000)
-    keep_floaters: bool = opt(False, "keep the fit's floaters: by default the fit ends by removing groups of "
-                                     "fewer than --floater-size points farther than --floater-radius spacings from "
-                                     "every other point (core/points/floaters.py: specks a new view shows over the "
-                                     "background)")
-    floaters_while_pruning: bool = opt(False, "remove floaters at every pruning step too (--prune-every), not only "
-                                              "at the end")
+    keep_floaters: bool = opt(False, "keep the fit's floaters: by default each pruning step and the fit's end "
+                                     "remove groups of fewer than --floater-size points farther than "
+                                     "--floater-radius spacings from every other point (core/points/floaters.py: "
+                                     "specks a new view shows over the background)")
+    floaters_while_pruning: bool = opt(True, "remove floaters at every pruning step too (--prune-every), so the "
+                                             "fit trains on without them; --no-floaters-while-pruning: at the end "
+                                             "only")
     floater_size: int = opt(20, "floaters: groups of fewer points than this", min=2, max=100_000)
     floater_radius: float = opt(3.0, "floaters: the gap, in point spacings (the median nearest-point distance), "
                                      "that separates a group from the rest", above=0.0, max=1e6)

@@ -181,7 +181,8 @@ def run(args) -> int:
               f"(object {all_views['psnr_object']:.2f} dB, SSIM {all_views['ssim']:.3f}) on all {all_views['views']} "
               f"test views ({final['psnr']:.2f} / {final['psnr_object']:.2f} dB on the curve's "
               f"{train_cfg.eval_views}), {model.num_points} points"
-              + (f" ({final['floaters_removed']} floaters removed)" if final.get("floaters_removed") else "")
+              + (f" ({final['floaters_removed']} floater{'s' * (final['floaters_removed'] > 1)} removed)"
+                 if final.get("floaters_removed") else "")
               + f" -> {out}")
         print(f"[fit] PSNR-vs-time log {hist_path} and plot {out.with_suffix('.curve.png')}")
         for e in guard.get("events", []):

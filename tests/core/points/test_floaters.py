@@ -104,3 +104,27 @@ def test_the_fit_removes_its_floaters_unless_told_to_keep_them(monkeypatch):
     assert model.features.shape[0] == model.influence.shape[0] == model.num_points
     kept, hist = fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=3, keep_floaters=True), show_progress=False)
     assert kept.num_points == n and hist[-1]["floaters_removed"] == 0
+
+
+def test_pruning_steps_remove_floaters_too(monkeypatch):
+    """floaters_while_pruning (the default): every pruning step (10-70 % of training) drops the floaters, then the end does."""
+    train, test = _two_views()
+    hull = train_mod.visual_hull_points
+    far = torch.tensor([[9.0, 9.0, 9.0], [9.01, 9.0, 9.0], [9.0, 9.01, 9.0]])
+    monkeypatch.setattr(train_mod, "visual_hull_points", lambda *a, **kw: torch.cat([hull(*a, **kw), far]))
+    calls = []
+
+    def spy(xyz, *a):
+        mask = floater_mask(xyz, *a)
+        calls.append((xyz.shape[0], int(mask.sum()), bool((xyz - far[0]).norm(dim=1).lt(1.0).any())))
+        return mask
+    monkeypatch.setattr(train_mod, "floater_mask", spy)
+    cfg = _tiny_cfg(steps=30, prune_every=10, floaters_while_pruning=True)
+    model, hist = fit_points(train, test, TINY_MODEL, cfg, show_progress=False)
+    assert len(calls) == 3  # the pruning steps at steps 10 and 20, then the end
+    assert calls[0][2] and calls[0][1] >= 3  # the first pruning step saw the speck and dropped it
+    assert not calls[1][2] and not calls[2][2]
+    calls.clear()
+    fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=30, prune_every=10, floaters_while_pruning=False),
+               show_progress=False)
+    assert len(calls) == 1  # --no-floaters-while-pruning: the end only
