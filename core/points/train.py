@@ -772,6 +772,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
         return loss, idx, att
 
     max_steps = step_cap(cfg)  # inf: a time budget alone, the minutes decide
+    floaters = 0  # points removed as floaters (core/points/floaters.py), at the pruning steps and the end
     with Progress(1000 if by_time else int(max_steps), "fit", callback=progress_callback,
                   enabled=show_progress) as bar:
         while step < max_steps and train_s < budget_s:
@@ -797,6 +798,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                     model_cfg, model, opt, base_lrs, dens, ema = restart(model_cfg, reason)
                     step0, sec0 = step, train_s
                     frac = 0.0
+                    floaters = 0  # the new model's
             t0 = time.perf_counter()
             if torch.get_num_threads() != op_threads:
                 torch.set_num_threads(op_threads)
@@ -831,6 +833,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                         model_cfg, f"{guard.bad_steps} steps in a row had a non-finite loss or gradient")
                     step0, sec0 = step, train_s
                     guard.bad_steps = 0
+                    floaters = 0  # the new model's
                 step += 1
                 train_s += time.perf_counter() - t0
                 continue
@@ -843,12 +846,15 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
             if 0.1 <= frac <= 0.7:
                 if cfg.prune_every and step % cfg.prune_every == 0:
                     kept = dens.prune_mask()
+                    specks = torch.zeros_like(kept)
                     if cfg.floaters_while_pruning and not cfg.keep_floaters:
-                        kept &= ~floater_mask(model.xyz.detach(), cfg.floater_size, cfg.floater_radius)
+                        specks = floater_mask(model.xyz.detach(), cfg.floater_size, cfg.floater_radius)
+                        kept &= ~specks
                     keep = torch.nonzero(kept).squeeze(1)
                     if keep.numel() >= model_cfg.k and keep.numel() < model.num_points:
                         resize_points(model, opt, keep, ema=ema)
                         dens.reset(model.num_points, dev)
+                        floaters += int(specks.sum())
                 if cfg.clone_every and step % cfg.clone_every == 0 and model.num_points < cfg.max_points:
                     src = dens.clone_indices(cfg.clone_frac, cfg.max_points - model.num_points)
                     if src.numel():
@@ -871,11 +877,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     if ema is not None:  # the trained parameters' scores, then the model becomes their average
         raw = evaluate(model, test, eval_ids, background)
         ema.swap(model)
-    floaters = 0
     if not cfg.keep_floaters:
         drop = floater_mask(model.xyz.detach(), cfg.floater_size, cfg.floater_radius)
-        floaters = int(drop.sum())
-        if floaters:
+        if bool(drop.any()):
+            floaters += int(drop.sum())
             resize_points(model, opt, torch.nonzero(~drop).squeeze(1))
     model.train_footprint.fill_(training_footprint(fine.c2w, fine.focal, model.xyz.detach()))
     model.decoder_footprint.fill_(training_footprint(coarse.c2w, coarse.focal, model.xyz.detach()))

@@ -124,6 +124,7 @@ def test_pruning_steps_remove_floaters_too(monkeypatch):
     assert len(calls) == 3  # the pruning steps at steps 10 and 20, then the end
     assert calls[0][2] and calls[0][1] >= 3  # the first pruning step saw the speck and dropped it
     assert not calls[1][2] and not calls[2][2]
+    assert hist[-1]["floaters_removed"] == sum(c[1] for c in calls)  # the pruning steps' and the end's
     calls.clear()
     fit_points(train, test, TINY_MODEL, _tiny_cfg(steps=30, prune_every=10, floaters_while_pruning=False),
                show_progress=False)
