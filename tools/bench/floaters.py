@@ -65,7 +65,8 @@ def markdown(rows: list[dict]) -> str:
         cells = [scene, f"{fit['psnr']:.2f} / {fit['psnr_object']:.2f}"]
         for s, rad in settings:
             r = next(x for x in rs if (x["size"], x["radius"]) == (s, rad))
-            cells.append(f"{r['removed']}, {r['psnr'] - fit['psnr']:+.2f} / {r['psnr_object'] - fit['psnr_object']:+.2f}")
+            d, d_obj = r["psnr"] - fit["psnr"], r["psnr_object"] - fit["psnr_object"]
+            cells.append(f"{r['removed']}, {d:+.2f} / {d_obj:+.2f}")
         out.append("| " + " | ".join(cells) + " |")
     return "\n".join(out)
 

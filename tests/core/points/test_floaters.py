@@ -107,7 +107,8 @@ def test_the_fit_removes_its_floaters_unless_told_to_keep_them(monkeypatch):
 
 
 def test_pruning_steps_remove_floaters_too(monkeypatch):
-    """floaters_while_pruning (the default): every pruning step (10-70 % of training) drops the floaters, then the end does."""
+    """floaters_while_pruning (the default): every pruning step (10-70 % of training) drops the floaters, then the
+    end does."""
     train, test = _two_views()
     hull = train_mod.visual_hull_points
     far = torch.tensor([[9.0, 9.0, 9.0], [9.01, 9.0, 9.0], [9.0, 9.01, 9.0]])
