@@ -471,21 +471,24 @@ def build_optimizer(model: PointModel, cfg: TrainConfig) -> torch.optim.Adam:
     return torch.optim.Adam(groups, weight_decay=0.0, decoupled_weight_decay=True)
 
 
-def resize_points(model: PointModel, opt: torch.optim.Adam, src: torch.Tensor, jitter: torch.Tensor | None = None,
-                  ema: ParamEMA | None = None):
+def resize_points(model: PointModel, opt: torch.optim.Adam | None, src: torch.Tensor,
+                  jitter: torch.Tensor | None = None, ema: ParamEMA | None = None):
     """Replace the point parameters by model.<param>[src] (src [N'] int64; + jitter [N', 3] on xyz), carrying Adam
-    state and the parameters' moving average (`ema`, when given) along.
+    state (`opt`; None: a model that is not being trained) and the parameters' moving average (`ema`, when given)
+    along.
 
     New Parameter objects are created (changing .data's shape in place confuses autograd)."""
-    groups = {g["name"]: g for g in opt.param_groups}
+    groups = {g["name"]: g for g in opt.param_groups} if opt is not None else {}
     for name in _POINT_PARAMS:
         old = getattr(model, name)
         data = old.detach()[src].clone()
         if name == "xyz" and jitter is not None:
             data += jitter
         new = torch.nn.Parameter(data)
-        state = opt.state.pop(old, None)
         setattr(model, name, new)
+        if opt is None:
+            continue
+        state = opt.state.pop(old, None)
         groups[name]["params"] = [new]
         if state:
             opt.state[new] = {k: (v[src].clone() if torch.is_tensor(v) and v.dim() > 0 else v)

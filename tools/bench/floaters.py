@@ -21,28 +21,27 @@ from tools.bench import parse, parser, write_json
 def floater_rows(model_path: Path, data: Path, sizes, radii, views: int = 0, log=print) -> list[dict]:
     """Rows {scene, size, radius, removed, points, psnr, psnr_object, seconds} for the model as fitted (size 0)
     and each (size, radius) setting; views: the first that many test views (0 = all)."""
+    import copy
+
     import torch
 
     from core.bundle import load_bundle
     from core.images.dataset import load_split
     from core.points.floaters import floater_mask
-    from core.points.train import evaluate
+    from core.points.train import evaluate, resize_points
 
     test = load_split(data, "test")
     ids = list(range(test.c2w.shape[0]))[: views or None]
-    bundle = load_bundle(model_path)
-    model = bundle.model
-    xyz = model.xyz.detach().clone()
-    keep_all = {n: getattr(model, n).detach().clone() for n in ("xyz", "features", "influence")}
+    fitted = load_bundle(model_path).model
+    xyz = fitted.xyz.detach()
     rows = []
     settings = [(0, 0.0)] + [(s, r) for s in sizes for r in radii]
     for size, radius in settings:
         t0 = time.perf_counter()
         mask = floater_mask(xyz, size, radius) if size else torch.zeros(xyz.shape[0], dtype=torch.bool)
         seconds = time.perf_counter() - t0
-        with torch.no_grad():
-            for n, v in keep_all.items():
-                setattr(model, n, torch.nn.Parameter(v[~mask].clone()))
+        model = copy.deepcopy(fitted)
+        resize_points(model, None, torch.nonzero(~mask).squeeze(1))
         sc = evaluate(model, test, ids, (1.0, 1.0, 1.0))
         row = {"scene": data.name, "size": size, "radius": radius, "removed": int(mask.sum()),
                "points": int(xyz.shape[0]), "psnr": sc["psnr"], "psnr_object": sc["psnr_object"],
