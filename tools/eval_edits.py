@@ -270,14 +270,16 @@ def deform_points(points: np.ndarray, scene_dir: Path, pose: str, magnitude: flo
 
 # --- ours ------------------------------------------------------------------------------------------------------
 
-def edited_atlases(bundle, spec: dict, retexture: str) -> dict:
-    """Packed atlas images [H, W, 3] per edit: the retexture baked everywhere, the decal over the fitted atlas."""
+def edited_atlases(bundle, spec: dict, retexture: str, source: str = "auto") -> dict:
+    """Packed atlas images [H, W, 3] per edit: the retexture baked everywhere, the decal over the fitted atlas
+    (source: the bake's, core.edits.bake.bake)."""
     if bundle.atlas is None:
         raise InputError("this model has no atlas; run `pointgt atlas MODEL.pgt DATA` first")
     c, h = spec["bbox"]["center"], spec["bbox"]["half_size"]
     params = spec["texture"]["params"]
-    retex = bake(bundle.atlas, lambda p: (evaluate(retexture, p, c, h, params.get(retexture))[0], None))
-    decal = bake(bundle.atlas, lambda p: evaluate("decal", p, c, h, params.get("decal")))
+    retex = bake(bundle.atlas, lambda p: (evaluate(retexture, p, c, h, params.get(retexture))[0], None),
+                 source=source)
+    decal = bake(bundle.atlas, lambda p: evaluate("decal", p, c, h, params.get("decal")), source=source)
     return {"geometry": None, "retexture": retex, "decal": decal}
 
 

@@ -1,7 +1,13 @@
 """Bake any 3-D colour function into the atlas (retextures, decals).
 
-Texels with a surface point (the texel map) get a colour from fn; unused texels inside a chart are then filled
-from their nearest baked texel (so bilinear lookups at the edge of the used region do not pull in stale colours).
+By default (`source` "fit") the texels are fitted so that every stored surface sample reads fn at itself: the
+least-squares change of the image whose bilinear lookups at the samples' own chart coordinates give fn there
+(`core.atlas.sample_lookup.fit_texels`); frames that look up through the samples (EditConfig `lookup` samples)
+then return fn of the surface next to each point, with edges as sharp as the samples are dense.
+
+The splat sources: texels with a surface point (the texel map) get a colour from fn; unused texels inside a chart
+are then filled from their nearest baked texel (so bilinear lookups at the edge of the used region do not pull in
+stale colours).
 
 Where the atlas keeps its surface samples (models fitted since they are stored), fn is evaluated at the samples
 and splatted into the texels with the texture's own kernel — a texel gets the mean of fn over the surface points
@@ -16,8 +22,11 @@ from typing import Callable
 import torch
 
 from core.atlas.packing import dilate_unused, pack, unpack
+from core.atlas.sample_lookup import fit_texels, sample_lookup
 from core.atlas.texture import kernel_texture
 from core.util.errors import InputError
+
+SOURCES = ("auto", "fit", "samples", "points")
 
 
 @torch.no_grad()
@@ -28,16 +37,19 @@ def bake(atlas, fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor | 
     fn(points [M, 3]) -> (rgb [M, 3], mask [M] or None): colour at canonical surface points and where it applies
     (None = everywhere, a global retexture; a mask composites a local decal over `base_image`).
     base_image: [H, W, 3] to paint over (default: the fitted atlas).
-    source: "samples" (fn splatted from the stored surface samples), "points" (fn at each texel's point) or
-    "auto" (samples when the atlas has them).
+    source: "fit" (texels fitted to fn at the stored surface samples, module doc), "samples" (fn splatted from
+    the stored surface samples), "points" (fn at each texel's point) or "auto" (fit when the atlas has samples,
+    else points).
     """
-    if source not in ("auto", "samples", "points"):
-        raise InputError(f"bake source must be 'auto', 'samples' or 'points', got {source!r}")
+    if source not in SOURCES:
+        raise InputError(f"bake source must be one of {', '.join(SOURCES)}, got {source!r}")
     have_samples = atlas.bake_samples is not None and atlas.bake_samples.shape[0] > 0
-    if source == "samples" and not have_samples:
+    if source in ("samples", "fit") and not have_samples:
         raise InputError("this atlas keeps no surface samples (an older model file); `pointgt atlas MODEL DATA "
                          "--texel-map-only` stores them")
     base = atlas.packed_image() if base_image is None else torch.as_tensor(base_image).float().to(atlas.device)
+    if source == "fit" or (source == "auto" and have_samples):
+        return _fit_bake(atlas, fn, base)
     texels = atlas.texel_points().to(base.device)
     valid = torch.isfinite(texels).all(-1)                                  # [H, W]
     out = base.clone()
@@ -60,6 +72,19 @@ def bake(atlas, fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor | 
     changed[valid] = (m > 0).to(out.dtype)[:, None].expand(-1, 3)
     changed = pack(dilate_unused(unpack(changed, atlas.layout), used), atlas.layout)[..., 0] > 0.5
     return torch.where(changed[..., None], filled, base)
+
+
+def _fit_bake(atlas, fn, base: torch.Tensor) -> torch.Tensor:
+    """source "fit": the samples' targets (fn composited over what they read of base by fn's mask), then the
+    texels fitted to them."""
+    lk = sample_lookup(atlas)
+    rgb, mask = fn(lk.samples.to(atlas.device))
+    rgb = torch.nan_to_num(rgb.float().to(base.device), nan=0.5).clamp(0, 1)
+    target = rgb
+    if mask is not None:
+        m = torch.nan_to_num(mask.float().to(base.device), nan=0.0).clamp(0, 1)[:, None]
+        target = m * rgb + (1 - m) * lk.read(unpack(base, atlas.layout)).to(base.dtype)
+    return fit_texels(atlas, base, target)
 
 
 @torch.no_grad()

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from core.atlas.packing import blend_charts, unpack
+from core.atlas.sample_lookup import sample_lookup
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
@@ -44,6 +45,7 @@ FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
 RADIUS_RULES = ("gap", "budget", "frame")
 RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
+LOOKUPS = ("samples", "charts")
 
 
 @dataclass
@@ -142,6 +144,11 @@ class EditConfig:
     attention: str = opt("auto", "attention kernel: auto (compiled on a CPU when numba is installed, else torch) "
                                  "| torch | compiled (the same numbers to float rounding)",
                          choices=("auto", "torch", "compiled"))
+    lookup: str = opt("samples", "how a canonical point reads the atlas: samples (the texels its nearest stored "
+                                 "surface samples read, where the bake wrote them: docs/atlas.md, 'Lookups through "
+                                 "the samples') | charts (the chart networks' coordinates at the point itself; "
+                                 "models without stored samples always use these)", choices=LOOKUPS)
+    lookup_k: int = opt(4, "lookup samples: how many nearest samples a point blends", min=1, max=64)
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
@@ -245,6 +252,7 @@ class EditState:
         self.atlas_image = None
         self.mask_image = None
         self._edit_textures = None
+        self._sample_reads = None
         if not self._reuse_paint(paint_from):
             self._prepare_paint(atlas)
 
@@ -279,6 +287,8 @@ class EditState:
             _ = other.edit_textures  # unpacked once, for every state that shares them
         self.atlas_image, self.mask_image = other.atlas_image, other.mask_image
         self._edit_textures = other._edit_textures
+        if other.cfg.lookup == self.cfg.lookup and other.atlas_image is not None and other.sample_lookup is not None:
+            self._sample_reads = other.sample_reads  # read once, for every state that shares the paint
         return True
 
     def _fill(self) -> torch.Tensor | None:
@@ -621,9 +631,29 @@ class EditState:
         both)."""
         if self._edit_textures is None:
             layout = self.bundle.atlas.layout
-            self._edit_textures = torch.cat([unpack(self.atlas_image, layout),
-                                             unpack(self.mask_image, layout)[:, :1]], 1).contiguous()
+            rgb, mask = unpack(self.atlas_image, layout), unpack(self.mask_image, layout)[:, :1]
+            if self.bundle.atlas.islands:  # n views of one image: stack the image once, not n copies of it
+                self._edit_textures = torch.cat([rgb[:1], mask[:1]], 1).contiguous().expand(rgb.shape[0], -1, -1, -1)
+            else:
+                self._edit_textures = torch.cat([rgb, mask], 1).contiguous()
         return self._edit_textures
+
+    @property
+    def sample_lookup(self):
+        """The atlas's SampleLookup when lookups go through the samples (EditConfig lookup samples and the atlas
+        keeps samples), else None (chart lookups)."""
+        atlas = self.bundle.atlas
+        if self.cfg.lookup != "samples" or atlas is None or atlas.bake_samples is None or \
+                atlas.bake_samples.shape[0] == 0:
+            return None
+        return sample_lookup(atlas)
+
+    @property
+    def sample_reads(self) -> torch.Tensor:
+        """What every stored sample reads of the painted texture and its mask [S, 4], once per state."""
+        if self._sample_reads is None:
+            self._sample_reads = self.sample_lookup.read(self.edit_textures)
+        return self._sample_reads
 
 
 def _lookup(state: EditState, x: torch.Tensor, texture_fn=None) -> torch.Tensor:
@@ -632,7 +662,17 @@ def _lookup(state: EditState, x: torch.Tensor, texture_fn=None) -> torch.Tensor:
     if texture_fn is not None:
         rgb = texture_fn(x).to(x.dtype)
         return torch.cat([rgb, torch.ones_like(rgb[:, :1])], 1)
+    if state.sample_lookup is not None:
+        return _sample_painted(state, x)
     return _painted(state, *state.bundle.atlas.chart_uv(x))
+
+
+def _sample_painted(state: EditState, x: torch.Tensor) -> torch.Tensor:
+    """Painted colour and mask [M, 4] at canonical points x [M, 3] through the nearest stored samples (EditConfig
+    lookup samples)."""
+    atlas = state.bundle.atlas
+    out = state.sample_lookup.lookup(state.sample_reads, atlas.on_surface(x), state.cfg.lookup_k)
+    return out.to(x.dtype)
 
 
 def _painted(state: EditState, probs: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
@@ -665,7 +705,12 @@ def _filtered_lookup(state: EditState, tr: Trace, sel: torch.Tensor, xc: torch.T
     depth[sel] = ray_depth
     # neighbours on the same surface: depth within 3 pixel footprints (an occlusion edge jumps much further)
     step = 3.0 * depth.abs() / focal_scale(focal)
-    if texture_fn is None:  # the atlas: chart nets once per pixel, their outputs interpolated to the sub-pixels
+    if texture_fn is None and state.sample_lookup is not None:  # the texels the nearest samples read
+        sp = subpixel_points(canon.view(height, width, 3), valid.view(height, width), depth.view(height, width),
+                             sub, step.view(height, width))
+        on = torch.isfinite(sp).all(-1)
+        looked = _sample_painted(state, sp[on])
+    elif texture_fn is None:  # the atlas: chart nets once per pixel, their outputs interpolated to the sub-pixels
         probs, uv, on = subpixel_chart_uv(state.bundle.atlas, canon.view(height, width, 3), valid.view(height, width),
                                           depth.view(height, width), sub, step.view(height, width))
         looked = _painted(state, probs, uv)  # [K, 4]: rgb, mask

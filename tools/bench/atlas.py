@@ -19,6 +19,8 @@ their maps overlap (core/atlas/pieces.py; layout_charts, pieces_seconds); --fold
 --footprint-variants "1;25;0.25,1,4,16,64" fits the maps once per scene and layout, then refits the texture through
 the pixel filter once per variant (a single λ, or candidates that footprint_lambdas chooses among from held-out
 training views) and adds a row per variant (atlas-coloured and decal scored; the retexture does not depend on it).
+--lookups "charts:samples,samples:fit:4" scores the same fitted atlas once per lookup:bake[:k] (EditConfig lookup
+and lookup_k, the bake's source; the first one is the row's own, each further one adds a row).
 """
 from __future__ import annotations
 
@@ -147,14 +149,49 @@ def scene_mirror(scene, work):
     return mirror
 
 
+def parse_lookups(text: str) -> list[tuple[str, str, int]]:
+    """"lookup:bake[:k],..." -> [(lookup, bake source, k)]; "" -> the defaults alone."""
+    from core.edits.bake import SOURCES
+    from core.frames.edited import LOOKUPS, EditConfig
+    from core.util.errors import InputError
+
+    out = []
+    for item in [x.strip() for x in text.split(",") if x.strip()] or ["samples:auto"]:
+        parts = item.split(":")
+        k = int(parts[2]) if len(parts) > 2 and parts[2].isdigit() else EditConfig().lookup_k if len(parts) < 3 else 0
+        if len(parts) not in (2, 3) or parts[0] not in LOOKUPS or parts[1] not in SOURCES or not 1 <= k <= 64:
+            raise InputError(f"--lookups: expected lookup:bake[:k] with lookup in {LOOKUPS}, bake in {SOURCES}, "
+                             f"k in 1-64, got {item!r}")
+        out.append((parts[0], parts[1], k))
+    return out
+
+
+def lookup_scores(bundle, spec, retexture: str, gts: dict, test, lookup: tuple[str, str, int]) -> dict:
+    """Atlas-coloured, retexture (with its perfect-atlas reference) and decal object PSNR with one lookup:bake:k."""
+    from core.frames.edited import EditConfig, EditState
+    from tools.eval_edits import edited_atlases, score_frames
+
+    kind, source, k = lookup
+    ecfg = EditConfig(lookup=kind, lookup_k=k)
+    edits = edited_atlases(bundle, spec, retexture, source=source)
+    r = score_frames(EditState(bundle, atlas=edits["retexture"], cfg=ecfg), gts["retexture"], oracle=(retexture, spec))
+    return {"atlas_colour": score_frames(EditState(bundle, cfg=dataclasses.replace(ecfg, colour="atlas")),
+                                         test)["psnr_object"],
+            "retexture": r["psnr_object"], "retexture_perfect": r["psnr_object_oracle"],
+            "decal": score_frames(EditState(bundle, atlas=edits["decal"], cfg=ecfg), gts["decal"])["psnr_object"]}
+
+
 def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=None, log=print,
                scores: bool = True, folds: bool = False, work=None,
-               footprint_variants: list[str] | None = None, tag: str = "") -> list[dict]:
+               footprint_variants: list[str] | None = None, tag: str = "",
+               lookups: list[tuple[str, str, int]] | None = None) -> list[dict]:
     """The per-scene figures (module doc) for every scene of the library found under root (or those in only);
     scores False: the layout figures only (utilisation, round trip, islands, seconds), no renders; folds: also
     `core.atlas.fit.fold_report` on the atlas's stored samples (reversed, crease). work: a folder for the ground
     truth (`scene_mirror`); None writes it into the scene folders. footprint_variants: after the row of cfg's own
-    refit, one row per variant (footprint_lambdas strings), the texture refitted from the same kernel texture."""
+    refit, one row per variant (footprint_lambdas strings), the texture refitted from the same kernel texture.
+    lookups: (lookup, bake source, k) to score (`parse_lookups`): the first in the row, each further one in a row
+    of its own (None: the defaults)."""
     import time
     from pathlib import Path
 
@@ -217,17 +254,19 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
 
                 rep = fold_report(atlas, atlas.bake_samples)
                 row["reversed"], row["crease"] = rep["reversed"], rep["crease"]
+            looks = lookups or parse_lookups("")
             if scores:
-                row["atlas_colour"] = score_frames(EditState(bundle, cfg=EditConfig(colour="atlas")),
-                                                   test)["psnr_object"]
-                edits = edited_atlases(bundle, spec, retexture)
-                r = score_frames(EditState(bundle, atlas=edits["retexture"]), gts["retexture"],
-                                 oracle=(retexture, spec))
-                row["retexture"], row["retexture_perfect"] = r["psnr_object"], r["psnr_object_oracle"]
-                row["decal"] = score_frames(EditState(bundle, atlas=edits["decal"]), gts["decal"])["psnr_object"]
+                row["lookup"] = ":".join(map(str, looks[0]))
+                row.update(lookup_scores(bundle, spec, retexture, gts, test, looks[0]))
             rows.append(row)
             log(f"[{name}/{layout}] " + "  ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}"
                                                   for k, v in row.items() if k not in ("scene", "layout")))
+            for look in looks[1:] if scores else []:
+                lrow = {**{k: row[k] for k in ("scene", "layout", "size", "utilisation")},
+                        "lookup": ":".join(map(str, look)), **lookup_scores(bundle, spec, retexture, gts, test, look)}
+                rows.append(lrow)
+                log(f"[{name}/{layout} lookup {lrow['lookup']}] " + "  ".join(
+                    f"{k}={v:.3f}" for k, v in lrow.items() if isinstance(v, float)))
             for variant in footprint_variants or []:
                 info = footprint_variant(bundle, fp_views, cfg, variant, kernel_texture)
                 vrow = {**{k: row[k] for k in ("scene", "layout", "size", "utilisation")},
@@ -273,6 +312,11 @@ def markdown_rows(rows: list[dict]) -> str:
     for r in rows:
         if "footprint_variant" in r:  # --footprint-variants rows: in the JSON and the log only
             continue
+        if "seconds" not in r:  # a further --lookups row: the scores of another lookup of the row above
+            gap = r["retexture_perfect"] - r["retexture"]
+            out.append(f"| {r['scene']} | lookup {r['lookup']} | | | | | | {r['atlas_colour']:.2f} | "
+                       f"{r['retexture']:.2f} / {r['retexture_perfect']:.2f} ({gap:.2f}) | {r['decal']:.2f} |")
+            continue
         scored = "atlas_colour" in r
         gap = r["retexture_perfect"] - r["retexture"] if scored else 0.0
         out.append(f"| {r['scene']} | {r['layout']} | {r['size']} | {r.get('islands') or '–'} | "
@@ -305,6 +349,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-scores", action="store_true", help="per-scene mode: layout figures only, no renders")
     ap.add_argument("--footprint-variants", default="", help="per-scene mode: ';'-separated footprint refits to "
                     "compare on the same maps (each a λ or comma-separated candidates; module doc)")
+    ap.add_argument("--lookups", default="", help="per-scene mode: lookup:bake[:k] pairs to score on the same "
+                    "atlas (comma-separated; e.g. charts:samples,samples:fit:4; default: the defaults)")
     ap.add_argument("--folds", action="store_true", help="per-scene mode: also the share of samples whose chart map "
                     "is reversed on the surface (core.atlas.fit.fold_report)")
     args, cfg = parse_with_config(ap, AtlasConfig, argv)  # AtlasConfig.threads: the fit and everything else
@@ -315,9 +361,11 @@ def main(argv=None) -> int:
         variants = [v.strip() for v in args.footprint_variants.split(";") if v.strip()]
         for v in variants:  # a bad list fails before any fit
             dataclasses.replace(cfg, footprint_lambdas=v).lambda_candidates()
+        lookups = parse_lookups(args.lookups)  # a bad list fails before any fit
         rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
                           only=[x for x in args.scenes.split(",") if x], scores=not args.no_scores,
-                          folds=args.folds, work=args.work, footprint_variants=variants, tag=args.tag)
+                          folds=args.folds, work=args.work, footprint_variants=variants, tag=args.tag,
+                          lookups=lookups)
         print(markdown_rows(rows))
         print(f"machine: {machine}")
         rows = [dict(r, machine=machine) for r in rows]

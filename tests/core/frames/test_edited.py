@@ -210,14 +210,14 @@ def test_painted_rays_take_the_decoder_mask_as_coverage():
         b = copy.deepcopy(bundle)
         with torch.no_grad():
             b.model.decoder.alpha_head[-1].bias[0] = bias
-        frames[name] = _render(EditState(b, cfg=EditConfig(colour="atlas", antialias=1)), test)
+        frames[name] = _render(EditState(b, cfg=EditConfig(colour="atlas", antialias=1, lookup="charts")), test)
     hit = frames["none"]["stats"]["texture_rays"]
     assert hit > 100
     painted = torch.isfinite(frames["none"]["x_can"]).all(-1).reshape(-1)
     assert painted.sum() == hit and frames["none"]["alpha"].max() < 1e-6  # alpha is the mask head's
     assert torch.allclose(frames["none"]["rgb"].reshape(-1, 3)[painted], torch.ones(1, 3), atol=1e-4)
     full = frames["full"]["rgb"].reshape(-1, 3)[painted]
-    atlas_rgb = bundle.atlas.lookup(frames["full"]["x_can"].reshape(-1, 3)[painted])
+    atlas_rgb = bundle.atlas.lookup(frames["full"]["x_can"].reshape(-1, 3)[painted])  # the charts, as configured
     assert torch.allclose(full, atlas_rgb.clamp(0, 1), atol=1e-3)
 
 
