@@ -40,6 +40,7 @@ class SampleLookup:
         if samples is None or samples.shape[0] == 0:
             raise InputError("this atlas keeps no surface samples (an older model file); `pointgt atlas MODEL DATA "
                              "--texel-map-only` stores them, or render with lookups through the charts")
+        self.source = samples  # the atlas's own tensor: `sample_lookup` rebuilds when the atlas holds another
         self.samples = samples.float().cpu()
         self.islands = atlas.islands
         self.layout = atlas.layout
@@ -85,8 +86,7 @@ class SampleLookup:
 def sample_lookup(atlas) -> SampleLookup:
     """The atlas's SampleLookup, built on first use and kept until its samples or layout change."""
     cached = getattr(atlas, "_sample_lookup", None)
-    if cached is not None and cached.layout is atlas.layout and cached.samples.data_ptr() == \
-            atlas.bake_samples.data_ptr() and cached.samples.shape == atlas.bake_samples.shape:
+    if cached is not None and cached.layout is atlas.layout and cached.source is atlas.bake_samples:
         return cached
     atlas._sample_lookup = SampleLookup(atlas)
     return atlas._sample_lookup

@@ -12,7 +12,8 @@ Frames: `--frames` cameras on an orbit at distance 3.3 with the NeRF-synthetic f
 median frame time over them (after one warm-up frame). Rows:
 - canonical: points not moved, atlas unedited (neighbours + attention + point colours only);
 - deformed: a smooth bend of the points, atlas unedited (texture work skipped, so no correspondence either);
-- deformed + retextured: the bend plus a baked global retexture (correspondence + atlas lookup on every hit ray).
+- deformed + retextured: the bend plus a baked global retexture (correspondence + atlas lookup on every hit ray);
+  the same with lookups through the chart networks instead of the stored samples (EditConfig lookup charts).
 Skip savings, each against the same frame with the work forced:
 - correspondence: canonical points + retexture (skipped: the ray's own surface point is its canonical point)
   vs points displaced by 1e-6 × spacing (forced: "moved", full deform-aware correspondence);
@@ -292,9 +293,13 @@ def main(argv=None) -> int:
             r["label"] = label
         return res
 
-    rows = dict(zip(("canonical", "deformed", "edited"), rows_of(
+    from core.frames.edited import EditConfig
+
+    rows = dict(zip(("canonical", "deformed", "edited", "edited_charts"), rows_of(
         ("canonical", {}), ("deformed (bend)", {"points": bent}),
-        ("deformed + retextured", {"points": bent, "atlas": painted}))))
+        ("deformed + retextured", {"points": bent, "atlas": painted}),
+        ("deformed + retextured, chart lookups", {"points": bent, "atlas": painted,
+                                                  "cfg": EditConfig(lookup="charts")}))))
     print("\n| frame | median s | min–max s | CPU s | rays shaded / rays | texture rays | correspondence |")
     print("|---|---|---|---|---|---|---|")
     for r in rows.values():
