@@ -86,3 +86,32 @@ def test_degenerate_chart_weights(weights):
     ls, la = distortion_terms(J, w)
     (ls + la).backward()
     assert torch.isfinite(ls) and torch.isfinite(la) and bool(torch.isfinite(J.grad).all())
+
+
+def test_sample_lookups_at_extreme_points_and_degenerate_samples():
+    """Lookups through the stored samples (core/atlas/sample_lookup.py): no points, NaN and infinite points, points
+    1e6 away, a k larger than the samples, and samples stacked on one spot (every distance 0) give finite weights
+    that sum to 1 and finite colours (NaN rows exactly for the non-finite points); the fitted bake of a constant
+    colour over duplicated samples stays finite and in range."""
+    import copy
+
+    from core.atlas.packing import unpack
+    from core.atlas.sample_lookup import SampleLookup, fit_texels
+    from tests.helpers.tiny import tiny_bundle
+
+    atlas = copy.deepcopy(tiny_bundle("fast")[0].atlas)
+    lk = SampleLookup(atlas)
+    reads = lk.read(unpack(atlas.packed_image(), atlas.layout))
+    S = lk.samples
+    assert lk.lookup(reads, torch.zeros(0, 3), 4).shape == (0, 3)
+    pts = torch.cat([torch.tensor([[float("nan"), 0, 0], [float("inf"), 0, 0], [1e6, -1e6, 1e6]]), S[:3]])
+    out = lk.lookup(reads, pts, 4)
+    assert torch.isnan(out[:2]).all() and torch.isfinite(out[2:]).all()
+    _, w = lk.neighbours(pts[2:], 10 * len(S))
+    assert torch.isfinite(w).all() and torch.allclose(w.sum(1), torch.ones(len(w), dtype=w.dtype))
+    atlas.bake_samples = S[:1].expand(50, 3).clone()  # one spot, fifty times
+    stacked = SampleLookup(atlas)
+    j, w = stacked.neighbours(S[:2], 8)
+    assert torch.isfinite(w).all() and torch.allclose(w.sum(1), torch.ones(2, dtype=w.dtype))
+    img = fit_texels(atlas, atlas.packed_image(), torch.full((50, 3), 0.25))
+    assert torch.isfinite(img).all() and img.min() >= 0 and img.max() <= 1
