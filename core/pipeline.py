@@ -78,7 +78,7 @@ def fit_atlas_stage(bundle, split, cfg: AtlasConfig, show_progress: bool = True,
     if cfg.footprint:
         t1 = time.perf_counter()
         info = refit_texture_footprint(atlas, footprint_views(bundle.model, split), lam=cfg.footprint_lambda,
-                                       iters=cfg.footprint_iters, lambdas=lambdas)
+                                       iters=cfg.footprint_iters, lambdas=lambdas, lookup=cfg.footprint_lookup)
         history["footprint"] = {**info, "seconds": round(time.perf_counter() - t1, 2)}
         if show_progress and info.get("pixels"):
             print(f"texture refit for pixel-filtered lookups: {info['pixels']} pixels, RMSE (linear) "

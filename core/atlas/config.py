@@ -44,6 +44,10 @@ class AtlasConfig:
     footprint_lambdas: str = opt("1,4,16,64", "footprint refit: candidate pulls, comma-separated; the one whose fit "
                                               "on the other training views renders every 4th view best is used (one: "
                                               "that λ; empty: footprint_lambda; docs/atlas.md)")
+    footprint_lookup: str = opt("samples", "footprint refit: how the refit's frames read the texels, as edited frames "
+                                           "do (EditConfig lookup): samples (the nearest stored surface samples' "
+                                           "reads) | charts (the chart networks at each point)",
+                                choices=("samples", "charts"))
     footprint_iters: int = opt(100, "footprint refit: at most this many conjugate-gradient iterations (fewer once "
                                     "converged)", min=0)
     texture_steps: int = opt(300, "descent texture: refinement steps after the maps converge (maps frozen)", min=0)

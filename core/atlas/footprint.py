@@ -18,7 +18,7 @@ import torch
 
 from core.atlas.subpixel import subpixel_chart_uv
 from core.images.colour import linear_to_srgb, srgb_to_linear
-from core.images.filter import FILTER_WIDTH, blackman_harris_taps
+from core.images.filter import FILTER_WIDTH, blackman_harris_taps, subpixel_points
 from core.images.metrics import psnr
 
 
@@ -87,11 +87,31 @@ class FootprintSystem(NamedTuple):
     view: torch.Tensor
 
 
-def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min: float = 0.99):
+def _sample_rows(atlas, per_sample, points, valid, depth, sub: int, step, k: int):
+    """Sub-pixel lookups through the stored samples (core/atlas/sample_lookup.py), as scipy CSR rows over the chart
+    texels [K, n R²] for the K sub-pixels on the object (row-major), and `on` [S*H, S*W] marking them."""
+    from core.atlas.sample_lookup import lookup_matrix, sample_lookup
+
+    sp_ = subpixel_points(points, valid, depth, sub, step)
+    on = torch.isfinite(sp_).all(-1)
+    rows = lookup_matrix(sample_lookup(atlas), atlas.on_surface(sp_[on]).cpu(), k) @ per_sample
+    rows.sort_indices()
+    return rows, on
+
+
+def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min: float = 0.99,
+                     lookup: str = "charts", k: int = 4):
     """The linear system pixels = F @ B @ texels (linear light) over the views' fully covered pixels: a
     FootprintSystem, or None when no view has such a pixel. Only pixels with ground-truth alpha > alpha_min whose
-    own ray hits the object are used (their colour is the object's, not a mix with the background)."""
+    own ray hits the object are used (their colour is the object's, not a mix with the background).
+    lookup: how the sub-pixels read the texels, as edited frames do (EditConfig lookup): "charts" (the chart
+    networks per pixel, interpolated) or "samples" (the k nearest stored samples' reads; the charts when the atlas
+    keeps no samples)."""
+    from core.atlas.sample_lookup import chart_texel_matrix, sample_lookup
+
     dev = atlas.device
+    through_samples = lookup == "samples" and atlas.bake_samples is not None and atlas.bake_samples.shape[0] > 0
+    per_sample = chart_texel_matrix(atlas, sample_lookup(atlas)) if through_samples else None
     R, n = atlas.layout.R, atlas.n
     k1 = blackman_harris_taps(sub, FILTER_WIDTH).to(dev)
     m = k1.numel()
@@ -104,9 +124,14 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
     for vi, v in enumerate(views):
         H, W = v.valid.shape
         step = 3.0 * v.depth.abs() / v.focal  # same surface: depth within 3 pixel footprints (as edited frames)
-        # the same sub-pixel lookups as edited frames (core/frames/edited.py): chart nets per pixel, interpolated
-        probs_all, uv_all, on = subpixel_chart_uv(atlas, v.points.to(dev), v.valid.to(dev), v.depth.to(dev), sub,
-                                                  step.to(dev))
+        # the same sub-pixel lookups as edited frames (core/frames/edited.py): chart nets per pixel, interpolated,
+        # or the nearest stored samples' reads
+        if through_samples:
+            sample_rows, on = _sample_rows(atlas, per_sample, v.points.to(dev), v.valid.to(dev), v.depth.to(dev), sub,
+                                           step.to(dev), k)
+        else:
+            probs_all, uv_all, on = subpixel_chart_uv(atlas, v.points.to(dev), v.valid.to(dev), v.depth.to(dev), sub,
+                                                      step.to(dev))
         sub_index = torch.full(on.shape, -1, dtype=torch.long, device=dev)
         sub_index[on] = torch.arange(int(on.sum()), device=dev)
         use = v.valid.to(dev) & (v.alpha.to(dev) > alpha_min)
@@ -129,7 +154,12 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
         f_cols.append(remap[flat.reshape(-1)[keep]])
         f_vals.append(w.reshape(-1)[keep])
         rows = sub_index.reshape(-1)[used]
-        r, c, val = _bilinear_rows(probs_all[rows], uv_all[rows], R)
+        if through_samples:
+            coo = sample_rows[rows.cpu().numpy()].tocoo()  # rows in `used` order, columns ascending in each
+            r, c = torch.from_numpy(coo.row).long().to(dev), torch.from_numpy(coo.col).long().to(dev)
+            val = torch.from_numpy(coo.data).to(dev, v.image.dtype)
+        else:
+            r, c, val = _bilinear_rows(probs_all[rows], uv_all[rows], R)
         b_rows.append(r + n_sub)
         b_cols.append(c)
         b_vals.append(val)
@@ -257,14 +287,15 @@ def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor | None, la
 
 @torch.no_grad()
 def refit_texture_footprint(atlas, views: list[FootprintView], sub: int = 2, lam: float = 1.0,
-                            iters: int = 100, lambdas: list[float] | None = None, tol: float = 1e-5) -> dict:
+                            iters: int = 100, lambdas: list[float] | None = None, tol: float = 1e-5,
+                            lookup: str = "charts", k: int = 4) -> dict:
     """Replace atlas.textures by the footprint fit (kept in display space; texels no pixel reaches keep their
     kernel-texture colour, dilated as fit_atlas left them). With `lambdas` (two or more candidates), λ is chosen
     among them from held-out training views (choose_footprint_lambda), one candidate is used as it is, and `lam`
     when there are none or they cannot choose (fewer than 4 views).
     Returns info (pixels, RMSE before/after in linear light, the λ used, the held-out PSNR of each candidate);
-    {'pixels': 0} when no view has a covered pixel."""
-    system = footprint_system(atlas, views, sub)
+    {'pixels': 0} when no view has a covered pixel. lookup, k: how the frames read the texels (footprint_system)."""
+    system = footprint_system(atlas, views, sub, lookup=lookup, k=k)
     if system is None:
         return {"pixels": 0}
     n, R = atlas.n, atlas.layout.R

@@ -22,6 +22,7 @@ import torch.nn.functional as F
 from core.atlas.packing import blend_charts, chart_coords, uv_to_pixel
 from core.util.errors import InputError
 
+LOOKUP_K = 4  # nearest samples a lookup blends (EditConfig.lookup_k, AtlasConfig.footprint_lookup; docs/atlas.md)
 FIT_SMOOTHNESS = 0.03  # weight of a texel pair's squared difference against one sample's squared residual
 FIT_DAMPING = 1e-4     # pull of every texel towards the image the fit starts from (keeps the system definite)
 FIT_ITERATIONS = 300   # conjugate-gradient iterations per colour channel
@@ -90,6 +91,51 @@ def sample_lookup(atlas) -> SampleLookup:
         return cached
     atlas._sample_lookup = SampleLookup(atlas)
     return atlas._sample_lookup
+
+
+def chart_texel_matrix(atlas, lk: SampleLookup):
+    """What each sample reads as a sparse matrix [S, n R²] over the atlas's chart textures (texel (c, row, col) is
+    column (c R + row) R + col, as the footprint refit indexes them): bilinear, edge-clamped; island layouts in each
+    sample's own chart (n views of one image), the grid blended over the charts by their probabilities."""
+    import scipy.sparse as sp
+
+    n, R = atlas.n, atlas.layout.R
+    S = len(lk.samples)
+    if lk.islands:
+        charts = lk.chart.numpy()[:, None]
+        uv = lk.uv.double().numpy()[:, None]                      # [S, 1, 2]
+        weight = np.ones((S, 1))
+    else:
+        charts = np.broadcast_to(np.arange(n), (S, n))
+        uv = lk.uv.double().numpy()                               # [S, n, 2]
+        weight = lk.probs.double().numpy()
+    f = np.clip(uv, 0, 1) * R - 0.5
+    x0, y0 = np.floor(f[..., 0]), np.floor(f[..., 1])
+    fx, fy = f[..., 0] - x0, f[..., 1] - y0
+    x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
+    rows, cols, vals = [], [], []
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        col = np.clip(x0 + dx, 0, R - 1)
+        row = np.clip(y0 + dy, 0, R - 1)
+        val = w * weight
+        keep = val > 0
+        rows.append(np.nonzero(keep)[0])
+        cols.append(((charts * R + row) * R + col)[keep])
+        vals.append(val[keep])
+    out = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(S, n * R * R))
+    out.sum_duplicates()
+    return out
+
+
+def lookup_matrix(lk: SampleLookup, x: torch.Tensor, k: int):
+    """The blend weights of points x [Q, 3] (finite, on the atlas's surface) over the samples as a sparse matrix
+    [Q, S]: row q holds the weights of its k nearest samples (`SampleLookup.neighbours`)."""
+    import scipy.sparse as sp
+
+    j, w = lk.neighbours(x, k)
+    Q, kk = j.shape
+    return sp.csr_matrix((w.reshape(-1).numpy(), (np.repeat(np.arange(Q), kk), j.reshape(-1).numpy())),
+                         shape=(Q, len(lk.samples)))
 
 
 def _read_matrix(atlas, lk: SampleLookup, H: int, W: int):

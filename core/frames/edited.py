@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from core.atlas.packing import blend_charts, unpack
-from core.atlas.sample_lookup import sample_lookup
+from core.atlas.sample_lookup import LOOKUP_K, sample_lookup
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
@@ -148,7 +148,7 @@ class EditConfig:
                                  "surface samples read, where the bake wrote them: docs/atlas.md, 'Lookups through "
                                  "the samples') | charts (the chart networks' coordinates at the point itself; "
                                  "models without stored samples always use these)", choices=LOOKUPS)
-    lookup_k: int = opt(4, "lookup samples: how many nearest samples a point blends", min=1, max=64)
+    lookup_k: int = opt(LOOKUP_K, "lookup samples: how many nearest samples a point blends", min=1, max=64)
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "

@@ -18,7 +18,8 @@ reference: the texture evaluated exactly at the surface points) and the decal, o
 their maps overlap (core/atlas/pieces.py; layout_charts, pieces_seconds); --folds adds the maps' fold report.
 --footprint-variants "1;25;0.25,1,4,16,64" fits the maps once per scene and layout, then refits the texture through
 the pixel filter once per variant (a single λ, or candidates that footprint_lambdas chooses among from held-out
-training views) and adds a row per variant (atlas-coloured and decal scored; the retexture does not depend on it).
+training views; "charts:1,4,16,64" refits through the chart lookups instead of --footprint-lookup's) and adds a row
+per variant (scored with the first --lookups entry, a charts refit with chart lookups and the splat bake).
 --lookups "charts:samples,samples:fit:4" scores the same fitted atlas once per lookup:bake[:k] (EditConfig lookup
 and lookup_k, the bake's source; the first one is the row's own, each further one adds a row).
 """
@@ -196,7 +197,7 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
     from pathlib import Path
 
     from core.bundle import load_bundle
-    from core.frames.edited import EditConfig, EditState
+    from core.frames.edited import EditConfig, EditState  # noqa: F401 (the footprint rows score through lookup_scores)
     from core.images.dataset import load_split
     from core.pipeline import fit_atlas_stage, footprint_views
     from tools.eval_edits import edited_atlases, ground_truth, score_frames, view_subset_dir
@@ -274,11 +275,10 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
                         "footprint_seconds": info["seconds"]}
                 if info.get("holdout_psnr"):
                     vrow["footprint_holdout_psnr"] = info["holdout_psnr"]
-                if scores:
-                    vrow["atlas_colour"] = score_frames(EditState(bundle, cfg=EditConfig(colour="atlas")),
-                                                        test)["psnr_object"]
-                    edits = edited_atlases(bundle, spec, retexture)
-                    vrow["decal"] = score_frames(EditState(bundle, atlas=edits["decal"]), gts["decal"])["psnr_object"]
+                if scores:  # read as the refit read: a refit through the charts with chart lookups and the splat
+                    look = looks[0] if info["lookup"] == "samples" else ("charts", "samples", looks[0][2])
+                    vrow["lookup"] = ":".join(map(str, look))
+                    vrow.update(lookup_scores(bundle, spec, retexture, gts, test, look))
                 rows.append(vrow)
                 log(f"[{name}/{layout} footprint {variant}] " + "  ".join(
                     f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in vrow.items()
@@ -286,21 +286,35 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
     return rows
 
 
-def footprint_variant(bundle, views, cfg, lambdas: str, kernel_texture: torch.Tensor) -> dict:
+def split_variant(variant: str, cfg) -> tuple[str, str]:
+    """A --footprint-variants entry "[LOOKUP:]LAMBDAS" -> (lookup, lambdas); no prefix: cfg.footprint_lookup."""
+    from core.util.errors import InputError
+
+    lookup, _, lambdas = variant.rpartition(":")
+    lookup = lookup or cfg.footprint_lookup
+    if lookup not in ("samples", "charts"):
+        raise InputError(f"--footprint-variants: the lookup before ':' must be samples or charts, got {variant!r}")
+    dataclasses.replace(cfg, footprint_lambdas=lambdas).lambda_candidates()  # a bad list fails here
+    return lookup, lambdas
+
+
+def footprint_variant(bundle, views, cfg, variant: str, kernel_texture: torch.Tensor) -> dict:
     """Put the kernel texture back into bundle.atlas and refit it through the pixel filter on `views`
-    (`core.pipeline.footprint_views`) with `lambdas` (one λ, or candidates chosen from held-out views; empty:
-    cfg.footprint_lambda). Returns the refit's info with seconds (the views' tracing not included)."""
+    (`core.pipeline.footprint_views`) with the variant's lambdas (one λ, or candidates chosen from held-out views;
+    empty: cfg.footprint_lambda) and lookup (`split_variant`). Returns the refit's info with seconds (the views'
+    tracing not included)."""
     import time
 
     from core.atlas.footprint import refit_texture_footprint
 
+    lookup, lambdas = split_variant(variant, cfg)
     with torch.no_grad():
         bundle.atlas.textures.copy_(kernel_texture)
     cands = dataclasses.replace(cfg, footprint_lambdas=lambdas).lambda_candidates()
     t0 = time.perf_counter()
     info = refit_texture_footprint(bundle.atlas, views, lam=cfg.footprint_lambda, iters=cfg.footprint_iters,
-                                   lambdas=cands)
-    return {**info, "seconds": round(time.perf_counter() - t0, 2)}
+                                   lambdas=cands, lookup=lookup)
+    return {**info, "lookup": lookup, "seconds": round(time.perf_counter() - t0, 2)}
 
 
 def markdown_rows(rows: list[dict]) -> str:
@@ -360,7 +374,7 @@ def main(argv=None) -> int:
         machine = machine_info()
         variants = [v.strip() for v in args.footprint_variants.split(";") if v.strip()]
         for v in variants:  # a bad list fails before any fit
-            dataclasses.replace(cfg, footprint_lambdas=v).lambda_candidates()
+            split_variant(v, cfg)
         lookups = parse_lookups(args.lookups)  # a bad list fails before any fit
         rows = scene_rows(args.scene_root, [x for x in args.layouts.split(",") if x], cfg, args.views,
                           only=[x for x in args.scenes.split(",") if x], scores=not args.no_scores,

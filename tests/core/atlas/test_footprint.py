@@ -46,6 +46,29 @@ def test_system_matches_plain_filtered_rendering():
     assert torch.allclose(pred, ref[use], atol=1e-5)
 
 
+def test_system_through_the_samples_matches_plain_filtered_rendering():
+    """lookup "samples": each sub-pixel reads its nearest stored samples' texels, as edited frames do."""
+    from core.atlas.sample_lookup import sample_lookup
+
+    atlas, view, sub = _setup()
+    g = torch.Generator().manual_seed(2)
+    atlas.bake_samples = view.points[view.valid] + 0.01 * torch.randn(int(view.valid.sum()), 3, generator=g)
+    F, B, _, _ = footprint_system(atlas, [view], sub, lookup="samples", k=3)
+    tex = torch.rand(atlas.n * atlas.layout.R ** 2, 3, generator=torch.Generator().manual_seed(1))
+    pred = F @ (B @ tex)
+    lk = sample_lookup(atlas)
+    sp = subpixel_points(view.points, view.valid, view.depth, sub, 3.0 * view.depth / view.focal)
+    on = torch.isfinite(sp).all(-1)
+    textures = tex.reshape(atlas.n, atlas.layout.R, atlas.layout.R, 3).permute(0, 3, 1, 2)
+    vals = torch.zeros(3, *on.shape)
+    vals[:, on] = lk.lookup(lk.read(textures), sp[on], 3).T.float()
+    ref = filter_down(vals, on, sub).permute(1, 2, 0)
+    use = view.valid & (view.alpha > 0.99)
+    assert torch.allclose(pred, ref[use], atol=1e-5)
+    charts = footprint_system(atlas, [view], sub, lookup="charts").B
+    assert not torch.equal(B.to_dense(), charts.to_dense())
+
+
 def test_solving_reproduces_pixels_of_a_known_texture():
     atlas, view, sub = _setup()
     F, B, _, _ = footprint_system(atlas, [view], sub)
