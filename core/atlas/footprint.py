@@ -16,6 +16,7 @@ from typing import NamedTuple
 
 import torch
 
+from core.atlas.sample_lookup import LOOKUP_K, chart_texel_matrix, lookup_matrix, sample_lookup
 from core.atlas.subpixel import subpixel_chart_uv
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import FILTER_WIDTH, blackman_harris_taps, subpixel_points
@@ -90,8 +91,6 @@ class FootprintSystem(NamedTuple):
 def _sample_rows(atlas, per_sample, points, valid, depth, sub: int, step, k: int):
     """Sub-pixel lookups through the stored samples (core/atlas/sample_lookup.py), as scipy CSR rows over the chart
     texels [K, n R²] for the K sub-pixels on the object (row-major), and `on` [S*H, S*W] marking them."""
-    from core.atlas.sample_lookup import lookup_matrix, sample_lookup
-
     sp_ = subpixel_points(points, valid, depth, sub, step)
     on = torch.isfinite(sp_).all(-1)
     rows = lookup_matrix(sample_lookup(atlas), atlas.on_surface(sp_[on]).cpu(), k) @ per_sample
@@ -100,15 +99,13 @@ def _sample_rows(atlas, per_sample, points, valid, depth, sub: int, step, k: int
 
 
 def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min: float = 0.99,
-                     lookup: str = "charts", k: int = 4):
+                     lookup: str = "charts", k: int = LOOKUP_K):
     """The linear system pixels = F @ B @ texels (linear light) over the views' fully covered pixels: a
     FootprintSystem, or None when no view has such a pixel. Only pixels with ground-truth alpha > alpha_min whose
     own ray hits the object are used (their colour is the object's, not a mix with the background).
     lookup: how the sub-pixels read the texels, as edited frames do (EditConfig lookup): "charts" (the chart
     networks per pixel, interpolated) or "samples" (the k nearest stored samples' reads; the charts when the atlas
     keeps no samples)."""
-    from core.atlas.sample_lookup import chart_texel_matrix, sample_lookup
-
     dev = atlas.device
     through_samples = lookup == "samples" and atlas.bake_samples is not None and atlas.bake_samples.shape[0] > 0
     per_sample = chart_texel_matrix(atlas, sample_lookup(atlas)) if through_samples else None
@@ -288,7 +285,7 @@ def choose_footprint_lambda(system: FootprintSystem, t0: torch.Tensor | None, la
 @torch.no_grad()
 def refit_texture_footprint(atlas, views: list[FootprintView], sub: int = 2, lam: float = 1.0,
                             iters: int = 100, lambdas: list[float] | None = None, tol: float = 1e-5,
-                            lookup: str = "charts", k: int = 4) -> dict:
+                            lookup: str = "charts", k: int = LOOKUP_K) -> dict:
     """Replace atlas.textures by the footprint fit (kept in display space; texels no pixel reaches keep their
     kernel-texture colour, dilated as fit_atlas left them). With `lambdas` (two or more candidates), λ is chosen
     among them from held-out training views (choose_footprint_lambda), one candidate is used as it is, and `lam`

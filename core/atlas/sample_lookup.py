@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from core.atlas.packing import blend_charts, chart_coords, uv_to_pixel
+from core.atlas.packing import blend_charts, chart_coords
 from core.util.errors import InputError
 
 LOOKUP_K = 4  # nearest samples a lookup blends (EditConfig.lookup_k, AtlasConfig.footprint_lookup; docs/atlas.md)
