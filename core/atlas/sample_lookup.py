@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from core.atlas.packing import blend_charts, chart_coords
 from core.util.errors import InputError
 
-LOOKUP_K = 4  # nearest samples a lookup blends (EditConfig.lookup_k, AtlasConfig.footprint_lookup; docs/atlas.md)
+LOOKUP_K = 2  # nearest samples a lookup blends (EditConfig.lookup_k, AtlasConfig.footprint_lookup; docs/atlas.md)
 FIT_SMOOTHNESS = 0.03  # weight of a texel pair's squared difference against one sample's squared residual
 FIT_DAMPING = 1e-4     # pull of every texel towards the image the fit starts from (keeps the system definite)
 FIT_ITERATIONS = 300   # conjugate-gradient iterations per colour channel

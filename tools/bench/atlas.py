@@ -20,7 +20,7 @@ their maps overlap (core/atlas/pieces.py; layout_charts, pieces_seconds); --fold
 the pixel filter once per variant (a single λ, or candidates that footprint_lambdas chooses among from held-out
 training views; "charts:1,4,16,64" refits through the chart lookups instead of --footprint-lookup's) and adds a row
 per variant (scored with the first --lookups entry, a charts refit with chart lookups and the splat bake).
---lookups "charts:samples,samples:fit:4" scores the same fitted atlas once per lookup:bake[:k] (EditConfig lookup
+--lookups "charts:samples,samples:fit:2" scores the same fitted atlas once per lookup:bake[:k] (EditConfig lookup
 and lookup_k, the bake's source; the first one is the row's own, each further one adds a row).
 """
 from __future__ import annotations
