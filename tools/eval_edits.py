@@ -36,20 +36,21 @@ from core.util.errors import DataError, InputError
 
 EDITS = ("geometry", "retexture", "decal")
 # renderer variants: the EditConfig fields each sets (every F switch named: the defaults may change); "paper" =
-# the paper's renderer, correspondence and atlas lookup (the chart networks at each point; every other variant looks
-# up through the stored samples, the default). f_compression also changes the deform-gradient correspondence.
+# the paper's renderer, correspondence and atlas lookup (the chart networks at each point); the variants built on
+# _AUTO (the default renderer's family) look up through the stored samples, the default. f_compression also
+# changes the deform-gradient correspondence.
 _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "f_fill": False, "fold_radius": 0.0,
           "f_depth": "ray",
           "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
           "f_reach_gate": 0.0, "f_key_stretch": "full", "f_reach_surround": False, "f_reach_gate_own": False,
-          "f_reach_between": False, "f_fill_tear": MAX_STRETCH, "f_fill_budget": 1.0}
+          "f_reach_between": False, "f_fill_tear": MAX_STRETCH, "f_fill_budget": 1.0, "lookup": "charts"}
 # F-aware keys, blended fill, fold rule, canonical depths, compression by the model's thickness; with the budget reach
 _AUTO = {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
-         "f_depth": "nearest", "f_compression": "auto"}
+         "f_depth": "nearest", "f_compression": "auto", "lookup": "samples"}
 _BUDGET = {**_AUTO, "f_radius": True, "f_radius_rule": "budget"}
 # the default renderer: the budget reach gated at 1.5 caps between points, the keys' stretch capped at the fill's gap
 _BETWEEN_GAP = {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap"}
-RENDERERS = {"paper": {**_PAPER, "lookup": "charts"}, "f-attention": {**_PAPER, "f_attention": True},
+RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-radius": {**_PAPER, "f_radius": True, "f_radius_rule": "frame"},
              "f-both": {**_PAPER, "f_attention": True, "f_radius": True, "f_radius_rule": "frame"},
              "f-keep": {**_PAPER, "f_attention": True, "f_compression": "keep"},
@@ -119,7 +120,7 @@ def describe_renderer(name: str) -> str:
     """A renderer variant in words: the EditConfig switches it sets beyond the paper's renderer (`pointgt render
     --help` says what each does)."""
     changed = [f"{k} {v}" for k, v in RENDERERS[name].items() if _PAPER.get(k) != v]
-    return ", ".join(changed) if changed else "the paper's renderer and correspondence"
+    return ", ".join(changed) if changed else "the paper's renderer, correspondence and atlas lookup"
 
 
 def renderers_help() -> str:

@@ -304,7 +304,7 @@ def test_renderer_help_names_every_variant_by_its_switches():
 
     text = renderers_help()
     assert all(f"{n} (" in text for n in RENDERERS)
-    assert describe_renderer("paper") == "the paper's renderer and correspondence"
+    assert describe_renderer("paper") == "the paper's renderer, correspondence and atlas lookup"
     # a variant is described by exactly the switches that differ from the paper's renderer
     gap_b2 = describe_renderer("f-fill-fold-blend-depth-auto-budget-gate15-gap-b2")
     assert "f_fill_budget 2.0" in gap_b2 and "f_reach_gate 1.5" in gap_b2 and "f_fill_tear" not in gap_b2

@@ -9,10 +9,12 @@ DIR/<name>.T.default.pgt, as `tools.bench.atlas --scene-root`), stage 2 is fitte
 --texel-densities value (the `--atlas-texels-per-pixel` rule; the charts are the same fit, only the layout after
 them differs) and the rows are:
   perfect atlas      the texture evaluated exactly at the canonical points the render uses (the reference)
-  baked              today's retexture: baked from the stored surface samples, the edit mask from the atlas change
+  baked              the retexture baked with --bake-source (default: fitted at the stored surface samples), the
+                     edit mask from the atlas change; frames look the atlas up as --lookup says (default: through
+                     the samples)
   mask = 1           the same image with every texel counted as painted (the edit mask's share of the gap)
   baked at points    fn at each texel's single surface point instead of splatted from the samples
-  kernel ×s          the bake's kernel width times s (--bake-sigmas)
+  kernel ×s          the splat bake with its kernel width times s (--bake-sigmas)
   antialias A        lookups per pixel side, for both the bake and the reference (--antialias)
 and, per density, the median ratio of the texture coordinates' derivative along the samples' normal to that along
 the surface (`normal_ratio`: a chart map that changes across the samples' slab sends a point off its middle to
@@ -136,9 +138,9 @@ def normal_ratio(atlas, max_samples: int = 3000) -> float:
 
 
 def gap_rows(bundle_path, scene, cfg, densities, views: int, bake_sigmas, antialias, retexture: str = "stripes",
-             keep=None, log=print) -> list[dict]:
+             keep=None, log=print, lookup: str = "samples", bake_source: str = "auto") -> list[dict]:
     """The rows (module doc) for one scene: dicts with density, row label, object PSNR against Blender and against
-    the perfect-atlas frame."""
+    the perfect-atlas frame. lookup: the frames' (EditConfig lookup); bake_source: the bake's ("kernel" rows splat)."""
     from core.bundle import load_bundle, save_bundle
     from core.edits.bake import bake
     from core.edits.procedural import evaluate
@@ -172,7 +174,7 @@ def gap_rows(bundle_path, scene, cfg, densities, views: int, bake_sigmas, antial
         log(f"[{scene.name} tpp {dens:g}] " + "  ".join(f"{k}={v}" for k, v in info.items()))
 
         def score(label, image, ecfg=None, **kw):
-            state = EditState(bundle, atlas=image, cfg=ecfg or EditConfig())
+            state = EditState(bundle, atlas=image, cfg=dataclasses.replace(ecfg or EditConfig(), lookup=lookup))
             r = score_frames(state, gt, oracle=(retexture, spec), traces=traces)
             row = {**info, "row": label, "psnr_object": r["psnr_object"], "perfect": r["psnr_object_oracle"],
                    "vs_perfect": r["psnr_object_vs_oracle"], **kw}
@@ -180,14 +182,14 @@ def gap_rows(bundle_path, scene, cfg, densities, views: int, bake_sigmas, antial
             log(f"  {label:<22} object {row['psnr_object']:.2f}  perfect {row['perfect']:.2f}  "
                 f"gap {row['perfect'] - row['psnr_object']:+.2f}  vs perfect {row['vs_perfect']:.2f}")
 
-        base = bake(atlas, fn)
+        base = bake(atlas, fn, source=bake_source)
         score("baked", base)
         score("mask = 1", base, EditConfig(colour="atlas"))
         score("baked at points", bake(atlas, fn, source="points"))
         sigma0 = atlas.bake_sigma
         for s in bake_sigmas:
             atlas.bake_sigma = sigma0 * s
-            score(f"kernel x{s:g}", bake(atlas, fn), sigma=s)
+            score(f"kernel x{s:g}", bake(atlas, fn, source="samples"), sigma=s)
         atlas.bake_sigma = sigma0
         for a in antialias:
             score(f"antialias {a}", base, EditConfig(antialias=a), antialias=a)
@@ -205,6 +207,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scene-root", required=True, help="DIR/<scene>/ and DIR/<scene>.pgt (or .default.pgt)")
     ap.add_argument("--scenes", default="cloth", help="scenes (comma-separated)")
     ap.add_argument("--views", type=int, default=4, help="test views scored")
+    ap.add_argument("--lookup", default="samples", choices=("samples", "charts"), help="how the frames read the "
+                    "atlas (EditConfig lookup)")
+    ap.add_argument("--bake-source", default="auto", choices=("auto", "fit", "samples", "points"),
+                    help="the baked row's bake (core.edits.bake.bake source; the kernel rows splat)")
     ap.add_argument("--texel-densities", default="4", help="texels per training pixel to fit (comma-separated)")
     ap.add_argument("--bake-sigmas", default="0.5,2", help="bake kernel width factors (comma-separated)")
     ap.add_argument("--antialias", default="1,4", help="lookups per pixel side besides the default 2")
@@ -225,7 +231,8 @@ def main(argv=None) -> int:
             print(f"[{name}] skipped: needs {root / name}/ and {want}")
             continue
         rows += gap_rows(model, root / name, cfg, floats(args.texel_densities), args.views, floats(args.bake_sigmas),
-                         [int(a) for a in floats(args.antialias)], keep=args.keep or None)
+                         [int(a) for a in floats(args.antialias)], keep=args.keep or None, lookup=args.lookup,
+                         bake_source=args.bake_source)
     machine = machine_info()
     print(f"machine: {machine}")
     write_json(args.json, [dict(r, machine=machine) for r in rows])
