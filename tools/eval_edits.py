@@ -396,8 +396,10 @@ def blank_scores(gt) -> dict:
 def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), views: int = 4,
              temperatures=(1.0, 0.5), retexture: str = "stripes", samples=None, device: str = "cpu",
              antialias: int = EditConfig.antialias, renderers=("paper",), correspondences=("naive", "deform-aware"),
-             log=print) -> dict:
-    """Evaluate a model's edits against Blender ground truth; returns the JSON-able result (see module doc)."""
+             log=print, lookup: str | None = None, bake_source: str = "auto") -> dict:
+    """Evaluate a model's edits against Blender ground truth; returns the JSON-able result (see module doc).
+    lookup: every renderer's atlas lookup (EditConfig lookup; None: each renderer's own); bake_source: the
+    retexture's and the decal's bake (core.edits.bake.bake source)."""
     from core.bundle import load_bundle
     from tools.scenes.spec import load_scene_spec
 
@@ -422,15 +424,16 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
         if c not in CORRESPONDENCES:
             raise InputError(f"--correspondences: unknown correspondence '{c}'; choose from {', '.join(CORRESPONDENCES)}")
     bundle = load_bundle(model_path, device=device)
-    atlases = edited_atlases(bundle, spec, retexture)
+    atlases = edited_atlases(bundle, spec, retexture, source=bake_source)
     gt_dir = view_subset_dir(scene_dir, views)
     plan = [REST] + [(p, float(m)) for p in poses for m in magnitudes]
     meths = methods(tuple(temperatures), tuple(renderers), tuple(correspondences))
     canonical = bundle.model.xyz.detach().cpu().numpy()
     rows, blanks = [], []
     def method_config(mt) -> EditConfig:
+        over = RENDERERS[mt.renderer] if lookup is None else {**RENDERERS[mt.renderer], "lookup": lookup}
         return EditConfig(correspondence=mt.correspondence if mt.correspondence != "-" else "deform-aware",
-                          blend=mt.blend, temperature=mt.temperature, antialias=antialias, **RENDERERS[mt.renderer])
+                          blend=mt.blend, temperature=mt.temperature, antialias=antialias, **over)
 
     if len(plan) > 1:  # one-off work (compiling the deformation loops) must not land in the first pose's s/frame
         cfgs = {}  # one per renderer and correspondence (blend and temperature change nothing one-off)

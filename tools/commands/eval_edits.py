@@ -32,6 +32,12 @@ def add_arguments(p):
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side (1 = one per ray, no pixel filter)")
     p.add_argument("--retexture", default="stripes", help="global procedural texture for the retexture edit (stripes: along x; checker cells are thinner than a thin object's depth error)")
+    p.add_argument("--lookup", default=None, choices=("samples", "charts"),
+                   help="every renderer's atlas lookup (default: each renderer's own: the paper's through the chart "
+                        "networks, the default renderer's through the stored surface samples)")
+    p.add_argument("--bake-source", default="auto", choices=("auto", "fit", "samples", "points"),
+                   help="how the retexture and the decal are baked into the atlas (auto: fitted at the stored surface "
+                        "samples; samples: splatted from them)")
     p.add_argument("--samples", type=int, default=None, help="Cycles samples for the ground truth (default: scene's)")
     p.add_argument("--device", default="cpu", help="cpu | cuda | auto")
     p.add_argument("--json", default=None, help="write all figures to this JSON file")
@@ -57,7 +63,7 @@ def run(args) -> int:
                                  else list(compared_renderers())),
                       correspondences=[c.strip() for c in args.correspondences.split(",") if c.strip()],
                       retexture=args.retexture, samples=args.samples, device=args.device,
-                      log=lambda m: print(m, flush=True))
+                      log=lambda m: print(m, flush=True), lookup=args.lookup, bake_source=args.bake_source)
     table = markdown(result)
     print(table)
     if args.json:
