@@ -3,7 +3,8 @@
 The chart networks map any canonical point to texture coordinates, but the points a frame looks up are not the
 samples the texture was made from: they lie up to a few sample spacings off them, across the samples' slab or
 between them, where the map's coordinates move by a texel or more. A texture sharp enough to hold a hard-edged
-retexture then reads another place's colour there (docs/atlas.md, "Lookups through the samples").
+retexture then reads another place's colour there (docs/atlas.md, "Lookups through the samples and the
+fitted bake").
 
 Here a point's colour is instead the weighted mean of what its k nearest stored samples read, each at its own
 chart coordinates (bilinear, as every lookup reads a texel): the texels a sample reads are the texels the bake
