@@ -182,7 +182,9 @@ def test_antialiased_lookups_keep_flat_colours_and_the_one_lookup_path(tiny):
     is normalised, linear light round-trips); on a two-colour retexture the filtered frame differs only near the
     colour border, and only a little on average."""
     bundle, _, test = tiny
-    flat = bake(bundle.atlas, lambda x: (torch.tensor([0.8, 0.3, 0.1]).expand(len(x), 3), None))
+    # the splat bake paints every texel the flat colour; the fitted bake (the default) changes the fitted texture
+    # only as smoothly as its samples allow, so a little of that texture's variation stays (~0.4 %)
+    flat = bake(bundle.atlas, lambda x: (torch.tensor([0.8, 0.3, 0.1]).expand(len(x), 3), None), source="samples")
     split = bake(bundle.atlas, _half_split)
     for atlas, tol in ((flat, 3e-3), (split, None)):
         frames = {aa: _render(EditState(bundle, atlas=atlas, cfg=EditConfig(antialias=aa)), test)
