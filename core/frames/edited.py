@@ -146,8 +146,9 @@ class EditConfig:
                          choices=("auto", "torch", "compiled"))
     lookup: str = opt("samples", "how a canonical point reads the atlas: samples (the texels its nearest stored "
                                  "surface samples read, where the bake wrote them: docs/atlas.md, 'Lookups through "
-                                 "the samples and the fitted bake') | charts (the chart networks' coordinates at the point itself; "
-                                 "models without stored samples always use these)", choices=LOOKUPS)
+                                 "the samples and the fitted bake') | charts (the chart networks' coordinates at "
+                                 "the point itself; models without stored samples always use these)",
+                      choices=LOOKUPS)
     lookup_k: int = opt(LOOKUP_K, "lookup samples: how many nearest samples a point blends", min=1, max=64)
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)

@@ -52,3 +52,27 @@ def test_scene_mirror_keeps_ground_truth_out_of_a_read_only_scene(tmp_path):
         assert scene_mirror(scene, tmp_path / "work") == mirror  # reused
     finally:
         os.chmod(scene, stat.S_IRWXU)
+
+
+def test_lookups_and_footprint_variants_parse_and_refuse_bad_entries():
+    """--lookups "lookup:bake[:k]" and --footprint-variants "[lookup:]lambdas" (tools/bench/atlas.py)."""
+    import pytest
+
+    from core.atlas.config import AtlasConfig
+    from core.frames.edited import EditConfig
+    from core.util.errors import InputError
+    from tools.bench.atlas import parse_lookups, split_variant
+
+    assert parse_lookups("") == [("samples", "auto", EditConfig().lookup_k)]
+    assert parse_lookups("charts:samples, samples:fit:8") == [("charts", "samples", EditConfig().lookup_k),
+                                                               ("samples", "fit", 8)]
+    for bad in ("samples", "pixels:fit", "samples:splat", "samples:fit:0", "samples:fit:x", "samples:fit:2:1"):
+        with pytest.raises(InputError, match="--lookups"):
+            parse_lookups(bad)
+    cfg = AtlasConfig()
+    assert split_variant("1,4", cfg) == (cfg.footprint_lookup, "1,4")
+    assert split_variant("charts:16", cfg) == ("charts", "16")
+    with pytest.raises(InputError, match="samples or charts"):
+        split_variant("texels:1", cfg)
+    with pytest.raises(InputError):
+        split_variant("charts:-1", cfg)

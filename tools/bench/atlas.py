@@ -159,7 +159,7 @@ def parse_lookups(text: str) -> list[tuple[str, str, int]]:
     out = []
     for item in [x.strip() for x in text.split(",") if x.strip()] or ["samples:auto"]:
         parts = item.split(":")
-        k = int(parts[2]) if len(parts) > 2 and parts[2].isdigit() else EditConfig().lookup_k if len(parts) < 3 else 0
+        k = EditConfig().lookup_k if len(parts) < 3 else int(parts[2]) if parts[2].isdigit() else 0
         if len(parts) not in (2, 3) or parts[0] not in LOOKUPS or parts[1] not in SOURCES or not 1 <= k <= 64:
             raise InputError(f"--lookups: expected lookup:bake[:k] with lookup in {LOOKUPS}, bake in {SOURCES}, "
                              f"k in 1-64, got {item!r}")
@@ -197,10 +197,9 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
     from pathlib import Path
 
     from core.bundle import load_bundle
-    from core.frames.edited import EditConfig, EditState  # noqa: F401 (the footprint rows score through lookup_scores)
     from core.images.dataset import load_split
     from core.pipeline import fit_atlas_stage, footprint_views
-    from tools.eval_edits import edited_atlases, ground_truth, score_frames, view_subset_dir
+    from tools.eval_edits import ground_truth, view_subset_dir
     from tools.scenes.library import scene_names
     from tools.scenes.spec import load_scene_spec
 
