@@ -16,7 +16,8 @@ from typing import NamedTuple
 
 import torch
 
-from core.atlas.sample_lookup import LOOKUP_K, chart_texel_matrix, lookup_matrix, sample_lookup
+from core.atlas.packing import bilinear_entries
+from core.atlas.sample_lookup import LOOKUP_K, chart_texel_matrix, keeps_samples, lookup_matrix, sample_lookup
 from core.atlas.subpixel import subpixel_chart_uv
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import FILTER_WIDTH, blackman_harris_taps, subpixel_points
@@ -43,19 +44,7 @@ def _bilinear_rows(probs: torch.Tensor, uv: torch.Tensor, R: int, min_prob: floa
     Only the (sample, chart) pairs with P > min_prob are expanded; the entries come sorted by sample, then chart,
     then corner (row-major), so each sample's texel ids ascend but where a corner is clamped at the image's edge."""
     sid, chart = torch.nonzero(probs > min_prob, as_tuple=True)  # row-major: by sample, then chart
-    p = probs[sid, chart]
-    f = uv[sid, chart].clamp(0, 1) * R - 0.5  # [K, 2]
-    base = f.floor()
-    frac = f - base
-    base = base.long()
-    fx, fy = frac[:, 0], frac[:, 1]
-    # corner (dr, dc) in row-major order; weights as bilinear x P
-    w = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1) * p[:, None]  # [K, 4]
-    col = torch.stack([base[:, 0], base[:, 0] + 1, base[:, 0], base[:, 0] + 1], -1).clamp(0, R - 1)
-    row = torch.stack([base[:, 1], base[:, 1], base[:, 1] + 1, base[:, 1] + 1], -1).clamp(0, R - 1)
-    keep = w > 0
-    cols = chart[:, None] * R * R + row * R + col
-    return sid[:, None].expand_as(cols)[keep], cols[keep], w[keep]
+    return bilinear_entries(sid, chart, probs[sid, chart], uv[sid, chart], R)
 
 
 def _csr(rows: torch.Tensor, cols: torch.Tensor, vals: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
@@ -107,7 +96,7 @@ def footprint_system(atlas, views: list[FootprintView], sub: int = 2, alpha_min:
     networks per pixel, interpolated) or "samples" (the k nearest stored samples' reads; the charts when the atlas
     keeps no samples)."""
     dev = atlas.device
-    through_samples = lookup == "samples" and atlas.bake_samples is not None and atlas.bake_samples.shape[0] > 0
+    through_samples = lookup == "samples" and keeps_samples(atlas)
     per_sample = chart_texel_matrix(atlas, sample_lookup(atlas)) if through_samples else None
     R, n = atlas.layout.R, atlas.n
     k1 = blackman_harris_taps(sub, FILTER_WIDTH).to(dev)

@@ -98,6 +98,24 @@ def sample_charts(textures: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     return out[:, :, 0].permute(2, 0, 1)
 
 
+def bilinear_entries(sid: torch.Tensor, chart: torch.Tensor, p: torch.Tensor, uv: torch.Tensor, R: int):
+    """Sparse rows of chart lookups: lookup sid [K] reads chart[K] at uv [K, 2] with weight p [K] -> (lookup ids,
+    texel ids (chart R + row) R + col, weights = bilinear x p), as sample_charts interpolates (texel centres at
+    (j + 0.5) / R, clamp to edge). Entries in input order, then corner (row-major); zero weights left out."""
+    f = uv.clamp(0, 1) * R - 0.5  # [K, 2]
+    base = f.floor()
+    frac = f - base
+    base = base.long()
+    fx, fy = frac[:, 0], frac[:, 1]
+    # corner (dr, dc) in row-major order; weights as bilinear x p
+    w = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1) * p[:, None]  # [K, 4]
+    col = torch.stack([base[:, 0], base[:, 0] + 1, base[:, 0], base[:, 0] + 1], -1).clamp(0, R - 1)
+    row = torch.stack([base[:, 1], base[:, 1], base[:, 1] + 1, base[:, 1] + 1], -1).clamp(0, R - 1)
+    keep = w > 0
+    cols = chart[:, None] * R * R + row * R + col
+    return sid[:, None].expand_as(cols)[keep], cols[keep], w[keep]
+
+
 def chart_coords(uv: torch.Tensor, chart: torch.Tensor) -> torch.Tensor:
     """Each point's coordinates in one chart: uv [M, n, 2], chart [M] long -> [M, 2]."""
     return uv.gather(1, chart[:, None, None].expand(-1, 1, 2))[:, 0]

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from core.atlas.packing import blend_charts, chart_coords
+from core.atlas.packing import bilinear_entries, blend_charts, chart_coords
 from core.util.errors import InputError
 
 LOOKUP_K = 2  # nearest samples a lookup blends (EditConfig.lookup_k, AtlasConfig.footprint_lookup; docs/atlas.md)
@@ -85,6 +85,11 @@ class SampleLookup:
         return out
 
 
+def keeps_samples(atlas) -> bool:
+    """Whether the atlas keeps its surface samples (every model fitted since they are stored; older files do not)."""
+    return atlas is not None and atlas.bake_samples is not None and atlas.bake_samples.shape[0] > 0
+
+
 def sample_lookup(atlas) -> SampleLookup:
     """The atlas's SampleLookup, built on first use and kept until its samples or layout change."""
     cached = getattr(atlas, "_sample_lookup", None)
@@ -96,36 +101,18 @@ def sample_lookup(atlas) -> SampleLookup:
 
 def chart_texel_matrix(atlas, lk: SampleLookup):
     """What each sample reads as a sparse matrix [S, n R²] over the atlas's chart textures (texel (c, row, col) is
-    column (c R + row) R + col, as the footprint refit indexes them): bilinear, edge-clamped; island layouts in each
-    sample's own chart (n views of one image), the grid blended over the charts by their probabilities."""
+    column (c R + row) R + col, as the footprint refit indexes them): `packing.bilinear_entries`; island layouts in
+    each sample's own chart (n views of one image), the grid blended over the charts by their probabilities."""
     import scipy.sparse as sp
 
-    n, R = atlas.n, atlas.layout.R
     S = len(lk.samples)
     if lk.islands:
-        charts = lk.chart.numpy()[:, None]
-        uv = lk.uv.double().numpy()[:, None]                      # [S, 1, 2]
-        weight = np.ones((S, 1))
+        sid, chart, p, uv = torch.arange(S), lk.chart, torch.ones(S, dtype=torch.float64), lk.uv
     else:
-        charts = np.broadcast_to(np.arange(n), (S, n))
-        uv = lk.uv.double().numpy()                               # [S, n, 2]
-        weight = lk.probs.double().numpy()
-    f = np.clip(uv, 0, 1) * R - 0.5
-    x0, y0 = np.floor(f[..., 0]), np.floor(f[..., 1])
-    fx, fy = f[..., 0] - x0, f[..., 1] - y0
-    x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
-    rows, cols, vals = [], [], []
-    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
-        col = np.clip(x0 + dx, 0, R - 1)
-        row = np.clip(y0 + dy, 0, R - 1)
-        val = w * weight
-        keep = val > 0
-        rows.append(np.nonzero(keep)[0])
-        cols.append(((charts * R + row) * R + col)[keep])
-        vals.append(val[keep])
-    out = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(S, n * R * R))
-    out.sum_duplicates()
-    return out
+        sid, chart = torch.nonzero(lk.probs > 0, as_tuple=True)
+        p, uv = lk.probs[sid, chart].double(), lk.uv[sid, chart]
+    rows, cols, vals = bilinear_entries(sid, chart, p, uv.double(), atlas.layout.R)
+    return sp.csr_matrix((vals.numpy(), (rows.numpy(), cols.numpy())), shape=(S, atlas.n * atlas.layout.R ** 2))
 
 
 def lookup_matrix(lk: SampleLookup, x: torch.Tensor, k: int):
@@ -139,36 +126,17 @@ def lookup_matrix(lk: SampleLookup, x: torch.Tensor, k: int):
                          shape=(Q, len(lk.samples)))
 
 
-def _read_matrix(atlas, lk: SampleLookup, H: int, W: int):
-    """The sparse matrix [S, H*W] of what each sample reads from the packed image (bilinear, edge-clamped, and for
-    the grid blended over the charts by their probabilities) — `SampleLookup.read` as a linear map."""
+def packed_read_matrix(atlas, lk: SampleLookup, H: int, W: int):
+    """`chart_texel_matrix` over the packed image's H*W pixels: what each sample reads of the packed image,
+    `SampleLookup.read` as a linear map (an island layout's charts all read the image itself, origin (0, 0))."""
     import scipy.sparse as sp
 
-    if lk.islands:
-        parts = [(lk.uv.double().numpy() * [W, H] - 0.5, np.zeros((len(lk.uv), 2)), np.ones(len(lk.uv)),
-                  [0, 0, H - 1, W - 1])]
-    else:
-        parts = []
-        for c in range(atlas.n):
-            r0, c0 = atlas.layout.origin(c)
-            R = atlas.layout.R
-            parts.append((lk.uv[:, c].double().numpy() * R - 0.5, np.array([[c0, r0]]), lk.probs[:, c].double().numpy(),
-                          [r0, c0, r0 + R - 1, c0 + R - 1]))
-    rows, cols, vals = [], [], []
-    S = len(lk.samples)
-    for p, origin, weight, (rmin, cmin, rmax, cmax) in parts:
-        x = np.clip(p[:, 0] + origin[:, 0], cmin, cmax)
-        y = np.clip(p[:, 1] + origin[:, 1], rmin, rmax)
-        x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-        x1, y1 = np.minimum(x0 + 1, cmax), np.minimum(y0 + 1, rmax)
-        wx, wy = x - x0, y - y0
-        for cc, rr, ww in ((x0, y0, (1 - wx) * (1 - wy)), (x1, y0, wx * (1 - wy)), (x0, y1, (1 - wx) * wy),
-                           (x1, y1, wx * wy)):
-            keep = (ww * weight) > 0
-            rows.append(np.nonzero(keep)[0])
-            cols.append(rr[keep] * W + cc[keep])
-            vals.append((ww * weight)[keep])
-    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(S, H * W))
+    m = chart_texel_matrix(atlas, lk).tocoo()
+    R = atlas.layout.R
+    chart, pix = m.col // (R * R), m.col % (R * R)
+    origin = atlas.layout.origins().long().numpy()  # [n, 2] (row, col)
+    packed = (origin[chart, 0] + pix // R) * W + origin[chart, 1] + pix % R
+    return sp.csr_matrix((m.data, (m.row, packed)), shape=(m.shape[0], H * W))
 
 
 def _pair_matrix(atlas, H: int, W: int):
@@ -212,7 +180,7 @@ def fit_texels(atlas, image: torch.Tensor, target: torch.Tensor, smoothness: flo
     H, W, C = img.shape
     if target.shape != (len(lk.samples), C):
         raise InputError(f"fit_texels: expected targets [{len(lk.samples)}, {C}], got {tuple(target.shape)}")
-    A = _read_matrix(atlas, lk, H, W)
+    A = packed_read_matrix(atlas, lk, H, W)
     D = _pair_matrix(atlas, H, W)
     t0 = img.detach().double().cpu().numpy().reshape(-1, C)
     res = target.detach().double().cpu().numpy() - A @ t0

@@ -22,7 +22,7 @@ from typing import Callable
 import torch
 
 from core.atlas.packing import dilate_unused, pack, unpack
-from core.atlas.sample_lookup import fit_texels, sample_lookup
+from core.atlas.sample_lookup import fit_texels, keeps_samples, sample_lookup
 from core.atlas.texture import kernel_texture
 from core.util.errors import InputError
 
@@ -43,7 +43,7 @@ def bake(atlas, fn: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor | 
     """
     if source not in SOURCES:
         raise InputError(f"bake source must be one of {', '.join(SOURCES)}, got {source!r}")
-    have_samples = atlas.bake_samples is not None and atlas.bake_samples.shape[0] > 0
+    have_samples = keeps_samples(atlas)
     if source in ("samples", "fit") and not have_samples:
         raise InputError("this atlas keeps no surface samples (an older model file); `pointgt atlas MODEL DATA "
                          "--texel-map-only` stores them")

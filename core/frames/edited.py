@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from core.atlas.packing import blend_charts, unpack
-from core.atlas.sample_lookup import LOOKUP_K, sample_lookup
+from core.atlas.sample_lookup import LOOKUP_K, keeps_samples, sample_lookup
 from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
@@ -644,10 +644,7 @@ class EditState:
         """The atlas's SampleLookup when lookups go through the samples (EditConfig lookup samples and the atlas
         keeps samples), else None (chart lookups)."""
         atlas = self.bundle.atlas
-        if self.cfg.lookup != "samples" or atlas is None or atlas.bake_samples is None or \
-                atlas.bake_samples.shape[0] == 0:
-            return None
-        return sample_lookup(atlas)
+        return sample_lookup(atlas) if self.cfg.lookup == "samples" and keeps_samples(atlas) else None
 
     @property
     def sample_reads(self) -> torch.Tensor:
@@ -706,16 +703,11 @@ def _filtered_lookup(state: EditState, tr: Trace, sel: torch.Tensor, xc: torch.T
     depth[sel] = ray_depth
     # neighbours on the same surface: depth within 3 pixel footprints (an occlusion edge jumps much further)
     step = 3.0 * depth.abs() / focal_scale(focal)
-    if texture_fn is None and state.sample_lookup is not None:  # the texels the nearest samples read
-        sp = subpixel_points(canon.view(height, width, 3), valid.view(height, width), depth.view(height, width),
-                             sub, step.view(height, width))
-        on = torch.isfinite(sp).all(-1)
-        looked = _sample_painted(state, sp[on])
-    elif texture_fn is None:  # the atlas: chart nets once per pixel, their outputs interpolated to the sub-pixels
+    if texture_fn is None and state.sample_lookup is None:  # chart nets once per pixel, interpolated to sub-pixels
         probs, uv, on = subpixel_chart_uv(state.bundle.atlas, canon.view(height, width, 3), valid.view(height, width),
                                           depth.view(height, width), sub, step.view(height, width))
         looked = _painted(state, probs, uv)  # [K, 4]: rgb, mask
-    else:  # a 3-D function needs the sub-pixel points themselves
+    else:  # a 3-D function, or the nearest samples' reads, at the sub-pixel points themselves
         sp = subpixel_points(canon.view(height, width, 3), valid.view(height, width), depth.view(height, width),
                              sub, step.view(height, width))
         on = torch.isfinite(sp).all(-1)

@@ -287,14 +287,14 @@ def test_fitted_bake_reads_back_at_the_samples(layout, strip_fit, strip_fit_grid
     """The least-squares bake's linear map is what the samples read (the sparse matrix against SampleLookup.read
     on a random image), and its image returns a hard-edged texture at the samples closer than the splat does."""
     from core.atlas.packing import unpack
-    from core.atlas.sample_lookup import _read_matrix, sample_lookup
+    from core.atlas.sample_lookup import packed_read_matrix, sample_lookup
     from core.edits.bake import bake
 
     a, _, xyz, _ = strip_fit if layout == "islands" else strip_fit_grid
     lk = sample_lookup(a)
     H, W = a.layout.shape
     img = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(3))
-    A = _read_matrix(a, lk, H, W)
+    A = packed_read_matrix(a, lk, H, W)
     via_matrix = torch.from_numpy(A @ img.double().numpy().reshape(-1, 3)).float()
     assert torch.allclose(via_matrix, lk.read(unpack(img, a.layout)), atol=1e-5)
     lo, hi = xyz.min(0).values, xyz.max(0).values
