@@ -66,7 +66,8 @@ class SampleLookup:
     def neighbours(self, x: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         """x [M, 3] (finite) -> (indices [M, k] of the k nearest samples, weights [M, k] summing to 1)."""
         k = max(1, min(int(k), self.samples.shape[0]))
-        d, j = self.tree.query(x.detach().cpu().double().numpy(), k=k)
+        # the tree's queries run on as many threads as torch may use (one with --threads 1)
+        d, j = self.tree.query(x.detach().cpu().double().numpy(), k=k, workers=max(1, torch.get_num_threads()))
         d, j = np.asarray(d).reshape(len(x), k), np.asarray(j).reshape(len(x), k)
         scale = np.maximum(d[:, :1], 1e-12)
         w = np.exp(-0.5 * (d / scale) ** 2)

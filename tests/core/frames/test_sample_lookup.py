@@ -47,6 +47,20 @@ def test_a_point_on_a_sample_reads_that_sample_and_halfway_reads_both(card):
     assert torch.isnan(out[0]).all() and torch.isfinite(out[1:]).all()
 
 
+def test_neighbour_queries_on_several_threads_match_one_thread(card):
+    lk = sample_lookup(card[0].atlas)
+    x = lk.samples[::3] + 0.01 * torch.randn(len(lk.samples[::3]), 3, generator=torch.Generator().manual_seed(1))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        j1, w1 = lk.neighbours(x, 4)
+        torch.set_num_threads(2)
+        j2, w2 = lk.neighbours(x, 4)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(j1, j2) and torch.equal(w1, w2)
+
+
 def test_fitted_bake_returns_a_hard_edged_texture_at_the_samples_better_than_the_splat(card):
     atlas = card[0].atlas
     lk = sample_lookup(atlas)
