@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.fft import irfft2, next_fast_len, rfft2
+from scipy.fft import ifft, irfft, next_fast_len, rfft2
 
 from core.atlas.islands import bisect_side
 from core.atlas.outlines import ORIENT_NP, cell_pixels
@@ -153,6 +153,26 @@ def _start_rows(opts, free_run: np.ndarray, S: int) -> np.ndarray:
     return np.flatnonzero(ok)
 
 
+def _overlaps(product: np.ndarray, fw: int, n: int, m: int) -> np.ndarray:
+    """The first n x m entries of irfft2(product, (fh, fw)) for a half spectrum product [fh, fw // 2 + 1]: the
+    inverse along the rows in full, then the real inverse along the columns of the n rows kept only (a band's
+    spots are its first rows; the rest of the window is the footprint's reach below them)."""
+    return irfft(ifft(product, axis=0)[:n], fw, axis=1)[:, :m]
+
+
+def _free_spots(ov: np.ndarray):
+    """(row, col) of every entry of ov [n, m] below 0.5 in reading order, found one at a time (the caller takes
+    the first that its exact check accepts; most bands stop at the first)."""
+    free = (ov < 0.5).ravel()
+    k = 0
+    while k < free.size:
+        k += int(free[k:].argmax())
+        if not free[k]:
+            return
+        yield divmod(k, ov.shape[1])
+        k += 1
+
+
 def _place_all(shapes, order, S: int, g: int, bottom: bool = False):
     """Greedy placement of every island (in `order`) into an S x S image, each at its first free spot in reading
     order (row, then col); over its orientations the one whose spot comes first (bottom: whose bottom row, spot row
@@ -184,13 +204,13 @@ def _place_all(shapes, order, S: int, g: int, bottom: bool = False):
                     n = min(band, S - h - r0 + 1)  # spots r0 .. r0 + n - 1 keep the island inside the image
                     if n <= 0:
                         continue
-                    ov = irfft2(spec * fs, (fh, fw))[:n, :W - foot.shape[1] + 1]
                     foot_h, foot_w = foot.shape
-                    for r, c in zip(*np.nonzero(ov < 0.5)):  # row-major: the first free spot in reading order
-                        r = int(r) + r0
+                    ov = _overlaps(spec * fs, fw, n, W - foot_w + 1)
+                    for r, c in _free_spots(ov):  # row-major: the first free spot in reading order
+                        r += r0
                         # single-precision FFTs: the count is checked exactly before the spot is taken
                         if not (occ[r:r + foot_h, c:c + foot_w] * foot).any():
-                            cand = (r + h if bottom else r, int(c), r, q, first, foot)
+                            cand = (r + h if bottom else r, c, r, q, first, foot)
                             if best is None or cand[:2] < best[:2]:  # then over orientations
                                 best = cand
                             break

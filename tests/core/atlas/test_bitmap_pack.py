@@ -162,7 +162,7 @@ def test_spots_the_rounded_fft_calls_free_are_checked_exactly(monkeypatch):
     g = 1
     shapes = bp._shapes(masks, g, transpose=True)
     order = list(range(len(masks)))
-    real = bp.irfft2
+    real = bp._overlaps
     wrong = []
 
     def rounded_badly(*a, **k):
@@ -171,10 +171,30 @@ def test_spots_the_rounded_fft_calls_free_are_checked_exactly(monkeypatch):
         wrong.append(int(bad.sum()))
         return np.where(bad, out - 0.7, out)
 
-    monkeypatch.setattr(bp, "irfft2", rounded_badly)
+    monkeypatch.setattr(bp, "_overlaps", rounded_badly)
     got, want = bp._place_all(shapes, order, 70, g), _place_reference(shapes, order, 70, g)
     assert got is not None and want is not None and sum(wrong) > 0
     assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def test_overlap_rows_and_free_spots_match_the_full_inverse_and_reading_order():
+    """_overlaps keeps the first rows of the full 2-D inverse transform; _free_spots lists the entries below 0.5
+    in the order np.nonzero gives them."""
+    from scipy.fft import irfft2, rfft2
+
+    from core.atlas import bitmap_pack as bp
+    rng = np.random.default_rng(5)
+    occ = (rng.random((45, 61)) < 0.4).astype(np.float32)
+    foot = (rng.random((9, 7)) < 0.8).astype(np.float32)
+    fh, fw = 48, 64
+    product = rfft2(occ, (fh, fw)) * np.conj(rfft2(foot, (fh, fw)))
+    full = irfft2(product, (fh, fw))
+    for n, m in ((1, 5), (20, 55), (fh, fw)):
+        assert np.allclose(bp._overlaps(product, fw, n, m), full[:n, :m], atol=1e-3)
+    ov = np.where(rng.random((13, 17)) < 0.2, 0.0, 2.0)
+    assert list(bp._free_spots(ov)) == [(int(r), int(c)) for r, c in zip(*np.nonzero(ov < 0.5))]
+    assert list(bp._free_spots(np.ones((3, 4)))) == []
+    assert list(bp._free_spots(np.zeros((2, 2)))) == [(0, 0), (0, 1), (1, 0), (1, 1)]
 
 
 def test_longest_free_runs_per_row():
