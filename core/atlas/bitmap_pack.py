@@ -155,8 +155,8 @@ def _start_rows(opts, free_run: np.ndarray, S: int) -> np.ndarray:
 
 def _overlaps(product: np.ndarray, fw: int, n: int, m: int) -> np.ndarray:
     """The first n x m entries of irfft2(product, (fh, fw)) for a half spectrum product [fh, fw // 2 + 1]: the
-    inverse along the rows in full, then the real inverse along the columns of the n rows kept only (a band's
-    spots are its first rows; the rest of the window is the footprint's reach below them)."""
+    complex inverse down every column, then the real inverse along the first n rows only (a band's spots are its
+    first rows; the rest of the window is the footprint's reach below them)."""
     return irfft(ifft(product, axis=0)[:n], fw, axis=1)[:, :m]
 
 
