@@ -17,7 +17,7 @@ from typing import NamedTuple
 import torch
 
 from core.atlas.packing import bilinear_entries
-from core.atlas.sample_lookup import LOOKUP_K, chart_texel_matrix, keeps_samples, lookup_matrix, sample_lookup
+from core.atlas.sample_lookup import LOOKUP_K, chart_texel_matrix, keeps_samples, lookup_texel_rows, sample_lookup
 from core.atlas.subpixel import subpixel_chart_uv
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import FILTER_WIDTH, blackman_harris_taps, subpixel_points
@@ -82,8 +82,7 @@ def _sample_rows(atlas, per_sample, points, valid, depth, sub: int, step, k: int
     texels [K, n R²] for the K sub-pixels on the object (row-major), and `on` [S*H, S*W] marking them."""
     sp_ = subpixel_points(points, valid, depth, sub, step)
     on = torch.isfinite(sp_).all(-1)
-    rows = lookup_matrix(sample_lookup(atlas), atlas.on_surface(sp_[on]).cpu(), k) @ per_sample
-    rows.sort_indices()
+    rows = lookup_texel_rows(sample_lookup(atlas), atlas.on_surface(sp_[on]).cpu(), k, per_sample)
     return rows, on
 
 

@@ -127,6 +127,27 @@ def lookup_matrix(lk: SampleLookup, x: torch.Tensor, k: int):
                          shape=(Q, len(lk.samples)))
 
 
+def lookup_texel_rows(lk: SampleLookup, x: torch.Tensor, k: int, per_sample):
+    """What points x [Q, 3] (finite, on the atlas's surface) read of the texels, as a CSR matrix [Q, T] with sorted
+    columns: `lookup_matrix(lk, x, k) @ per_sample` for per_sample [S, T] CSR (`chart_texel_matrix`), gathered row
+    by row (each point's k samples' entries, weighted) instead of a general sparse product, whose work grows with T
+    (every column of the atlas's charts) on each call."""
+    import scipy.sparse as sp
+
+    j, w = lk.neighbours(x, k)
+    Q, kk = j.shape
+    jj, ww = j.reshape(-1).numpy(), w.reshape(-1).numpy()
+    start, cnt = per_sample.indptr[jj], per_sample.indptr[jj + 1] - per_sample.indptr[jj]
+    total = int(cnt.sum())
+    at = np.repeat(start - (np.cumsum(cnt) - cnt), cnt) + np.arange(total)  # each entry's place in per_sample
+    out = sp.csr_matrix((np.repeat(ww, cnt) * per_sample.data[at], (np.repeat(np.repeat(np.arange(Q), kk), cnt),
+                                                                   per_sample.indices[at])),
+                        shape=(Q, per_sample.shape[1]))
+    out.sum_duplicates()  # one entry per (point, texel); sorts the columns
+    out.eliminate_zeros()  # a sample whose weight underflowed to 0 reads nothing, as in the product
+    return out
+
+
 def packed_read_matrix(atlas, lk: SampleLookup, H: int, W: int):
     """`chart_texel_matrix` over the packed image's H*W pixels: what each sample reads of the packed image,
     `SampleLookup.read` as a linear map (an island layout's charts all read the image itself, origin (0, 0))."""

@@ -5,7 +5,8 @@ import copy
 import pytest
 import torch
 
-from core.atlas.sample_lookup import fit_texels, sample_lookup
+from core.atlas.sample_lookup import (chart_texel_matrix, fit_texels, lookup_matrix, lookup_texel_rows,
+                                      sample_lookup)
 from core.edits.bake import bake
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.util.errors import InputError
@@ -59,6 +60,27 @@ def test_neighbour_queries_on_several_threads_match_one_thread(card):
     finally:
         torch.set_num_threads(before)
     assert torch.equal(j1, j2) and torch.equal(w1, w2)
+
+
+def test_gathered_texel_rows_equal_the_sparse_product(card):
+    """lookup_texel_rows (the refit's rows, gathered) against the plain product lookup_matrix @ per-sample rows:
+    bit for bit with one or two samples per point (each texel sums at most two terms), to rounding with more."""
+    import numpy as np
+
+    atlas = card[0].atlas
+    lk = sample_lookup(atlas)
+    per_sample = chart_texel_matrix(atlas, lk)
+    g = torch.Generator().manual_seed(3)
+    x = torch.cat([lk.samples[::2] + 0.02 * torch.randn(len(lk.samples[::2]), 3, generator=g), lk.samples[:5]])
+    for k in (1, 2, 4):
+        want = lookup_matrix(lk, x, k) @ per_sample
+        want.sort_indices()
+        got = lookup_texel_rows(lk, x, k, per_sample)
+        assert got.shape == want.shape and np.array_equal(got.indptr, want.indptr)
+        assert np.array_equal(got.indices, want.indices)
+        assert np.array_equal(got.data, want.data) if k <= 2 else np.allclose(got.data, want.data, rtol=1e-12)
+    empty = lookup_texel_rows(lk, x[:0], 2, per_sample)
+    assert empty.shape == (0, per_sample.shape[1]) and empty.nnz == 0
 
 
 def test_fitted_bake_returns_a_hard_edged_texture_at_the_samples_better_than_the_splat(card):
