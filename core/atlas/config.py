@@ -10,6 +10,7 @@ from core.util.errors import InputError
 # world lengths an atlas stores (the scene's half-size, the anchor planes' bandwidth): outside this range their
 # squares and products in float32 / float64 leave the finite numbers (a damaged model file)
 WORLD_SCALES = (1e-30, 1e12)
+LOOKUPS = ("samples", "charts")  # how frames and the footprint refit read the atlas (EditConfig.lookup)
 MAX_CHART_RES = 4096  # texels per chart side: 8 charts of 4096² pack into a 12k x 12k image (1.7 GB of float32 RGB)
 
 
@@ -47,7 +48,7 @@ class AtlasConfig:
     footprint_lookup: str = opt("samples", "footprint refit: how the refit's frames read the texels, as edited frames "
                                            "do (EditConfig lookup): samples (the nearest stored surface samples' "
                                            "reads) | charts (the chart networks at each point)",
-                                choices=("samples", "charts"))
+                                choices=LOOKUPS)
     footprint_iters: int = opt(100, "footprint refit: at most this many conjugate-gradient iterations (fewer once "
                                     "converged)", min=0)
     texture_steps: int = opt(300, "descent texture: refinement steps after the maps converge (maps frozen)", min=0)

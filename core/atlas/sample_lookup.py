@@ -49,9 +49,8 @@ class SampleLookup:
         self.tree = cKDTree(self.samples.numpy().astype(np.float64))
         probs, uv = atlas.chart_uv(self.samples, own_chart_only=True)
         if self.islands:
-            self.chart = probs.argmax(-1).cpu()
-            self.uv = chart_coords(uv, probs.argmax(-1)).cpu()
-            self.probs = None
+            own = probs.argmax(-1)
+            self.chart, self.uv, self.probs = own.cpu(), chart_coords(uv, own).cpu(), None
         else:
             self.chart, self.uv, self.probs = None, uv.cpu(), probs.cpu()
 
@@ -116,22 +115,12 @@ def chart_texel_matrix(atlas, lk: SampleLookup):
     return sp.csr_matrix((vals.numpy(), (rows.numpy(), cols.numpy())), shape=(S, atlas.n * atlas.layout.R ** 2))
 
 
-def lookup_matrix(lk: SampleLookup, x: torch.Tensor, k: int):
-    """The blend weights of points x [Q, 3] (finite, on the atlas's surface) over the samples as a sparse matrix
-    [Q, S]: row q holds the weights of its k nearest samples (`SampleLookup.neighbours`)."""
-    import scipy.sparse as sp
-
-    j, w = lk.neighbours(x, k)
-    Q, kk = j.shape
-    return sp.csr_matrix((w.reshape(-1).numpy(), (np.repeat(np.arange(Q), kk), j.reshape(-1).numpy())),
-                         shape=(Q, len(lk.samples)))
-
-
 def lookup_texel_rows(lk: SampleLookup, x: torch.Tensor, k: int, per_sample):
     """What points x [Q, 3] (finite, on the atlas's surface) read of the texels, as a CSR matrix [Q, T] with sorted
-    columns: `lookup_matrix(lk, x, k) @ per_sample` for per_sample [S, T] CSR (`chart_texel_matrix`), gathered row
-    by row (each point's k samples' entries, weighted) instead of a general sparse product, whose work grows with T
-    (every column of the atlas's charts) on each call."""
+    columns: W @ per_sample, W [Q, S] the points' blend weights over the samples (`SampleLookup.neighbours`) and
+    per_sample [S, T] CSR (`chart_texel_matrix`), gathered row by row (each point's k samples' entries, weighted)
+    instead of a general sparse product, whose work grows with T (every column of the atlas's charts) on each
+    call."""
     import scipy.sparse as sp
 
     j, w = lk.neighbours(x, k)

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
+from core.atlas.config import LOOKUPS
 from core.atlas.packing import blend_charts, unpack
 from core.atlas.sample_lookup import LOOKUP_K, keeps_samples, sample_lookup
 from core.atlas.subpixel import subpixel_chart_uv
@@ -45,7 +46,6 @@ FILL_FEATURES = ("blend", "nearer")
 FOLD_TESTS = ("displacement", "local-map")
 RADIUS_RULES = ("gap", "budget", "frame")
 RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's radius cap as it is
-LOOKUPS = ("samples", "charts")
 
 
 @dataclass

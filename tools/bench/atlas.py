@@ -153,7 +153,8 @@ def scene_mirror(scene, work):
 def parse_lookups(text: str) -> list[tuple[str, str, int]]:
     """"lookup:bake[:k],..." -> [(lookup, bake source, k)]; "" -> the defaults alone."""
     from core.edits.bake import SOURCES
-    from core.frames.edited import LOOKUPS, EditConfig
+    from core.atlas.config import LOOKUPS
+    from core.frames.edited import EditConfig
     from core.util.errors import InputError
 
     out = []
@@ -287,11 +288,12 @@ def scene_rows(root, layouts, cfg, views: int, retexture: str = "stripes", only=
 
 def split_variant(variant: str, cfg) -> tuple[str, str]:
     """A --footprint-variants entry "[LOOKUP:]LAMBDAS" -> (lookup, lambdas); no prefix: cfg.footprint_lookup."""
+    from core.atlas.config import LOOKUPS
     from core.util.errors import InputError
 
     lookup, _, lambdas = variant.rpartition(":")
     lookup = lookup or cfg.footprint_lookup
-    if lookup not in ("samples", "charts"):
+    if lookup not in LOOKUPS:
         raise InputError(f"--footprint-variants: the lookup before ':' must be samples or charts, got {variant!r}")
     dataclasses.replace(cfg, footprint_lambdas=lambdas).lambda_candidates()  # a bad list fails here
     return lookup, lambdas

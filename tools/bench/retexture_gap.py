@@ -199,7 +199,8 @@ def gap_rows(bundle_path, scene, cfg, densities, views: int, bake_sigmas, antial
 def main(argv=None) -> int:
     from pathlib import Path
 
-    from core.atlas.config import AtlasConfig
+    from core.atlas.config import LOOKUPS, AtlasConfig
+    from core.edits.bake import SOURCES
     from tools.bench.atlas import scene_model
     from tools.scenes.library import scene_names
 
@@ -207,9 +208,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scene-root", required=True, help="DIR/<scene>/ and DIR/<scene>.pgt (or .default.pgt)")
     ap.add_argument("--scenes", default="cloth", help="scenes (comma-separated)")
     ap.add_argument("--views", type=int, default=4, help="test views scored")
-    ap.add_argument("--lookup", default="samples", choices=("samples", "charts"), help="how the frames read the "
+    ap.add_argument("--lookup", default="samples", choices=LOOKUPS, help="how the frames read the "
                     "atlas (EditConfig lookup)")
-    ap.add_argument("--bake-source", default="auto", choices=("auto", "fit", "samples", "points"),
+    ap.add_argument("--bake-source", default="auto", choices=SOURCES,
                     help="the baked row's bake (core.edits.bake.bake source; the kernel rows splat)")
     ap.add_argument("--texel-densities", default="4", help="texels per training pixel to fit (comma-separated)")
     ap.add_argument("--bake-sigmas", default="0.5,2", help="bake kernel width factors (comma-separated)")

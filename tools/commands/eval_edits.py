@@ -20,6 +20,8 @@ def add_arguments(p):
     p.add_argument("--magnitudes", default="0.25,0.5,1", help="comma-separated pose magnitudes (1 = the named pose)")
     p.add_argument("--views", type=int, default=4, help="test views per case (evenly spaced over the scene's)")
     p.add_argument("--temperatures", default="1,0.5", help="attention temperatures (< 1 sharpens attention)")
+    from core.atlas.config import LOOKUPS
+    from core.edits.bake import SOURCES
     from tools.eval_edits import renderers_help
 
     p.add_argument("--renderers", default=None,
@@ -32,10 +34,10 @@ def add_arguments(p):
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side (1 = one per ray, no pixel filter)")
     p.add_argument("--retexture", default="stripes", help="global procedural texture for the retexture edit (stripes: along x; checker cells are thinner than a thin object's depth error)")
-    p.add_argument("--lookup", default=None, choices=("samples", "charts"),
+    p.add_argument("--lookup", default=None, choices=LOOKUPS,
                    help="every renderer's atlas lookup (default: each renderer's own: the paper's through the chart "
                         "networks, the default renderer's through the stored surface samples)")
-    p.add_argument("--bake-source", default="auto", choices=("auto", "fit", "samples", "points"),
+    p.add_argument("--bake-source", default="auto", choices=SOURCES,
                    help="how the retexture and the decal are baked into the atlas (auto: fitted at the stored surface "
                         "samples; samples: splatted from them)")
     p.add_argument("--samples", type=int, default=None, help="Cycles samples for the ground truth (default: scene's)")

@@ -5,8 +5,7 @@ import copy
 import pytest
 import torch
 
-from core.atlas.sample_lookup import (chart_texel_matrix, fit_texels, lookup_matrix, lookup_texel_rows,
-                                      sample_lookup)
+from core.atlas.sample_lookup import chart_texel_matrix, fit_texels, lookup_texel_rows, sample_lookup
 from core.edits.bake import bake
 from core.frames.edited import EditConfig, EditState, render_edited
 from core.util.errors import InputError
@@ -63,9 +62,17 @@ def test_neighbour_queries_on_several_threads_match_one_thread(card):
 
 
 def test_gathered_texel_rows_equal_the_sparse_product(card):
-    """lookup_texel_rows (the refit's rows, gathered) against the plain product lookup_matrix @ per-sample rows:
-    bit for bit with one or two samples per point (each texel sums at most two terms), to rounding with more."""
+    """lookup_texel_rows (the refit's rows, gathered) against the plain product of the points' blend weights over
+    the samples and the per-sample rows: bit for bit with one or two samples per point (each texel sums at most two
+    terms), to rounding with more."""
     import numpy as np
+    import scipy.sparse as sp
+
+    def lookup_matrix(lk, x, k):  # the blend weights [Q, S]: row q holds its k nearest samples' weights
+        j, w = lk.neighbours(x, k)
+        Q, kk = j.shape
+        return sp.csr_matrix((w.reshape(-1).numpy(), (np.repeat(np.arange(Q), kk), j.reshape(-1).numpy())),
+                             shape=(Q, len(lk.samples)))
 
     atlas = card[0].atlas
     lk = sample_lookup(atlas)
