@@ -107,9 +107,10 @@ class AtlasConfig:
                       choices=("islands", "grid"))
     image_size: int = opt(0, "islands: side of the square atlas image in texels; 0 = chosen per scene from the "
                              "surface area and the training images' pixel footprint on it", min=0, max=MAX_CHART_RES)
-    texels_per_pixel: float = opt(4.0, "islands, image_size 0: texels per training-image pixel footprint along the "
-                                       "surface (4: a 2x2-filtered lookup of a pixel spans 2 texels, paint finer "
-                                       "than the views see)", above=0.0, max=64.0)
+    texels_per_pixel: float = opt(5.0, "islands, image_size 0: texels per training-image pixel footprint along the "
+                                       "surface (paint finer than the views see; 5 chosen over 4 and 6 on the scene "
+                                       "library: hard edges of a retexture hold, docs/atlas.md)", above=0.0,
+                                  max=64.0)
     max_image_size: int = opt(2048, "islands: largest automatic atlas side (a coarser texel beyond it)", min=16,
                               max=MAX_CHART_RES)
     island_pad: int = opt(2, "islands: padding texels around each island (islands end up 2 pad - 1 apart; 2: "
@@ -169,8 +170,10 @@ class AtlasConfig:
                                       max=1024.0)
     island_pieces_min_samples: int = opt(200, "island_pieces: smaller pieces join their most connected neighbour",
                                          min=1, max=1 << 24)
-    island_min_texels: int = opt(16, "islands: smaller islands are dropped (their points read the nearest island)",
-                                 min=1, max=1_000_000)
+    island_min_pixels: float = opt(1.0, "islands: smaller islands are dropped (their points read the nearest "
+                                        "island); their area in training-image pixel footprints on the surface "
+                                        "(texels_per_pixel^2 texels each: the same surface at any texel density)",
+                                   min=0.0, max=1e6)
     texel_max_dist: float = opt(3.0, "texel map: NaN where the texel's surface point is farther than this many sample spacings",
                                 above=0.0)
     texel_map: str = opt("splat", "texel map from the forward map (splat: kernel mean of the sample positions around each "

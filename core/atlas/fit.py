@@ -140,6 +140,13 @@ def chart_scales(probs: torch.Tensor, uv: torch.Tensor, area_c: np.ndarray, h: f
     return scale, fill
 
 
+def min_island_cells(h: float, cfg: AtlasConfig, pixel_size: float | None) -> int:
+    """The texels of the smallest island kept at texel size h (world units): cfg.island_min_pixels training-pixel
+    footprints, each (pixel_size / h)^2 texels (texels_per_pixel^2 where the footprint is unknown), at least 1."""
+    per_pixel = pixel_size / h if pixel_size else cfg.texels_per_pixel
+    return max(1, int(round(cfg.island_min_pixels * per_pixel * per_pixel)))
+
+
 def island_layout(probs: torch.Tensor, uv: torch.Tensor, elements: tuple[np.ndarray, np.ndarray], area: float,
                   k_area: float, R: int, cfg: AtlasConfig, pixel_size: float | None) -> tuple[object, dict]:
     """Cut the charts to the surface they cover and pack them (core/atlas/islands.py) at one texel density for all
@@ -156,9 +163,9 @@ def island_layout(probs: torch.Tensor, uv: torch.Tensor, elements: tuple[np.ndar
     info = {}
     for attempt in range(40):
         scale, fill = chart_scales(probs, uv, area_c, h, k_area, cfg)
-        layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.image_size, fill, cfg.island_min_texels,
-                               transpose=cfg.island_transpose, split=cfg.island_split,
-                               min_fill=cfg.island_min_fill, packer=cfg.island_packer,
+        layout = build_islands(probs, uv, scale, cfg.island_pad, cfg.image_size, fill,
+                               min_island_cells(h, cfg, pixel_size), transpose=cfg.island_transpose,
+                               split=cfg.island_split, min_fill=cfg.island_min_fill, packer=cfg.island_packer,
                                pack_orders=cfg.island_pack_orders)
         if layout is not None and (cfg.image_size > 0 or layout.size <= cfg.max_image_size):
             info = {"texel_size": h, "chart_scale": scale.tolist(), "islands": layout.islands,

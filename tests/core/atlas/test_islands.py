@@ -501,3 +501,30 @@ def test_nearest_cells_are_occupied_and_as_near_as_any_occupied_cell():
         assert torch.allclose((nb.float() - here).norm(dim=-1), best)
         per_cell = layout.nearest_cells(torch.full_like(rows, c), rows, cols)  # a chart per cell: the same
         assert torch.equal(per_cell, nb)
+
+
+def test_the_smallest_island_kept_is_the_same_surface_at_any_texel_density():
+    from core.atlas.config import AtlasConfig
+    from core.atlas.fit import island_layout, min_island_cells, sample_spacing
+
+    def grid(x0, n, d=0.0025):
+        g = x0 + np.arange(n) * d
+        X, Y = np.meshgrid(g, g)
+        return np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], -1)
+
+    def islands(stray: int, tpp: float, min_pixels: float) -> int:
+        xyz = np.concatenate([grid(0.0, 100), grid(0.5, stray)])  # a 0.25 square and a stray patch, pixels 0.02
+        spacing, area, *elements = sample_spacing(xyz, per_sample=True)
+        probs, uv = torch.ones(len(xyz), 1), torch.from_numpy(xyz[:, None, :2]).float() - 0.4
+        cfg = AtlasConfig(layout="islands", island_sides=False, island_split=0.0, texels_per_pixel=tpp,
+                          island_min_pixels=min_pixels)
+        return island_layout(probs, uv, tuple(elements), area, 1.0, 16, cfg, 0.02)[1]["islands"]
+
+    for tpp in (4.0, 8.0):
+        assert islands(3, tpp, 1.0) == 1  # a quarter of a pixel across: dropped at either density
+        assert islands(8, tpp, 1.0) == 2  # most of a pixel across: kept at either density
+        assert islands(3, tpp, 0.0) == 2  # nothing is dropped with 0
+    assert islands(3, 8.0, 16 / 64) == 2  # a fixed 16 texels would keep it at 8 texels per pixel
+    cfg = AtlasConfig(texels_per_pixel=5.0, island_min_pixels=1.0)
+    assert min_island_cells(0.02 / 5, cfg, 0.02) == 25 and min_island_cells(0.02 / 2.5, cfg, 0.02) == 6
+    assert min_island_cells(1.0, cfg, None) == 25 and min_island_cells(1.0, AtlasConfig(island_min_pixels=0.0), 1.0) == 1
