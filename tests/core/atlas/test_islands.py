@@ -527,4 +527,5 @@ def test_the_smallest_island_kept_is_the_same_surface_at_any_texel_density():
     assert islands(3, 8.0, 16 / 64) == 2  # a fixed 16 texels would keep it at 8 texels per pixel
     cfg = AtlasConfig(texels_per_pixel=5.0, island_min_pixels=1.0)
     assert min_island_cells(0.02 / 5, cfg, 0.02) == 25 and min_island_cells(0.02 / 2.5, cfg, 0.02) == 6
-    assert min_island_cells(1.0, cfg, None) == 25 and min_island_cells(1.0, AtlasConfig(island_min_pixels=0.0), 1.0) == 1
+    assert min_island_cells(1.0, cfg, None) == 25
+    assert min_island_cells(1.0, AtlasConfig(island_min_pixels=0.0), 1.0) == 1
