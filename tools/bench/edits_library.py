@@ -6,18 +6,19 @@
 
 Per scene, each step a separate process, exactly what a user runs, and each reused when its output exists:
 `pointgt make-scene` and the default stage-1 fit (as `python -m tools.bench.scenes --no-pair` makes them:
-DIR/NAME, DIR/NAME.default.pgt), `pointgt atlas` with its defaults, then `pointgt eval-edits` at magnitude 1
-(deform-aware correspondence, temperature 1, the soft blend; DIR/NAME.edits.json). The table gives, per scene
-and renderer, the rest frame's object PSNR and, over the posed frames, the worst pose and its gap to rest for the
-geometry-only edit and for the retexture (issue #16's bar: every pose within 3 dB of rest), and the mean seconds
-per frame. The model's quality sets the rest figure: a weak fit has less to lose, so compare renderers within
-one run (same models), and budgets across runs. `--fit-args` adds `pointgt fit` flags to every stage-1 fit under
+DIR/NAME, DIR/NAME.default.pgt), `pointgt atlas` with its defaults (or `--atlas-args`), then `pointgt eval-edits`
+at magnitude 1 (deform-aware correspondence, temperature 1, the soft blend; DIR/NAME.edits.json). The table gives,
+per scene and renderer, the rest frame's object PSNR and, over the posed frames, the worst pose and its gap to rest
+for the geometry-only edit and for the retexture (issue #16's bar: every pose within 3 dB of rest), and the mean
+seconds per frame. The model's quality sets the rest figure: a weak fit has less to lose, so compare renderers
+within one run (same models), and budgets across runs. `--fit-args` adds `pointgt fit` flags to every stage-1 fit under
 `--tag` (DIR/NAME.TAG.default.pgt, DIR/NAME.TAG.edits.json), as `tools.bench.scenes` does.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -96,6 +97,8 @@ def main(argv=None) -> int:
                     "needs --tag), e.g. --fit-args=--view-dependent (a lone flag needs the =)")
     ap.add_argument("--tag", default="", help="name of the --fit-args setting: its models and edit figures are "
                     "SCENE.TAG.* files beside the defaults'")
+    ap.add_argument("--atlas-args", default="", help="more `pointgt atlas` flags (one string), e.g. "
+                    "--atlas-args='--atlas-texels-per-pixel 4'; a model's atlas is fitted once, so use a fresh --work")
     ap.add_argument("--json", default=None, help="write all figures here")
     ap.add_argument("--markdown", default=None, help="write the table here")
     add_samples(ap)
@@ -107,7 +110,8 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m"]
     budget = ["--steps", str(args.steps)] if args.steps else ["--minutes", str(args.minutes)]
-    head = (f"```\n{machine_line()}\nstage 1: {' '.join(budget)}, {args.threads} thread(s); atlas: defaults; "
+    atlas = args.atlas_args or "defaults"
+    head = (f"```\n{machine_line()}\nstage 1: {' '.join(budget)}, {args.threads} thread(s); atlas: {atlas}; "
             f"eval-edits: magnitude 1, {args.views} views, deform-aware, T = 1, soft blend\n```")
     print(head, flush=True)
     per_scene, figures = {}, {}
@@ -118,7 +122,7 @@ def main(argv=None) -> int:
                                          args.tag), print, check=True)
         if not model.with_suffix(".atlas_history.json").exists():
             run_command(py + ["tools.cli", "atlas", str(model), str(work / name), "--atlas-threads",
-                              str(args.threads), "--no-progress"], print, check=True)
+                              str(args.threads), "--no-progress", *shlex.split(args.atlas_args)], print, check=True)
         out = work / f"{name}{'.' + args.tag if args.tag else ''}.edits.json"
         want = [r for r in renderers.split(",") if r]
         have = json.loads(out.read_text()) if out.exists() else None

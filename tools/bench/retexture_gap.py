@@ -212,7 +212,8 @@ def main(argv=None) -> int:
                     "atlas (EditConfig lookup)")
     ap.add_argument("--bake-source", default="auto", choices=SOURCES,
                     help="the baked row's bake (core.edits.bake.bake source; the kernel rows splat)")
-    ap.add_argument("--texel-densities", default="4", help="texels per training pixel to fit (comma-separated)")
+    ap.add_argument("--texel-densities", default=f"{AtlasConfig.texels_per_pixel:g}",
+                    help="texels per training pixel to fit (comma-separated; default AtlasConfig's)")
     ap.add_argument("--bake-sigmas", default="0.5,2", help="bake kernel width factors (comma-separated)")
     ap.add_argument("--antialias", default="1,4", help="lookups per pixel side besides the default 2")
     ap.add_argument("--tag", default="", help="read DIR/<scene>.<tag>.default.pgt, the scene-library bench's fit of "
