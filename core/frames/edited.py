@@ -23,7 +23,7 @@ from core.atlas.subpixel import subpixel_chart_uv
 from core.config import opt
 from core.edits.correspondence import MODES, ray_canonical_points
 from core.edits.deformation import (MAX_STRETCH, DeformationConfig, bound_above, det3, expansion_inverse, field_for,
-                                     inverse, key_inverse, stretch)
+                                     inverse, inverse_at, key_inverse, stretch)
 from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, unoccluded
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
@@ -189,6 +189,7 @@ class EditState:
         self.deformation_cfg = deformation or DeformationConfig()
         self._f = self._inv_f = self._inv_f_keys = self._inv_f_att = self._radius_scale = self._reach = None
         self._inv_f_att_done = None  # [M] bool: the rows of _inv_f_att computed so far
+        self._inv_f_rows = self._inv_f_rows_done = None  # inv_f_at's rows and which of them are computed
         self._local_scale = None  # median |det F|^(1/3), once computed
         self._centre = None  # the points' centre, once computed
         self._fill_blend = None  # f_fill_features = blend: (canonical ids of both ends [P], fraction [P])
@@ -346,6 +347,23 @@ class EditState:
         if self._inv_f is None:
             self._inv_f = self._timed(lambda: inverse(self._f))
         return self._inv_f
+
+    def inv_f_at(self, rows: torch.Tensor) -> torch.Tensor | None:
+        """`inv_f` where only the rows [P] long are read: [M, 3, 3], F⁻¹ at those rows and at any computed before
+        (each row `inv_f`'s to float32 rounding), zero at the others (the occlusion rule reads only the points a frame's
+        rays hold). None when nothing moved."""
+        if self.f is None:
+            return None
+        if self._inv_f is not None:
+            return self._inv_f
+        if self._inv_f_rows is None:
+            self._inv_f_rows = torch.zeros_like(self._f)
+            self._inv_f_rows_done = torch.zeros(self._f.shape[0], dtype=torch.bool, device=self._f.device)
+        todo = rows[~self._inv_f_rows_done[rows]]
+        if todo.numel():
+            self._timed(lambda: inverse_at(self._f, todo, self._inv_f_rows))
+            self._inv_f_rows_done[todo] = True
+        return self._inv_f_rows
 
     @property
     def inv_f_keys(self) -> torch.Tensor | None:
@@ -564,7 +582,8 @@ class EditState:
         spacing = float(model.spacing)
         if c2w is None or focal is None:
             return front_layer(trace, self.points, self.p_can, self.inv_f, spacing)
-        front = front_anchors(trace, self.points, self.p_can, self.inv_f, spacing, min_hidden=REDO_MIN_HIDDEN)
+        inv_f = self.inv_f_at(held_rows(trace.idx, self.points.shape[0]))  # the redo reads only its anchors'
+        front = front_anchors(trace, self.points, self.p_can, inv_f, spacing, min_hidden=REDO_MIN_HIDDEN)
         if front is None:
             return trace
         rows, anchor, depth, _ = front
@@ -579,7 +598,7 @@ class EditState:
             index = self._screen_index(c2w, height, width, focal, k)
         cand = select_neighbors(search, model.cfg.neighbors, 2 * k, c2w.to(pts.device, torch.float32), height, width,
                                 focal, pixel_grid(height, width, pts.device)[rows], o, d, index=index)
-        idx = unoccluded(cand, anchor, depth, o, d, pts, self.p_can, self.inv_f, spacing, k)
+        idx = unoccluded(cand, anchor, depth, o, d, pts, self.p_can, inv_f, spacing, k)
         keys = self.inv_f_attention_at(held_rows(idx, pts.shape[0])) if cfg.f_attention else None
         pts_math = torch.where(finite[:, None], pts, torch.zeros_like(pts))
         if cfg.attention != "torch" and supported(model, pts.device):  # as trace_frame chooses

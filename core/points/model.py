@@ -233,12 +233,23 @@ class PointModel(nn.Module):
             return torch.cat([torch.sigmoid(v[..., :3]), v[..., 3:]], dim=-1)
         return v
 
-    def point_table(self, features: torch.Tensor | None = None) -> torch.Tensor | None:
+    def point_table(self, features: torch.Tensor | None = None, rows: torch.Tensor | None = None
+                    ) -> torch.Tensor | None:
         """Values of each point [M, C] (what point_values gathers per neighbour; features [M, h] as there), or
-        None when values depend on the view direction. Computed once per frame, it serves every chunk of rays."""
+        None when values depend on the view direction. Computed once per frame, it serves every chunk of rays.
+        rows [P] long: only those points' values are computed (the points a frame's rays hold; each row's value is
+        the same as in the whole table), the other rows are 0."""
         if self.cfg.view_dependent:
             return None
-        v = self.value_mlp(self.features if features is None else features)
+        feats = self.features if features is None else features
+        if rows is not None:
+            table = feats.new_zeros((feats.shape[0], self.value_mlp[-1].out_features))
+            table[rows] = self._activate(self.value_mlp(feats[rows]))
+            return table
+        return self._activate(self.value_mlp(feats))
+
+    def _activate(self, v: torch.Tensor) -> torch.Tensor:
+        """The value MLP's output [.., C] as point values (sigmoid colours; a residual decoder's features raw)."""
         if self.decoder is None:
             return torch.sigmoid(v)
         if self.cfg.decoder_residual:

@@ -45,6 +45,11 @@ def _held_loop(idx, m, out):
 _held_compiled = njit(_held_loop)
 
 
+# shade_frame computes the point values only at the points a frame's rays hold when they are fewer than this share of
+# all points (the gather and scatter cost more than they save above it)
+HELD_TABLE = 0.75
+
+
 def held_rows(idx: torch.Tensor, m: int) -> torch.Tensor:
     """The points [P] long (ascending) that some ray holds as a neighbour: idx [R, K] (-1 = none) of m points.
     Compiled on CPU tensors where numba is installed, else torch."""
@@ -227,7 +232,11 @@ def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chu
     h, w = trace.shape
     bg = torch.as_tensor(background, dtype=torch.float32, device=model.xyz.device)
     parts = []
-    table = model.point_table(features)  # per-point values, shared by the chunks (None: view-dependent)
+    # per-point values, shared by the chunks (None: view-dependent); only the points the rays hold when they are
+    # clearly fewer than all (a frame of part of the object, a posed frame's added points out of view)
+    m = (model.features if features is None else features).shape[0]
+    held = held_rows(trace.idx, m) if not model.cfg.view_dependent else None
+    table = model.point_table(features, rows=held if held is not None and held.numel() < HELD_TABLE * m else None)
     for s in range(0, trace.idx.shape[0], chunk):
         sl = slice(s, s + chunk)
         att = {"weights": trace.weights[sl], "bg": trace.bg[sl]}

@@ -170,6 +170,31 @@ def test_inverse_and_det3_match_torch_linalg():
     assert torch.equal(det3(torch.eye(3)[None]), torch.ones(1))
 
 
+def test_inverse_at_writes_the_rows_inverse_gives_and_nothing_else():
+    """inverse_at (the occlusion rule's inverses at the points a frame holds) writes inverse's rows to float32
+    rounding at the rows asked for (a singular row gets I, as the compiled inverse gives), and leaves the other rows
+    of its output as they were; the torch fallback (a float64 output) agrees too."""
+    from core.edits.deformation import inverse_at
+
+    g = torch.Generator().manual_seed(11)
+    f = bound(torch.randn(500, 3, 3, generator=g) * torch.rand(500, 1, 1, generator=g) * 30, MAX)
+    f = torch.cat([f, torch.zeros(1, 3, 3), torch.diag(torch.tensor([MAX, 1.0 / MAX, -1.0]))[None]]).contiguous()
+    rows = torch.tensor([0, 3, 499, 500, 501, 7])
+    out = torch.full_like(f, 5.0)
+    inverse_at(f, rows, out)
+    full = inverse(f)
+    scale = float(full[rows].abs().max())
+    assert torch.allclose(out[rows], full[rows], rtol=1e-6, atol=1e-6 * scale)
+    assert torch.equal(out[500], torch.eye(3))
+    others = torch.ones(f.shape[0], dtype=torch.bool)
+    others[rows] = False
+    assert bool((out[others] == 5.0).all())
+    out64 = torch.zeros(f.shape, dtype=torch.float64)
+    inverse_at(f.double(), rows, out64)
+    assert torch.allclose(out64[rows], full[rows].double(), rtol=1e-5, atol=1e-5)
+    inverse_at(f, rows[:0], out)  # no rows: nothing to do
+
+
 def test_expansion_inverse_undoes_stretch_only():
     from core.edits.deformation import expansion_inverse
 

@@ -63,6 +63,34 @@ def test_shade_puts_the_background_weight_on_the_background(scene):
     assert torch.allclose(out["x"], tr.x.reshape(h, w, 3))
 
 
+def test_point_values_only_where_rays_hold_points_shade_the_same(scene, monkeypatch):
+    """point_table(rows=...) gives the whole table's values at those rows and 0 elsewhere; shade_frame, which asks
+    for the held rows only when a frame holds fewer than HELD_TABLE of the points (a close-up here), shades the
+    same frame as with every point's value computed."""
+    import core.points.render as render
+    from core.images.cameras import look_at
+
+    model, test = scene
+    with torch.no_grad():
+        full = model.point_table()
+        rows = torch.tensor([0, 5, 17, model.xyz.shape[0] - 1])
+        part = model.point_table(rows=rows)
+    assert torch.allclose(part[rows], full[rows], atol=1e-6)
+    others = torch.ones(full.shape[0], dtype=torch.bool)
+    others[rows] = False
+    assert bool((part[others] == 0).all())
+    # a close-up of one corner: few of the points are held
+    corner = model.xyz.detach()[0]
+    c2w = look_at(tuple(float(v) for v in corner + torch.tensor([0.0, -0.6, 0.3])),
+                  target=tuple(float(v) for v in corner)).float()
+    tr = trace_frame(model, c2w, test.height, test.width, test.focal)
+    held = render.held_rows(tr.idx, model.xyz.shape[0])
+    assert 0 < held.numel() < render.HELD_TABLE * model.xyz.shape[0]
+    some = shade_frame(model, tr)
+    monkeypatch.setattr(render, "HELD_TABLE", 0.0)  # never restricted
+    assert torch.allclose(shade_frame(model, tr), some, atol=1e-6)
+
+
 def test_non_finite_points_are_absent(scene):
     model, test = scene
     pts = model.xyz.detach().clone()
