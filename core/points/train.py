@@ -77,9 +77,11 @@ class TrainConfig:
                                       "patch's feature image (the others scaled by 1 / (1 - p); the residual "
                                       "decoder's base colour and coverage are kept); test renders use all",
                                  min=0.0, max=0.95)
-    decoder_flip: bool = opt(False, "UNet decoder: each step flips and/or transposes its patches' feature images "
-                                    "(one of the 8 symmetries of a square, at random) before the decoder and its "
-                                    "output back, so the decoder cannot learn the training views' orientation")
+    decoder_flip: bool = opt(True, "UNet decoder: each step flips and/or transposes its patches' feature images "
+                                   "(one of the 8 symmetries of a square, at random) before the decoder and its "
+                                   "output back, so the decoder cannot learn the training views' orientation: "
+                                   "frames from a rolled camera and posed parts turned in the image keep their "
+                                   "quality (docs/results.md, 'The decoder's orientation')")
     decoder_stop: float = opt(0.0, "UNet decoder: fraction of training at which its learning rate reaches 0 (held "
                                    "to its schedule until half of this fraction, then a cosine decay), so the "
                                    "points learn the colour late in training; 0 = off", min=0.0, max=1.0)
