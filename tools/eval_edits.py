@@ -197,17 +197,26 @@ def view_subset_dir(scene_dir: Path, views: int) -> Path:
         raise InputError(f"--views must be at least 1, got {views}")
     if views >= len(frames):
         return scene_dir
-    sub = scene_dir / f"eval_views{views}"
-    sub.mkdir(exist_ok=True)
-    for name in ("scene.blend", "scene.json"):
-        link = sub / name
-        if not link.exists():
-            link.symlink_to((scene_dir / name).resolve())
     pick = np.linspace(0, len(frames) - 1, views).round().astype(int)
-    want = {**doc, "frames": [frames[i] for i in pick]}
-    if not (sub / "transforms_test.json").exists() or json.loads((sub / "transforms_test.json").read_text()) != want:
-        atomic_write_text(sub / "transforms_test.json", json.dumps(want, indent=1), backup=False)
+    sub, _ = linked_scene_dir(scene_dir, f"eval_views{views}", {**doc, "frames": [frames[i] for i in pick]})
     return sub
+
+
+def linked_scene_dir(scene_dir: Path, name: str, test_doc: dict) -> tuple[Path, bool]:
+    """scene_dir/name/: a scene folder with links to scene_dir's blend file and spec and `test_doc` as its
+    transforms_test.json (written when it differs), so Cycles renders those test cameras of the same scene. Returns
+    (the folder, whether its test cameras were written)."""
+    sub = scene_dir / name
+    sub.mkdir(exist_ok=True)
+    for fname in ("scene.blend", "scene.json"):
+        link = sub / fname
+        if not link.exists():
+            link.symlink_to((scene_dir / fname).resolve())
+    tj = sub / "transforms_test.json"
+    changed = not tj.exists() or json.loads(tj.read_text()) != test_doc
+    if changed:
+        atomic_write_text(tj, json.dumps(test_doc, indent=1), backup=False)
+    return sub, changed
 
 
 def ground_truth(scene_dir: Path, pose: str, magnitude: float, texture: str | None, samples=None, log=print):

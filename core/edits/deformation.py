@@ -745,55 +745,6 @@ def inverse(f: torch.Tensor) -> torch.Tensor:
     return torch.linalg.inv(f.double()).to(f.dtype)
 
 
-def _inverse_rows_loop(f, rows, out):
-    """The compiled path of inverse_at: f [M, 3, 3] float32, rows [P] int64 -> out [M, 3, 3] float32 at those rows,
-    each by the adjugate in float64 as `_key_loop` computes F⁻¹ without a cap (the same numbers to float32
-    rounding); I where F is singular or not finite."""
-    for r in range(rows.shape[0]):
-        m = rows[r]
-        g00, g01, g02 = float(f[m, 0, 0]), float(f[m, 0, 1]), float(f[m, 0, 2])
-        g10, g11, g12 = float(f[m, 1, 0]), float(f[m, 1, 1]), float(f[m, 1, 2])
-        g20, g21, g22 = float(f[m, 2, 0]), float(f[m, 2, 1]), float(f[m, 2, 2])
-        c00 = g11 * g22 - g12 * g21
-        c01 = g12 * g20 - g10 * g22
-        c02 = g10 * g21 - g11 * g20
-        det = g00 * c00 + g01 * c01 + g02 * c02
-        if det == 0.0 or not math.isfinite(det):
-            for i in range(3):
-                for j in range(3):
-                    out[m, i, j] = 1.0 if i == j else 0.0
-            continue
-        q = 1.0 / det
-        out[m, 0, 0] = c00 * q
-        out[m, 1, 0] = c01 * q
-        out[m, 2, 0] = c02 * q
-        out[m, 0, 1] = (g02 * g21 - g01 * g22) * q
-        out[m, 1, 1] = (g00 * g22 - g02 * g20) * q
-        out[m, 2, 1] = (g01 * g20 - g00 * g21) * q
-        out[m, 0, 2] = (g01 * g12 - g02 * g11) * q
-        out[m, 1, 2] = (g02 * g10 - g00 * g12) * q
-        out[m, 2, 2] = (g00 * g11 - g01 * g10) * q
-
-
-_inverse_rows = None  # the compiled _inverse_rows_loop, compiled on first use
-
-
-def inverse_at(f: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
-    """F⁻¹ of the rows [P] long of bounded gradients f [M, 3, 3] written into out [M, 3, 3] (f's dtype) at those
-    rows, each `inverse(f)`'s row to float32 rounding: a frame that reads a few points' inverses (the occlusion
-    rule) does not invert them all. Compiled on float32 CPU tensors, else by `inverse` of the rows."""
-    global _inverse_rows
-    if rows.numel() == 0:
-        return
-    if _inverse_rows is None and numba is not None:
-        _inverse_rows = _njit(_inverse_rows_loop)
-    if (_inverse_rows is not None and f.device.type == "cpu" and f.dtype == torch.float32
-            and out.dtype == torch.float32 and f.is_contiguous() and out.is_contiguous()):
-        _inverse_rows(f.detach().numpy(), np.ascontiguousarray(rows.to(torch.int64).numpy()), out.numpy())
-        return
-    out[rows] = inverse(f[rows])
-
-
 def det3(a: torch.Tensor) -> torch.Tensor:
     """Determinants [...] of 3×3 matrices a [..., 3, 3] by the cofactor expansion (in a's dtype): a batched LU
     (torch.linalg.det) costs ten times as much for thousands of small matrices."""
@@ -836,6 +787,62 @@ def _njit(fn):
 
 
 _jacobi = _njit(_jacobi_eigen) or _jacobi_eigen
+
+
+def _adjugate_inverse(g, out, m):
+    """out[m] = g⁻¹ for a 3×3 float64 array g, by the adjugate; I where g is singular or not finite. The one form of
+    F⁻¹ the compiled loops below write (`_key_loop`, `_inverse_rows_loop`), so they give the same numbers."""
+    c00 = g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]
+    c01 = g[1, 2] * g[2, 0] - g[1, 0] * g[2, 2]
+    c02 = g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]
+    det = g[0, 0] * c00 + g[0, 1] * c01 + g[0, 2] * c02
+    if det == 0.0 or not math.isfinite(det):
+        for i in range(3):
+            for j in range(3):
+                out[m, i, j] = 1.0 if i == j else 0.0
+        return
+    r = 1.0 / det
+    out[m, 0, 0] = c00 * r
+    out[m, 1, 0] = c01 * r
+    out[m, 2, 0] = c02 * r
+    out[m, 0, 1] = (g[0, 2] * g[2, 1] - g[0, 1] * g[2, 2]) * r
+    out[m, 1, 1] = (g[0, 0] * g[2, 2] - g[0, 2] * g[2, 0]) * r
+    out[m, 2, 1] = (g[0, 1] * g[2, 0] - g[0, 0] * g[2, 1]) * r
+    out[m, 0, 2] = (g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]) * r
+    out[m, 1, 2] = (g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]) * r
+    out[m, 2, 2] = (g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]) * r
+
+
+_adjugate = _njit(_adjugate_inverse) or _adjugate_inverse
+
+
+def _inverse_rows_loop(f, rows, out):
+    """The compiled path of inverse_at: f [M, 3, 3] float32, rows [P] int64 -> out [M, 3, 3] float32 at those rows,
+    each F⁻¹ in float64 by `_adjugate`, as `_key_loop` computes it without a cap (I where F is singular or not
+    finite)."""
+    g = np.empty((3, 3))
+    for r in range(rows.shape[0]):
+        m = rows[r]
+        for i in range(3):
+            for j in range(3):
+                g[i, j] = f[m, i, j]
+        _adjugate(g, out, m)
+
+
+_inverse_rows = _njit(_inverse_rows_loop)
+
+
+def inverse_at(f: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
+    """F⁻¹ of the rows [P] long of bounded gradients f [M, 3, 3] written into out [M, 3, 3] (f's dtype) at those
+    rows, each `inverse(f)`'s row: a frame that reads a few points' inverses (the occlusion rule) does not invert
+    them all. Compiled on float32 CPU tensors, else by `inverse` of the rows."""
+    if rows.numel() == 0:
+        return
+    if (_inverse_rows is not None and f.device.type == "cpu" and f.dtype == torch.float32
+            and out.dtype == torch.float32 and f.is_contiguous() and out.is_contiguous()):
+        _inverse_rows(f.detach().numpy(), np.ascontiguousarray(rows.to(torch.int64).numpy()), out.numpy())
+        return
+    out[rows] = inverse(f[rows])
 
 
 def _expansion_inverse_loop(f, out):
@@ -1024,26 +1031,7 @@ def _key_loop(f, cap, n, mode, out):
                 for j in range(3):
                     out[m, i, j] = g[i, j]
             continue
-        # inverse by the adjugate
-        c00 = g[1, 1] * g[2, 2] - g[1, 2] * g[2, 1]
-        c01 = g[1, 2] * g[2, 0] - g[1, 0] * g[2, 2]
-        c02 = g[1, 0] * g[2, 1] - g[1, 1] * g[2, 0]
-        det = g[0, 0] * c00 + g[0, 1] * c01 + g[0, 2] * c02
-        if det == 0.0 or not math.isfinite(det):
-            for i in range(3):
-                for j in range(3):
-                    out[m, i, j] = 1.0 if i == j else 0.0
-            continue
-        r = 1.0 / det
-        out[m, 0, 0] = c00 * r
-        out[m, 1, 0] = c01 * r
-        out[m, 2, 0] = c02 * r
-        out[m, 0, 1] = (g[0, 2] * g[2, 1] - g[0, 1] * g[2, 2]) * r
-        out[m, 1, 1] = (g[0, 0] * g[2, 2] - g[0, 2] * g[2, 0]) * r
-        out[m, 2, 1] = (g[0, 1] * g[2, 0] - g[0, 0] * g[2, 1]) * r
-        out[m, 0, 2] = (g[0, 1] * g[1, 2] - g[0, 2] * g[1, 1]) * r
-        out[m, 1, 2] = (g[0, 2] * g[1, 0] - g[0, 0] * g[1, 2]) * r
-        out[m, 2, 2] = (g[0, 0] * g[1, 1] - g[0, 1] * g[1, 0]) * r
+        _adjugate(g, out, m)  # its inverse
 
 
 _compiled_key_loop = None

@@ -187,9 +187,8 @@ class EditState:
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
-        self._f = self._inv_f = self._inv_f_keys = self._inv_f_att = self._radius_scale = self._reach = None
-        self._inv_f_att_done = None  # [M] bool: the rows of _inv_f_att computed so far
-        self._inv_f_rows = self._inv_f_rows_done = None  # inv_f_at's rows and which of them are computed
+        self._f = self._inv_f = self._inv_f_keys = self._radius_scale = self._reach = None
+        self._row_tables = {}  # name -> ([M, 3, 3] rows filled as frames need them, [M] bool: which are filled)
         self._local_scale = None  # median |det F|^(1/3), once computed
         self._centre = None  # the points' centre, once computed
         self._fill_blend = None  # f_fill_features = blend: (canonical ids of both ends [P], fraction [P])
@@ -350,20 +349,26 @@ class EditState:
 
     def inv_f_at(self, rows: torch.Tensor) -> torch.Tensor | None:
         """`inv_f` where only the rows [P] long are read: [M, 3, 3], F⁻¹ at those rows and at any computed before
-        (each row `inv_f`'s to float32 rounding), zero at the others (the occlusion rule reads only the points a frame's
+        (each row as in `inv_f`), zero at the others (the occlusion rule reads only the points a frame's
         rays hold). None when nothing moved."""
         if self.f is None:
             return None
         if self._inv_f is not None:
             return self._inv_f
-        if self._inv_f_rows is None:
-            self._inv_f_rows = torch.zeros_like(self._f)
-            self._inv_f_rows_done = torch.zeros(self._f.shape[0], dtype=torch.bool, device=self._f.device)
-        todo = rows[~self._inv_f_rows_done[rows]]
+        return self._rows_filled("inv_f", rows, lambda todo, table: inverse_at(self._f, todo, table))
+
+    def _rows_filled(self, name: str, rows: torch.Tensor, fill) -> torch.Tensor:
+        """The [M, 3, 3] table `name` of this state with the rows [P] long filled: fill(todo [Q] long, table) writes
+        the rows not filled before (timed as deformation work); the other rows stay 0 until a frame reads them."""
+        if name not in self._row_tables:
+            self._row_tables[name] = (torch.zeros_like(self._f),
+                                      torch.zeros(self._f.shape[0], dtype=torch.bool, device=self._f.device))
+        table, done = self._row_tables[name]
+        todo = rows[~done[rows]]
         if todo.numel():
-            self._timed(lambda: inverse_at(self._f, todo, self._inv_f_rows))
-            self._inv_f_rows_done[todo] = True
-        return self._inv_f_rows
+            self._timed(lambda: fill(todo, table))
+            done[todo] = True
+        return table
 
     @property
     def inv_f_keys(self) -> torch.Tensor | None:
@@ -400,15 +405,11 @@ class EditState:
             return None
         if self.cfg.f_key_stretch == "full" or self._gap is None:
             return self.inv_f_keys
-        if self._inv_f_att is None:
-            self._inv_f_att = torch.zeros_like(self._f)  # rows filled as frames need them
-            self._inv_f_att_done = torch.zeros(self._f.shape[0], dtype=torch.bool, device=self._f.device)
-        todo = rows[~self._inv_f_att_done[rows]]
-        if todo.numel():
-            cap = self._sparse if self.key_stretch == "sparse" else self._gap
-            self._inv_f_att[todo] = self._timed(lambda: self._rule_inverse(cap, todo))
-            self._inv_f_att_done[todo] = True
-        return self._inv_f_att
+        cap = self._sparse if self.key_stretch == "sparse" else self._gap
+
+        def fill(todo, table):
+            table[todo] = self._rule_inverse(cap, todo)
+        return self._rows_filled("inv_f_attention", rows, fill)
 
     def _rule_inverse(self, cap: torch.Tensor | None, rows: torch.Tensor | None = None) -> torch.Tensor:
         """The compression rule (`compression`) applied to F with its singular values capped at cap [M] (None:

@@ -36,38 +36,17 @@ def rolled_scene_dir(scene_dir: Path, views: int, degrees: float) -> Path:
     """A scene folder (SCENE/roll_<views>_<degrees>/: links to the scene's blend file and spec) whose test cameras are
     eval-edits' `views` test cameras rolled by `degrees` (`rolled_c2w`); its transforms are rewritten when they
     differ, so `eval_edits.ground_truth` renders (and caches) them."""
-    from core.util.atomic import atomic_write_text
-    from tools.eval_edits import view_subset_dir
+    from tools.eval_edits import linked_scene_dir, view_subset_dir
 
     scene_dir = Path(scene_dir)
-    base = view_subset_dir(scene_dir, views)
-    doc = json.loads((base / "transforms_test.json").read_text())
-    out = scene_dir / f"roll_{views}_{degrees:g}"
-    out.mkdir(exist_ok=True)
-    for name in ("scene.blend", "scene.json"):
-        link = out / name
-        if not link.exists():
-            link.symlink_to((scene_dir / name).resolve())
+    doc = json.loads((view_subset_dir(scene_dir, views) / "transforms_test.json").read_text())
     want = {**doc, "frames": [{**f, "transform_matrix": rolled_c2w(np.array(f["transform_matrix"]), degrees).tolist()}
                               for f in doc["frames"]]}
-    tj = out / "transforms_test.json"
-    if not tj.exists() or json.loads(tj.read_text()) != want:
-        atomic_write_text(tj, json.dumps(want, indent=1), backup=False)
-        cached = out / "poses" / "rest" / "variant.json"
-        if cached.exists():
-            cached.unlink()  # other cameras: render again
+    out, changed = linked_scene_dir(scene_dir, f"roll_{views}_{degrees:g}", want)
+    cached = out / "poses" / "rest" / "variant.json"
+    if changed and cached.exists():
+        cached.unlink()  # other cameras: render again
     return out
-
-
-def object_psnr(rgb: np.ndarray, cover: np.ndarray, image: np.ndarray, alpha: np.ndarray) -> float:
-    """PSNR over the object's pixels (true alpha or the render's coverage above 0.5): rgb / image [H, W, 3],
-    cover / alpha [H, W]."""
-    obj = (alpha > 0.5) | (cover > 0.5)
-    n = int(obj.sum())
-    if n == 0:
-        return float("nan")
-    err = float(((rgb - image) ** 2).sum(-1)[obj].sum())
-    return -10.0 * math.log10(max(err, 1e-12) / (3 * n))
 
 
 def run(models, scene_dir, views: int = 4, rolls=(30.0, 45.0, 90.0), poses=(), log=print) -> dict:
@@ -76,6 +55,7 @@ def run(models, scene_dir, views: int = 4, rolls=(30.0, 45.0, 90.0), poses=(), l
 
     from core.bundle import load_bundle
     from core.frames.edited import EditConfig, EditState, render_edited
+    from core.images.metrics import object_mask, psnr
     from tools.eval_edits import deform_points, ground_truth, view_subset_dir
     from tools.machine import machine_info
 
@@ -97,8 +77,7 @@ def run(models, scene_dir, views: int = 4, rolls=(30.0, 45.0, 90.0), poses=(), l
             ps = []
             for i in range(gt.c2w.shape[0]):
                 out = render_edited(state, gt.c2w[i], gt.height, gt.width, gt.focal)
-                ps.append(object_psnr(out["rgb"].cpu().numpy(), out["alpha"].cpu().numpy(),
-                                      gt.images[i].numpy(), gt.alphas[i].numpy()))
+                ps.append(psnr(out["rgb"].cpu(), gt.images[i], object_mask(gt.alphas[i], out["alpha"].cpu())))
             scores[name] = float(np.mean(ps))
             log(f"  {Path(mp).name} {name}: {scores[name]:.2f} dB")
         result["models"][str(mp)] = scores

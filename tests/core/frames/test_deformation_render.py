@@ -595,17 +595,17 @@ def test_keys_computed_for_the_held_points_only_equal_the_whole_computation(tiny
     lazy = EditState(bundle, points=pts, cfg=cfg)
     c2w = test.c2w[0]
     tr = _trace(lazy, c2w, test.height, test.width, test.focal, False, 1.0)
-    done = lazy._inv_f_att_done
+    table, done = lazy._row_tables["inv_f_attention"]
     held = held_rows(tr.idx, lazy.points.shape[0])
     assert bool(done[held].all()) and int(done.sum()) < done.numel()  # some rows not needed by this view
-    assert torch.equal(lazy._inv_f_att[done], whole[done])
+    assert torch.equal(table[done], whole[done])
     for inv_f in (lazy.inv_f_attention_at, whole):
         t = trace_frame(bundle.model, c2w, test.height, test.width, test.focal, points=lazy.points,
                         influence=lazy.influence, inv_f=inv_f, rebase_depth=lazy.rebase_depth)
         if inv_f is whole:
             assert torch.equal(t.weights, ref.weights) and torch.equal(t.x, ref.x)
         ref = t
-    assert torch.equal(lazy.inv_f_attention, whole) and bool(lazy._inv_f_att_done.all())
+    assert torch.equal(lazy.inv_f_attention, whole) and bool(done.all())
 
 
 def test_held_rows_are_the_points_some_ray_holds(monkeypatch):
