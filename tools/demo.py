@@ -226,7 +226,7 @@ def render_animation(bundle, scene_dir: Path, out: Path, frames: int, pose: str,
 
     from core.edits.bake import bake
     from core.edits.procedural import evaluate
-    from core.frames.edited import EditState, render_edited
+    from core.frames.edited import EditState, render_edited, warm_up
     from core.images.png import write_png
     from tools.eval_edits import deform_points
     from tools.scenes.spec import load_scene_spec
@@ -239,6 +239,7 @@ def render_animation(bundle, scene_dir: Path, out: Path, frames: int, pose: str,
     canonical = bundle.model.xyz.detach().cpu().numpy()
     images, secs = [], []
     cam = test.c2w[0]
+    print(f"  warm-up (compiling the frame loops once): {warm_up(bundle):.2f} s", flush=True)
     for f in range(frames):
         m = f / max(frames - 1, 1)
         pts = deform_points(canonical, scene_dir, pose, m) if m > 0 else None

@@ -31,11 +31,11 @@ from core.images.filter import filter_down, subpixel_points
 from core.images.cameras import focal_from_fov, focal_scale, look_at, scaled_focal
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
-from core.points.render import held_rows, pixel_grid, shade_frame, trace_frame
+from core.points.render import pixel_grid, shade_frame, trace_frame
 from core.points.resolution import (RENDER_MODES, check_mode, decoder_scale, filter_sigma, gaussian_blur,
                                     interpolate_rays, interpolate_trace, low_size, points_centre, scale_factor,
                                     upsample_frame)
-from core.points.trace import Trace
+from core.points.trace import Trace, held_rows
 from core.util.errors import InputError
 
 
@@ -583,7 +583,7 @@ class EditState:
         spacing = float(model.spacing)
         if c2w is None or focal is None:
             return front_layer(trace, self.points, self.p_can, self.inv_f, spacing)
-        inv_f = self.inv_f_at(held_rows(trace.idx, self.points.shape[0]))  # the redo reads only its anchors'
+        inv_f = self.inv_f_at(trace.held)  # the redo reads only its anchors'
         front = front_anchors(trace, self.points, self.p_can, inv_f, spacing, min_hidden=REDO_MIN_HIDDEN)
         if front is None:
             return trace

@@ -5,7 +5,6 @@ know: attention, surface points, neighbour indices.
 """
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from core.images.cameras import pixel_rays, scaled_focal
@@ -16,9 +15,8 @@ from core.points.neighbors.select import select_neighbors, select_neighbors_soft
 from core.points.resolution import (MAX_SCALE, RENDER_MODES, check_mode, decode_at_scale, filter_sigma,
                                     decoder_scale, gate_coverage, gaussian_blur, interior_weight, low_size,
                                     interpolate_trace, scale_factor, upsample_frame)
-from core.points.trace import Trace
+from core.points.trace import Trace, held_rows
 from core.util.errors import InputError
-from core.util.jit import njit
 
 __all__ = ["RENDER_MODES", "pixel_grid", "trace_frame", "shade_frame", "render_frame", "straight_colour"]
 
@@ -30,36 +28,9 @@ def pixel_grid(height: int, width: int, device) -> torch.Tensor:
     return torch.stack([c.reshape(-1), r.reshape(-1)], dim=-1)
 
 
-def _held_loop(idx, m, out):
-    """Mark out[j] (m bools, given False) for every point index j >= 0 in idx [R, K]; returns how many."""
-    n = 0
-    for r in range(idx.shape[0]):
-        for s in range(idx.shape[1]):
-            j = idx[r, s]
-            if j >= 0 and not out[j]:
-                out[j] = True
-                n += 1
-    return n
-
-
-_held_compiled = njit(_held_loop)
-
-
 # shade_frame computes the point values only at the points a frame's rays hold when they are fewer than this share of
 # all points (the gather and scatter cost more than they save above it)
 HELD_TABLE = 0.75
-
-
-def held_rows(idx: torch.Tensor, m: int) -> torch.Tensor:
-    """The points [P] long (ascending) that some ray holds as a neighbour: idx [R, K] (-1 = none) of m points.
-    Compiled on CPU tensors where numba is installed, else torch."""
-    if idx.device.type == "cpu" and _held_compiled is not _held_loop:
-        mark = np.zeros(m, dtype=np.bool_)
-        _held_compiled(np.ascontiguousarray(idx.numpy()), m, mark)
-        return torch.from_numpy(np.flatnonzero(mark))
-    mark = torch.zeros(m + 1, dtype=torch.bool, device=idx.device)
-    mark[(idx.clamp_min(-1) + 1).reshape(-1)] = True
-    return torch.nonzero(mark[1:]).squeeze(1)
 
 
 @torch.no_grad()
@@ -78,7 +49,7 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     influence [M] (default: the model's, which requires M == N);
     inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
     `PointModel.attend`; rebase_depth: their depths from the ray's nearest neighbour in those frames), or a
-    function rows [P] long -> [M, 3, 3] right at those rows at least (given the points the rays hold, `held_rows`:
+    function rows [P] long -> [M, 3, 3] right at those rows at least (given the points the rays hold, the Trace's `held`:
     the attention reads no other);
     radius_scale: the screen neighbour search's pixel radius cap times this;
     attention: "torch" (PointModel.attend, chunk by chunk) | "compiled" (core/points/attention_compiled.py, CPU
@@ -125,8 +96,10 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
                                model.cfg.neighbor_radius_px, radius_scale=radius_scale, index=index,
                                reach=reach, reach_gate=reach_gate, reach_surround=reach_surround,
                                reach_gate_own=reach_gate_own, reach_between=reach_between)
+    held = None
     if callable(inv_f):
-        inv_f = inv_f(held_rows(idx, pts.shape[0]))
+        held = held_rows(idx, pts.shape[0])
+        inv_f = inv_f(held)
     fi = None if inv_f is None else inv_f.to(dev, torch.float32)
     r = o.shape[0]
     # Rays without a single neighbour cannot reach the object: background, no attention to evaluate.
@@ -152,8 +125,11 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
                            log_window=None if log_w is None else log_w[sl], rebase_depth=rebase_depth)
         for key in res:
             res[key][sl] = att[key]
-    return Trace(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),
-                 non_finite_points=int((~finite).sum()), **res)
+    trace = Trace(origins=o, dirs=d, idx=idx, active=active, shape=(height, width),
+                  non_finite_points=int((~finite).sum()), **res)
+    if held is not None:
+        trace.__dict__["held"] = held  # the cached_property's value, computed above for the keys
+    return trace
 
 
 DECODER_HALO = 16  # pixels: more than the UNet decoder's receptive radius (12), even (its pooling grid)
@@ -235,7 +211,7 @@ def shade_frame(model: PointModel, trace: Trace, background=(1.0, 1.0, 1.0), chu
     # per-point values, shared by the chunks (None: view-dependent); only the points the rays hold when they are
     # clearly fewer than all (a frame of part of the object, a posed frame's added points out of view)
     m = (model.features if features is None else features).shape[0]
-    held = held_rows(trace.idx, m) if not model.cfg.view_dependent else None
+    held = trace.held if not model.cfg.view_dependent else None
     table = model.point_table(features, rows=held if held is not None and held.numel() < HELD_TABLE * m else None)
     for s in range(0, trace.idx.shape[0], chunk):
         sl = slice(s, s + chunk)

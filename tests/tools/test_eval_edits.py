@@ -246,6 +246,10 @@ SMOKE = textwrap.dedent("""
     rc = main(["eval-edits", str(d / "m.pgt"), "--scene", str(d / "scene"), "--poses", "bend", "--magnitudes", "1",
                "--views", "1", "--temperatures", "1", "--samples", "4", "--json", str(d / "e.json"),
                "--markdown", str(d / "e.md")])
+    if rc == 0:  # the demo's animation of the same model: decal + bend ramp, 2 frames, the last also at 4x
+        from tools.demo import render_animation
+        anim = render_animation(bundle, d / "scene", d / "anim", 2, "bend", test)
+        (d / "anim.json").write_text(json.dumps(anim))
     sys.exit(rc)
 """)
 
@@ -257,6 +261,10 @@ def test_eval_edits_smoke_on_a_tiny_scene(tmp_path):
                           timeout=600)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     assert "warm-up (tiny deformed frames" in proc.stdout + proc.stderr  # compiling is not charged to a row
+    assert "warm-up (compiling the frame loops once)" in proc.stdout  # nor to the animation's first frame
+    anim = json.loads((tmp_path / "anim.json").read_text())
+    assert anim["frames"] == 2 and Path(anim["gif"]).exists() and anim["hires"]["size"] == [128, 128]
+    assert math.isfinite(anim["seconds_per_frame"]) and (tmp_path / "anim" / "painted_atlas.png").exists()
     res = json.loads((tmp_path / "e.json").read_text())
     cases = {(r["pose"], r["magnitude"]) for r in res["rows"]}
     assert cases == {("rest", 0.0), ("bend", 1.0)} and res["views"] == 1

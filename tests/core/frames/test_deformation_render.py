@@ -582,11 +582,13 @@ def test_key_stretch_auto_is_sparse_on_a_sheet_and_gap_on_a_thick_shell(tiny):
 
 @pytest.mark.parametrize("rule", ["gap", "sparse"])
 def test_keys_computed_for_the_held_points_only_equal_the_whole_computation(tiny, rule):
-    """A frame computes the keys' inverse gradients only at the points its rays hold (`held_rows`): those rows equal
+    """A frame computes the keys' inverse gradients only at the points its rays hold (the Trace's `held`, the same
+    `held_rows` the trace reads again without recomputing): those rows equal
     the whole computation's exactly, the frame equals one traced with the whole tensor, and a later full request
     completes the rest with the same values."""
     from core.frames.edited import _trace
-    from core.points.render import held_rows, trace_frame
+    from core.points.render import trace_frame
+    from core.points.trace import held_rows
 
     bundle, _, test = tiny
     pts = bundle.model.xyz.detach() * torch.tensor([4.0, 1.0, 1.0])
@@ -597,6 +599,7 @@ def test_keys_computed_for_the_held_points_only_equal_the_whole_computation(tiny
     tr = _trace(lazy, c2w, test.height, test.width, test.focal, False, 1.0)
     table, done = lazy._row_tables["inv_f_attention"]
     held = held_rows(tr.idx, lazy.points.shape[0])
+    assert "held" in tr.__dict__ and torch.equal(tr.held, held)  # kept from the keys' request
     assert bool(done[held].all()) and int(done.sum()) < done.numel()  # some rows not needed by this view
     assert torch.equal(table[done], whole[done])
     for inv_f in (lazy.inv_f_attention_at, whole):
@@ -609,13 +612,25 @@ def test_keys_computed_for_the_held_points_only_equal_the_whole_computation(tiny
 
 
 def test_held_rows_are_the_points_some_ray_holds(monkeypatch):
-    import core.points.render as render
+    """held_rows (compiled and torch) and a Trace's `held` (once per trace; a replaced trace, whose idx may have been
+    redone in place, computes its own)."""
+    import dataclasses
+
+    import core.points.trace as trace
 
     gen = torch.Generator().manual_seed(0)
     idx = torch.randint(-1, 50, (300, 7), generator=gen)
     idx[:40] = -1
     want = torch.unique(idx[idx >= 0])
-    assert torch.equal(render.held_rows(idx, 80), want)
-    monkeypatch.setattr(render, "_held_compiled", render._held_loop)  # the torch path
-    assert torch.equal(render.held_rows(idx, 80), want)
-    assert render.held_rows(torch.full((5, 3), -1), 10).numel() == 0
+    assert torch.equal(trace.held_rows(idx, 80), want)
+    z = torch.zeros(300)
+    tr = trace.Trace(origins=torch.zeros(300, 3), dirs=torch.zeros(300, 3), idx=idx.clone(), weights=z[:, None],
+                     fg_weights=z[:, None], bg=z, x=torch.zeros(300, 3), active=z > 0, shape=(15, 20))
+    assert torch.equal(tr.held, want) and tr.held is tr.held
+    tr.idx[tr.idx == int(want[0])] = -1  # as the occlusion redo rewrites rows
+    assert torch.equal(dataclasses.replace(tr).held, want[1:])
+    monkeypatch.setattr(trace, "_held_compiled", trace._held_loop)  # the torch path
+    assert torch.equal(trace.held_rows(idx, 80), want)
+    assert trace.held_rows(torch.full((5, 3), -1), 10).numel() == 0
+    empty = dataclasses.replace(tr, idx=torch.full((300, 7), -1))
+    assert empty.held.numel() == 0

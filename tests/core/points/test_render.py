@@ -84,7 +84,7 @@ def test_point_values_only_where_rays_hold_points_shade_the_same(scene, monkeypa
     c2w = look_at(tuple(float(v) for v in corner + torch.tensor([0.0, -0.6, 0.3])),
                   target=tuple(float(v) for v in corner)).float()
     tr = trace_frame(model, c2w, test.height, test.width, test.focal)
-    held = render.held_rows(tr.idx, model.xyz.shape[0])
+    held = tr.held
     assert 0 < held.numel() < render.HELD_TABLE * model.xyz.shape[0]
     some = shade_frame(model, tr)
     monkeypatch.setattr(render, "HELD_TABLE", 0.0)  # never restricted
