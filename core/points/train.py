@@ -165,6 +165,11 @@ class TrainConfig:
     guard_margin: float = opt(1.0, "dB: a fit whose object PSNR is within this of the blank frame's, and whose "
                                    "render is far closer to the blank frame than the truth, counts as collapsed",
                               min=0.0, max=100.0)
+    guard_decline: float = opt(3.0, "dB: with --guard, a test checkpoint whose object PSNR fell this far below the "
+                                    "fit's best so far (a fit losing its object: points drawn in, coverage lost) "
+                                    "restarts the fit with the same settings on a new random course while at most "
+                                    "0.6 of the budget is spent; later it is reported; 0 = off",
+                               min=0.0, max=100.0)
     key_path: str = opt("auto", "how the attention key MLP is trained: chunked (only non-empty slots, in cache-sized "
                                 "chunks, hand-written backward: the same numbers, ~1.9x less CPU time per step on "
                                 "one CPU thread) | torch (autograd through the module, the reference) | auto (chunked "
@@ -575,21 +580,40 @@ def collapse_reason(scores: dict, floor: dict, margin_db: float) -> str | None:
     return None
 
 
+def decline_reason(best: tuple[int, float] | None, scores: dict, margin_db: float) -> str | None:
+    """Why a checkpoint's scores count as a fit that lost its object, or None: object PSNR more than margin_db
+    (> 0) below the fit's best so far, best = (step, object PSNR) or None."""
+    if best is None or margin_db <= 0:
+        return None
+    now = scores.get("psnr_object", float("nan"))
+    if not math.isfinite(now) or best[1] - now <= margin_db:
+        return None
+    return (f"the object PSNR fell from {best[1]:.2f} dB at step {best[0]} to {now:.2f} dB "
+            f"(coverage {scores.get('coverage', float('nan')):.2f})")
+
+
 class CollapseGuard:
     """Watches a stage-1 fit and decides how to recover (TrainConfig.guard).
 
     On a collapse at a test checkpoint (`collapse_reason`): first reset the residual decoder's correction (the
     render is then the decoder-free one, which trains); on a second collapse, or without a residual decoder,
-    restart the fit without a decoder. Non-finite losses or gradients skip the step; a run of them restarts.
-    Every action is appended to `events` (step, seconds, action, reason)."""
+    restart the fit without a decoder. A checkpoint more than decline_db below the best one so far
+    (`decline_reason`) restarts the fit with its settings while at most DECLINE_UNTIL of the budget is spent (a
+    healthy fit's test curve dips by about 1 dB at most). Non-finite losses or gradients skip the step; a run of
+    them restarts. At most MAX_RESTARTS restarts in all. Every action is appended to `events` (step, seconds,
+    action, reason)."""
 
     MAX_BAD_STEPS = 20
     MIN_FRACTION = 0.05  # no verdict before this share of the budget (and MIN_STEPS): the first steps are rough
     MIN_STEPS = 50
+    DECLINE_UNTIL = 0.6
+    MAX_RESTARTS = 2
 
-    def __init__(self, floor: dict, margin_db: float):
+    def __init__(self, floor: dict, margin_db: float, decline_db: float = 0.0):
         self.floor = floor
         self.margin = margin_db
+        self.decline_db = decline_db
+        self.best: tuple[int, float] | None = None  # (step, object PSNR) of the best checkpoint since the start
         self.events: list[dict] = []
         self.bad_steps = 0
         self.skipped_steps = 0
@@ -601,16 +625,23 @@ class CollapseGuard:
         print(f"[fit] guard at step {step}: {reason}; {action}")
 
     def check(self, model: PointModel, scores: dict, step: int, frac: float) -> tuple[str | None, str | None]:
-        """(action, reason) a checkpoint calls for: action None, "reset_decoder" or "restart"."""
+        """(action, reason) a checkpoint calls for: action None, "reset_decoder", "restart" (without a decoder) or
+        "refit" (the same settings again); frac: the share of the budget spent since the fit (re)started."""
         if frac < self.MIN_FRACTION or step < self.MIN_STEPS:
             return None, None
         reason = collapse_reason(scores, self.floor, self.margin)
         if reason is None:
-            return None, None
+            reason = decline_reason(self.best, scores, self.decline_db)
+            now = scores.get("psnr_object", float("nan"))
+            if reason is None:
+                if math.isfinite(now) and (self.best is None or now > self.best[1]):
+                    self.best = (step, now)
+                return None, None
+            return ("refit" if frac <= self.DECLINE_UNTIL and self.restarts < self.MAX_RESTARTS else None), reason
         residual = model.decoder is not None and model.cfg.decoder_residual
         if residual and self.decoder_resets == 0:
             return "reset_decoder", reason
-        return ("restart" if self.restarts < 2 else None), reason
+        return ("restart" if self.restarts < self.MAX_RESTARTS else None), reason
 
     def step_ok(self, loss: torch.Tensor, model: PointModel) -> bool:
         """True when the step's loss and gradients are finite; else the step is to be skipped."""
@@ -671,18 +702,24 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
         ema = ParamEMA(m, cfg.ema) if cfg.ema > 0 else None
         return m, o, [g["lr"] for g in o.param_groups], Densifier(m.num_points, dev), ema
 
-    def restart(mcfg, reason):
-        """The guard's last resort: a new model without a decoder (schedules rerun over the remaining budget)."""
+    def restart(mcfg, reason, same: bool = False):
+        """The guard's restart: a new model without a decoder (the last resort after a collapse), or with the same
+        settings (same: after a decline; the random course goes on, so the new fit takes another); the schedules
+        rerun over the remaining budget."""
         guard.restarts += 1
-        guard.record(step, train_s, "restarted the fit without a decoder", reason)
-        mcfg = dataclasses.replace(mcfg, decoder="none")
+        guard.best = None
+        guard.record(step, train_s, "restarted the fit with the same settings" if same
+                     else "restarted the fit without a decoder", reason)
+        if not same:
+            mcfg = dataclasses.replace(mcfg, decoder="none")
         return (mcfg, *start(mcfg))
 
     model, opt, base_lrs, dens, ema = start(model_cfg)
     bg = torch.as_tensor(background, dtype=torch.float32, device=dev)
     c2ws = train.c2w
     eval_ids = list(range(0, len(test.files), max(1, len(test.files) // max(cfg.eval_views, 1))))[: cfg.eval_views]
-    guard = CollapseGuard(blank_floor(test.images, test.alphas, eval_ids, background), cfg.guard_margin)
+    guard = CollapseGuard(blank_floor(test.images, test.alphas, eval_ids, background), cfg.guard_margin,
+                          cfg.guard_decline)
     history: list[dict] = []
     budget_s = cfg.minutes * 60.0 if cfg.minutes > 0 else float("inf")
     train_s = 0.0
@@ -790,6 +827,7 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                 action, reason = guard.check(model, scores, step, frac) if cfg.guard else (None, None)
                 if action == "reset_decoder":
                     guard.decoder_resets += 1
+                    guard.best = None  # the decoder-free render starts lower: measure declines from it
                     guard.record(step, train_s, "reset the decoder's correction to zero", reason)
                     model.reset_decoder_correction()
                     zeroed = [*model.decoder.out.parameters()]
@@ -799,8 +837,8 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
                         opt.state.pop(p, None)
                     if ema is not None:  # the decoder's average restarts from the reset decoder
                         ema.reset(model, "decoder.")
-                elif action == "restart":
-                    model_cfg, model, opt, base_lrs, dens, ema = restart(model_cfg, reason)
+                elif action in ("restart", "refit"):
+                    model_cfg, model, opt, base_lrs, dens, ema = restart(model_cfg, reason, same=action == "refit")
                     step0, sec0 = step, train_s
                     frac = 0.0
                     floaters = 0  # the new model's
@@ -894,9 +932,10 @@ def _fit_points(train, test, model_cfg, cfg, background, progress_callback, show
     model.interior_gain.fill_(gain if math.isfinite(gain) else 0.0)  # 0: nothing measured, `filtered`
     scores = evaluate(model, test, eval_ids, background)
     reason = collapse_reason(scores, guard.floor, cfg.guard_margin)
+    declined = decline_reason(guard.best, scores, cfg.guard_decline) if cfg.guard else None
     history.append({"step": step, "seconds": round(train_s, 3), "points": model.num_points, **scores,
                     "floaters_removed": floaters, "interior_gain": gain if math.isfinite(gain) else None,
-                    "guard": {**guard.summary(), "collapsed": reason}})
+                    "guard": {**guard.summary(), "collapsed": reason, "declined": declined}})
     if raw is not None:  # the scores above are the average's (what is returned); these the trained parameters'
         history[-1]["raw"] = raw
     if scales:  # steps per level, finest first: {"1": n, "2": n, ...}

@@ -187,6 +187,10 @@ def run(args) -> int:
         print(f"[fit] PSNR-vs-time log {hist_path} and plot {out.with_suffix('.curve.png')}")
         for e in guard.get("events", []):
             print(f"[fit] the collapse guard at step {e['step']}: {e['action']} ({e['reason']})")
+        if guard.get("declined") and not guard["collapsed"]:
+            print(f"[fit] WARNING: the fit lost quality late in its budget: {guard['declined']} on the curve's "
+                  f"views. It was saved to {out}; another --seed (a different random course) may not lose it.",
+                  file=sys.stderr)
         if guard["collapsed"]:
             print(f"[fit] WARNING: the model renders the blank frame: {guard['collapsed']} (blank frame: "
                   f"{floor['psnr']:.2f} / {floor['psnr_object']:.2f} dB on all test views). It was saved to {out} for "

@@ -1,5 +1,5 @@
 """The residual decoder (starts as, and cannot saturate below, the decoder-free render) and the stage-1 collapse
-guard (detects a fit that renders the blank frame, recovers, records what it did)."""
+guard (detects a fit that renders the blank frame or loses its object, recovers, records what it did)."""
 import math
 
 import pytest
@@ -8,7 +8,7 @@ import torch
 import core.points.train as train_mod
 from core.points.render import render_frame
 from core.points.model import PointModel, mean_spacing
-from core.points.train import CollapseGuard, TrainConfig, collapse_reason, evaluate, fit_points
+from core.points.train import CollapseGuard, TrainConfig, collapse_reason, decline_reason, evaluate, fit_points
 from tests.helpers.synthetic import fibonacci_cameras, render_split
 from tests.helpers.tiny import model_config
 
@@ -96,6 +96,14 @@ FLOOR = {"psnr": 20.0, "psnr_object": 8.0}
 GOOD = {"psnr": 30.0, "psnr_object": 20.0, "coverage": 0.97, "blank_distance": 0.4, "object_contrast": 0.45}
 
 
+def test_decline_reason_cases():
+    assert decline_reason(None, GOOD, 3.0) is None  # nothing to fall from yet
+    assert decline_reason((300, 22.9), GOOD, 3.0) is None  # 2.9 dB: a healthy fit's dip
+    assert decline_reason((300, 30.0), GOOD, 0.0) is None  # off
+    assert decline_reason((300, 30.0), {**GOOD, "psnr_object": float("nan")}, 3.0) is None  # collapse_reason's case
+    why = decline_reason((330, 23.5), {**GOOD, "coverage": 0.87}, 3.0)
+    assert "from 23.50 dB at step 330 to 20.00 dB" in why and "coverage 0.87" in why
+
 def test_collapse_reason_cases():
     assert collapse_reason(GOOD, FLOOR, 1.0) is None
     assert "blank frame" in collapse_reason({**GOOD, "psnr_object": 8.2, "blank_distance": 0.01}, FLOOR, 1.0)
@@ -121,6 +129,47 @@ def test_guard_actions_order():
     g.decoder_resets = 1
     assert g.check(dec, blank, step=600, frac=0.6)[0] == "restart"
     assert not g.step_ok(torch.tensor(float("nan")), dec) and g.skipped_steps == 1
+
+
+def test_guard_refits_a_fit_that_loses_its_object_while_budget_is_left():
+    torch.manual_seed(0)
+    xyz = torch.rand(200, 3) - 0.5
+    dec = PointModel(model_config("fast", decoder="unet"), xyz, mean_spacing(xyz))
+    g = CollapseGuard(FLOOR, 1.0, 3.0)
+    assert g.check(dec, {**GOOD, "psnr_object": 30.0}, step=10, frac=0.01) == (None, None)  # too early: no best
+    assert g.check(dec, GOOD, step=300, frac=0.1) == (None, None) and g.best == (300, 20.0)
+    assert g.check(dec, {**GOOD, "psnr_object": 17.5}, step=400, frac=0.2) == (None, None)  # 2.5 dB below
+    assert g.best == (300, 20.0)
+    action, reason = g.check(dec, {**GOOD, "psnr_object": 16.5}, step=600, frac=0.4)
+    assert action == "refit" and "from 20.00 dB at step 300" in reason
+    assert g.check(dec, {**GOOD, "psnr_object": 16.5}, step=900, frac=0.7)[0] is None  # too late to start again
+    g.restarts = CollapseGuard.MAX_RESTARTS
+    assert g.check(dec, {**GOOD, "psnr_object": 16.5}, step=600, frac=0.4)[0] is None
+    off = CollapseGuard(FLOOR, 1.0, 0.0)
+    off.check(dec, GOOD, step=300, frac=0.1)
+    assert off.check(dec, {**GOOD, "psnr_object": 5.0, "blank_distance": 0.4}, step=600, frac=0.4) == (None, None)
+
+
+def test_a_declining_fit_is_restarted_with_its_settings_and_a_late_decline_reported(monkeypatch):
+    """The test curve as the fit sees it (a scripted `evaluate`): 20 dB, then 15 at half the budget (restart with
+    the same settings, decoder kept), 18 on the new course, 14 after 0.6 of what was left (reported, not acted
+    on)."""
+    calls = []
+
+    def scripted(model, split, views, background):
+        n = len(calls)
+        calls.append(n)
+        return {**GOOD, "ssim": 0.9, "psnr_object": 20.0 if n < 60 else 15.0 if n == 60 else 18.0 if n < 100 else 14.0}
+
+    monkeypatch.setattr(train_mod, "evaluate", scripted)
+    split = _split()
+    cfg = TrainConfig(steps=120, patches=1, patch_size=16, eval_every=0.0, eval_views=1, device="cpu", seed=1,
+                      threads=1, prune_every=0, clone_every=0, ema=0.0)
+    model, hist = fit_points(split, split, model_config("fast", decoder="unet"), cfg, show_progress=False)
+    guard = hist[-1]["guard"]
+    assert [e["action"] for e in guard["events"]] == ["restarted the fit with the same settings"]
+    assert guard["events"][0]["step"] == 60 and model.decoder is not None
+    assert "from 18.00 dB" in guard["declined"] and guard["collapsed"] is None
 
 
 @pytest.mark.parametrize("ema", [0.0, 0.9])
