@@ -49,8 +49,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     influence [M] (default: the model's, which requires M == N);
     inv_f [M, 3, 3]: inverse deformation gradients of the points (attention keys in each point's canonical frame,
     `PointModel.attend`; rebase_depth: their depths from the ray's nearest neighbour in those frames), or a
-    function rows [P] long -> [M, 3, 3] right at those rows at least (given the points the rays hold, the Trace's `held`:
-    the attention reads no other);
+    function rows [P] long -> [M, 3, 3] right at those rows at least (given the points the rays hold, the
+    Trace's `held`: the attention reads no other);
     radius_scale: the screen neighbour search's pixel radius cap times this;
     attention: "torch" (PointModel.attend, chunk by chunk) | "compiled" (core/points/attention_compiled.py, CPU
     with numba; the same numbers to float rounding, all rays in one call) | "auto" (compiled where supported);

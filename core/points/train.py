@@ -613,7 +613,7 @@ class CollapseGuard:
         self.floor = floor
         self.margin = margin_db
         self.decline_db = decline_db
-        self.best: tuple[int, float] | None = None  # (step, object PSNR) of the best checkpoint since the start
+        self.best: tuple[int, float] | None = None  # (step, object PSNR): the best checkpoint since the (re)start
         self.events: list[dict] = []
         self.bad_steps = 0
         self.skipped_steps = 0

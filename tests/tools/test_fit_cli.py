@@ -157,3 +157,28 @@ def test_fit_train_scales_auto_trains_from_the_finer_images_down_to_the_downscal
     quiet, printed, levels = fit("quiet")  # the default at the loaded size: nothing finer, nothing said
     assert "multi-scale" not in printed and "finer images" not in printed and levels is None
     assert quiet.meta["train"]["config"]["train_scales"] == ""
+
+
+def test_fit_warns_of_a_late_decline_and_keeps_it_in_the_model(tmp_path, capsys, monkeypatch):
+    """A fit the guard saw lose its object too late to restart (history's guard.declined) is saved and carried on
+    (exit 0), with a warning that names the fall and the way out; the model file keeps the reason."""
+    import core.points.train as train_mod
+
+    real_fit = train_mod.fit_points
+
+    def declining_fit(*a, **kw):
+        model, hist = real_fit(*a, **kw)
+        hist[-1]["guard"]["declined"] = "the object PSNR fell from 24.00 dB at step 400 to 19.50 dB (coverage 0.88)"
+        return model, hist
+
+    monkeypatch.setattr(train_mod, "fit_points", declining_fit)
+    root = tmp_path / "card"
+    write_split(root, render_split("card", fibonacci_cameras(6, seed=0), 24))
+    write_split(root, render_split("card", fibonacci_cameras(2, seed=5), 24, split="test"))
+    out = tmp_path / "m.pgt"
+    assert main(["fit", str(root), "--out", str(out), "--stage", "papr", "--steps", "10", "--points", "300",
+                 "--eval-views", "1", "--no-profile", "--no-progress", "--device", "cpu", "--threads", "1",
+                 "--decoder", "none"]) == 0
+    err = capsys.readouterr().err
+    assert "fell from 24.00 dB at step 400" in err and "--seed" in err
+    assert "fell from 24.00" in load_bundle(out, "cpu").meta["train"]["guard"]["declined"]
