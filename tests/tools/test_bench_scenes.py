@@ -44,3 +44,21 @@ def test_default_names_unchanged_and_fit_args_need_a_tag(tmp_path, monkeypatch):
         scenes.main(["--work", str(tmp_path), "--fit-args", "--decoder none"])
     with pytest.raises(SystemExit):
         scenes.main(["--work", str(tmp_path), "--fit-args", "--decoder none", "--tag", "../x"])
+
+
+def test_the_table_shows_the_guards_actions_and_verdicts():
+    def fit(decoder, **kw):
+        return {"psnr": 30.0, "psnr_object": 22.0, "decoder": decoder, "steps": 900, "seconds": 300.0,
+                "blank": {"psnr": 14.0, "psnr_object": 5.0}, "guard_events": [], "collapsed": None, "declined": None,
+                "profile": {"decoder": decoder, "k": 20, "charts": "8"}, "measured": {"pixels_per_point": 0.4}, **kw}
+
+    rows = [{"scene": "logo", "default": fit("unet", guard_events=["restarted the fit with the same settings"],
+                                             declined="the object PSNR fell from 20.00 dB at step 900 to 16.00 dB"),
+             "other": [fit("none", psnr_object=21.0)]},
+            {"scene": "cloth", "default": fit("unet", collapsed="the render covers 10 % of the object's pixels",
+                                              declined="ignored when collapsed")}]
+    table = scenes.markdown(rows, "head")
+    logo, cloth = table.splitlines()[-2:]
+    assert "restarted the fit with the same settings; DECLINED (the object PSNR fell from 20.00" in logo
+    assert "| 22.00 | 21.00 | +0.00 |" in logo
+    assert "COLLAPSED (the render covers 10 %" in cloth and "DECLINED" not in cloth

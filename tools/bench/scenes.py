@@ -37,7 +37,7 @@ def fit_result(model: Path) -> dict:
             "coverage": tr["test_all_views"].get("coverage"), "steps": tr["steps"],
             "seconds": tr["train_seconds"], "decoder": meta["model"]["decoder"],
             "blank": guard.get("blank_floor_all_views"), "guard_events": [e["action"] for e in guard.get("events", [])],
-            "collapsed": guard.get("collapsed"),
+            "collapsed": guard.get("collapsed"), "declined": guard.get("declined"),
             "profile": {k: prof.get(k) for k in ("decoder", "k", "charts", "view_dependent")} if prof else None,
             "measured": {k: (prof.get("measured") or {}).get(k)
                          for k in ("pixels_per_point", "view_variation", "hull_flatness")} if prof else None}
@@ -63,6 +63,8 @@ def markdown(rows: list[dict], header: str) -> str:
         guard = ", ".join(d["guard_events"]) or "–"
         if d["collapsed"]:
             guard += f"; COLLAPSED ({d['collapsed']})"
+        elif d.get("declined"):
+            guard += f"; DECLINED ({d['declined']})"
         fmt = lambda k: f"{pair[k]['psnr_object']:.2f}" if k in pair else "–"  # noqa: E731
         out.append(f"| {r['scene']} | {p.get('decoder')}, {p.get('k')}, {p.get('charts')} "
                    f"({(m.get('pixels_per_point') or 0):.2f}) | {d['psnr']:.2f} / {d['psnr_object']:.2f} | "
