@@ -130,6 +130,10 @@ def run_demo(args) -> int:
     collapsed = (history[-1].get("guard") or {}).get("collapsed")
     for e in (history[-1].get("guard") or {}).get("events", []):
         print(f"the collapse guard at step {e['step']}: {e['action']} ({e['reason']})")
+    declined = (history[-1].get("guard") or {}).get("declined")
+    if declined and not collapsed:
+        print(f"WARNING: the fit lost quality late in its budget: {declined} on the curve's views; the demo goes on "
+              "with it", file=sys.stderr)
     if collapsed:
         print(f"ERROR: the trained model renders the blank frame ({collapsed}); the atlas, edits and animation "
               "would all carry a blank model. Pass --allow-blank to carry on anyway.", file=sys.stderr)
