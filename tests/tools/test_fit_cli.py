@@ -61,26 +61,35 @@ def test_texel_map_refresh_keeps_samples_for_baking_and_a_backup(tmp_path, capsy
     assert load_bundle(out.with_name("m.pgt.bak"), "cpu").atlas.bake_samples is None
 
 
-def test_fit_refuses_to_hand_over_a_blank_model(tmp_path, capsys, monkeypatch):
-    """A fit whose model still renders the blank frame (the guard could not recover it) is saved for inspection,
-    said loudly, stage 2 skipped, exit 3; --allow-blank carries on."""
+def _altered_card_fit(tmp_path, monkeypatch, alter):
+    """A card scene on disk, and (out, `pointgt fit` arguments) of a 10-step decoder-free fit of it whose
+    `fit_points` result passes through alter(model, history) first (what the guard could have left behind)."""
     import core.points.train as train_mod
 
     real_fit = train_mod.fit_points
 
-    def blank_fit(*a, **kw):
+    def altered_fit(*a, **kw):
         model, hist = real_fit(*a, **kw)
-        with torch.no_grad():
-            model.bg_logit.fill_(80.0)  # every ray takes the background
+        alter(model, hist)
         return model, hist
 
-    monkeypatch.setattr(train_mod, "fit_points", blank_fit)
+    monkeypatch.setattr(train_mod, "fit_points", altered_fit)
     root = tmp_path / "card"
     write_split(root, render_split("card", fibonacci_cameras(6, seed=0), 24))
     write_split(root, render_split("card", fibonacci_cameras(2, seed=5), 24, split="test"))
     out = tmp_path / "m.pgt"
-    args = ["fit", str(root), "--out", str(out), "--steps", "10", "--points", "300", "--eval-views", "1",
-            "--no-profile", "--no-progress", "--device", "cpu", "--threads", "1", "--decoder", "none"]
+    return out, ["fit", str(root), "--out", str(out), "--steps", "10", "--points", "300", "--eval-views", "1",
+                 "--no-profile", "--no-progress", "--device", "cpu", "--threads", "1", "--decoder", "none"]
+
+
+def test_fit_refuses_to_hand_over_a_blank_model(tmp_path, capsys, monkeypatch):
+    """A fit whose model still renders the blank frame (the guard could not recover it) is saved for inspection,
+    said loudly, stage 2 skipped, exit 3; --allow-blank carries on."""
+    def blank(model, hist):
+        with torch.no_grad():
+            model.bg_logit.fill_(80.0)  # every ray takes the background
+
+    out, args = _altered_card_fit(tmp_path, monkeypatch, blank)
     assert main(args) == 3
     err = capsys.readouterr().err
     assert "renders the blank frame" in err and "--allow-blank" in err
@@ -162,23 +171,11 @@ def test_fit_train_scales_auto_trains_from_the_finer_images_down_to_the_downscal
 def test_fit_warns_of_a_late_decline_and_keeps_it_in_the_model(tmp_path, capsys, monkeypatch):
     """A fit the guard saw lose its object too late to restart (history's guard.declined) is saved and carried on
     (exit 0), with a warning that names the fall and the way out; the model file keeps the reason."""
-    import core.points.train as train_mod
-
-    real_fit = train_mod.fit_points
-
-    def declining_fit(*a, **kw):
-        model, hist = real_fit(*a, **kw)
+    def declined(model, hist):
         hist[-1]["guard"]["declined"] = "the object PSNR fell from 24.00 dB at step 400 to 19.50 dB (coverage 0.88)"
-        return model, hist
 
-    monkeypatch.setattr(train_mod, "fit_points", declining_fit)
-    root = tmp_path / "card"
-    write_split(root, render_split("card", fibonacci_cameras(6, seed=0), 24))
-    write_split(root, render_split("card", fibonacci_cameras(2, seed=5), 24, split="test"))
-    out = tmp_path / "m.pgt"
-    assert main(["fit", str(root), "--out", str(out), "--stage", "papr", "--steps", "10", "--points", "300",
-                 "--eval-views", "1", "--no-profile", "--no-progress", "--device", "cpu", "--threads", "1",
-                 "--decoder", "none"]) == 0
+    out, args = _altered_card_fit(tmp_path, monkeypatch, declined)
+    assert main(args + ["--stage", "papr"]) == 0
     err = capsys.readouterr().err
     assert "fell from 24.00 dB at step 400" in err and "--seed" in err
     assert "fell from 24.00" in load_bundle(out, "cpu").meta["train"]["guard"]["declined"]
