@@ -227,11 +227,7 @@ class PointModel(nn.Module):
             v = self.value_mlp(torch.cat([f, d], dim=-1))
         else:  # values depend on the point only: evaluate once per point, then gather (N << R*K)
             v = self.value_mlp(feats)[idx.clamp_min(0)]
-        if self.decoder is None:
-            return torch.sigmoid(v)
-        if self.cfg.decoder_residual:
-            return torch.cat([torch.sigmoid(v[..., :3]), v[..., 3:]], dim=-1)
-        return v
+        return self._activate(v)
 
     def point_table(self, features: torch.Tensor | None = None, rows: torch.Tensor | None = None
                     ) -> torch.Tensor | None:
@@ -249,11 +245,11 @@ class PointModel(nn.Module):
         return self._activate(self.value_mlp(feats))
 
     def _activate(self, v: torch.Tensor) -> torch.Tensor:
-        """The value MLP's output [.., C] as point values (sigmoid colours; a residual decoder's features raw)."""
+        """The value MLP's output [..., C] as point values (sigmoid colours; a residual decoder's features raw)."""
         if self.decoder is None:
             return torch.sigmoid(v)
         if self.cfg.decoder_residual:
-            return torch.cat([torch.sigmoid(v[:, :3]), v[:, 3:]], dim=-1)
+            return torch.cat([torch.sigmoid(v[..., :3]), v[..., 3:]], dim=-1)
         return v
 
     def shade(self, att: dict, dirs: torch.Tensor, idx: torch.Tensor, background: torch.Tensor,

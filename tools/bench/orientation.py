@@ -55,7 +55,7 @@ def run(models, scene_dir, views: int = 4, rolls=(30.0, 45.0, 90.0), poses=(), l
 
     from core.bundle import load_bundle
     from core.frames.edited import EditConfig, EditState, render_edited
-    from core.images.metrics import object_mask, psnr
+    from core.images.metrics import mean_scores, score_views
     from tools.eval_edits import deform_points, ground_truth, view_subset_dir
     from tools.machine import machine_info
 
@@ -74,11 +74,9 @@ def run(models, scene_dir, views: int = 4, rolls=(30.0, 45.0, 90.0), poses=(), l
             gt = truth[name]
             pts = None if pose == "rest" else torch.from_numpy(deform_points(can, scene_dir, pose, 1.0))
             state = EditState(bundle, points=pts, cfg=EditConfig())
-            ps = []
-            for i in range(gt.c2w.shape[0]):
-                out = render_edited(state, gt.c2w[i], gt.height, gt.width, gt.focal)
-                ps.append(psnr(out["rgb"].cpu(), gt.images[i], object_mask(gt.alphas[i], out["alpha"].cpu())))
-            scores[name] = float(np.mean(ps))
+            rows = score_views(lambda i: render_edited(state, gt.c2w[i], gt.height, gt.width, gt.focal),
+                               gt.images, gt.alphas)
+            scores[name] = mean_scores(rows, ["psnr_object"])["psnr_object"]
             log(f"  {Path(mp).name} {name}: {scores[name]:.2f} dB")
         result["models"][str(mp)] = scores
     return result
