@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from core.config import check_flag
 from core.edits.bake import bake
 from core.edits.correspondence import ray_canonical_points
 from core.edits.deformation import MAX_STRETCH, DeformationConfig, field_for
@@ -221,8 +222,10 @@ def linked_scene_dir(scene_dir: Path, name: str, test_doc: dict) -> tuple[Path, 
     return sub, changed
 
 
-def ground_truth(scene_dir: Path, pose: str, magnitude: float, texture: str | None, samples=None, log=print):
-    """Cycles renders of the posed/retextured scene (cached): SplitData of the variant's test views."""
+def ground_truth(scene_dir: Path, pose: str, magnitude: float, texture: str | None, samples=None, log=print,
+                 downscale: int = 1):
+    """Cycles renders of the posed/retextured scene (cached): SplitData of the variant's test views, area-averaged
+    by the integer factor downscale (the size of a model fitted with `pointgt fit --downscale`)."""
     from core.images.dataset import load_split
     from tools.scenes.build import render_variant, variant_dirname
 
@@ -240,7 +243,7 @@ def ground_truth(scene_dir: Path, pose: str, magnitude: float, texture: str | No
         render_variant(scene_dir, pose, magnitude if pose != "rest" else 1.0, texture, samples=samples,
                        log=lambda m: None)
         log(f"  ground truth {vdir.name}: {n_want} Cycles views in {time.perf_counter() - t0:.1f} s")
-    return load_split(vdir, "test")
+    return load_split(vdir, "test", downscale=downscale)
 
 
 def _texture_params(scene_dir: Path, texture):
@@ -407,13 +410,15 @@ def blank_scores(gt) -> dict:
 def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), views: int = 4,
              temperatures=(1.0, 0.5), retexture: str = "stripes", samples=None, device: str = "cpu",
              antialias: int = EditConfig.antialias, renderers=("paper",), correspondences=("naive", "deform-aware"),
-             log=print, lookup: str | None = None, bake_source: str = "auto") -> dict:
+             log=print, lookup: str | None = None, bake_source: str = "auto", downscale: int = 1) -> dict:
     """Evaluate a model's edits against Blender ground truth; returns the JSON-able result (see module doc).
     lookup: every renderer's atlas lookup (EditConfig lookup; None: each renderer's own); bake_source: the
-    retexture's and the decal's bake (core.edits.bake.bake source)."""
+    retexture's and the decal's bake (core.edits.bake.bake source); downscale: the integer factor the ground truth
+    is area-averaged by (a model fitted with `pointgt fit --downscale N` is scored at its training size with N)."""
     from core.bundle import load_bundle
     from tools.scenes.spec import load_scene_spec
 
+    check_flag(downscale, "--downscale", min=1, max=64)
     scene_dir = Path(scene_dir)
     spec = load_scene_spec(scene_dir)
     tex = get_texture(retexture)
@@ -456,7 +461,7 @@ def run_eval(model_path, scene_dir, poses=None, magnitudes=(0.25, 0.5, 1.0), vie
     t_start = time.perf_counter()
     for k, (pose, mag) in enumerate(plan):
         gts = {edit: ground_truth(gt_dir, pose, mag, retexture if edit == "retexture" else GT_TEXTURE[edit],
-                                  samples, log) for edit in EDITS}
+                                  samples, log, downscale=downscale) for edit in EDITS}
         for edit, gt in gts.items():
             blanks.append({"pose": pose, "magnitude": mag, "edit": edit, **blank_scores(gt)})
         points = None if pose == "rest" else deform_points(canonical, scene_dir, pose, mag)

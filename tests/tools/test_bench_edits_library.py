@@ -1,4 +1,5 @@
 """The library edit benchmark's summary: rest, worst pose and gap per renderer and edit, from eval-edits rows."""
+import json
 from pathlib import Path
 
 import pytest
@@ -45,3 +46,25 @@ def test_fit_args_and_tag_go_together(argv, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--work", str(tmp_path)] + argv)
     assert "--fit-args and --tag go together" in capsys.readouterr().err
+
+
+def test_downscale_makes_finer_scenes_and_fits_from_them():
+    """--downscale 4: the scene at 4 x 128², the fit reads it at 128² (`pointgt fit --downscale 4`)."""
+    cmd = fit_command(Path("W"), "strip", 1, [], ["--minutes", "5"], "--view-dependent", "vd", downscale=4)
+    assert cmd[cmd.index("--size") + 1] == "512"
+    assert cmd[cmd.index("--fit-args") + 1] == "--view-dependent --downscale 4" and cmd[-1] == "vd"
+
+
+def test_a_scene_made_at_another_size_is_refused(tmp_path):
+    """A --work folder whose scene was made at 128² is not fitted from as if it were 512² (and the reverse)."""
+    (tmp_path / "cloth").mkdir()
+    (tmp_path / "cloth" / "scene.json").write_text(json.dumps({"camera": {"width": 128}}))
+    with pytest.raises(SystemExit, match="made at 128², this run fits from 512²"):
+        main(["--work", str(tmp_path), "--scenes", "cloth", "--downscale", "4"])
+
+
+@pytest.mark.parametrize("value", ["0", "9"])
+def test_downscale_out_of_range_is_refused(tmp_path, capsys, value):
+    with pytest.raises(SystemExit):
+        main(["--work", str(tmp_path), "--downscale", value])
+    assert "--downscale" in capsys.readouterr().err

@@ -250,6 +250,10 @@ SMOKE = textwrap.dedent("""
         from tools.demo import render_animation
         anim = render_animation(bundle, d / "scene", d / "anim", 2, "bend", test)
         (d / "anim.json").write_text(json.dumps(anim))
+        from tools.eval_edits import ground_truth  # the cached posed renders, at the size --downscale 2 scores at
+        full, half = (ground_truth(d / "scene" / "eval_views1", "bend", 1.0, None, downscale=n) for n in (1, 2))
+        (d / "gt.json").write_text(json.dumps({"full": list(full.images.shape), "half": list(half.images.shape),
+                                               "alpha": [float(full.alphas.mean()), float(half.alphas.mean())]}))
     sys.exit(rc)
 """)
 
@@ -285,6 +289,16 @@ def test_eval_edits_smoke_on_a_tiny_scene(tmp_path):
     assert "median spread" in table.splitlines()[0]
     assert table.count("| bend | 1 | ") == 2 * (7 + 2 + 1)  # per renderer: every case, 2 retexture gaps, ablation
     assert (tmp_path / "scene" / "eval_views1" / "poses" / "bend_decal" / "variant.json").exists()
+    gt = json.loads((tmp_path / "gt.json").read_text())  # --downscale 2: the same renders area-averaged
+    assert gt["full"] == [1, 32, 32, 3] and gt["half"] == [1, 16, 16, 3]
+    assert gt["alpha"][1] == pytest.approx(gt["alpha"][0], abs=1e-5)
+
+
+@pytest.mark.parametrize("value", ["0", "65"])
+def test_eval_edits_refuses_a_downscale_out_of_range(tmp_path, capsys, value):
+    """Checked before anything is read or rendered: the scene folder is not even looked at."""
+    rc = main(["eval-edits", str(tmp_path / "m.pgt"), "--scene", str(tmp_path / "no-scene"), "--downscale", value])
+    assert rc != 0 and "--downscale" in capsys.readouterr().err
 
 
 def test_every_renderer_variant_is_a_valid_edit_config():

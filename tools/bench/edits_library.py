@@ -25,6 +25,9 @@ from pathlib import Path
 EDITS = ("geometry", "retexture")
 
 
+SIZE = 128  # the scenes' training size (tools.bench.scenes' default)
+
+
 def gaps(result: dict) -> list[dict]:
     """Per renderer of one eval-edits result (its --json): rest object PSNR and the worst posed gap per edit.
 
@@ -68,12 +71,25 @@ def markdown(per_scene: dict[str, list[dict]], head: str) -> str:
 
 
 def fit_command(work: Path, name: str, threads: int, samples: list[str], budget: list[str], fit_args: str = "",
-                tag: str = "") -> list[str]:
+                tag: str = "", downscale: int = 1) -> list[str]:
     """`python -m` arguments of the scene library bench that makes scene `name` in `work` and its stage-1 fit:
-    the default fit, or with fit_args under tag (the model file `tools.bench.scenes.model_path` names)."""
+    the default fit, or with fit_args under tag (the model file `tools.bench.scenes.model_path` names); with
+    downscale N > 1 the scene is made at N x SIZE and fitted with `--downscale N` (from N x finer images)."""
+    if downscale > 1:
+        fit_args = f"{fit_args} --downscale {downscale}".strip()
     cmd = ["tools.bench.scenes", "--work", str(work), "--scenes", name, "--no-pair", "--threads", str(threads),
            *samples, *budget]
+    if downscale > 1:
+        cmd += ["--size", str(SIZE * downscale)]
     return cmd + (["--fit-args", fit_args, "--tag", tag] if fit_args else [])
+
+
+def scene_size(scene: Path) -> int | None:
+    """The image width of a made scene (its scene.json), None when it has none."""
+    try:
+        return int(json.loads((scene / "scene.json").read_text())["camera"]["width"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
 
 
 def main(argv=None) -> int:
@@ -99,37 +115,53 @@ def main(argv=None) -> int:
                     "SCENE.TAG.* files beside the defaults'")
     ap.add_argument("--atlas-args", default="", help="more `pointgt atlas` flags (one string), e.g. "
                     "--atlas-args='--atlas-texels-per-pixel 4'; a model's atlas is fitted once, so use a fresh --work")
+    ap.add_argument("--downscale", type=int, default=1,
+                    help=f"fit from images this many times finer: every scene made at this times {SIZE}², fitted, "
+                         "its atlas fitted and its edits scored with `--downscale` this (the models train and are "
+                         "scored at " f"{SIZE}²; `pointgt fit`'s --train-scales auto trains on the finer levels); "
+                         "a tag names the models (ds N unless --tag), so use a fresh --work")
     ap.add_argument("--json", default=None, help="write all figures here")
     ap.add_argument("--markdown", default=None, help="write the table here")
     add_samples(ap)
     args = ap.parse_args(argv)
     if bool(args.fit_args) != bool(args.tag):
         ap.error("--fit-args and --tag go together (the tag names the setting's files)")
+    if not 1 <= args.downscale <= 8:
+        ap.error(f"--downscale: a whole factor from 1 to 8, got {args.downscale}")
+    if args.downscale > 1 and not args.tag:
+        args.tag = f"ds{args.downscale}"
     renderers = args.renderers or f"paper,{default_renderer()}"
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m"]
     budget = ["--steps", str(args.steps)] if args.steps else ["--minutes", str(args.minutes)]
     atlas = args.atlas_args or "defaults"
-    head = (f"```\n{machine_line()}\nstage 1: {' '.join(budget)}, {args.threads} thread(s); atlas: {atlas}; "
+    scale = f" from {SIZE * args.downscale}² images (--downscale {args.downscale})" if args.downscale > 1 else ""
+    head = (f"```\n{machine_line()}\nstage 1: {' '.join(budget)}, {args.threads} thread(s){scale}; atlas: {atlas}; "
             f"eval-edits: magnitude 1, {args.views} views, deform-aware, T = 1, soft blend\n```")
     print(head, flush=True)
     per_scene, figures = {}, {}
     for name in [s for s in args.scenes.split(",") if s]:
         model = model_path(work, name, None, args.tag)
+        made = scene_size(work / name)
+        if made is not None and made != SIZE * args.downscale:
+            raise SystemExit(f"{work / name}: made at {made}², this run fits from {SIZE * args.downscale}² images "
+                             f"(--downscale {args.downscale}); use a fresh --work")
+        ds = ["--downscale", str(args.downscale)] if args.downscale > 1 else []
         if not model.exists():
             run_command(py + fit_command(work, name, args.threads, samples_flag(args.samples), budget, args.fit_args,
-                                         args.tag), print, check=True)
+                                         args.tag, args.downscale), print, check=True)
         if not model.with_suffix(".atlas_history.json").exists():
             run_command(py + ["tools.cli", "atlas", str(model), str(work / name), "--atlas-threads",
-                              str(args.threads), "--no-progress", *shlex.split(args.atlas_args)], print, check=True)
+                              str(args.threads), "--no-progress", *ds, *shlex.split(args.atlas_args)], print,
+                        check=True)
         out = work / f"{name}{'.' + args.tag if args.tag else ''}.edits.json"
         want = [r for r in renderers.split(",") if r]
         have = json.loads(out.read_text()) if out.exists() else None
         if have is None or have.get("renderers") != want or (args.poses and have.get("poses") != args.poses.split(",")):
             cmd = py + ["tools.cli", "eval-edits", str(model), "--scene", str(work / name), "--magnitudes", "1",
                         "--views", str(args.views), "--temperatures", "1", "--correspondences", "deform-aware",
-                        "--renderers", ",".join(want), "--json", str(out)]
+                        "--renderers", ",".join(want), "--json", str(out), *ds]
             if args.poses:
                 cmd += ["--poses", args.poses]
             run_command(cmd, print, check=True)

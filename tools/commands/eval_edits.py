@@ -41,6 +41,9 @@ def add_arguments(p):
                    help="how the retexture and the decal are baked into the atlas (auto: fitted at the stored surface "
                         "samples; samples: splatted from them)")
     p.add_argument("--samples", type=int, default=None, help="Cycles samples for the ground truth (default: scene's)")
+    p.add_argument("--downscale", type=int, default=1,
+                   help="integer factor (1-64) the ground truth is area-averaged by: the --downscale the model was "
+                        "fitted with (`pointgt fit --downscale`), so its frames are scored at its training size")
     p.add_argument("--device", default="cpu", help="cpu | cuda | auto")
     p.add_argument("--json", default=None, help="write all figures to this JSON file")
     p.add_argument("--markdown", default=None, help="write the tables to this markdown file")
@@ -65,7 +68,8 @@ def run(args) -> int:
                                  else list(compared_renderers())),
                       correspondences=[c.strip() for c in args.correspondences.split(",") if c.strip()],
                       retexture=args.retexture, samples=args.samples, device=args.device,
-                      log=lambda m: print(m, flush=True), lookup=args.lookup, bake_source=args.bake_source)
+                      log=lambda m: print(m, flush=True), lookup=args.lookup, bake_source=args.bake_source,
+                      downscale=args.downscale)
     table = markdown(result)
     print(table)
     if args.json:
