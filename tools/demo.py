@@ -57,6 +57,24 @@ def reuse_message(scene_dir: Path, name: str, default_samples: int) -> str:
     return msg
 
 
+def report_guard(history: list[dict], allow_blank: bool = False) -> bool:
+    """Say what the collapse guard did in a fit (its history's last entry): each action, a late decline (a
+    warning: the demo goes on), a blank model (an error). Returns whether the demo goes on: False for a blank
+    model unless allow_blank."""
+    guard = history[-1].get("guard") or {}
+    collapsed, declined = guard.get("collapsed"), guard.get("declined")
+    for e in guard.get("events", []):
+        print(f"the collapse guard at step {e['step']}: {e['action']} ({e['reason']})")
+    if declined and not collapsed:
+        print(f"WARNING: the fit lost quality late in its budget: {declined} on the curve's views; the demo goes on "
+              "with it", file=sys.stderr)
+    if collapsed:
+        print(f"ERROR: the trained model renders the blank frame ({collapsed}); the atlas, edits and animation "
+              "would all carry a blank model. Pass --allow-blank to carry on anyway.", file=sys.stderr)
+        return bool(allow_blank)
+    return True
+
+
 def _banner(i: int, n: int, text: str) -> None:
     print(f"\n=== [{i}/{n}] {text}", flush=True)
 
@@ -127,18 +145,8 @@ def run_demo(args) -> int:
                                            "train": {"config": to_dict(tcfg), "final": history[-1]}})
         save_bundle(model_path, bundle, backup=False)
         write_history(model_path.with_suffix(".history.json"), history, {"model": to_dict(mcfg), "train": to_dict(tcfg)})
-    collapsed = (history[-1].get("guard") or {}).get("collapsed")
-    for e in (history[-1].get("guard") or {}).get("events", []):
-        print(f"the collapse guard at step {e['step']}: {e['action']} ({e['reason']})")
-    declined = (history[-1].get("guard") or {}).get("declined")
-    if declined and not collapsed:
-        print(f"WARNING: the fit lost quality late in its budget: {declined} on the curve's views; the demo goes on "
-              "with it", file=sys.stderr)
-    if collapsed:
-        print(f"ERROR: the trained model renders the blank frame ({collapsed}); the atlas, edits and animation "
-              "would all carry a blank model. Pass --allow-blank to carry on anyway.", file=sys.stderr)
-        if not getattr(args, "allow_blank", False):
-            return 3
+    if not report_guard(history, getattr(args, "allow_blank", False)):
+        return 3
     plot_curves(out / "curve.png", {"stage 1": history}, f"{name}: test PSNR vs training time")
     stage_done("fit", t0, train_seconds=history[-1]["seconds"], steps=history[-1]["step"])
     report["test_psnr_during_training"] = history[-1]

@@ -37,3 +37,20 @@ def test_reuse_message_names_the_scenes_samples_and_how_to_render_more(tmp_path)
     assert "16 Cycles samples" in few and "new --out folder" in few and str(tmp_path / "out") in few and "64" in few
     (scene / "scene.json").write_text(json.dumps({"render": {"samples": 64}}))
     assert reuse_message(scene, "cloth", 64) == "reusing the existing scene (64 Cycles samples per pixel)"
+
+
+def test_report_guard_warns_on_a_late_decline_and_stops_on_a_blank_model(capsys):
+    from tools.demo import report_guard
+
+    fell = "the object PSNR fell from 24.00 dB at step 400 to 19.50 dB (coverage 0.88)"
+    event = {"step": 120, "action": "refit", "reason": "the object PSNR fell 4.1 dB"}
+    assert report_guard([{"step": 1}, {"step": 9, "guard": {"events": [event], "declined": fell}}])
+    out = capsys.readouterr()
+    assert "the collapse guard at step 120: refit (the object PSNR fell 4.1 dB)" in out.out
+    assert "WARNING: the fit lost quality late in its budget: " + fell in out.err and "ERROR" not in out.err
+    blank = {"guard": {"collapsed": "object PSNR 5.1 dB at the blank frame's", "declined": fell}}
+    assert not report_guard([blank])
+    err = capsys.readouterr().err
+    assert "ERROR: the trained model renders the blank frame" in err and "WARNING" not in err  # one message
+    assert report_guard([blank], allow_blank=True) and "ERROR" in capsys.readouterr().err
+    assert report_guard([{"step": 9}]) and capsys.readouterr() == ("", "")  # a healthy fit: nothing said
