@@ -96,6 +96,11 @@ class EditConfig:
     f_reach_between: bool = opt(True, "f_reach_gate > 1: beyond the plain cap the gate opens only for two points "
                                       "within it more than 120° apart as seen from the ray (between the points of "
                                       "a sparse stretched surface, not beside the object's outline)")
+    f_reach_perspective: float = opt(0.0, "f_radius with rule gap or budget: a reaching point nearer the camera "
+                                          "than the frame's median point reaches farther by the ratio of that "
+                                          "median depth to its own, at most this factor (perspective spreads a "
+                                          "stretched part near the camera beyond the frame's one pixel cap); its "
+                                          "gate widens alike; 0 or 1 = off", min=0.0, max=1e6)
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "
@@ -532,6 +537,12 @@ class EditState:
         return bool(self.cfg.f_reach_gate_own) and self.reach_gate > 0
 
     @property
+    def reach_perspective(self) -> float:
+        """The largest perspective factor on a reaching point's reach (`trace_frame(reach_perspective=...)`):
+        f_reach_perspective with a reach in use, else 0 (none)."""
+        return float(self.cfg.f_reach_perspective) if self.search_radius()[1] is not None else 0.0
+
+    @property
     def reach_between(self) -> bool:
         """Whether beyond the plain cap the gate opens only between points (`trace_frame(reach_between=...)`)."""
         return bool(self.cfg.f_reach_between) and self.reach_gate > 0
@@ -560,7 +571,8 @@ class EditState:
         return screen_index(search, model.cfg.neighbors, k, c2w.to(pts.device, torch.float32), height, width, focal,
                             model.cfg.neighbor_radius_px, radius_scale=radius_scale, reach=reach,
                             reach_gate=self.reach_gate, reach_surround=self.reach_surround,
-                            reach_gate_own=self.reach_gate_own, reach_between=self.reach_between)
+                            reach_gate_own=self.reach_gate_own, reach_between=self.reach_between,
+                            reach_perspective=self.reach_perspective)
 
     def visible_layer(self, trace: Trace, c2w: torch.Tensor | None = None, focal=None, index=None) -> Trace:
         """f_occlusion: the trace of these points with each ray's attention kept on its front surface layer
@@ -756,6 +768,7 @@ def _trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, 
                      radius_scale=radius_scale, reach=reach, attention=cfg.attention,
                      reach_gate=state.reach_gate, reach_surround=state.reach_surround,
                      reach_gate_own=state.reach_gate_own, reach_between=state.reach_between,
+                     reach_perspective=state.reach_perspective,
                      soft_scale=scale if soft else 1.0, index=index)
     return state.visible_layer(tr, None if soft else c2w, None if soft else focal, index=index)
 

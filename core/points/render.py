@@ -40,7 +40,7 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
                 inv_f=None, radius_scale: float = 1.0, attention: str = "auto",
                 soft_scale: float = 1.0, index=None, reach: torch.Tensor | None = None,
                 rebase_depth: bool = False, reach_gate: float = 0.0, reach_surround: bool = False,
-                reach_gate_own: bool = False, reach_between: bool = False) -> Trace:
+                reach_gate_own: bool = False, reach_between: bool = False, reach_perspective: float = 0.0) -> Trace:
     """Neighbours + attention for every pixel of a frame.
 
     Args: c2w [4, 4]; points [M, 3] positions to render (default: the model's canonical points); chunk: rays per
@@ -66,7 +66,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
     cap gets no neighbours (1: the reach adds far points only to rays the plain cap already gives one; not in
     footprint mode), unless reach_surround and its candidates surround it (a hole inside the object's outline);
     reach_gate_own: each point's gate is at most its own reach; reach_between: beyond the plain cap the gate
-    opens only for two points more than 120° apart as seen from the ray (`ScreenIndex`).
+    opens only for two points more than 120° apart as seen from the ray; reach_perspective: a near reaching point's
+    reach widened by the perspective, at most this factor (`ScreenIndex`).
     Returns a Trace of flat per-ray tensors (R = H*W): origins/dirs [R, 3], idx [R, K], weights [R, K],
     fg_weights [R, K], bg [R], x [R, 3], active [R], plus shape (H, W) and depth [R] on demand.
     """
@@ -95,7 +96,8 @@ def trace_frame(model: PointModel, c2w: torch.Tensor, height: int, width: int, f
         idx = select_neighbors(pts_search, model.cfg.neighbors, k, c2w, height, width, focal, px, o, d,
                                model.cfg.neighbor_radius_px, radius_scale=radius_scale, index=index,
                                reach=reach, reach_gate=reach_gate, reach_surround=reach_surround,
-                               reach_gate_own=reach_gate_own, reach_between=reach_between)
+                               reach_gate_own=reach_gate_own, reach_between=reach_between,
+                               reach_perspective=reach_perspective)
     held = None
     if callable(inv_f):
         held = held_rows(idx, pts.shape[0])

@@ -38,7 +38,7 @@ def available() -> bool:
 
 
 def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val, rs, rcell,
-            rs_max, gate, surround, gate_own, between, dirs):
+            rs_max, gate, surround, gate_own, between, dirs, ps, ps_max):
     """For each query q[i] = (col, row) relative to the grid origin: its K best (ids[slot], value) ascending.
     xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
     weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
@@ -53,9 +53,11 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
     between (gate > 1): a point within the gate but beyond the plain cap opens it only together with another such
     point whose direction from the query is more than 120° away (_BETWEEN_COS): the query lies between the points
     of a sparse surface, not beside a dense outline (seen from outside a straight edge, the points within
-    gate × cap span at most 2·acos(1 / gate) ≤ 120° for gate ≤ 2). dirs [M, 2] float64 scratch space."""
+    gate × cap span at most 2·acos(1 / gate) ≤ 120° for gate ≤ 2). dirs [M, 2] float64 scratch space.
+    ps [M] each point's perspective factor (>= 1, all ones: none) on the plain cap its gate and the between rule
+    measure by (cap × ps[j]; rs already holds it), ps_max the largest."""
     reach = cap * rs_max  # no point is a candidate beyond this
-    walk = max(reach, cap * gate)  # nor does the gate look farther
+    walk = max(reach, cap * gate * ps_max)  # nor does the gate look farther
     rmax = int(math.ceil(walk / cell)) + 1
     best = np.empty(k, dtype=np.float64)  # the query's K best values, ascending ...
     slot = np.empty(k, dtype=np.int64)  # ... and their slots
@@ -73,7 +75,7 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
         rend = min(rmax, r0 + ncx + ncy)
         n = 0
         near = gate <= 0.0  # gate: whether a point lies within gate × cap (until then nothing is skipped there)
-        gcap = cap * gate
+        gcap = cap * gate * ps_max  # the farthest any point gates
         gcap2 = gcap * gcap
         mask = 0  # surround: the sectors that hold a candidate
         ringed = not surround  # surround: whether they surround the query (nothing is skipped until then)
@@ -114,9 +116,9 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                         ddy = ys[j] - qy
                         d2 = ddx * ddx + ddy * ddy
                         if not near and d2 <= gcap2:
-                            gj = cap * min(gate, rs[j]) if gate_own else gcap
+                            gj = cap * min(gate, rs[j]) if gate_own else cap * gate * ps[j]
                             if d2 <= gj * gj:
-                                if not between or d2 <= cap * cap:
+                                if not between or d2 <= cap * cap * ps[j] * ps[j]:
                                     near = True
                                 else:
                                     dd = math.sqrt(d2)
@@ -217,11 +219,13 @@ class CompiledGrid:
     every query visit larger cells, and where most points reach far a query does not walk many small ones; the
     answer does not depend on the cell size). gate > 0: a query with no point within gate × cap gets none, unless
     surround and its candidates surround it (`_kernel`); gate_own: point j's gate is cap × min(gate, reach[j]);
-    between: beyond the plain cap the gate opens only for points on opposite sides of the query (`_kernel`)."""
+    between: beyond the plain cap the gate opens only for points on opposite sides of the query (`_kernel`).
+    perspective [M] float64 >= 1 or None: point m gates at gate × cap × perspective[m] and counts as within the
+    plain cap for `between` within cap × perspective[m] (its reach already holds the factor)."""
 
     def __init__(self, px: np.ndarray, weight: np.ndarray | None, ids: np.ndarray, cap: float, height: int,
                  width: int, reach: np.ndarray | None = None, gate: float = 0.0, surround: bool = False,
-                 gate_own: bool = False, between: bool = False):
+                 gate_own: bool = False, between: bool = False, perspective: np.ndarray | None = None):
         self.cap = float(cap)
         self.gate = float(gate) if gate and math.isfinite(float(gate)) and float(gate) > 0 else 0.0
         self.surround = bool(surround) and self.gate > 0
@@ -230,6 +234,8 @@ class CompiledGrid:
         span_x, span_y = width + 2.0, height + 2.0  # candidates lie inside the frame ± 1 px
         rs = np.ones(len(px)) if reach is None else np.maximum(np.nan_to_num(np.asarray(reach, dtype=np.float64),
                                                                              nan=1.0, posinf=1.0), 1.0)
+        ps = np.ones(len(px)) if perspective is None else np.maximum(np.nan_to_num(
+            np.asarray(perspective, dtype=np.float64), nan=1.0, posinf=1.0), 1.0)
         grow = math.sqrt(float(np.median(rs))) if len(rs) else 1.0
         self.cell = max(_CELL_PER_CAP * self.cap * grow, math.sqrt(span_x * span_y / _MAX_CELLS))
         self.ncx = int(span_x // self.cell) + 1
@@ -249,6 +255,8 @@ class CompiledGrid:
         self.wcell = np.full(self.ncx * self.ncy, np.inf)
         np.minimum.at(self.wcell, cell_id, w)
         self.wmin = float(w.min()) if len(w) else 1.0
+        self.ps = np.ascontiguousarray(ps[self.order])
+        self.ps_max = float(ps.max()) if len(ps) else 1.0
         self.rs = np.ascontiguousarray(rs[self.order])
         self.rcell = np.ones(self.ncx * self.ncy)
         np.maximum.at(self.rcell, cell_id, rs)
@@ -264,5 +272,6 @@ class CompiledGrid:
             qq = np.ascontiguousarray(np.asarray(q, dtype=np.float64) + 1.0)
             _get_kernel()(self.xs, self.ys, self.ws, self.ids, self.wcell, self.start, self.ncx, self.ncy, self.cell,
                           self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max, self.gate,
-                          self.surround, self.gate_own, self.between, np.empty((len(self.xs), 2)))
+                          self.surround, self.gate_own, self.between, np.empty((len(self.xs), 2)), self.ps,
+                          self.ps_max)
         return idx, val

@@ -85,13 +85,17 @@ class ScreenIndex:
     reach_gate × the cap but at most its own reach × the cap (a wider gate only where the points were pulled
     that far apart). reach_between (reach_gate > 1): beyond the plain cap, the gate opens only for two points
     within it whose directions from the query are more than 120° apart (the query lies between the points of a
-    sparse surface, not beside an outline).
+    sparse surface, not beside an outline). reach_perspective (> 1, with reach): a candidate whose reach exceeds 1
+    and that lies nearer the camera than the median candidate reaches farther by the ratio of that median depth to
+    its own, at most this factor (perspective spreads a near stretched part's points farther apart on the screen
+    than the frame's one cap, set from the median density, allows); the compiled backend also widens its gate
+    and its plain cap for `reach_between` by that ratio, the others gate as without it. 0 (or <= 1) = off.
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
                  depth_factor: bool = False, backend: str = "auto", max_radius_px: float | str = "auto",
                  reach: torch.Tensor | None = None, reach_gate: float = 0.0, reach_surround: bool = False,
-                 reach_gate_own: bool = False, reach_between: bool = False):
+                 reach_gate_own: bool = False, reach_between: bool = False, reach_perspective: float = 0.0):
         check_matrix("points", points, 3)
         check_camera(c2w, height, width, focal)
         self.radius = check_radius(max_radius_px)
@@ -119,6 +123,16 @@ class ScreenIndex:
         self.reach_surround = bool(reach_surround) and self.reach_gate > 0
         self.reach_gate_own = bool(reach_gate_own) and self.reach_gate > 0
         self.reach_between = bool(reach_between) and self.reach_gate > 0
+        self.perspective = None  # [M] float64 >= 1: each reaching candidate's perspective factor (None: 1)
+        persp = float(reach_perspective)
+        if self.reach is not None and math.isfinite(persp) and persp > 1.0:
+            dk = depth[keep]
+            ratio = float(dk.median()) / dk  # > 1: nearer than the median candidate, sparser on the screen
+            ratio = torch.nan_to_num(ratio, nan=1.0, posinf=persp).clamp(1.0, persp)
+            ratio = torch.where(self.reach > 1.0, ratio, torch.ones_like(ratio))
+            if bool((ratio > 1.0).any()):
+                self.perspective = ratio
+                self.reach = self.reach * ratio  # its reach covers it (every backend's uniform cap too)
         self.weight = depth[keep] / float(focal_scale(cam)) if depth_factor else None  # [M]
         self._density: float | None = None
         self._grids: dict[float, CellGrid] = {}  # one per resolved cap (the auto cap depends on K)
@@ -164,7 +178,9 @@ class ScreenIndex:
                                                                gate=self.reach_gate,
                                                                surround=self.reach_surround,
                                                                gate_own=self.reach_gate_own,
-                                                               between=self.reach_between)
+                                                               between=self.reach_between,
+                                                               perspective=None if self.perspective is None
+                                                               else self.perspective.cpu().numpy())
             idx, dist = self._compiled[cap].query(query_px.detach().to(torch.float64).numpy(), k)
             return Neighbors(torch.from_numpy(idx), torch.from_numpy(dist))
         out = self._query_capped(query_px, k, self._uniform_cap(k))

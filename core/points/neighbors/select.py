@@ -18,7 +18,7 @@ def select_neighbors(points: torch.Tensor, method: str, k: int, c2w: torch.Tenso
                      radius_scale: float = 1.0, index: ScreenIndex | None = None,
                      reach: torch.Tensor | None = None, reach_gate: float = 0.0,
                      reach_surround: bool = False, reach_gate_own: bool = False,
-                     reach_between: bool = False) -> torch.Tensor:
+                     reach_between: bool = False, reach_perspective: float = 0.0) -> torch.Tensor:
     """K neighbours per ray. points [N, 3] (detached; non-finite = absent), query_px [R, 2] pixel coords
     (col, row), origins/dirs [R, 3] the rays through those pixels. max_radius_px: the screen metrics' pixel radius
     cap ("auto" or 0 = from the projected density, a number of pixels, or inf / < 0 = no cap; unused by
@@ -28,7 +28,8 @@ def select_neighbors(points: torch.Tensor, method: str, k: int, c2w: torch.Tenso
     used). reach [N] (>= 1) or None: point n is a candidate within the cap × reach[n] (`ScreenIndex`);
     reach_gate > 0: with reach, a ray with no point within reach_gate × the cap gets none, unless reach_surround and
     its candidates surround it; reach_gate_own: each point's gate at most its own reach; reach_between: beyond
-    the plain cap the gate opens only between points (`ScreenIndex`).
+    the plain cap the gate opens only between points; reach_perspective: a near reaching point's reach widened by
+    the perspective, at most this factor (`ScreenIndex`).
     Returns idx [R, K] int64, -1 where a ray has fewer than K candidates."""
     if method not in METHODS:
         raise InputError(f"neighbour search: method must be one of {METHODS}, got {method!r}")
@@ -40,7 +41,8 @@ def select_neighbors(points: torch.Tensor, method: str, k: int, c2w: torch.Tenso
             index = ScreenIndex(pts, c2w, height, width, focal, depth_factor=(method == "screen_depth"),
                                 backend=backend, max_radius_px=max_radius_px, reach=reach,
                                 reach_gate=reach_gate, reach_surround=reach_surround,
-                                reach_gate_own=reach_gate_own, reach_between=reach_between)
+                                reach_gate_own=reach_gate_own, reach_between=reach_between,
+                                reach_perspective=reach_perspective)
             if radius_scale != 1.0:
                 index.radius = index.radius_px(k) * float(radius_scale)  # no cap (inf) stays none
         idx, _ = index.query(query_px, k)
@@ -51,9 +53,10 @@ def screen_index(points: torch.Tensor, method: str, k: int, c2w: torch.Tensor, h
                  max_radius_px: float | str = "auto", radius_scale: float = 1.0,
                  backend: str = "auto", reach: torch.Tensor | None = None,
                  reach_gate: float = 0.0, reach_surround: bool = False,
-                 reach_gate_own: bool = False, reach_between: bool = False) -> ScreenIndex | None:
+                 reach_gate_own: bool = False, reach_between: bool = False,
+                 reach_perspective: float = 0.0) -> ScreenIndex | None:
     """The ScreenIndex `select_neighbors` builds for these arguments (points [N, 3], non-finite = absent; reach [N]
-    or None, reach_gate, reach_surround, reach_gate_own and reach_between as there), with its pixel radius cap resolved for K = k (times radius_scale), so that
+    or None, reach_gate, reach_surround, reach_gate_own, reach_between and reach_perspective as there), with its pixel radius cap resolved for K = k (times radius_scale), so that
     queries for more candidates than K (a second search of some rays) stay within the same cap and reuse its grid.
     None for "perpendicular" (no screen)."""
     if method not in METHODS:
@@ -63,7 +66,7 @@ def screen_index(points: torch.Tensor, method: str, k: int, c2w: torch.Tensor, h
     index = ScreenIndex(points.detach(), c2w, height, width, focal, depth_factor=(method == "screen_depth"),
                         backend=backend, max_radius_px=max_radius_px, reach=reach, reach_gate=reach_gate,
                         reach_surround=reach_surround, reach_gate_own=reach_gate_own,
-                        reach_between=reach_between)
+                        reach_between=reach_between, reach_perspective=reach_perspective)
     index.radius = index.radius_px(k) * float(radius_scale)  # no cap (inf) stays none
     return index
 

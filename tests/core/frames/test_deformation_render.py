@@ -634,3 +634,40 @@ def test_held_rows_are_the_points_some_ray_holds(monkeypatch):
     assert trace.held_rows(torch.full((5, 3), -1), 10).numel() == 0
     empty = dataclasses.replace(tr, idx=torch.full((300, 7), -1))
     assert empty.held.numel() == 0
+
+
+def test_reach_perspective_keeps_rest_frames_and_is_the_screen_index(tiny):
+    """f_reach_perspective: rest frames are today's; nothing moved, no factor; a card stretched 4× along x seen
+    from a near camera is traced exactly as the screen index with that factor answers, and at least as many rays
+    get neighbours as without it; extreme poses stay finite."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    n = bundle.model.num_points
+    cfg = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, f_reach_between=True, render_mode="pixels",
+               f_reach_perspective=4.0)
+    today = EditState(bundle)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**cfg))
+    for i in range(len(test)):
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    assert EditState(bundle, cfg=EditConfig(**cfg)).reach_perspective == 0.0
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 0.8  # nearer: the stretched card's near end spreads on the screen
+    pts = xyz * torch.tensor([4.0, 1.0, 1.0])
+    model = bundle.model
+    active = {}
+    for persp in (0.0, 4.0):
+        st = EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **{**cfg, "f_reach_perspective": persp}))
+        assert st.reach_perspective == persp
+        got = render_edited(st, c2w, test.height, test.width, test.focal)["trace"].active
+        index = screen_index(st.points, model.cfg.neighbors, model.cfg.k, c2w, test.height, test.width, test.focal,
+                             model.cfg.neighbor_radius_px, reach=st.reach, reach_gate=1.5, reach_between=True,
+                             reach_perspective=persp)
+        assert torch.equal(got, (index.query(pixel_grid(test.height, test.width, "cpu"), model.cfg.k).idx >= 0).any(1))
+        active[persp] = int(got.sum())
+    assert active[4.0] >= active[0.0]
+    for p in _extreme_poses(xyz):
+        out = render_edited(EditState(bundle, points=p, cfg=EditConfig(f_fill_budget=0.1, **cfg)), test.c2w[0],
+                            test.height, test.width, test.focal)
+        assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()

@@ -808,3 +808,88 @@ def test_reach_between_opens_the_gate_only_between_points(backend, own, gate):
     plain = (ref_screen(pts, c2w, q, 8, True, cap)[0] >= 0).any(1)
     assert bool((within.any(1) & ~near).any())  # the gate kept some rays with points within it shut ...
     assert own or bool((near & ~plain).any())  # ... and opened some beyond the plain cap
+
+
+def _depths(points, c2w):
+    """Camera depth of each point (> 0 in front), as ref_screen computes it."""
+    p, m = points.double(), c2w.double()
+    return -((p - m[:3, 3]) @ m[:3, :3])[:, 2]
+
+
+@pytest.mark.skipif(not compiled.available(), reason="the perspective factor is applied by the compiled grid")
+@pytest.mark.parametrize("between", [False, True])
+@pytest.mark.parametrize("persp", [2.0, 4.0])
+def test_reach_perspective_matches_brute_force(between, persp):
+    """reach_perspective: a reaching point (reach > 1) nearer than the median candidate reaches, gates and (with
+    between) counts as within the plain cap farther by median depth / its depth, at most persp (brute force
+    here); points of reach 1 and points beyond the median keep their cap."""
+    pts = scene("blob", 800, 9)
+    c2w = camera(9)
+    q = random_px(600, 9)
+    g = torch.Generator().manual_seed(19)
+    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 2.0 * torch.rand(800, generator=g), torch.ones(800))
+    gate = 1.5
+    cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True).radius_px(8)
+    px = _projected(pts, c2w)
+    z = _depths(pts, c2w)
+    inside = torch.isfinite(px).all(1) & (z > 0) & (px[:, 0] >= -1) & (px[:, 0] <= W + 1) & (px[:, 1] >= -1) \
+        & (px[:, 1] <= H + 1)
+    ratio = (z[inside].median() / z).clamp(1.0, persp)
+    ratio = torch.where(reach.double() > 1.0, ratio, torch.ones_like(ratio))
+    per_point = cap * reach.double() * ratio
+    open_ = ref_screen(pts, c2w, q, 8, True, per_point[None])
+    off = px[None] - q.double()[:, None]
+    d = off.norm(dim=-1)
+    within = d <= (cap * gate * ratio)[None]
+    near = (d <= (cap * ratio)[None]).any(1) if between else within.any(1)
+    if between:
+        for r in range(q.shape[0]):
+            u = off[r][within[r]] / d[r][within[r]][:, None]
+            near[r] |= bool(((u @ u.T) < -0.5).any())
+    ref = torch.where(near[:, None], open_[0], -1), torch.where(near[:, None], open_[1], math.inf)
+    index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, backend="compiled", reach=reach, reach_gate=gate,
+                           reach_between=between, reach_perspective=persp)
+    assert_same(index.query(q, 8), ref)
+    assert index.perspective is not None and 1.0 < float(index.perspective.max()) <= persp
+    plain = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, backend="compiled", reach=reach, reach_gate=gate,
+                           reach_between=between)
+    assert plain.perspective is None
+    assert bool(((index.query(q, 8).idx >= 0).any(1) & ~(plain.query(q, 8).idx >= 0).any(1)).any())  # it reaches
+
+
+@pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
+def test_reach_perspective_fills_a_near_stretched_part(backend):
+    """A floor receding from the camera, its points 0.5 apart in the world (so farther apart on the screen where
+    it is nearer: 8.8 px at its near edge, 2.2 at its far one), every point reaching 1.2 caps: without the
+    perspective factor its near rows have rays without neighbours between the points; with it (at most 4) the
+    compiled grid, which also widens the near points' gate, leaves none, the others (the gate as without it)
+    fewer; factors <= 1, no reach or hostile positions change nothing or stay finite."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("numba missing")
+    x, zz = torch.meshgrid(torch.arange(-3.0, 3.0001, 0.5), torch.arange(-6.0, -1.4999, 0.5), indexing="xy")
+    pts = torch.stack([x.reshape(-1), torch.full((x.numel(),), -0.6), zz.reshape(-1)], 1)
+    c2w = torch.eye(4)
+    reach = torch.full((pts.shape[0],), 1.2)
+    qr, qc = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32),
+                            indexing="ij")
+    q = torch.stack([qc.reshape(-1) + 0.5, qr.reshape(-1) + 0.5], 1)
+    rows = _projected(pts, c2w)[:, 1]
+    rows = rows[torch.isfinite(rows)]
+    on_floor = (q[:, 1] >= float(rows.min()) + 1) & (q[:, 1] <= float(rows.max()) - 1) & (q[:, 0] >= 1) \
+        & (q[:, 0] <= W - 1)
+    empty = {}
+    for persp in (0.0, 1.0, 4.0):
+        idx = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, backend=backend, max_radius_px=1.5, reach=reach,
+                             reach_gate=1.5, reach_perspective=persp).query(q, 8).idx
+        empty[persp] = int(((idx < 0).all(1) & on_floor).sum())
+    assert empty[0.0] > 0 and empty[1.0] == empty[0.0]
+    assert empty[4.0] == 0 if backend == "compiled" else 0 < empty[4.0] < empty[0.0]
+    ones = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, backend=backend, max_radius_px=1.5, reach=torch.ones(
+        pts.shape[0]), reach_gate=1.5, reach_perspective=4.0)
+    assert ones.perspective is None  # nothing reaches: nothing widens
+    wild = pts.clone()
+    wild[::5] = float("nan")
+    wild[1::7] = 1e30
+    got = nb.ScreenIndex(wild, c2w, H, W, FOCAL, True, backend=backend, max_radius_px=1.5, reach=reach,
+                         reach_gate=1.5, reach_perspective=1e6).query(q, 8)
+    assert torch.isfinite(got.dist[got.valid]).all()
