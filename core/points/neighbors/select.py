@@ -56,7 +56,8 @@ def screen_index(points: torch.Tensor, method: str, k: int, c2w: torch.Tensor, h
                  reach_gate_own: bool = False, reach_between: bool = False,
                  reach_perspective: float = 0.0) -> ScreenIndex | None:
     """The ScreenIndex `select_neighbors` builds for these arguments (points [N, 3], non-finite = absent; reach [N]
-    or None, reach_gate, reach_surround, reach_gate_own, reach_between and reach_perspective as there), with its pixel radius cap resolved for K = k (times radius_scale), so that
+    or None, reach_gate, reach_surround, reach_gate_own, reach_between and reach_perspective as there), with its
+    pixel radius cap resolved for K = k (times radius_scale), so that
     queries for more candidates than K (a second search of some rays) stay within the same cap and reuse its grid.
     None for "perpendicular" (no screen)."""
     if method not in METHODS:
