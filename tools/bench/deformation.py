@@ -90,6 +90,9 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
                                      "f_key_stretch": "sparse", "f_occlusion": True},
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, deform-aware":
         {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto"},
+    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
+         "reach, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto",
+                                 "f_reach_perspective": 4.0},
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, occlusion, "
          "deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto",
                           "f_occlusion": True},
