@@ -96,7 +96,7 @@ class EditConfig:
     f_reach_between: bool = opt(True, "f_reach_gate > 1: beyond the plain cap the gate opens only for two points "
                                       "within it more than 120° apart as seen from the ray (between the points of "
                                       "a sparse stretched surface, not beside the object's outline)")
-    f_reach_perspective: float = opt(0.0, "f_radius with rule gap or budget: a reaching point nearer the camera "
+    f_reach_perspective: float = opt(4.0, "f_radius with rule gap or budget: a reaching point nearer the camera "
                                           "than the frame's median point reaches farther by the ratio of that "
                                           "median depth to its own, at most this factor (perspective spreads a "
                                           "stretched part near the camera beyond the frame's one pixel cap); its "

@@ -311,7 +311,8 @@ def test_reach_gate_adds_far_points_only_to_rays_the_plain_search_covers(tiny):
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
     n = bundle.model.num_points
-    gate = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0)
+    # the gate alone: without the perspective reach (its own test below), which widens near points' gates
+    gate = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0, f_reach_perspective=0.0)
     today = EditState(bundle)
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**gate))
     for i in range(len(test)):
@@ -323,7 +324,7 @@ def test_reach_gate_adds_far_points_only_to_rays_the_plain_search_covers(tiny):
     c2w[:3, 3] *= 2.5
     states = {name: EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1, **over))
               for name, over in (("plain", dict(f_radius=False)),
-                                 ("reach", dict(f_radius=True, f_radius_rule="gap", f_reach_gate=0.0)), ("gate", gate))}
+                                 ("reach", dict(gate, f_reach_gate=0.0)), ("gate", gate))}
     tr = {name: render_edited(st, c2w, test.height, test.width, test.focal)["trace"] for name, st in states.items()}
     assert float(states["gate"].reach.max()) > 1.5
     covered = tr["plain"].active
@@ -347,7 +348,8 @@ def test_reach_surround_adds_only_rays_the_reach_candidates_surround(tiny):
     xyz = bundle.model.xyz.detach()
     n = bundle.model.num_points
     # render_mode pixels: every ray traced at the frame's size (the upsampled mode would trace the training scale)
-    inside = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0, f_reach_surround=True, render_mode="pixels")
+    inside = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0, f_reach_surround=True, render_mode="pixels",
+                  f_reach_perspective=0.0)  # the gate's rules alone (the perspective reach: its own test below)
     today = EditState(bundle)
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**inside))
     for i in range(len(test)):
@@ -414,7 +416,8 @@ def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny, rule)
     flag = dict(f_reach_gate_own=True, f_reach_between=False) if rule == "own" else \
         dict(f_reach_gate_own=False, f_reach_between=True)
     # render_mode pixels: every ray traced at the frame's size (the upsampled mode would trace the training scale)
-    own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, render_mode="pixels", **flag)
+    own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, render_mode="pixels", f_reach_perspective=0.0,
+               **flag)  # the gate's rules alone (the perspective reach: its own test below)
     today = EditState(bundle)
     forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**own))
     for i in range(len(test)):
