@@ -38,7 +38,7 @@ def available() -> bool:
 
 
 def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, out_idx, out_val, rs, rcell,
-            rs_max, gate, surround, gate_own, between, dirs, ps, ps_max):
+            rs_max, gate, surround, gate_own, between, dirs, ps, ps_max, pcell):
     """For each query q[i] = (col, row) relative to the grid origin: its K best (ids[slot], value) ascending.
     xs, ys, ws, ids [M] sorted by cell (row-major), start [ncx*ncy + 1] cell offsets, wcell [ncx*ncy] smallest
     weight per cell (inf when empty). out_idx [R, K] int64 (-1 = none) and out_val [R, K] float32 (inf = none),
@@ -55,7 +55,7 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
     of a sparse surface, not beside a dense outline (seen from outside a straight edge, the points within
     gate × cap span at most 2·acos(1 / gate) ≤ 120° for gate ≤ 2). dirs [M, 2] float64 scratch space.
     ps [M] each point's perspective factor (>= 1, all ones: none) on the plain cap its gate and the between rule
-    measure by (cap × ps[j]; rs already holds it), ps_max the largest."""
+    measure by (cap × ps[j]; rs already holds it), ps_max the largest, pcell [ncx*ncy] the largest per cell."""
     reach = cap * rs_max  # no point is a candidate beyond this
     walk = max(reach, cap * gate * ps_max)  # nor does the gate look farther
     rmax = int(math.ceil(walk / cell)) + 1
@@ -107,9 +107,9 @@ def _kernel(xs, ys, ws, ids, wcell, start, ncx, ncy, cell, wmin_all, q, cap, k, 
                     ex = max(x * cell - qx, qx - (x + 1) * cell, 0.0)
                     ey = max(y * cell - qy, qy - (y + 1) * cell, 0.0)
                     md = math.sqrt(ex * ex + ey * ey)
-                    if md > cap * rcell[c] and (near or md > gcap):
+                    if md > cap * rcell[c] and (near or md > cap * gate * pcell[c]):
                         continue
-                    if n == k and md * wcell[c] >= best[k - 1] and (near or (md > gcap and ringed)):
+                    if n == k and md * wcell[c] >= best[k - 1] and (near or (md > cap * gate * pcell[c] and ringed)):
                         continue
                     for j in range(a, b):
                         ddx = xs[j] - qx
@@ -257,6 +257,8 @@ class CompiledGrid:
         self.wmin = float(w.min()) if len(w) else 1.0
         self.ps = np.ascontiguousarray(ps[self.order])
         self.ps_max = float(ps.max()) if len(ps) else 1.0
+        self.pcell = np.ones(self.ncx * self.ncy)
+        np.maximum.at(self.pcell, cell_id, ps)
         self.rs = np.ascontiguousarray(rs[self.order])
         self.rcell = np.ones(self.ncx * self.ncy)
         np.maximum.at(self.rcell, cell_id, rs)
@@ -273,5 +275,5 @@ class CompiledGrid:
             _get_kernel()(self.xs, self.ys, self.ws, self.ids, self.wcell, self.start, self.ncx, self.ncy, self.cell,
                           self.wmin, qq, self.cap, k, idx, val, self.rs, self.rcell, self.rs_max, self.gate,
                           self.surround, self.gate_own, self.between, np.empty((len(self.xs), 2)), self.ps,
-                          self.ps_max)
+                          self.ps_max, self.pcell)
         return idx, val
