@@ -88,8 +88,8 @@ class ScreenIndex:
     sparse surface, not beside an outline). reach_perspective (> 1, with reach): a candidate whose reach exceeds 1
     and that lies nearer the camera than the median candidate reaches farther by the ratio of that median depth to
     its own, at most this factor (perspective spreads a near stretched part's points farther apart on the screen
-    than the frame's one cap, set from the median density, allows); the compiled backend also widens its gate
-    and its plain cap for `reach_between` by that ratio, the others gate as without it. 0 (or <= 1) = off.
+    than the frame's one cap, set from the median density, allows); its gate and its plain cap for
+    `reach_between` widen by the same ratio. 0 (or <= 1) = off.
     """
 
     def __init__(self, points: torch.Tensor, c2w: torch.Tensor, height: int, width: int, focal,
@@ -186,12 +186,16 @@ class ScreenIndex:
         out = self._query_capped(query_px, k, self._uniform_cap(k))
         cap = self.radius_px(k)
         if self.reach_gate and math.isfinite(cap):  # the gate from a plain query of the nearest point
-            near = (self._query_capped(query_px, 1, cap * self.reach_gate).idx[:, 0] >= 0).to(out.idx.device)[:, None]
-            if (self.reach_gate_own or self.reach_between) and self.reach_gate > 1:  # brute force beyond the cap
+            ps = self.perspective  # [M] or None: each point's gate and plain cap widened by it (as the compiled)
+            widest = self.reach_gate * (1.0 if ps is None else float(ps.max()))
+            near = (self._query_capped(query_px, 1, cap * widest).idx[:, 0] >= 0).to(out.idx.device)[:, None]
+            if ((self.reach_gate_own or self.reach_between) and self.reach_gate > 1) or ps is not None:
+                # brute force beyond the plain cap: each point's own gate (and plain cap, for the between rule)
                 plain = (self._query_capped(query_px, 1, cap).idx[:, 0] >= 0).to(near.device)
                 ask = torch.nonzero(near[:, 0] & ~plain).squeeze(1)
+                own = torch.ones_like(self.reach) if ps is None else ps
                 gate = cap * (self.reach.clamp_max(self.reach_gate) if self.reach_gate_own
-                              else torch.full_like(self.reach, self.reach_gate))  # [M] each point's gate
+                              else self.reach_gate * own)  # [M] each point's gate
                 qd = query_px.detach().to(self.px)
                 for a in range(0, ask.numel(), 256):
                     rows = ask[a:a + 256].to(self.px.device)
@@ -199,8 +203,9 @@ class ScreenIndex:
                     d = off.norm(dim=-1)
                     inside = d <= gate[None]
                     ok = inside.any(dim=1)
-                    if self.reach_between:  # two of them more than 120° apart, seen from the query
-                        for i in torch.nonzero(ok).squeeze(1).tolist():
+                    if self.reach_between:  # within its own plain cap, or two more than 120° apart
+                        ok = (inside & (d <= cap * own[None])).any(dim=1)
+                        for i in torch.nonzero(inside.any(dim=1) & ~ok).squeeze(1).tolist():
                             u = off[i][inside[i]] / d[i][inside[i]][:, None]
                             ok[i] = bool(((u @ u.T) < -0.5).any())
                     near[rows.to(near.device), 0] = ok.to(near.device)
