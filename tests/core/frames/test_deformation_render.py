@@ -245,15 +245,9 @@ def test_local_map_fold_test_leaves_rest_frames_and_a_uniform_stretch_alone(tiny
     displacement test at the same radius changes them."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
-    n = bundle.model.num_points
     atlas = bake(bundle.atlas, _half_split)
     local = dict(fold_test="local-map", fold_radius=0.5)
-    today = EditState(bundle, atlas=atlas)
-    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), atlas=atlas, cfg=EditConfig(**local))
-    for i in range(len(test)):
-        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
-        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
-        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-4) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    _forced_rest(bundle, test, EditConfig(**local), atlas=atlas, rgb_atol=1e-4)
     exact = DeformationConfig(sheet_ratio=0.0)
     s = torch.tensor([4.0, 1.0, 1.0])
     c2w = test.c2w[0].clone()
@@ -275,15 +269,9 @@ def test_gap_reach_only_where_the_fill_left_gaps_and_rest_unchanged(tiny):
     covers at least as much; extreme poses stay finite."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
-    n = bundle.model.num_points
     on = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=0.0)
-    today = EditState(bundle)
-    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**on))
+    forced = _forced_rest(bundle, test, EditConfig(**on))
     assert forced.search_radius()[1] is not None and bool((forced.reach == 1).all())
-    for i in range(len(test)):
-        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
-        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
-        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
     s = torch.tensor([4.0, 1.0, 1.0])
     closed = EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=8.0, **on))
     assert bool((closed.reach == 1).all())
@@ -310,15 +298,9 @@ def test_reach_gate_adds_far_points_only_to_rays_the_plain_search_covers(tiny):
     stay finite."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
-    n = bundle.model.num_points
     # the gate alone: without the perspective reach (its own test below), which widens near points' gates
     gate = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0, f_reach_perspective=0.0)
-    today = EditState(bundle)
-    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**gate))
-    for i in range(len(test)):
-        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
-        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
-        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    _forced_rest(bundle, test, EditConfig(**gate))
     s = torch.tensor([4.0, 1.0, 1.0])
     c2w = test.c2w[0].clone()
     c2w[:3, 3] *= 2.5
@@ -346,16 +328,10 @@ def test_reach_surround_adds_only_rays_the_reach_candidates_surround(tiny):
     are today's; extreme poses stay finite."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
-    n = bundle.model.num_points
     # render_mode pixels: every ray traced at the frame's size (the upsampled mode would trace the training scale)
     inside = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.0, f_reach_surround=True, render_mode="pixels",
                   f_reach_perspective=0.0)  # the gate's rules alone (the perspective reach: its own test below)
-    today = EditState(bundle)
-    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**inside))
-    for i in range(len(test)):
-        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
-        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
-        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    _forced_rest(bundle, test, EditConfig(**inside))
     keep = torch.nonzero((xyz[:, :2] - xyz[:, :2].mean(0)).norm(dim=1) > 0.45).squeeze(1)  # a hole in the card
     pts = xyz[keep] * torch.tensor([4.0, 1.0, 1.0])
     c2w = test.c2w[0].clone()
@@ -378,6 +354,19 @@ def test_reach_surround_adds_only_rays_the_reach_candidates_surround(tiny):
         out = render_edited(EditState(bundle, points=pts, cfg=EditConfig(f_fill_budget=0.1, **inside)), c2w,
                             test.height, test.width, test.focal)
         assert torch.isfinite(out["rgb"]).all() and torch.isfinite(out["alpha"]).all()
+
+
+def _forced_rest(bundle, test, cfg: EditConfig, atlas=None, rgb_atol=1e-5, views=None) -> EditState:
+    """The model's points forced through the moved path (ids given, F ≈ I) with cfg: checks that its frames equal
+    today's (rgb to rgb_atol, alpha to 1e-5) on `views` (default: every test camera); returns that state."""
+    n = bundle.model.num_points
+    today = EditState(bundle, atlas=atlas)
+    forced = EditState(bundle, points=bundle.model.xyz.detach().clone(), ids=torch.arange(n), atlas=atlas, cfg=cfg)
+    for i in range(len(test)) if views is None else views:
+        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
+        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
+        assert torch.allclose(a["rgb"], b["rgb"], atol=rgb_atol) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    return forced
 
 
 def _gate_checked(bundle, pts, gate, c2w, height, width, focal, fill):
@@ -412,18 +401,12 @@ def test_reach_gate_own_lies_between_the_plain_gate_and_the_wide_one(tiny, rule)
     stretched card's outline, where the between rule keeps them shut); extreme poses stay finite."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
-    n = bundle.model.num_points
     flag = dict(f_reach_gate_own=True, f_reach_between=False) if rule == "own" else \
         dict(f_reach_gate_own=False, f_reach_between=True)
     # render_mode pixels: every ray traced at the frame's size (the upsampled mode would trace the training scale)
     own = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, render_mode="pixels", f_reach_perspective=0.0,
                **flag)  # the gate's rules alone (the perspective reach: its own test below)
-    today = EditState(bundle)
-    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**own))
-    for i in range(len(test)):
-        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
-        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
-        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    _forced_rest(bundle, test, EditConfig(**own))
     c2w = test.c2w[0].clone()
     c2w[:3, 3] *= 2.5
     got, one = _gate_checked(bundle, xyz * torch.tensor([4.0, 1.0, 1.0]), own, c2w, test.height, test.width,
@@ -485,13 +468,7 @@ def test_auto_compression_picks_tangent_for_a_sheet_and_undo_for_a_thick_shell(t
     assert torch.equal(sheet.inv_f_keys, tangent.inv_f_keys)
     assert torch.equal(thick.inv_f_keys, thick.inv_f)
     assert not torch.allclose(sheet.inv_f_keys, thick.inv_f_keys, atol=1e-3)
-    n = bundle.model.num_points
-    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n),
-                       cfg=EditConfig(f_compression="auto", f_thick_spread=0.0))
-    today = EditState(bundle)
-    a = render_edited(today, test.c2w[0], test.height, test.width, test.focal)
-    b = render_edited(forced, test.c2w[0], test.height, test.width, test.focal)
-    assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    _forced_rest(bundle, test, EditConfig(f_compression="auto", f_thick_spread=0.0), views=[0])
 
 
 def _assert_keys_undo_up_to(state, cap):
@@ -511,13 +488,7 @@ def test_key_stretch_gap_undoes_only_the_stretch_the_fill_left_open(tiny):
     finite."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
-    n = bundle.model.num_points
-    today = EditState(bundle)
-    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(f_key_stretch="gap"))
-    for i in range(len(test)):
-        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
-        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
-        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    _forced_rest(bundle, test, EditConfig(f_key_stretch="gap"))
     s = torch.tensor([4.0, 1.0, 1.0])
     closed = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="gap", f_fill_budget=8.0))
     full = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="full", f_fill_budget=8.0))
@@ -548,12 +519,7 @@ def test_key_stretch_sparse_undoes_stretch_only_where_the_budget_left_pairs_spar
     extreme poses stay finite."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
-    n = bundle.model.num_points
-    today = EditState(bundle)
-    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(f_key_stretch="sparse"))
-    a = render_edited(today, test.c2w[0], test.height, test.width, test.focal)
-    b = render_edited(forced, test.c2w[0], test.height, test.width, test.focal)
-    assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    _forced_rest(bundle, test, EditConfig(f_key_stretch="sparse"), views=[0])
     s = torch.tensor([4.0, 1.0, 1.0])
     closed = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="sparse", f_fill_budget=8.0))
     gap = EditState(bundle, points=xyz * s, cfg=EditConfig(f_key_stretch="gap", f_fill_budget=8.0))
@@ -645,15 +611,9 @@ def test_reach_perspective_keeps_rest_frames_and_is_the_screen_index(tiny):
     get neighbours as without it; extreme poses stay finite."""
     bundle, _, test = tiny
     xyz = bundle.model.xyz.detach()
-    n = bundle.model.num_points
     cfg = dict(f_radius=True, f_radius_rule="gap", f_reach_gate=1.5, f_reach_between=True, render_mode="pixels",
                f_reach_perspective=4.0)
-    today = EditState(bundle)
-    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n), cfg=EditConfig(**cfg))
-    for i in range(len(test)):
-        a = render_edited(today, test.c2w[i], test.height, test.width, test.focal)
-        b = render_edited(forced, test.c2w[i], test.height, test.width, test.focal)
-        assert torch.allclose(a["rgb"], b["rgb"], atol=1e-5) and torch.allclose(a["alpha"], b["alpha"], atol=1e-5)
+    _forced_rest(bundle, test, EditConfig(**cfg))
     assert EditState(bundle, cfg=EditConfig(**cfg)).reach_perspective == 0.0
     c2w = test.c2w[0].clone()
     c2w[:3, 3] *= 0.8  # nearer: the stretched card's near end spreads on the screen

@@ -632,6 +632,17 @@ def _gated(ref, plain):
     return torch.where(near, idx, -1), torch.where(near, dist, math.inf)
 
 
+def _reach_case(backend: str, seed: int, reach_seed: int, spread: float, share: float = 0.5):
+    """A reach test's inputs: (points [800, 3] of the blob scene, camera, 600 query pixels, reach [800]: a share of
+    the points reach 1 + spread × U(0, 1), the others 1); skips the compiled backend where numba is missing."""
+    if backend == "compiled" and not compiled.available():
+        pytest.skip("numba missing")
+    g = torch.Generator().manual_seed(reach_seed)
+    reach = torch.where(torch.rand(800, generator=g) < share, 1.0 + spread * torch.rand(800, generator=g),
+                        torch.ones(800))
+    return scene("blob", 800, seed), camera(seed), random_px(600, seed), reach
+
+
 @pytest.mark.parametrize("backend", ["compiled", "grid", "torch"])
 @pytest.mark.parametrize("depth_factor", [False, True])
 @pytest.mark.parametrize("most", [False, True])
@@ -640,15 +651,7 @@ def test_reach_gate_keeps_rays_without_a_plain_candidate_empty(backend, depth_fa
     """reach_gate: a query with no point within gate × the plain cap gets no neighbours, the others the reach
     search's answer (compiled: per point; the one-cap backends: the cap × the largest reach). most: nearly every
     point reaches far (the compiled grid then sizes its cells by the median reach; the answer must not change)."""
-    if backend == "compiled" and not compiled.available():
-        pytest.skip("numba missing")
-    pts = scene("blob", 800, 5)
-    c2w = camera(5)
-    q = random_px(600, 5)
-    g = torch.Generator().manual_seed(15)
-    share = 0.95 if most else 0.3
-    reach = torch.where(torch.rand(800, generator=g) < share, 1.0 + 4.0 * torch.rand(800, generator=g),
-                        torch.ones(800))
+    pts, c2w, q, reach = _reach_case(backend, 5, 15, 4.0, share=0.95 if most else 0.3)
     plain = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend)
     cap = plain.radius_px(12)
     index = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend, reach=reach, reach_gate=gate)
@@ -692,13 +695,7 @@ def _projected(pts, c2w):
 def test_reach_surround_lets_through_rays_their_neighbours_surround(backend, depth_factor):
     """reach_surround: of the rays the gate empties, those whose candidates (every point within its reach of the
     ray) surround them (brute force here) keep their K reach neighbours; every other row is the gated search's."""
-    if backend == "compiled" and not compiled.available():
-        pytest.skip("numba missing")
-    pts = scene("blob", 800, 5)
-    c2w = camera(5)
-    q = random_px(600, 5)
-    g = torch.Generator().manual_seed(16)
-    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 4.0 * torch.rand(800, generator=g), torch.ones(800))
+    pts, c2w, q, reach = _reach_case(backend, 5, 16, 4.0)
     cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend).radius_px(8)
     per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
     open_ = ref_screen(pts, c2w, q, 8, depth_factor, per_point.double()[None])
@@ -754,13 +751,7 @@ def test_reach_surround_fills_a_hole_but_not_the_outline():
 def test_reach_gate_own_gates_each_point_at_most_at_its_reach(backend, depth_factor, gate):
     """reach_gate_own: a query keeps the reach search's neighbours when some point lies within the cap × min(gate,
     that point's reach) of it (brute force here), else none; points of reach 1 gate at the plain cap."""
-    if backend == "compiled" and not compiled.available():
-        pytest.skip("numba missing")
-    pts = scene("blob", 800, 6)
-    c2w = camera(6)
-    q = random_px(600, 6)
-    g = torch.Generator().manual_seed(17)
-    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 3.0 * torch.rand(800, generator=g), torch.ones(800))
+    pts, c2w, q, reach = _reach_case(backend, 6, 17, 3.0)
     cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, depth_factor, backend=backend).radius_px(8)
     per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
     open_ = ref_screen(pts, c2w, q, 8, depth_factor, per_point.double()[None])
@@ -783,13 +774,7 @@ def test_reach_between_opens_the_gate_only_between_points(backend, own, gate):
     """reach_between: a query keeps the reach search's neighbours when a point lies within the plain cap, or two
     points within the gate (gate × cap; with own at most each one's reach) lie more than 120° apart as seen from
     it (brute force here); else none."""
-    if backend == "compiled" and not compiled.available():
-        pytest.skip("numba missing")
-    pts = scene("blob", 800, 7)
-    c2w = camera(7)
-    q = random_px(600, 7)
-    g = torch.Generator().manual_seed(18)
-    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 3.0 * torch.rand(800, generator=g), torch.ones(800))
+    pts, c2w, q, reach = _reach_case(backend, 7, 18, 3.0)
     cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True, backend=backend).radius_px(8)
     per_point = cap * (reach if backend == "compiled" else torch.full_like(reach, float(reach.max())))
     open_ = ref_screen(pts, c2w, q, 8, True, per_point.double()[None])
@@ -824,19 +809,12 @@ def test_reach_perspective_matches_brute_force(backend, between, persp):
     between) counts as within the plain cap farther by median depth / its depth, at most persp (brute force
     here; the backends without per-point reach search the largest reach for every point); points of reach 1 and
     points beyond the median keep their cap."""
-    if backend == "compiled" and not compiled.available():
-        pytest.skip("numba missing")
-    pts = scene("blob", 800, 9)
-    c2w = camera(9)
-    q = random_px(600, 9)
-    g = torch.Generator().manual_seed(19)
-    reach = torch.where(torch.rand(800, generator=g) < 0.5, 1.0 + 2.0 * torch.rand(800, generator=g), torch.ones(800))
+    pts, c2w, q, reach = _reach_case(backend, 9, 19, 2.0)
     gate = 1.5
     cap = nb.ScreenIndex(pts, c2w, H, W, FOCAL, True).radius_px(8)
     px = _projected(pts, c2w)
     z = _depths(pts, c2w)
-    inside = torch.isfinite(px).all(1) & (z > 0) & (px[:, 0] >= -1) & (px[:, 0] <= W + 1) & (px[:, 1] >= -1) \
-        & (px[:, 1] <= H + 1)
+    inside = torch.isfinite(px).all(1)  # the candidates (_projected leaves the others NaN)
     ratio = (z[inside].median() / z).clamp(1.0, persp)
     ratio = torch.where(reach.double() > 1.0, ratio, torch.ones_like(ratio))
     per_point = cap * reach.double() * ratio
