@@ -193,9 +193,9 @@ class ScreenIndex:
                 # brute force beyond the plain cap: each point's own gate (and plain cap, for the between rule)
                 plain = (self._query_capped(query_px, 1, cap).idx[:, 0] >= 0).to(near.device)
                 ask = torch.nonzero(near[:, 0] & ~plain).squeeze(1)
-                own = torch.ones_like(self.reach) if ps is None else ps
+                widen = torch.ones_like(self.reach) if ps is None else ps  # [M] each point's perspective factor
                 gate = cap * (self.reach.clamp_max(self.reach_gate) if self.reach_gate_own
-                              else self.reach_gate * own)  # [M] each point's gate
+                              else self.reach_gate * widen)  # [M] each point's gate
                 qd = query_px.detach().to(self.px)
                 for a in range(0, ask.numel(), 256):
                     rows = ask[a:a + 256].to(self.px.device)
@@ -204,7 +204,7 @@ class ScreenIndex:
                     inside = d <= gate[None]
                     ok = inside.any(dim=1)
                     if self.reach_between:  # within its own plain cap, or two more than 120° apart
-                        ok = (inside & (d <= cap * own[None])).any(dim=1)
+                        ok = (inside & (d <= cap * widen[None])).any(dim=1)
                         for i in torch.nonzero(inside.any(dim=1) & ~ok).squeeze(1).tolist():
                             u = off[i][inside[i]] / d[i][inside[i]][:, None]
                             ok[i] = bool(((u @ u.T) < -0.5).any())
