@@ -32,9 +32,9 @@ from core.images.cameras import focal_from_fov, focal_scale, look_at, scaled_foc
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
 from core.points.render import pixel_grid, shade_frame, trace_frame
-from core.points.resolution import (RENDER_MODES, check_mode, decoder_scale, filter_sigma, gaussian_blur,
-                                    interpolate_rays, interpolate_trace, low_size, points_centre, scale_factor,
-                                    upsample_frame)
+from core.points.resolution import (RENDER_MODES, StretchGrid, check_mode, decoder_footprint, decoder_scale,
+                                    filter_sigma, gaussian_blur, interpolate_rays, interpolate_trace, low_size,
+                                    points_centre, scale_factor, stretch_grid, upsample_frame, warp_frame)
 from core.points.trace import Trace, held_rows
 from core.util.errors import InputError
 
@@ -157,11 +157,20 @@ class EditConfig:
     lookup_k: int = opt(LOOKUP_K, "lookup samples: how many nearest samples a point blends", min=1, max=64)
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
+    stretch_grid: float = opt(0.0, "upsampled mode, moved points: where the frame's surface is stretched on the "
+                                    "screen this many times more along one direction than across it, its "
+                                    "training-scale frame is traced on a grid turned to that direction and "
+                                    "coarser along it than across (core/points/resolution.py StretchGrid), so a "
+                                    "stretched part keeps the detail across the stretch; 0 = off (one scale, "
+                                    "from the points' median |det F|)", min=0.0, max=1e6)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
                                    "filtered | footprint | decoder | interior | their '+' pairs | upsampled; "
                                    "auto = the model's (upsampled for a single-scale fit; for a multi-scale fit "
                                    "interior+filtered where its fit measured it better, else filtered)",
                            choices=("auto", *RENDER_MODES))
+
+
+SCREEN_STRETCH_SAMPLES = 2048  # points the screen stretch's median is taken over (evenly spaced beyond)
 
 
 def _rows_then_blend(x: torch.Tensor, given: torch.Tensor, a: torch.Tensor, b: torch.Tensor,
@@ -195,6 +204,7 @@ class EditState:
         self._f = self._inv_f = self._inv_f_keys = self._radius_scale = self._reach = None
         self._row_tables = {}  # name -> ([M, 3, 3] rows filled as frames need them, [M] bool: which are filled)
         self._local_scale = None  # median |det F|^(1/3), once computed
+        self._grid = None  # (camera key, StretchGrid or None) of the last frame `_stretched` was asked for
         self._centre = None  # the points' centre, once computed
         self._fill_blend = None  # f_fill_features = blend: (canonical ids of both ends [P], fraction [P])
         self._gap = None  # f_fill: per point the largest growth left between consecutive points on its pairs
@@ -478,6 +488,31 @@ class EditState:
             s = float(det.median() ** (1.0 / 3.0)) if det.numel() else 1.0
             self._local_scale = s if math.isfinite(s) and s > 0 else 1.0
         return self._local_scale
+
+    def screen_stretch(self, c2w: torch.Tensor) -> tuple[float, float, float]:
+        """How the moved points' local maps stretch the surface on the screen of camera c2w [4, 4]: (along,
+        across, angle), the square roots of the eigenvalues of the median (over the finite points, up to
+        SCREEN_STRETCH_SAMPLES of them evenly spaced) of (P F)(P F)ᵀ (P [2, 3] the camera's image axes: the
+        outline of a canonical unit ball as the camera sees it deformed, orthographically), along ≥ across, and the
+        angle of the along direction (radians from the image's x axis towards its up axis, in (−π/2, π/2]: a grid
+        turned by it stays upright). (1, 1, 0) when nothing moved; a rigid motion gives (1, 1, ·)."""
+        if self.f is None:
+            return 1.0, 1.0, 0.0
+        p = c2w[:3, :2].T.to(self._f.device, self._f.dtype)  # [2, 3]: the camera's x and up axes
+        step = max(1, self._f.shape[0] // SCREEN_STRETCH_SAMPLES)  # every step-th point: a median needs no more
+        a = torch.einsum("ij,mjk->mik", p, self._f[::step])  # [M', 2, 3]
+        g = torch.stack([(a[:, 0] * a[:, 0]).sum(1), (a[:, 0] * a[:, 1]).sum(1), (a[:, 1] * a[:, 1]).sum(1)], 1)
+        g = g[torch.isfinite(self.points[::step]).all(1) & torch.isfinite(g).all(1)]
+        if not g.shape[0]:
+            return 1.0, 1.0, 0.0
+        xx, xy, yy = (float(v) for v in g.median(0).values.double())
+        evals, evecs = torch.linalg.eigh(torch.tensor([[xx, xy], [xy, yy]], dtype=torch.float64))  # ascending
+        along, across = (math.sqrt(max(float(v), 0.0)) for v in (evals[1], evals[0]))
+        angle = math.atan2(float(evecs[1, 1]), float(evecs[0, 1]))
+        angle = angle - math.pi if angle > 0.5 * math.pi else angle + math.pi if angle <= -0.5 * math.pi else angle
+        if not (math.isfinite(along) and math.isfinite(across) and math.isfinite(angle)):
+            return 1.0, 1.0, 0.0
+        return along, across, angle
 
     @property
     def radius_scale(self) -> float:
@@ -785,13 +820,42 @@ def _scales(state: EditState, c2w: torch.Tensor, focal) -> tuple[float, float]:
             decoder_scale(model, None, c2w, focal, pts, size_scale=state.local_scale, centre=centre))
 
 
+def _stretched(state: EditState, c2w: torch.Tensor, height: int, width: int, focal,
+               dscale: float) -> StretchGrid | None:
+    """The `StretchGrid` an `upsampled` frame of moved points is traced on, else None (the frame's one scale,
+    dscale). Only where that one scale traces a frame coarser than the output (dscale > 1) and the surface is
+    stretched on the screen at least EditConfig.stretch_grid times more along one direction than across it. The
+    grid has the one-scale frame's pixels (dscale² output pixels each), spent otherwise: across the stretch at the
+    screen's own scale (camera × across, at least 1), along it the rest."""
+    ratio = float(state.cfg.stretch_grid)
+    if not (state.moved and ratio > 0 and dscale > 1.0):
+        return None
+    key = (tuple(c2w.reshape(-1).tolist()), height, width, repr(focal))
+    if state._grid is not None and state._grid[0] == key:  # render_edited asks again for the frame it traced
+        return state._grid[1]
+    grid = None
+    along, across, angle = state.screen_stretch(c2w)
+    if across > 0 and along >= ratio * across:
+        # the camera's own scale factor against the decoder's pixel (the object's size left out)
+        camera = scale_factor(decoder_footprint(state.bundle.model), c2w, focal, state.points.detach(), state.centre)
+        s_across = max(camera * across, 1.0)
+        grid = stretch_grid(c2w, height, width, focal, (max(dscale * dscale / s_across, s_across), s_across), angle,
+                            points=state.points)
+    state._grid = (key, grid)
+    return grid
+
+
 def frame_trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, k: int | None = None) -> Trace:
     """Neighbours and attention of one frame as `render_edited` traces it (pass the result back as its `trace`):
     in the `upsampled` mode beyond the training scale the training-scale frame is traced and the full-size trace
-    interpolated from it (`interpolate_trace`, the training-scale trace kept as its `coarse`); otherwise every
-    ray is traced. k: neighbours per ray (None: the model's)."""
+    interpolated from it (`interpolate_trace`, the training-scale trace kept as its `coarse`; a stretched frame's
+    on its `StretchGrid`); otherwise every ray is traced. k: neighbours per ray (None: the model's)."""
     parts = set(check_mode(state.cfg.render_mode, state.bundle.model).split("+"))
     scale, dscale = _scales(state, c2w, focal)
+    grid = _stretched(state, c2w, height, width, focal, dscale) if "upsampled" in parts else None
+    if grid is not None:
+        low = _trace(state, grid.c2w, grid.height, grid.width, grid.focal, False, 1.0, k)
+        return interpolate_trace(low, c2w, height, width, focal, grid.focal, coords=grid.coords)
     if "upsampled" in parts and dscale > 1.0:
         lh, lw, s = low_size(height, width, dscale)
         low_focal = scaled_focal(focal, s)
@@ -817,7 +881,16 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     scale, dscale = _scales(state, c2w, focal)
     tr = frame_trace(state, c2w, height, width, focal) if trace is None else trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
-    if "upsampled" in parts and dscale > 1.0:  # the model's colour and coverage at the training scale, upsampled
+    grid = _stretched(state, c2w, height, width, focal, dscale) if "upsampled" in parts else None
+    if grid is not None:  # the model's colour and coverage on the stretch's grid, resampled
+        low = None if tr.coarse is None else tr.coarse.low
+        if low is None or low.shape != (grid.height, grid.width):  # a caller's trace of every full-size ray
+            low = _trace(state, grid.c2w, grid.height, grid.width, grid.focal, False, 1.0)
+        low_rgb, low_alpha = shade_frame(model, low, background, features=state.features, with_alpha=True)
+        low_alpha = (1.0 - low.bg).reshape(low.shape) if low_alpha is None else low_alpha
+        rgb = warp_frame(low_rgb, grid, height, width)
+        dec_alpha = warp_frame(low_alpha.clamp(0, 1), grid, height, width)
+    elif "upsampled" in parts and dscale > 1.0:  # the model's colour and coverage at the training scale, upsampled
         lh, lw, s = low_size(height, width, dscale)
         low = None if tr.coarse is None else tr.coarse.low
         if low is None or low.shape != (lh, lw):  # a caller's trace of every full-size ray

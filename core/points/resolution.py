@@ -56,11 +56,12 @@ older files, render every size as the training size.)
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 
-from core.images.cameras import focal_scale, pixel_rays
+from core.images.cameras import Intrinsics, focal_scale, intrinsics, pixel_rays, project_points
 from core.points.trace import CoarseLink, Trace
 from core.util.errors import InputError
 
@@ -162,10 +163,93 @@ def upsample_frame(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
     return y[..., 0] if squeeze else y
 
 
+@dataclass(frozen=True)
+class StretchGrid:
+    """The `upsampled` mode's training-scale frame of a frame stretched more along one screen direction than across
+    it (a posed part pulled out of shape): the camera turned about its view axis by `angle` (radians, from the
+    image's x axis towards its up axis) so that the direction lies along the grid's rows, and scaled per axis,
+    `scales` = (along, across) output pixels per grid pixel (each at least 1), so that the stretched surface shows
+    its points at their training density both ways. c2w [4, 4], height x width and focal (Intrinsics) are the
+    grid's camera; coords [H*W, 2] where each output pixel centre lies in the grid's pixels ((row, col), centres
+    at +0.5), for `interpolate_trace` and `warp_frame`. The grid holds the output frame's corners."""
+    c2w: torch.Tensor
+    height: int
+    width: int
+    focal: Intrinsics
+    coords: torch.Tensor
+    scales: tuple[float, float]
+    angle: float
+
+
+GRID_MARGIN = 16  # grid pixels kept around the points' outline when a StretchGrid is cut to it
+
+
+def stretch_grid(c2w: torch.Tensor, height: int, width: int, focal, scales: tuple[float, float],
+                 angle: float, points: torch.Tensor | None = None, margin: int = GRID_MARGIN) -> StretchGrid:
+    """The `StretchGrid` of an H x W frame with camera c2w [4, 4] and focal (pixels or Intrinsics): grid pixels
+    scales = (along, across) times the output pixel (clamped to at least 1) along the screen direction at `angle`
+    (radians, image x towards up) and across it. points [N, 3]: the grid is cut to their outline on it and
+    `margin` pixels around (more than the neighbour search reaches and the decoder's kernels see: the grid's
+    edge is background), unless a finite point lies behind the camera; output pixels beyond the cut read the
+    edge (background)."""
+    k = intrinsics(focal, height, width)
+    fx, fy, cx, cy = float(k.fx), float(k.fy), float(k.cx), float(k.cy)
+    f = math.sqrt(fx * fy)
+    s_along, s_across = (max(float(v), 1.0) for v in scales)
+    cos, sin = math.cos(angle), math.sin(angle)
+    dev = c2w.device
+
+    def plane(u, v):  # output pixel position -> the turned camera's image-plane coordinates (at depth 1)
+        a, b = (u - cx) / fx, -(v - cy) / fy
+        return a * cos + b * sin, -a * sin + b * cos
+    ca, cb = plane(torch.tensor([0.0, width, 0.0, width], dtype=torch.float64),
+                   torch.tensor([0.0, 0.0, height, height], dtype=torch.float64))
+    gfx, gfy = f / s_along, f / s_across
+    gw = max(1, int(math.ceil(float(ca.max() - ca.min()) * gfx - 1e-9)))
+    gh = max(1, int(math.ceil(float(cb.max() - cb.min()) * gfy - 1e-9)))
+    gcx = -float(ca.min()) * gfx + 0.5 * (gw - float(ca.max() - ca.min()) * gfx)
+    gcy = float(cb.max()) * gfy + 0.5 * (gh - float(cb.max() - cb.min()) * gfy)
+    rows = torch.arange(height, dtype=torch.float64, device=dev) + 0.5
+    cols = torch.arange(width, dtype=torch.float64, device=dev) + 0.5
+    v, u = torch.meshgrid(rows, cols, indexing="ij")
+    a, b = plane(u.reshape(-1), v.reshape(-1))
+    coords = torch.stack([gcy - b * gfy, gcx + a * gfx], 1)
+    turn = torch.tensor([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]], dtype=c2w.dtype, device=dev)
+    gc2w = c2w.clone()
+    gc2w[:3, :3] = c2w[:3, :3] @ turn
+    if points is not None:
+        pts = points.detach().to(dev, c2w.dtype)
+        pts = pts[torch.isfinite(pts).all(1)]
+        if pts.shape[0]:
+            uv, depth = project_points(pts, gc2w, gh, gw, Intrinsics(gfx, gfy, gcx, gcy))
+            if bool((depth > 0).all()) and bool(torch.isfinite(uv).all()):
+                c0 = min(max(int(math.floor(float(uv[:, 0].min()))) - margin, 0), gw - 1)
+                r0 = min(max(int(math.floor(float(uv[:, 1].min()))) - margin, 0), gh - 1)
+                c1 = max(min(int(math.ceil(float(uv[:, 0].max()))) + margin, gw), c0 + 1)
+                r1 = max(min(int(math.ceil(float(uv[:, 1].max()))) + margin, gh), r0 + 1)
+                gw, gh, gcx, gcy = c1 - c0, r1 - r0, gcx - c0, gcy - r0
+                coords = coords - torch.tensor([r0, c0], dtype=coords.dtype, device=dev)
+    return StretchGrid(gc2w, gh, gw, Intrinsics(gfx, gfy, gcx, gcy), coords, (s_along, s_across), float(angle))
+
+
+def warp_frame(img: torch.Tensor, grid: StretchGrid, height: int, width: int) -> torch.Tensor:
+    """img [h, w] or [h, w, C] in [0, 1] on `grid`'s pixels, resampled bicubically at the output pixels
+    (`StretchGrid.coords`) -> [H, W(, C)], clamped to [0, 1]; non-finite values count as 0, edges replicated."""
+    squeeze = img.dim() == 2
+    x = torch.nan_to_num((img[..., None] if squeeze else img).float(), nan=0.0).permute(2, 0, 1)[None]
+    h, w = x.shape[-2:]
+    c = grid.coords.to(x.device, torch.float64)
+    g = torch.stack([c[:, 1] / w * 2 - 1, c[:, 0] / h * 2 - 1], 1).to(x.dtype).reshape(1, height, width, 2)
+    mode = "bicubic" if min(h, w) >= 2 else "nearest"
+    y = F.grid_sample(x, g, mode=mode, padding_mode="border", align_corners=False)[0].permute(1, 2, 0).clamp(0, 1)
+    return y[..., 0] if squeeze else y
+
+
 SAME_SURFACE_PIXELS = 3.0  # training pixels of depth within which two neighbouring rays are on one surface
 
 
-def interpolate_trace(low: Trace, c2w: torch.Tensor, height: int, width: int, focal, low_focal) -> Trace:
+def interpolate_trace(low: Trace, c2w: torch.Tensor, height: int, width: int, focal, low_focal,
+                      coords: torch.Tensor | None = None) -> Trace:
     """The trace of an H x W frame interpolated from the trace `low` of the same camera at the training scale
     (h x w, focal `low_focal`): what the `upsampled` mode's texture lookups, correspondence, depth and paint
     transfer read, without searching neighbours and running the attention for every full-size ray.
@@ -180,7 +264,9 @@ def interpolate_trace(low: Trace, c2w: torch.Tensor, height: int, width: int, fo
     `coarse` (`CoarseLink`): the correspondence interpolates the training-scale rays' canonical points with it
     (`core.frames.edited.EditState.canonical_surface`).
 
-    low: Trace with shape (h, w); c2w [4, 4] and focal the full-size frame's camera. Returns a Trace of shape
+    low: Trace with shape (h, w); c2w [4, 4] and focal the full-size frame's camera. coords [H*W, 2]: where each
+    full-size pixel centre lies in `low`'s pixels, (row, col) with centres at +0.5 (a `StretchGrid`'s: a grid
+    turned and scaled per axis), else the same camera scaled (pixel centres aligned). Returns a Trace of shape
     (H, W) with the same K and dtypes."""
     h, w = low.shape
     dev = low.x.device
@@ -193,13 +279,22 @@ def interpolate_trace(low: Trace, c2w: torch.Tensor, height: int, width: int, fo
         t = (torch.arange(size, device=dev, dtype=torch.float64) + 0.5) * (low_size / size) - 0.5
         t0 = torch.floor(t)
         return (t0.long().clamp(0, low_size - 1), (t0.long() + 1).clamp(0, low_size - 1), (t - t0).to(fdt))
-    r0, r1, fy = axis(height, h)
-    c0, c1, fx = axis(width, w)
+    if coords is None:
+        r0, r1, fy = axis(height, h)
+        c0, c1, fx = axis(width, w)
 
-    def grid(a, b):  # a row value [H] and a column value [W] -> per ray [R], row-major
-        return (a[:, None] + b[None, :]).reshape(-1)
-    corners = torch.stack([grid(r0 * w, c0), grid(r0 * w, c1), grid(r1 * w, c0), grid(r1 * w, c1)], 1)  # [R, 4]
-    wy, wx = fy.repeat_interleave(width), fx.repeat(height)
+        def grid(a, b):  # a row value [H] and a column value [W] -> per ray [R], row-major
+            return (a[:, None] + b[None, :]).reshape(-1)
+        corners = torch.stack([grid(r0 * w, c0), grid(r0 * w, c1), grid(r1 * w, c0), grid(r1 * w, c1)], 1)
+        wy, wx = fy.repeat_interleave(width), fx.repeat(height)
+    else:  # per ray: the two source rows and columns around its position and the second ones' weights
+        t = coords.to(dev, torch.float64) - 0.5
+        t0 = torch.floor(t)
+        lo0 = t0.long()
+        r0, c0 = lo0[:, 0].clamp(0, h - 1), lo0[:, 1].clamp(0, w - 1)
+        r1, c1 = (lo0[:, 0] + 1).clamp(0, h - 1), (lo0[:, 1] + 1).clamp(0, w - 1)
+        wy, wx = (t - t0)[:, 0].to(fdt), (t - t0)[:, 1].to(fdt)
+        corners = torch.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1], 1)  # [R, 4]
     bil = torch.stack([(1 - wy) * (1 - wx), (1 - wy) * wx, wy * (1 - wx), wy * wx], 1)  # [R, 4]
     flat = corners.reshape(-1)
 

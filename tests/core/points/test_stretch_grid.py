@@ -1,0 +1,162 @@
+"""The stretch grid (core.points.resolution.StretchGrid, EditConfig.stretch_grid): the turned, per-axis scaled
+training-scale frame of a stretched pose. Its camera sees every output ray where its coords say, it holds the
+frame, its resampling keeps constants and is the identity at scale 1; the screen stretch of a pose is what the
+pose does; frames without a stretch are today's, stretched ones stay finite and keep the detail across the
+stretch."""
+import math
+
+import pytest
+import torch
+
+from core.frames.edited import EditConfig, EditState, _scales, render_edited
+from core.images.cameras import Intrinsics, look_at, pixel_rays, project_points
+from core.points.render import trace_frame
+from core.points.resolution import interpolate_trace, stretch_grid, warp_frame
+from tests.helpers.tiny import tiny_bundle
+
+
+@pytest.fixture(scope="module")
+def card():
+    bundle, _, test = tiny_bundle("card")
+    return bundle, test
+
+
+@pytest.mark.parametrize("focal", [60.0, Intrinsics(55.0, 65.0, 21.0, 23.0)])
+@pytest.mark.parametrize("scales, angle", [((4.0, 1.0), 0.6), ((2.5, 1.5), -2.0), ((1.0, 1.0), 0.0),
+                                           ((7.0, 0.3), math.pi / 2)])
+def test_the_grid_camera_sees_each_output_ray_at_its_coords(focal, scales, angle):
+    c2w = look_at((0.3, -4.0, 1.0), target=(0.0, 0.0, 0.0)).float()
+    h, w = 40, 50
+    g = stretch_grid(c2w, h, w, focal, scales, angle)
+    o, d = pixel_rays(c2w, h, w, focal)
+    pts = (o + 2.0 * d).reshape(-1, 3)
+    uv, depth = project_points(pts, g.c2w, g.height, g.width, g.focal)
+    assert bool((depth > 0).all())
+    assert float((uv.double() - g.coords[:, [1, 0]]).abs().max()) < 1e-3
+    # the grid holds the frame, and its pixels are the scales (at least 1) times the output's
+    assert float(g.coords.min()) >= -1e-6
+    assert float(g.coords[:, 0].max()) <= g.height + 1e-6 and float(g.coords[:, 1].max()) <= g.width + 1e-6
+    f = math.sqrt(float(Intrinsics(*focal.as_list()).fx * focal.fy) if isinstance(focal, Intrinsics) else focal ** 2)
+    assert g.focal.fx == pytest.approx(f / max(scales[0], 1.0)) and g.focal.fy == pytest.approx(f / max(scales[1], 1.0))
+    assert g.scales == (max(scales[0], 1.0), max(scales[1], 1.0))
+
+
+def test_warp_keeps_constants_and_is_the_identity_at_scale_one():
+    c2w = look_at((0.0, -4.0, 0.0), target=(0.0, 0.0, 0.0)).float()
+    h, w = 12, 16
+    g = stretch_grid(c2w, h, w, 20.0, (1.0, 1.0), 0.0)
+    assert (g.height, g.width) == (h, w)
+    img = torch.rand(h, w, 3, generator=torch.Generator().manual_seed(0))
+    assert torch.allclose(warp_frame(img, g, h, w), img, atol=1e-5)
+    turned = stretch_grid(c2w, h, w, 20.0, (3.0, 1.0), 0.7)
+    const = torch.full((turned.height, turned.width), 0.25)
+    out = warp_frame(const, turned, h, w)
+    assert out.shape == (h, w) and torch.allclose(out, torch.full((h, w), 0.25), atol=1e-6)
+    nan = torch.full((turned.height, turned.width, 3), float("nan"))
+    assert bool(torch.isfinite(warp_frame(nan, turned, h, w)).all())
+
+
+def test_interpolating_on_an_unscaled_grid_is_the_plain_interpolation(card):
+    bundle, test = card
+    c2w, h, w, f = test.c2w[0], test.height, test.width, test.focal
+    g = stretch_grid(c2w, h, w, f, (1.0, 1.0), 0.0)
+    low = trace_frame(bundle.model, c2w, h, w, f)
+    a = interpolate_trace(low, c2w, h, w, f, f)
+    b = interpolate_trace(low, c2w, h, w, f, g.focal, coords=g.coords)
+    assert torch.equal(a.active, b.active) and torch.equal(a.idx, b.idx)
+    assert torch.allclose(a.x, b.x, atol=1e-5) and torch.allclose(a.bg, b.bg, atol=1e-5)
+
+
+def _cam(test):
+    """The first test camera turned so that its image x axis is world x (a stretch along x lies along the rows)."""
+    c2w = test.c2w[0].clone()
+    eye = c2w[:3, 3]
+    centre = torch.zeros(3)
+    return look_at(tuple(float(v) for v in centre + torch.tensor([0.0, -1.0, 0.0]) * float((eye - centre).norm())),
+                   target=(0.0, 0.0, 0.0)).float()
+
+
+def test_the_screen_stretch_is_the_pose_on_the_screen(card):
+    bundle, test = card
+    xyz = bundle.model.xyz.detach()
+    n = xyz.shape[0]
+    c2w = _cam(test)
+    rest = EditState(bundle)
+    assert rest.screen_stretch(c2w) == (1.0, 1.0, 0.0)
+    forced = EditState(bundle, points=xyz.clone(), ids=torch.arange(n))
+    along, across, _ = forced.screen_stretch(c2w)
+    assert along == pytest.approx(1.0, abs=1e-3) and across == pytest.approx(1.0, abs=1e-3)
+    a = 0.8
+    rot = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    along, across, _ = EditState(bundle, points=xyz @ rot.T).screen_stretch(c2w)
+    assert along == pytest.approx(1.0, abs=0.02) and across == pytest.approx(1.0, abs=0.02)  # rigid: no stretch
+    along, across, angle = EditState(bundle, points=xyz * 2.0).screen_stretch(c2w)
+    assert along == pytest.approx(2.0, rel=0.02) and across == pytest.approx(2.0, rel=0.02)
+    along, across, angle = EditState(bundle, points=xyz * torch.tensor([5.0, 1.0, 1.0])).screen_stretch(c2w)
+    assert along == pytest.approx(5.0, rel=0.05) and across == pytest.approx(1.0, rel=0.05)
+    assert min(abs(angle), abs(abs(angle) - math.pi)) < 0.05  # along the image's x axis
+    for pts in (xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0]),
+                torch.where(torch.arange(n)[:, None] % 7 == 0, torch.full_like(xyz, float("nan")), xyz)):
+        got = EditState(bundle, points=pts).screen_stretch(c2w)
+        assert all(math.isfinite(v) for v in got) and got[0] >= got[1] >= 0
+
+
+def test_frames_without_a_stretch_are_todays_and_stretched_ones_keep_the_detail_across(card):
+    bundle, test = card
+    xyz = bundle.model.xyz.detach()
+    c2w, h, w, f = _cam(test), 4 * test.height, 4 * test.width, 4 * test.focal
+    on, off = EditConfig(stretch_grid=1.5), EditConfig(stretch_grid=0.0)
+    small = xyz * torch.tensor([3.0, 1.0, 1.0]) * 0.3
+    # a shift, a uniform scale (no stretch on the screen); a stretched object small enough that the frame is
+    # traced at its own size (dscale 1: nothing to spread otherwise)
+    for pts, size in ((xyz + 0.01, 4), (xyz * 2.0, 4), (small, 1)):
+        args = (c2w, size * test.height, size * test.width, size * test.focal)
+        a = render_edited(EditState(bundle, points=pts, cfg=on), *args)
+        b = render_edited(EditState(bundle, points=pts, cfg=off), *args)
+        assert torch.equal(a["rgb"], b["rgb"]) and torch.equal(a["alpha"], b["alpha"])
+        assert size > 1 or a["trace"].coarse is None
+    rest_on = render_edited(EditState(bundle, cfg=on), c2w, h, w, f)
+    rest_off = render_edited(EditState(bundle, cfg=off), c2w, h, w, f)
+    assert torch.equal(rest_on["rgb"], rest_off["rgb"])
+    pts = xyz * torch.tensor([3.0, 1.0, 1.0])
+    st_on, st_off = EditState(bundle, points=pts, cfg=on), EditState(bundle, points=pts, cfg=off)
+    a, b = render_edited(st_on, c2w, h, w, f), render_edited(st_off, c2w, h, w, f)
+    low_on, low_off = a["trace"].coarse.low, b["trace"].coarse.low
+    # the one-scale frame is as coarse both ways; the grid (along the rows here) is coarser along the stretch and
+    # finer across it, with no more pixels than the one-scale frame
+    grid = st_on._grid[1]
+    assert grid is not None and grid.scales[0] > grid.scales[1] and abs(grid.angle) < 0.05
+    dscale = _scales(st_off, c2w, f)[1]
+    assert grid.scales[1] < 0.95 * dscale < grid.scales[0]
+    assert grid.scales[0] * grid.scales[1] == pytest.approx(dscale * dscale, rel=0.05)
+    assert low_on.shape[0] * low_on.shape[1] <= 1.05 * low_off.shape[0] * low_off.shape[1]
+    for out in (a, b):
+        assert bool(torch.isfinite(out["rgb"]).all()) and bool(torch.isfinite(out["alpha"]).all())
+    # the same object: coverage of the two frames agrees on most pixels
+    agree = ((a["alpha"] > 0.5) == (b["alpha"] > 0.5)).float().mean()
+    assert float(agree) > 0.9
+    for pts in (xyz * torch.tensor([1e3, 1.0, 1.0]), xyz * torch.tensor([1.0, 1.0, 0.0])):
+        out = render_edited(EditState(bundle, points=pts, cfg=on), c2w, h, w, f)
+        assert bool(torch.isfinite(out["rgb"]).all()) and bool(torch.isfinite(out["alpha"]).all())
+
+
+def test_cutting_the_grid_to_the_points_keeps_the_frame(card, monkeypatch):
+    """The grid cut to the points' outline traces the frame of the whole turned grid: its rays are a subset, the
+    rest background (with the search's pixel cap fixed: "auto" estimates it from the points' density per cell of
+    the frame, which the cut moves a little); a point behind the camera leaves the grid whole."""
+    bundle, test = card
+    model = bundle.model
+    monkeypatch.setattr(model.cfg, "neighbor_radius_px", 3.0)
+    pts = model.xyz.detach() * torch.tensor([2.0, 1.0, 1.0])
+    c2w, h, w, f = _cam(test), 4 * test.height, 4 * test.width, 4 * test.focal
+    c2w[:3, 3] *= 2.0
+    whole = stretch_grid(c2w, h, w, f, (2.0, 1.0), 0.3)
+    cut = stretch_grid(c2w, h, w, f, (2.0, 1.0), 0.3, points=pts)
+    assert cut.height * cut.width < 0.8 * whole.height * whole.width
+    a, b = (interpolate_trace(trace_frame(model, g.c2w, g.height, g.width, g.focal, points=pts), c2w, h, w, f,
+                              g.focal, coords=g.coords) for g in (whole, cut))
+    assert int(a.active.sum()) > 100 and torch.equal(a.active, b.active)
+    assert torch.allclose(a.x, b.x, atol=1e-5) and torch.allclose(a.bg, b.bg, atol=1e-5)
+    behind = torch.cat([pts, c2w[:3, 3][None] + c2w[:3, 2][None]])  # one point just behind the camera
+    kept = stretch_grid(c2w, h, w, f, (2.0, 1.0), 0.3, points=behind)
+    assert (kept.height, kept.width) == (whole.height, whole.width)
