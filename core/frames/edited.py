@@ -157,12 +157,13 @@ class EditConfig:
     lookup_k: int = opt(LOOKUP_K, "lookup samples: how many nearest samples a point blends", min=1, max=64)
     antialias: int = opt(2, "texture lookups per pixel side, filtered like Cycles' pixel filter in linear light "
                             "(1 = one lookup at each ray's surface point: cheaper, aliased)", min=1, max=8)
-    stretch_grid: float = opt(0.0, "upsampled mode, moved points: where the frame's surface is stretched on the "
-                                    "screen this many times more along one direction than across it, its "
-                                    "training-scale frame is traced on a grid turned to that direction and "
-                                    "coarser along it than across (core/points/resolution.py StretchGrid), so a "
-                                    "stretched part keeps the detail across the stretch; 0 = off (one scale, "
-                                    "from the points' median |det F|)", min=0.0, max=1e6)
+    stretch_grid: float = opt(1.5, "upsampled mode, moved points: where the frame is traced coarser than its "
+                                    "pixels and the surface is stretched on the screen at least this many times "
+                                    "more along one direction than across it, the training-scale frame is traced "
+                                    "on a grid turned to the stretch with as many pixels, spent across it at the "
+                                    "screen's own scale and along it the rest (core/points/resolution.py "
+                                    "StretchGrid); 0 = off (one scale, from the points' median |det F|)",
+                              min=0.0, max=1e6)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
                                    "filtered | footprint | decoder | interior | their '+' pairs | upsampled; "
                                    "auto = the model's (upsampled for a single-scale fit; for a multi-scale fit "

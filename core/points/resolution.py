@@ -39,7 +39,11 @@ training size is pixel-identical in every mode); above, the modes of `RENDER_MOD
   looked up through the correspondence, posed frames) stays at the full size. The full-size rays are not traced:
   their trace is interpolated from the training-scale one (`interpolate_trace`: surface points, coverage and the
   canonical points of the correspondence blended across each training pixel, never across an occlusion edge),
-  so a frame costs one training-size trace whatever its size.
+  so a frame costs one training-size trace whatever its size. A posed frame whose surface is stretched more
+  along one screen direction than across it (a 5x stretch seen from the side) is traced instead on a
+  `StretchGrid` (`stretch_grid`, chosen by core/frames/edited.py): the camera turned to the stretch, as many
+  pixels as the training-scale frame, spent across the stretch at the screen's own scale and along it the rest;
+  the frame is resampled from it (`warp_frame`) and its trace interpolated (`interpolate_trace(coords=...)`).
 The decoder's scale factor (`decoder_scale`, used by `decoder` and `interior`) counts in the pixel of the training
 size (`PointModel.decoder_footprint`): for a multi-scale fit (`pointgt fit --train-scales`) that is its coarsest
 level, where the decoder had most of its steps, while its train_footprint is the finest level's — such a model
