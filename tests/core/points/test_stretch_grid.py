@@ -160,3 +160,19 @@ def test_cutting_the_grid_to_the_points_keeps_the_frame(card, monkeypatch):
     behind = torch.cat([pts, c2w[:3, 3][None] + c2w[:3, 2][None]])  # one point just behind the camera
     kept = stretch_grid(c2w, h, w, f, (2.0, 1.0), 0.3, points=behind)
     assert (kept.height, kept.width) == (whole.height, whole.width)
+
+
+def test_a_stretched_frame_through_an_off_centre_camera(card):
+    """Non-square pixels and an off-centre principal point (a real capture's camera): the stretched frame is traced
+    on a grid, finite, and shows the object where the one-scale frame does."""
+    bundle, test = card
+    xyz = bundle.model.xyz.detach()
+    c2w, h, w = _cam(test), 4 * test.height, 4 * test.width
+    k = Intrinsics(4.2 * test.focal, 3.8 * test.focal, 0.45 * w, 0.55 * h)
+    pts = xyz * torch.tensor([3.0, 1.0, 1.0])
+    on = EditState(bundle, points=pts, cfg=EditConfig(stretch_grid=1.5))
+    a = render_edited(on, c2w, h, w, k)
+    b = render_edited(EditState(bundle, points=pts, cfg=EditConfig(stretch_grid=0.0)), c2w, h, w, k)
+    assert on._grid[1] is not None
+    assert bool(torch.isfinite(a["rgb"]).all()) and bool(torch.isfinite(a["alpha"]).all())
+    assert float(((a["alpha"] > 0.5) == (b["alpha"] > 0.5)).float().mean()) > 0.9
