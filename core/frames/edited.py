@@ -846,6 +846,21 @@ def _stretched(state: EditState, c2w: torch.Tensor, height: int, width: int, foc
     return grid
 
 
+def _low_frame(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, parts: set,
+               dscale: float):
+    """The training-scale frame an `upsampled` frame is traced on: (c2w, h, w, focal, grid), grid the frame's
+    `StretchGrid` (`_stretched`) or None (the same camera scaled, `low_size`); None when every ray is traced."""
+    if "upsampled" not in parts:
+        return None
+    grid = _stretched(state, c2w, height, width, focal, dscale)
+    if grid is not None:
+        return grid.c2w, grid.height, grid.width, grid.focal, grid
+    if dscale > 1.0:
+        lh, lw, s = low_size(height, width, dscale)
+        return c2w, lh, lw, scaled_focal(focal, s), None
+    return None
+
+
 def frame_trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, k: int | None = None) -> Trace:
     """Neighbours and attention of one frame as `render_edited` traces it (pass the result back as its `trace`):
     in the `upsampled` mode beyond the training scale the training-scale frame is traced and the full-size trace
@@ -853,15 +868,12 @@ def frame_trace(state: EditState, c2w: torch.Tensor, height: int, width: int, fo
     on its `StretchGrid`); otherwise every ray is traced. k: neighbours per ray (None: the model's)."""
     parts = set(check_mode(state.cfg.render_mode, state.bundle.model).split("+"))
     scale, dscale = _scales(state, c2w, focal)
-    grid = _stretched(state, c2w, height, width, focal, dscale) if "upsampled" in parts else None
-    if grid is not None:
-        low = _trace(state, grid.c2w, grid.height, grid.width, grid.focal, False, 1.0, k)
-        return interpolate_trace(low, c2w, height, width, focal, grid.focal, coords=grid.coords)
-    if "upsampled" in parts and dscale > 1.0:
-        lh, lw, s = low_size(height, width, dscale)
-        low_focal = scaled_focal(focal, s)
-        low = _trace(state, c2w, lh, lw, low_focal, False, 1.0, k)
-        return interpolate_trace(low, c2w, height, width, focal, low_focal)
+    low_frame = _low_frame(state, c2w, height, width, focal, parts, dscale)
+    if low_frame is not None:
+        lc2w, lh, lw, low_focal, grid = low_frame
+        low = _trace(state, lc2w, lh, lw, low_focal, False, 1.0, k)
+        return interpolate_trace(low, c2w, height, width, focal, low_focal,
+                                 coords=None if grid is None else grid.coords)
     return _trace(state, c2w, height, width, focal, "footprint" in parts and scale > 1.0, scale, k)
 
 
@@ -882,24 +894,18 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     scale, dscale = _scales(state, c2w, focal)
     tr = frame_trace(state, c2w, height, width, focal) if trace is None else trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
-    grid = _stretched(state, c2w, height, width, focal, dscale) if "upsampled" in parts else None
-    if grid is not None:  # the model's colour and coverage on the stretch's grid, resampled
-        low = None if tr.coarse is None else tr.coarse.low
-        if low is None or low.shape != (grid.height, grid.width):  # a caller's trace of every full-size ray
-            low = _trace(state, grid.c2w, grid.height, grid.width, grid.focal, False, 1.0)
-        low_rgb, low_alpha = shade_frame(model, low, background, features=state.features, with_alpha=True)
-        low_alpha = (1.0 - low.bg).reshape(low.shape) if low_alpha is None else low_alpha
-        rgb = warp_frame(low_rgb, grid, height, width)
-        dec_alpha = warp_frame(low_alpha.clamp(0, 1), grid, height, width)
-    elif "upsampled" in parts and dscale > 1.0:  # the model's colour and coverage at the training scale, upsampled
-        lh, lw, s = low_size(height, width, dscale)
+    low_frame = _low_frame(state, c2w, height, width, focal, parts, dscale)
+    if low_frame is not None:  # the model's colour and coverage at the training scale, resampled to the frame
+        lc2w, lh, lw, low_focal, grid = low_frame
         low = None if tr.coarse is None else tr.coarse.low
         if low is None or low.shape != (lh, lw):  # a caller's trace of every full-size ray
-            low = _trace(state, c2w, lh, lw, scaled_focal(focal, s), False, 1.0)
+            low = _trace(state, lc2w, lh, lw, low_focal, False, 1.0)
         low_rgb, low_alpha = shade_frame(model, low, background, features=state.features, with_alpha=True)
         low_alpha = (1.0 - low.bg).reshape(lh, lw) if low_alpha is None else low_alpha
-        rgb = upsample_frame(low_rgb, height, width)
-        dec_alpha = upsample_frame(low_alpha.clamp(0, 1), height, width)
+
+        def resample(img):  # bicubic either way: the stretch's grid turned and scaled per axis, else scaled
+            return upsample_frame(img, height, width) if grid is None else warp_frame(img, grid, height, width)
+        rgb, dec_alpha = resample(low_rgb), resample(low_alpha.clamp(0, 1))
     else:
         rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,
                                      decoder_scale=dscale if "decoder" in parts else 1.0,

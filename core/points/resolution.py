@@ -172,10 +172,11 @@ class StretchGrid:
     """The `upsampled` mode's training-scale frame of a frame stretched more along one screen direction than across
     it (a posed part pulled out of shape): the camera turned about its view axis by `angle` (radians, from the
     image's x axis towards its up axis) so that the direction lies along the grid's rows, and scaled per axis,
-    `scales` = (along, across) output pixels per grid pixel (each at least 1), so that the stretched surface shows
-    its points at their training density both ways. c2w [4, 4], height x width and focal (Intrinsics) are the
-    grid's camera; coords [H*W, 2] where each output pixel centre lies in the grid's pixels ((row, col), centres
-    at +0.5), for `interpolate_trace` and `warp_frame`. The grid holds the output frame's corners."""
+    `scales` = (along, across) output pixels per grid pixel (each at least 1: coarser along the stretch, where the
+    surface is spread, than across it). c2w [4, 4], height x width and focal (Intrinsics) are the grid's camera;
+    coords [H*W, 2] where each output pixel centre lies in the grid's pixels ((row, col), centres at +0.5), for
+    `interpolate_trace` and `warp_frame`. The grid holds the output frame's corners, or, cut to the points'
+    outline (`stretch_grid(points=...)`), the part of it they can reach."""
     c2w: torch.Tensor
     height: int
     width: int
@@ -279,26 +280,18 @@ def interpolate_trace(low: Trace, c2w: torch.Tensor, height: int, width: int, fo
     origins, dirs = pixel_rays(c2w.to(dev, torch.float32), height, width, focal)
     origins, dirs = origins.reshape(-1, 3), dirs.reshape(-1, 3)
 
-    def axis(size, low_size):  # per output row (or column): the two source rows and the second one's weight
-        t = (torch.arange(size, device=dev, dtype=torch.float64) + 0.5) * (low_size / size) - 0.5
-        t0 = torch.floor(t)
-        return (t0.long().clamp(0, low_size - 1), (t0.long() + 1).clamp(0, low_size - 1), (t - t0).to(fdt))
-    if coords is None:
-        r0, r1, fy = axis(height, h)
-        c0, c1, fx = axis(width, w)
-
-        def grid(a, b):  # a row value [H] and a column value [W] -> per ray [R], row-major
-            return (a[:, None] + b[None, :]).reshape(-1)
-        corners = torch.stack([grid(r0 * w, c0), grid(r0 * w, c1), grid(r1 * w, c0), grid(r1 * w, c1)], 1)
-        wy, wx = fy.repeat_interleave(width), fx.repeat(height)
-    else:  # per ray: the two source rows and columns around its position and the second ones' weights
-        t = coords.to(dev, torch.float64) - 0.5
-        t0 = torch.floor(t)
-        lo0 = t0.long()
-        r0, c0 = lo0[:, 0].clamp(0, h - 1), lo0[:, 1].clamp(0, w - 1)
-        r1, c1 = (lo0[:, 0] + 1).clamp(0, h - 1), (lo0[:, 1] + 1).clamp(0, w - 1)
-        wy, wx = (t - t0)[:, 0].to(fdt), (t - t0)[:, 1].to(fdt)
-        corners = torch.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1], 1)  # [R, 4]
+    if coords is None:  # the same camera scaled: pixel centres aligned, row-major
+        rows = (torch.arange(height, device=dev, dtype=torch.float64) + 0.5) * (h / height)
+        cols = (torch.arange(width, device=dev, dtype=torch.float64) + 0.5) * (w / width)
+        coords = torch.stack([rows.repeat_interleave(width), cols.repeat(height)], 1)
+    # per ray: the two source rows and columns around its position and the second ones' weights
+    t = coords.to(dev, torch.float64) - 0.5
+    t0 = torch.floor(t)
+    lo0 = t0.long()
+    r0, c0 = lo0[:, 0].clamp(0, h - 1), lo0[:, 1].clamp(0, w - 1)
+    r1, c1 = (lo0[:, 0] + 1).clamp(0, h - 1), (lo0[:, 1] + 1).clamp(0, w - 1)
+    wy, wx = (t - t0)[:, 0].to(fdt), (t - t0)[:, 1].to(fdt)
+    corners = torch.stack([r0 * w + c0, r0 * w + c1, r1 * w + c0, r1 * w + c1], 1)  # [R, 4]
     bil = torch.stack([(1 - wy) * (1 - wx), (1 - wy) * wx, wy * (1 - wx), wy * wx], 1)  # [R, 4]
     flat = corners.reshape(-1)
 
