@@ -45,7 +45,7 @@ _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "
           "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
           "f_reach_gate": 0.0, "f_key_stretch": "full", "f_reach_surround": False, "f_reach_gate_own": False,
           "f_reach_between": False, "f_fill_tear": MAX_STRETCH, "f_fill_budget": 1.0, "f_reach_perspective": 0.0,
-          "stretch_grid": 0.0, "lookup": "charts"}
+          "stretch_grid": 0.0, "squash_grid": 0.0, "lookup": "charts"}
 # F-aware keys, blended fill, fold rule, canonical depths, compression by the model's thickness; with the budget reach
 _AUTO = {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
          "f_depth": "nearest", "f_compression": "auto", "lookup": "samples"}
@@ -108,6 +108,17 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
                                                                                 "f_reach_perspective": 4.0,
                                                                                 "stretch_grid": 1.5,
                                                                                 "f_occlusion": True},
+             "f-fill-fold-blend-depth-auto-budget-between-auto-persp-grid-squash": {**_BETWEEN_GAP,
+                                                                                   "f_key_stretch": "auto",
+                                                                                   "f_reach_perspective": 4.0,
+                                                                                   "stretch_grid": 1.5,
+                                                                                   "squash_grid": 1.5},
+             "f-fill-fold-blend-depth-auto-budget-between-auto-persp-grid-squash-occ": {**_BETWEEN_GAP,
+                                                                                       "f_key_stretch": "auto",
+                                                                                       "f_reach_perspective": 4.0,
+                                                                                       "stretch_grid": 1.5,
+                                                                                       "squash_grid": 1.5,
+                                                                                       "f_occlusion": True},
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp-pixels": {**_BETWEEN_GAP, "f_key_stretch": "auto",
                                                                               "f_reach_perspective": 4.0,
                                                                               "render_mode": "pixels"},

@@ -32,9 +32,10 @@ from core.images.cameras import focal_from_fov, focal_scale, look_at, scaled_foc
 from core.points.attention_compiled import attend_compiled, supported
 from core.points.neighbors.select import screen_index, select_neighbors
 from core.points.render import pixel_grid, shade_frame, trace_frame
-from core.points.resolution import (RENDER_MODES, StretchGrid, check_mode, decoder_footprint, decoder_scale,
-                                    filter_sigma, gaussian_blur, interpolate_rays, interpolate_trace, low_size,
-                                    points_centre, scale_factor, stretch_grid, upsample_frame, warp_frame)
+from core.points.resolution import (GRID_FILTER_PIXELS, MIN_GRID_SCALE, RENDER_MODES, StretchGrid, check_mode,
+                                    decoder_footprint, decoder_scale, filter_sigma, gaussian_blur, interpolate_rays,
+                                    interpolate_trace, low_size, points_centre, scale_factor, stretch_grid,
+                                    upsample_frame, warp_frame)
 from core.points.trace import Trace, held_rows
 from core.util.errors import InputError
 
@@ -164,6 +165,19 @@ class EditConfig:
                                     "screen's own scale and along it the rest (core/points/resolution.py "
                                     "StretchGrid); 0 = off (one scale, from the points' median |det F|)",
                               min=0.0, max=1e6)
+    squash_grid: float = opt(1.5, "upsampled mode, moved points: where the frame is traced at the output's pixels "
+                                   "and the surface is squashed on the screen, at least this many times more "
+                                   "across one direction than along it and this many times below the training "
+                                   "scale, the frame is traced on a grid turned to the squash, finer across it "
+                                   "(at the training scale, down to squash_grid_finest output pixels), and "
+                                   "averaged back over each output pixel (grid_filter; core/points/resolution.py "
+                                   "StretchGrid); 0 = off", min=0.0, max=1e6)
+    squash_grid_finest: float = opt(0.0625, "the squash grid's finest pixel, in output pixels (its cost: at most "
+                                           "1 / this many times the squashed part's pixels)",
+                                    min=MIN_GRID_SCALE, max=1.0)
+    grid_filter: float = opt(GRID_FILTER_PIXELS, "the pixel filter a squash grid is averaged back with: a tent "
+                                                 "this many output pixels to either side of each pixel centre",
+                             min=0.0, max=8.0)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
                                    "filtered | footprint | decoder | interior | their '+' pairs | upsampled; "
                                    "auto = the model's (upsampled for a single-scale fit; for a multi-scale fit "
@@ -824,12 +838,16 @@ def _scales(state: EditState, c2w: torch.Tensor, focal) -> tuple[float, float]:
 def _stretched(state: EditState, c2w: torch.Tensor, height: int, width: int, focal,
                dscale: float) -> StretchGrid | None:
     """The `StretchGrid` an `upsampled` frame of moved points is traced on, else None (the frame's one scale,
-    dscale). Only where that one scale traces a frame coarser than the output (dscale > 1) and the surface is
-    stretched on the screen at least EditConfig.stretch_grid times more along one direction than across it. The
+    dscale). A stretch: where that one scale traces a frame coarser than the output (dscale > 1) and the surface
+    is stretched on the screen at least EditConfig.stretch_grid times more along one direction than across it, the
     grid has the one-scale frame's pixels (dscale² output pixels each), spent otherwise: across the stretch at the
-    screen's own scale (camera × across, at least 1), along it the rest."""
-    ratio = float(state.cfg.stretch_grid)
-    if not (state.moved and ratio > 0 and dscale > 1.0):
+    screen's own scale (camera × across, at least 1), along it the rest. A squash: where the frame is traced at
+    the output's pixels (dscale ≤ 1) and the surface is squashed on the screen at least EditConfig.squash_grid
+    times more across one direction than along it and to at most 1 / squash_grid of the training scale (camera ×
+    across), the grid keeps the output's pixels along it and is finer across it, at the training scale (at most
+    1 / EditConfig.squash_grid_finest times finer); `warp_frame` averages it back over each output pixel."""
+    ratio = float(state.cfg.stretch_grid) if dscale > 1.0 else float(state.cfg.squash_grid)
+    if not (state.moved and ratio > 0):
         return None
     key = (tuple(c2w.reshape(-1).tolist()), height, width, repr(focal))
     if state._grid is not None and state._grid[0] == key:  # render_edited asks again for the frame it traced
@@ -839,9 +857,14 @@ def _stretched(state: EditState, c2w: torch.Tensor, height: int, width: int, foc
     if across > 0 and along >= ratio * across:
         # the camera's own scale factor against the decoder's pixel (the object's size left out)
         camera = scale_factor(decoder_footprint(state.bundle.model), c2w, focal, state.points.detach(), state.centre)
-        s_across = max(camera * across, 1.0)
-        grid = stretch_grid(c2w, height, width, focal, (max(dscale * dscale / s_across, s_across), s_across), angle,
-                            points=state.points)
+        if dscale > 1.0:  # a stretch: the one-scale frame's pixels, across it at the screen's own scale
+            s_across = max(camera * across, 1.0)
+            grid = stretch_grid(c2w, height, width, focal, (max(dscale * dscale / s_across, s_across), s_across),
+                                angle, points=state.points)
+        elif camera * across * ratio <= 1.0:  # a squash: the output's pixels along it, the training scale across
+            finest = max(float(state.cfg.squash_grid_finest), MIN_GRID_SCALE)
+            grid = stretch_grid(c2w, height, width, focal, (1.0, max(camera * across, finest)), angle,
+                                points=state.points)
     state._grid = (key, grid)
     return grid
 
@@ -904,7 +927,9 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         low_alpha = (1.0 - low.bg).reshape(lh, lw) if low_alpha is None else low_alpha
 
         def resample(img):  # bicubic either way: the stretch's grid turned and scaled per axis, else scaled
-            return upsample_frame(img, height, width) if grid is None else warp_frame(img, grid, height, width)
+            if grid is None:
+                return upsample_frame(img, height, width)
+            return warp_frame(img, grid, height, width, filter_pixels=float(cfg.grid_filter))
         rgb, dec_alpha = resample(low_rgb), resample(low_alpha.clamp(0, 1))
     else:
         rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,

@@ -170,10 +170,11 @@ def upsample_frame(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
 @dataclass(frozen=True)
 class StretchGrid:
     """The `upsampled` mode's training-scale frame of a frame stretched more along one screen direction than across
-    it (a posed part pulled out of shape): the camera turned about its view axis by `angle` (radians, from the
-    image's x axis towards its up axis) so that the direction lies along the grid's rows, and scaled per axis,
-    `scales` = (along, across) output pixels per grid pixel (each at least 1: coarser along the stretch, where the
-    surface is spread, than across it). c2w [4, 4], height x width and focal (Intrinsics) are the grid's camera;
+    it (a posed part pulled out of shape, or squashed flat): the camera turned about its view axis by `angle`
+    (radians, from the image's x axis towards its up axis) so that the direction lies along the grid's rows, and
+    scaled per axis, `scales` = (along, across) output pixels per grid pixel (a stretch: each at least 1, coarser
+    along the stretch, where the surface is spread, than across it; a squash: finer than the output across it,
+    down to MIN_GRID_SCALE). c2w [4, 4], height x width and focal (Intrinsics) are the grid's camera;
     coords [H*W, 2] where each output pixel centre lies in the grid's pixels ((row, col), centres at +0.5), for
     `interpolate_trace` and `warp_frame`. The grid holds the output frame's corners, or, cut to the points'
     outline (`stretch_grid(points=...)`), the part of it they can reach."""
@@ -187,12 +188,16 @@ class StretchGrid:
 
 
 GRID_MARGIN = 16  # grid pixels kept around the points' outline when a StretchGrid is cut to it
+# the finest grid pixel stretch_grid makes, in output pixels (a floor on the grid's size; the edited render asks for
+# its own, EditConfig.squash_grid_finest)
+MIN_GRID_SCALE = 1.0 / 16.0
 
 
 def stretch_grid(c2w: torch.Tensor, height: int, width: int, focal, scales: tuple[float, float],
                  angle: float, points: torch.Tensor | None = None, margin: int = GRID_MARGIN) -> StretchGrid:
     """The `StretchGrid` of an H x W frame with camera c2w [4, 4] and focal (pixels or Intrinsics): grid pixels
-    scales = (along, across) times the output pixel (clamped to at least 1) along the screen direction at `angle`
+    scales = (along, across) times the output pixel (clamped to at least MIN_GRID_SCALE: below 1, finer than the
+    output, which `warp_frame` then filters) along the screen direction at `angle`
     (radians, image x towards up) and across it. points [N, 3]: the grid is cut to their outline on it and
     `margin` pixels around (more than the neighbour search reaches and the decoder's kernels see: the grid's
     edge is background), unless a finite point lies behind the camera; output pixels beyond the cut read the
@@ -200,7 +205,7 @@ def stretch_grid(c2w: torch.Tensor, height: int, width: int, focal, scales: tupl
     k = intrinsics(focal, height, width)
     fx, fy, cx, cy = float(k.fx), float(k.fy), float(k.cx), float(k.cy)
     f = math.sqrt(fx * fy)
-    s_along, s_across = (max(float(v), 1.0) for v in scales)
+    s_along, s_across = (max(float(v), MIN_GRID_SCALE) for v in scales)
     cos, sin = math.cos(angle), math.sin(angle)
     dev = c2w.device
 
@@ -237,11 +242,42 @@ def stretch_grid(c2w: torch.Tensor, height: int, width: int, focal, scales: tupl
     return StretchGrid(gc2w, gh, gw, Intrinsics(gfx, gfy, gcx, gcy), coords, (s_along, s_across), float(angle))
 
 
-def warp_frame(img: torch.Tensor, grid: StretchGrid, height: int, width: int) -> torch.Tensor:
+# the pixel filter a grid finer than the output is averaged with before it is resampled (`warp_frame`): a tent this
+# many output pixels wide on either side of the pixel centre
+GRID_FILTER_PIXELS = 1.25
+
+
+def _tent_filter(x: torch.Tensor, dim: int, radius: float) -> torch.Tensor:
+    """x [1, C, h, w] filtered along `dim` (2 rows, 3 columns) with a tent of `radius` pixels (normalised weights,
+    edges replicated); x itself for a radius of at most one pixel."""
+    r = int(math.floor(radius))
+    if r < 1:
+        return x
+    t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
+    k = (1.0 - t.abs() / radius).clamp_min(0.0)
+    k = k / k.sum()
+    c = x.shape[1]
+    if dim == 2:
+        xp = F.pad(x, (0, 0, r, r), mode="replicate")
+        return F.conv2d(xp, k.reshape(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+    xp = F.pad(x, (r, r, 0, 0), mode="replicate")
+    return F.conv2d(xp, k.reshape(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+
+
+def warp_frame(img: torch.Tensor, grid: StretchGrid, height: int, width: int,
+               filter_pixels: float = GRID_FILTER_PIXELS) -> torch.Tensor:
     """img [h, w] or [h, w, C] in [0, 1] on `grid`'s pixels, resampled bicubically at the output pixels
-    (`StretchGrid.coords`) -> [H, W(, C)], clamped to [0, 1]; non-finite values count as 0, edges replicated."""
+    (`StretchGrid.coords`) -> [H, W(, C)], clamped to [0, 1]; non-finite values count as 0, edges replicated. Along
+    a grid axis finer than the output (scale s < 1) the image is first averaged over the output pixel's filter (a
+    tent filter_pixels / s grid pixels to either side), as a renderer's pixel filter averages the surface it
+    sees."""
     squeeze = img.dim() == 2
     x = torch.nan_to_num((img[..., None] if squeeze else img).float(), nan=0.0).permute(2, 0, 1)[None]
+    s_along, s_across = grid.scales
+    if s_across < 1.0:  # the grid's rows run across the stretch (or squash)
+        x = _tent_filter(x, 2, filter_pixels / s_across)
+    if s_along < 1.0:
+        x = _tent_filter(x, 3, filter_pixels / s_along)
     h, w = x.shape[-2:]
     c = grid.coords.to(x.device, torch.float64)
     g = torch.stack([c[:, 1] / w * 2 - 1, c[:, 0] / h * 2 - 1], 1).to(x.dtype).reshape(1, height, width, 2)

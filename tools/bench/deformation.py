@@ -1,7 +1,7 @@
 """Frame cost of the deformation-gradient parts of the edit path, against the paper's renderer (needs bpy).
 
 Run: `python -m tools.bench.deformation MODEL.pgt --scene DIR [--pose stretch] [--views 4] [--repeats 3]
-[--size 128]`.
+[--size 128] [--variants "A;B"] [--variant "A:FIELD=VALUE,..."]`.
 
 The model's points are posed by the scene's rig (as `pointgt eval-edits` does) and a global retexture is baked
 into the atlas; every frame then builds a fresh EditState, as an animation does when the points move each frame,
@@ -20,6 +20,7 @@ import statistics
 import time
 from pathlib import Path
 
+from tools.bench.regions import parse_variant
 from tools.eval_edits import RENDERERS
 
 # the paper's renderer with the deform-aware correspondence and the frame's reach rule (every F switch named, from
@@ -98,6 +99,10 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
                                                "f_key_stretch": "auto", "f_reach_perspective": 4.0,
                                                "stretch_grid": 1.5},
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
+         "reach, stretch grid, squash grid, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True,
+                                                            "f_key_stretch": "auto", "f_reach_perspective": 4.0,
+                                                            "stretch_grid": 1.5, "squash_grid": 1.5},
+    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
          "reach, stretch grid, occlusion, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True,
                                                           "f_key_stretch": "auto", "f_reach_perspective": 4.0,
                                                           "stretch_grid": 1.5, "f_occlusion": True},
@@ -142,9 +147,11 @@ def _stage_parts(bundle) -> list:
 
 
 def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats: int, size: int | None = None,
-        log=print, variants: list[str] | None = None, profile: bool = False) -> dict:
-    """variants: names of VARIANTS to time (default: all); the paper's renderer is always the first. profile: also the
-    mean CPU seconds per frame of each stage (PROFILE_STAGES, and "other")."""
+        log=print, variants: list[str] | None = None, profile: bool = False,
+        changed: list[str] | None = None) -> dict:
+    """variants: names of VARIANTS to time (default: all); the paper's renderer is always the first. changed:
+    "VARIANT:FIELD=VALUE,..." strings, a variant with some EditConfig fields changed (timed after the named ones).
+    profile: also the mean CPU seconds per frame of each stage (PROFILE_STAGES, and "other")."""
     import contextlib
 
     import torch
@@ -177,10 +184,11 @@ def run(model_path, scene_dir, pose: str, magnitude: float, views: int, repeats:
         if v not in VARIANTS:
             raise SystemExit(f"--variants: unknown variant {v!r}; choose from {'; '.join(VARIANTS)}")
     chosen = {v: VARIANTS[v] for v in names}
-    wall = {v: [] for v in VARIANTS}
-    cpu = {v: [] for v in VARIANTS}
-    fit = {v: [] for v in VARIANTS}
-    stages = {v: {} for v in VARIANTS}
+    chosen.update(parse_variant(v, VARIANTS) for v in changed or ())
+    wall = {v: [] for v in chosen}
+    cpu = {v: [] for v in chosen}
+    fit = {v: [] for v in chosen}
+    stages = {v: {} for v in chosen}
     for rep in range(repeats + 1):  # the first round warms up (caches the canonical neighbourhoods)
         for i in cams:
             for name, over in chosen.items():
@@ -242,10 +250,12 @@ def main(argv=None) -> int:
     ap.add_argument("--profile", action="store_true", help="also split each variant's CPU time into stages")
     ap.add_argument("--variants", default=None,
                     help="semicolon-separated variant names to time (default: all; the paper's is always timed first)")
+    ap.add_argument("--variant", action="append", default=[],
+                    help="VARIANT:FIELD=VALUE,... a variant with EditConfig fields changed, timed as well (repeatable)")
     args = ap.parse_args(argv)
     variants = [v.strip() for v in args.variants.split(";") if v.strip()] if args.variants else None
     res = run(args.model, args.scene, args.pose, args.magnitude, args.views, args.repeats, args.size,
-              variants=variants, profile=args.profile)
+              variants=variants, profile=args.profile, changed=args.variant)
     print(markdown(res))
     return 0
 

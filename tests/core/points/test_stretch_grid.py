@@ -1,5 +1,5 @@
-"""The stretch grid (core.points.resolution.StretchGrid, EditConfig.stretch_grid): the turned, per-axis scaled
-training-scale frame of a stretched pose. Its camera sees every output ray where its coords say, it holds the
+"""The stretch grid (core.points.resolution.StretchGrid, EditConfig.stretch_grid and squash_grid): the turned,
+per-axis scaled training-scale frame of a stretched or squashed pose. Its camera sees every output ray where its coords say, it holds the
 frame, its resampling keeps constants and is the identity at scale 1; the screen stretch of a pose is what the
 pose does; frames without a stretch are today's, stretched ones stay finite and keep the detail across the
 stretch."""
@@ -11,7 +11,7 @@ import torch
 from core.frames.edited import EditConfig, EditState, _scales, render_edited
 from core.images.cameras import Intrinsics, look_at, pixel_rays, project_points
 from core.points.render import trace_frame
-from core.points.resolution import interpolate_trace, stretch_grid, warp_frame
+from core.points.resolution import MIN_GRID_SCALE, interpolate_trace, stretch_grid, warp_frame
 from tests.helpers.tiny import tiny_bundle
 
 
@@ -23,7 +23,7 @@ def card():
 
 @pytest.mark.parametrize("focal", [60.0, Intrinsics(55.0, 65.0, 21.0, 23.0)])
 @pytest.mark.parametrize("scales, angle", [((4.0, 1.0), 0.6), ((2.5, 1.5), -2.0), ((1.0, 1.0), 0.0),
-                                           ((7.0, 0.3), math.pi / 2)])
+                                           ((7.0, 0.3), math.pi / 2), ((1.0, 0.1), -0.4)])
 def test_the_grid_camera_sees_each_output_ray_at_its_coords(focal, scales, angle):
     c2w = look_at((0.3, -4.0, 1.0), target=(0.0, 0.0, 0.0)).float()
     h, w = 40, 50
@@ -33,12 +33,13 @@ def test_the_grid_camera_sees_each_output_ray_at_its_coords(focal, scales, angle
     uv, depth = project_points(pts, g.c2w, g.height, g.width, g.focal)
     assert bool((depth > 0).all())
     assert float((uv.double() - g.coords[:, [1, 0]]).abs().max()) < 1e-3
-    # the grid holds the frame, and its pixels are the scales (at least 1) times the output's
+    # the grid holds the frame, and its pixels are the scales (at least MIN_GRID_SCALE) times the output's
     assert float(g.coords.min()) >= -1e-6
     assert float(g.coords[:, 0].max()) <= g.height + 1e-6 and float(g.coords[:, 1].max()) <= g.width + 1e-6
     f = math.sqrt(float(Intrinsics(*focal.as_list()).fx * focal.fy) if isinstance(focal, Intrinsics) else focal ** 2)
-    assert g.focal.fx == pytest.approx(f / max(scales[0], 1.0)) and g.focal.fy == pytest.approx(f / max(scales[1], 1.0))
-    assert g.scales == (max(scales[0], 1.0), max(scales[1], 1.0))
+    s_along, s_across = (max(v, MIN_GRID_SCALE) for v in scales)
+    assert g.focal.fx == pytest.approx(f / s_along) and g.focal.fy == pytest.approx(f / s_across)
+    assert g.scales == (s_along, s_across)
 
 
 def test_warp_keeps_constants_and_is_the_identity_at_scale_one():
@@ -53,6 +54,26 @@ def test_warp_keeps_constants_and_is_the_identity_at_scale_one():
     out = warp_frame(const, turned, h, w)
     assert out.shape == (h, w) and torch.allclose(out, torch.full((h, w), 0.25), atol=1e-6)
     nan = torch.full((turned.height, turned.width, 3), float("nan"))
+    assert bool(torch.isfinite(warp_frame(nan, turned, h, w)).all())
+
+
+def test_a_grid_finer_than_the_output_is_averaged_over_each_output_pixel():
+    """Across a squash the grid is finer than the output: stripes one grid pixel wide (finer than an output pixel)
+    come back as their mean, not as the stripe the output pixel's centre happens to fall on; constants stay."""
+    c2w = look_at((0.0, -4.0, 0.0), target=(0.0, 0.0, 0.0)).float()
+    h, w = 12, 16
+    fine = stretch_grid(c2w, h, w, 20.0, (1.0, 0.25), 0.0)  # filtered with the default tent
+    assert (fine.height, fine.width) == (4 * h, w)
+    rows = torch.arange(fine.height)[:, None].expand(fine.height, fine.width)
+    stripes = (rows % 2).float()
+    out = warp_frame(stripes, fine, h, w)
+    assert float((out[1:-1] - 0.5).abs().max()) < 0.05  # away from the replicated edges
+    point_sampled = stripes[(fine.coords[:, 0].floor().long()).clamp(0, fine.height - 1), 0].reshape(h, w)
+    assert float((point_sampled - 0.5).abs().min()) == 0.5  # what sampling without the filter would show
+    const = torch.full((fine.height, fine.width, 3), 0.7)
+    assert torch.allclose(warp_frame(const, fine, h, w), torch.full((h, w, 3), 0.7), atol=1e-6)
+    turned = stretch_grid(c2w, h, w, 20.0, (1.0, 0.3), 1.1)
+    nan = torch.full((turned.height, turned.width), float("nan"))
     assert bool(torch.isfinite(warp_frame(nan, turned, h, w)).all())
 
 
@@ -176,3 +197,37 @@ def test_a_stretched_frame_through_an_off_centre_camera(card):
     assert on._grid[1] is not None
     assert bool(torch.isfinite(a["rgb"]).all()) and bool(torch.isfinite(a["alpha"]).all())
     assert float(((a["alpha"] > 0.5) == (b["alpha"] > 0.5)).float().mean()) > 0.9
+
+
+def test_frames_without_a_squash_are_todays_and_squashed_ones_are_traced_finer_across(card):
+    """squash_grid: a frame at the output's pixels whose surface is squashed on the screen is traced on a grid
+    finer across the squash (at the training scale, at most 1 / MIN_GRID_SCALE times) and the output's pixels along
+    it; rest frames, a shift, a uniform scale and a squash along the view axis are the frames without it, bit for
+    bit; extreme squashes stay finite."""
+    bundle, test = card
+    xyz = bundle.model.xyz.detach()
+    c2w, h, w, f = _cam(test), test.height, test.width, test.focal
+    on, off = EditConfig(squash_grid=1.5), EditConfig(squash_grid=0.0)
+    view = c2w[:3, 2]  # the camera's back axis: a squash along it leaves the screen alone
+    flat_view = xyz - 0.9 * (xyz @ view)[:, None] * view[None]
+    for pts in (None, xyz + 0.01, xyz * 0.5, flat_view):
+        st = EditState(bundle, points=pts, cfg=on)
+        a = render_edited(st, c2w, h, w, f)
+        b = render_edited(EditState(bundle, points=pts, cfg=off), c2w, h, w, f)
+        assert torch.equal(a["rgb"], b["rgb"]) and torch.equal(a["alpha"], b["alpha"])
+        assert st._grid is None or st._grid[1] is None
+    pts = xyz * torch.tensor([1.0, 1.0, 0.3])  # squashed along world z: the image's up axis
+    st = EditState(bundle, points=pts, cfg=on)
+    a = render_edited(st, c2w, h, w, f)
+    b = render_edited(EditState(bundle, points=pts, cfg=off), c2w, h, w, f)
+    grid = st._grid[1]
+    assert grid is not None and grid.scales[0] == 1.0 and MIN_GRID_SCALE <= grid.scales[1] < 0.5
+    assert abs(grid.angle) < 0.05  # the output's rows run along the unsquashed x axis
+    assert a["trace"].coarse is not None and a["trace"].coarse.low.shape[0] > a["rgb"].shape[0] * 0.3 / 0.5
+    for out in (a, b):
+        assert bool(torch.isfinite(out["rgb"]).all()) and bool(torch.isfinite(out["alpha"]).all())
+    assert float(((a["alpha"] > 0.5) == (b["alpha"] > 0.5)).float().mean()) > 0.9
+    for pts in (xyz * torch.tensor([1.0, 1.0, 1e-6]), xyz * torch.tensor([1.0, 1.0, 0.0]),
+                xyz * torch.tensor([1.0, 1e-3, 1e-3])):
+        out = render_edited(EditState(bundle, points=pts, cfg=on), c2w, h, w, f)
+        assert bool(torch.isfinite(out["rgb"]).all()) and bool(torch.isfinite(out["alpha"]).all())
