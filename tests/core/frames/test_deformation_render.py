@@ -304,7 +304,8 @@ def test_reach_gate_adds_far_points_only_to_rays_the_plain_search_covers(tiny):
     s = torch.tensor([4.0, 1.0, 1.0])
     c2w = test.c2w[0].clone()
     c2w[:3, 3] *= 2.5
-    states = {name: EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1, **over))
+    # every ray traced (no squash grid: the far camera sees the stretched card below the training scale across)
+    states = {name: EditState(bundle, points=xyz * s, cfg=EditConfig(f_fill_budget=0.1, squash_grid=0.0, **over))
               for name, over in (("plain", dict(f_radius=False)),
                                  ("reach", dict(gate, f_reach_gate=0.0)), ("gate", gate))}
     tr = {name: render_edited(st, c2w, test.height, test.width, test.focal)["trace"] for name, st in states.items()}

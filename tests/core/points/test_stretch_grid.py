@@ -126,7 +126,8 @@ def test_frames_without_a_stretch_are_todays_and_stretched_ones_keep_the_detail_
     bundle, test = card
     xyz = bundle.model.xyz.detach()
     c2w, h, w, f = _cam(test), 4 * test.height, 4 * test.width, 4 * test.focal
-    on, off = EditConfig(stretch_grid=1.5), EditConfig(stretch_grid=0.0)
+    # the stretch grid alone (the small stretched object is below the training scale across: a squash grid's)
+    on, off = EditConfig(stretch_grid=1.5, squash_grid=0.0), EditConfig(stretch_grid=0.0, squash_grid=0.0)
     small = xyz * torch.tensor([3.0, 1.0, 1.0]) * 0.3
     # a shift, a uniform scale (no stretch on the screen); a stretched object small enough that the frame is
     # traced at its own size (dscale 1: nothing to spread otherwise)
