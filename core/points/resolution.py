@@ -44,6 +44,10 @@ training size is pixel-identical in every mode); above, the modes of `RENDER_MOD
   `StretchGrid` (`stretch_grid`, chosen by core/frames/edited.py): the camera turned to the stretch, as many
   pixels as the training-scale frame, spent across the stretch at the screen's own scale and along it the rest;
   the frame is resampled from it (`warp_frame`) and its trace interpolated (`interpolate_trace(coords=...)`).
+  A posed frame traced at its own pixels whose surface is squashed on the screen (F < 1 across one direction:
+  a part squashed flat, or turned away from the camera) is traced on a StretchGrid finer than the output across
+  the squash, at the training scale there, and `warp_frame` averages it back over each output pixel (a tent
+  filter), as a camera's pixel averages the squashed surface it sees.
 The decoder's scale factor (`decoder_scale`, used by `decoder` and `interior`) counts in the pixel of the training
 size (`PointModel.decoder_footprint`): for a multi-scale fit (`pointgt fit --train-scales`) that is its coarsest
 level, where the decoder had most of its steps, while its train_footprint is the finest level's — such a model

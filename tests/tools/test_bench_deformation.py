@@ -20,3 +20,13 @@ def test_off_variant_is_the_paper_renderer_with_deform_aware_correspondence():
     assert {k: v for k, v in off.items() if k not in ("correspondence", "f_radius_rule")} == {
         k: v for k, v in RENDERERS["paper"].items() if k != "f_radius_rule"}
     assert off["correspondence"] == "deform-aware"
+
+
+def test_a_changed_variant_is_the_named_one_with_its_fields_changed():
+    from tools.bench.regions import parse_variant
+
+    base = next(v for v in VARIANTS if "squash grid" in v)
+    name, fields = parse_variant(f"{base}:squash_grid_finest=0.125,grid_filter=1", VARIANTS)
+    assert name == f"{base}:squash_grid_finest=0.125,grid_filter=1"
+    assert fields == {**VARIANTS[base], "squash_grid_finest": 0.125, "grid_filter": 1}
+    EditConfig(**fields)

@@ -1,8 +1,9 @@
 """The stretch grid (core.points.resolution.StretchGrid, EditConfig.stretch_grid and squash_grid): the turned,
-per-axis scaled training-scale frame of a stretched or squashed pose. Its camera sees every output ray where its coords say, it holds the
-frame, its resampling keeps constants and is the identity at scale 1; the screen stretch of a pose is what the
-pose does; frames without a stretch are today's, stretched ones stay finite and keep the detail across the
-stretch."""
+per-axis scaled training-scale frame of a stretched or squashed pose. Its camera sees every output ray where its
+coords say, it holds the frame, its resampling keeps constants, is the identity at scale 1 and averages a grid
+finer than the output over each output pixel; the screen stretch of a pose is what the pose does; frames without a
+stretch or a squash are the frames without the grid, stretched ones stay finite and keep the detail across the
+stretch, squashed ones are traced finer across the squash."""
 import math
 
 import pytest
