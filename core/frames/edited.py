@@ -97,11 +97,11 @@ class EditConfig:
     f_reach_between: bool = opt(True, "f_reach_gate > 1: beyond the plain cap the gate opens only for two points "
                                       "within it more than 120° apart as seen from the ray (between the points of "
                                       "a sparse stretched surface, not beside the object's outline)")
-    f_reach_perspective: float = opt(4.0, "f_radius with rule gap or budget: a reaching point nearer the camera "
-                                          "than the frame's median point reaches farther by the ratio of that "
-                                          "median depth to its own, at most this factor (perspective spreads a "
-                                          "stretched part near the camera beyond the frame's one pixel cap); its "
-                                          "gate widens alike; 0 or 1 = off", min=0.0, max=1e6)
+    f_reach_perspective: float = opt(16.0, "f_radius with rule gap or budget: a reaching point nearer the camera "
+                                           "than the frame's median point reaches farther by the ratio of that "
+                                           "median depth to its own, at most this factor (perspective spreads a "
+                                           "stretched part near the camera beyond the frame's one pixel cap); its "
+                                           "gate widens alike; 0 or 1 = off", min=0.0, max=1e6)
     fold_radius: float = opt(2.0, "moved points: the correspondence keeps only a ray's neighbours whose "
                                   "displacement (canonical − deformed position) lies within this many point spacings "
                                   "of its most-attended neighbour's (drops the other side of a fold, a part swung "

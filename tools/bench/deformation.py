@@ -103,6 +103,18 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
                                                             "f_key_stretch": "auto", "f_reach_perspective": 4.0,
                                                             "stretch_grid": 1.5, "squash_grid": 1.5},
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
+         "reach 16, stretch grid, squash grid, deform-aware": {**_BUDGET, "f_reach_gate": 1.5,
+                                                               "f_reach_between": True, "f_key_stretch": "auto",
+                                                               "f_reach_perspective": 16.0, "stretch_grid": 1.5,
+                                                               "squash_grid": 1.5},
+    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
+         "reach 16, stretch grid, squash grid, occlusion, deform-aware": {**_BUDGET, "f_reach_gate": 1.5,
+                                                                          "f_reach_between": True,
+                                                                          "f_key_stretch": "auto",
+                                                                          "f_reach_perspective": 16.0,
+                                                                          "stretch_grid": 1.5, "squash_grid": 1.5,
+                                                                          "f_occlusion": True},
+    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
          "reach, stretch grid, occlusion, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True,
                                                           "f_key_stretch": "auto", "f_reach_perspective": 4.0,
                                                           "stretch_grid": 1.5, "f_occlusion": True},
