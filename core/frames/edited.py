@@ -185,6 +185,9 @@ class EditConfig:
                            choices=("auto", *RENDER_MODES))
 
 
+# a squash grid holds at most this many times the output frame's pixels (its pixels are coarsened to fit)
+SQUASH_GRID_MAX_PIXELS = 4.0
+
 SCREEN_STRETCH_SAMPLES = 2048  # points the screen stretch's median is taken over (evenly spaced beyond)
 
 
@@ -845,7 +848,8 @@ def _stretched(state: EditState, c2w: torch.Tensor, height: int, width: int, foc
     the output's pixels (dscale ≤ 1) and the surface is squashed on the screen at least EditConfig.squash_grid
     times more across one direction than along it and to at most 1 / squash_grid of the training scale (camera ×
     across), the grid keeps the output's pixels along it and is finer across it, at the training scale (at most
-    1 / EditConfig.squash_grid_finest times finer); `warp_frame` averages it back over each output pixel."""
+    1 / EditConfig.squash_grid_finest times finer, and at most SQUASH_GRID_MAX_PIXELS times the output's pixels in
+    all); `warp_frame` averages it back over each output pixel."""
     ratio = float(state.cfg.stretch_grid) if dscale > 1.0 else float(state.cfg.squash_grid)
     if not (state.moved and ratio > 0):
         return None
@@ -862,9 +866,12 @@ def _stretched(state: EditState, c2w: torch.Tensor, height: int, width: int, foc
             grid = stretch_grid(c2w, height, width, focal, (max(dscale * dscale / s_across, s_across), s_across),
                                 angle, points=state.points)
         elif camera * across * ratio <= 1.0:  # a squash: the output's pixels along it, the training scale across
-            finest = max(float(state.cfg.squash_grid_finest), MIN_GRID_SCALE)
-            grid = stretch_grid(c2w, height, width, focal, (1.0, max(camera * across, finest)), angle,
-                                points=state.points)
+            s_across = max(camera * across, float(state.cfg.squash_grid_finest), MIN_GRID_SCALE)
+            grid = stretch_grid(c2w, height, width, focal, (1.0, s_across), angle, points=state.points)
+            budget = SQUASH_GRID_MAX_PIXELS * height * width
+            if grid.height * grid.width > budget:  # a grid left whole (a point behind the camera) or a huge part
+                s_across = min(s_across * grid.height * grid.width / budget, 1.0)
+                grid = stretch_grid(c2w, height, width, focal, (1.0, s_across), angle, points=state.points)
     state._grid = (key, grid)
     return grid
 

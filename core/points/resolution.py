@@ -278,7 +278,7 @@ def warp_frame(img: torch.Tensor, grid: StretchGrid, height: int, width: int,
     squeeze = img.dim() == 2
     x = torch.nan_to_num((img[..., None] if squeeze else img).float(), nan=0.0).permute(2, 0, 1)[None]
     s_along, s_across = grid.scales
-    if s_across < 1.0:  # the grid's rows run across the stretch (or squash)
+    if s_across < 1.0:  # the grid's rows step across the squash (dim 2), its columns along it (dim 3)
         x = _tent_filter(x, 2, filter_pixels / s_across)
     if s_along < 1.0:
         x = _tent_filter(x, 3, filter_pixels / s_along)

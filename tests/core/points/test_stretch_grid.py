@@ -233,3 +233,23 @@ def test_frames_without_a_squash_are_todays_and_squashed_ones_are_traced_finer_a
                 xyz * torch.tensor([1.0, 1e-3, 1e-3])):
         out = render_edited(EditState(bundle, points=pts, cfg=on), c2w, h, w, f)
         assert bool(torch.isfinite(out["rgb"]).all()) and bool(torch.isfinite(out["alpha"]).all())
+
+
+def test_a_squash_grid_holds_at_most_its_pixel_budget(card):
+    """A squashed object with a point behind the camera leaves the grid uncut: its pixels are coarsened to at most
+    SQUASH_GRID_MAX_PIXELS times the output's, still finer than the output across the squash; the frame is finite."""
+    from core.frames.edited import SQUASH_GRID_MAX_PIXELS
+
+    bundle, test = card
+    xyz = bundle.model.xyz.detach()
+    c2w, h, w, f = _cam(test), test.height, test.width, test.focal
+    pts = xyz * torch.tensor([1.0, 1.0, 0.02])
+    behind = torch.cat([pts, (c2w[:3, 3] + c2w[:3, 2])[None]])  # one point just behind the camera
+    n = behind.shape[0]
+    st = EditState(bundle, points=behind, ids=torch.cat([torch.arange(n - 1), torch.tensor([0])]),
+                   cfg=EditConfig(squash_grid=1.5))
+    out = render_edited(st, c2w, h, w, f)
+    grid = st._grid[1]
+    assert grid is not None and grid.height * grid.width <= SQUASH_GRID_MAX_PIXELS * h * w * 1.02
+    assert MIN_GRID_SCALE < grid.scales[1] < 1.0
+    assert bool(torch.isfinite(out["rgb"]).all()) and bool(torch.isfinite(out["alpha"]).all())
