@@ -31,6 +31,9 @@ _AUTO = {**_OFF, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fil
          "f_depth": "nearest", "f_compression": "auto"}
 _BUDGET = {**_AUTO, "f_radius": True, "f_radius_rule": "budget"}
 _D = "f-attention + blended fill + fold rule, depth from the canonical nearest, auto compression"
+# with the budget reach gated between points, the keys' stretch by thickness and the perspective reach (factor 4)
+_PERSP = {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto", "f_reach_perspective": 4.0}
+_P = _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective reach"
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper, deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -91,33 +94,15 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
                                      "f_key_stretch": "sparse", "f_occlusion": True},
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, deform-aware":
         {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto"},
-    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
-         "reach, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto",
-                                 "f_reach_perspective": 4.0},
-    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
-         "reach, stretch grid, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True,
-                                               "f_key_stretch": "auto", "f_reach_perspective": 4.0,
-                                               "stretch_grid": 1.5},
-    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
-         "reach, stretch grid, squash grid, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True,
-                                                            "f_key_stretch": "auto", "f_reach_perspective": 4.0,
-                                                            "stretch_grid": 1.5, "squash_grid": 1.5},
-    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
-         "reach 16, stretch grid, squash grid, deform-aware": {**_BUDGET, "f_reach_gate": 1.5,
-                                                               "f_reach_between": True, "f_key_stretch": "auto",
-                                                               "f_reach_perspective": 16.0, "stretch_grid": 1.5,
-                                                               "squash_grid": 1.5},
-    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
-         "reach 16, stretch grid, squash grid, occlusion, deform-aware": {**_BUDGET, "f_reach_gate": 1.5,
-                                                                          "f_reach_between": True,
-                                                                          "f_key_stretch": "auto",
-                                                                          "f_reach_perspective": 16.0,
-                                                                          "stretch_grid": 1.5, "squash_grid": 1.5,
-                                                                          "f_occlusion": True},
-    _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective "
-         "reach, stretch grid, occlusion, deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True,
-                                                          "f_key_stretch": "auto", "f_reach_perspective": 4.0,
-                                                          "stretch_grid": 1.5, "f_occlusion": True},
+    _P + ", deform-aware": _PERSP,
+    _P + ", stretch grid, deform-aware": {**_PERSP, "stretch_grid": 1.5},
+    _P + ", stretch grid, squash grid, deform-aware": {**_PERSP, "stretch_grid": 1.5, "squash_grid": 1.5},
+    _P + " 16, stretch grid, squash grid, deform-aware": {**_PERSP, "f_reach_perspective": 16.0, "stretch_grid": 1.5,
+                                                          "squash_grid": 1.5},
+    _P + " 16, stretch grid, squash grid, occlusion, deform-aware": {**_PERSP, "f_reach_perspective": 16.0,
+                                                                     "stretch_grid": 1.5, "squash_grid": 1.5,
+                                                                     "f_occlusion": True},
+    _P + ", stretch grid, occlusion, deform-aware": {**_PERSP, "stretch_grid": 1.5, "f_occlusion": True},
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, occlusion, "
          "deform-aware": {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto",
                           "f_occlusion": True},
