@@ -933,7 +933,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         low_rgb, low_alpha = shade_frame(model, low, background, features=state.features, with_alpha=True)
         low_alpha = (1.0 - low.bg).reshape(lh, lw) if low_alpha is None else low_alpha
 
-        def resample(img):  # bicubic either way: the stretch's grid turned and scaled per axis, else scaled
+        def resample(img):  # bicubic: from the camera scaled, or from a StretchGrid (a squash's first filtered)
             if grid is None:
                 return upsample_frame(img, height, width)
             return warp_frame(img, grid, height, width, filter_pixels=float(cfg.grid_filter))

@@ -251,6 +251,14 @@ def stretch_grid(c2w: torch.Tensor, height: int, width: int, focal, scales: tupl
 GRID_FILTER_PIXELS = 1.25
 
 
+def _filter_axis(x: torch.Tensor, k: torch.Tensor, dim: int) -> torch.Tensor:
+    """x [N, 1, H, W] convolved along `dim` (2 rows, 3 columns) with the odd-length kernel k [2r + 1], edges
+    replicated: the same size back (the separable filters of this module)."""
+    r = (k.numel() - 1) // 2
+    xp = F.pad(x, (0, 0, r, r) if dim == 2 else (r, r, 0, 0), mode="replicate")
+    return F.conv2d(xp, k.reshape((1, 1, -1, 1) if dim == 2 else (1, 1, 1, -1)))
+
+
 def _tent_filter(x: torch.Tensor, dim: int, radius: float) -> torch.Tensor:
     """x [1, C, h, w] filtered along `dim` (2 rows, 3 columns) with a tent of `radius` pixels (normalised weights,
     edges replicated); x itself for a radius of at most one pixel."""
@@ -259,13 +267,7 @@ def _tent_filter(x: torch.Tensor, dim: int, radius: float) -> torch.Tensor:
         return x
     t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
     k = (1.0 - t.abs() / radius).clamp_min(0.0)
-    k = k / k.sum()
-    c = x.shape[1]
-    if dim == 2:
-        xp = F.pad(x, (0, 0, r, r), mode="replicate")
-        return F.conv2d(xp, k.reshape(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
-    xp = F.pad(x, (r, r, 0, 0), mode="replicate")
-    return F.conv2d(xp, k.reshape(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return _filter_axis(x.transpose(0, 1), k / k.sum(), dim).transpose(0, 1)
 
 
 def warp_frame(img: torch.Tensor, grid: StretchGrid, height: int, width: int,
@@ -409,9 +411,7 @@ def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
     t = torch.arange(-r, r + 1, dtype=torch.float64, device=x.device)
     g = torch.exp(-0.5 * (t / sigma) ** 2)
     g = (g / g.sum()).to(x.dtype)
-    x = F.pad(x, (r, r, r, r), mode="replicate")
-    x = F.conv2d(x, g.view(1, 1, 1, -1))
-    x = F.conv2d(x, g.view(1, 1, -1, 1))
+    x = _filter_axis(_filter_axis(x, g, 3), g, 2)
     out = x[:, 0].permute(1, 2, 0)
     return out[..., 0] if squeeze else out
 
