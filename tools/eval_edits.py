@@ -45,19 +45,20 @@ _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "
           "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
           "f_reach_gate": 0.0, "f_key_stretch": "full", "f_reach_surround": False, "f_reach_gate_own": False,
           "f_reach_between": False, "f_fill_tear": MAX_STRETCH, "f_fill_budget": 1.0, "f_reach_perspective": 0.0,
-          "stretch_grid": 0.0, "squash_grid": 0.0, "lookup": "charts"}
+          "stretch_grid": 0.0, "squash_grid": 0.0, "grid_texture": 0.0, "lookup": "charts"}
 # F-aware keys, blended fill, fold rule, canonical depths, compression by the model's thickness; with the budget reach
 _AUTO = {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
          "f_depth": "nearest", "f_compression": "auto", "lookup": "samples"}
 _BUDGET = {**_AUTO, "f_radius": True, "f_radius_rule": "budget"}
 # the default renderer: the budget reach gated at 1.5 caps between points, the keys' stretch capped at the fill's gap
 _BETWEEN_GAP = {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap"}
-# the keys' stretch by the model's thickness and the perspective reach; with the stretch grid, the squash grid, and
-# the perspective reach's factor at 16 (the default renderer)
+# the keys' stretch by the model's thickness and the perspective reach; with the stretch grid, the squash grid, the
+# perspective reach's factor at 16, and the texture averaged on the squash grid (the default renderer)
 _PERSP = {**_BETWEEN_GAP, "f_key_stretch": "auto", "f_reach_perspective": 4.0}
 _GRID = {**_PERSP, "stretch_grid": 1.5}
 _SQUASH = {**_GRID, "squash_grid": 1.5}
 _SQUASH16 = {**_SQUASH, "f_reach_perspective": 16.0}
+_SQUASH_TEX = {**_SQUASH16, "grid_texture": 0.25}
 RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-radius": {**_PAPER, "f_radius": True, "f_radius_rule": "frame"},
              "f-both": {**_PAPER, "f_attention": True, "f_radius": True, "f_radius_rule": "frame"},
@@ -112,6 +113,9 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash": _SQUASH16,
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-occ": {**_SQUASH16,
                                                                                          "f_occlusion": True},
+             "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-tex": _SQUASH_TEX,
+             "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-tex-occ": {**_SQUASH_TEX,
+                                                                                             "f_occlusion": True},
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp-pixels": {**_PERSP, "render_mode": "pixels"},
              "f-fill-fold-blend-depth-auto-budget-between-auto-keep": {**_BETWEEN_GAP, "f_key_stretch": "auto",
                                                                       "f_compression": "keep"},

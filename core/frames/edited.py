@@ -178,6 +178,11 @@ class EditConfig:
     grid_filter: float = opt(GRID_FILTER_PIXELS, "the pixel filter a squash grid is averaged back with: a tent "
                                                  "this many output pixels to either side of each pixel centre",
                              min=0.0, max=8.0)
+    grid_texture: float = opt(0.25, "a squash grid finer than this many output pixels across the squash (a "
+                                    "compression of 4x or more on the screen): the painted texture is looked up "
+                                    "per grid ray and averaged back over each output pixel with the colour "
+                                    "(grid_filter, in linear light) instead of antialias x antialias lookups per "
+                                    "pixel; 0 = off", min=0.0, max=1.0)
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
                                    "filtered | footprint | decoder | interior | their '+' pairs | upsampled; "
                                    "auto = the model's (upsampled for a single-scale fit; for a multi-scale fit "
@@ -187,6 +192,9 @@ class EditConfig:
 
 # a squash grid holds at most this many times the output frame's pixels (its pixels are coarsened to fit)
 SQUASH_GRID_MAX_PIXELS = 4.0
+# a pixel takes its texture from the squash grid's lookups (`_grid_lookup`) where grid rays on the object hold at
+# least this share of its filter, else from its own lookups (a silhouette pixel the grid's object barely reaches)
+GRID_LOOKUP_MIN_WEIGHT = 0.05
 
 SCREEN_STRETCH_SAMPLES = 2048  # points the screen stretch's median is taken over (evenly spaced beyond)
 
@@ -807,6 +815,34 @@ def _filtered_lookup(state: EditState, tr: Trace, sel: torch.Tensor, xc: torch.T
     return linear_to_srgb(px[:3].T.clamp(0, 1)), px[3]
 
 
+def _grid_lookup(state: EditState, low: Trace, grid: StretchGrid, sel: torch.Tensor, height: int, width: int,
+                 texture_fn=None, threshold: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Painted colour and mask of the output rays `sel` [S] of an H x W frame traced on a squash grid: the texture
+    looked up once per object ray of the grid's trace `low` and averaged back over each output pixel as the frame's
+    colour is (`warp_frame`: the grid_filter tent across the squash, then bicubic), in linear light, weighted by
+    the grid rays on the object. threshold: the threshold blend's rule per grid ray before the average (as
+    `_filtered_lookup`). Returns (rgb [S, 3], mask [S], ok [S]); ok False where no grid ray on the object reaches
+    the pixel (its values are then meaningless: look it up another way)."""
+    dev, dtype = low.x.device, low.x.dtype
+    lsel = torch.nonzero(low.active & (low.fg > 1e-4)).squeeze(1)
+    vals = torch.zeros(grid.height * grid.width, 5, dtype=dtype, device=dev)
+    if lsel.numel():
+        xc = state.canonical_surface(low, lsel)
+        xc = torch.where(torch.isfinite(xc).all(1, keepdim=True), xc, low.x[lsel].nan_to_num(0.0))
+        looked = _lookup(state, xc, texture_fn)
+        m = (looked[:, 3] > BLEND_THRESHOLD).to(dtype) if threshold else looked[:, 3].to(dtype)
+        vals[lsel, :3] = srgb_to_linear(looked[:, :3].clamp(0, 1)).to(dtype) * (m[:, None] if threshold else 1.0)
+        vals[lsel, 3] = m
+        vals[lsel, 4] = 1.0
+    out = warp_frame(vals.view(grid.height, grid.width, 5), grid, height, width,
+                     filter_pixels=float(state.cfg.grid_filter)).reshape(-1, 5)[sel].to(dtype)
+    w = out[:, 4]
+    ok = w > GRID_LOOKUP_MIN_WEIGHT
+    m = out[:, 3] / w.clamp_min(GRID_LOOKUP_MIN_WEIGHT)
+    lin = out[:, :3] / (out[:, 3:4] if threshold else w[:, None]).clamp_min(1e-6)
+    return linear_to_srgb(lin.clamp(0, 1)), m.clamp(0, 1), ok
+
+
 def _trace(state: EditState, c2w: torch.Tensor, height: int, width: int, focal, soft: bool, scale: float,
            k: int | None = None) -> Trace:
     """The edited points traced for one frame (neighbours, attention, the occlusion rule's visible layer); soft:
@@ -925,6 +961,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     tr = frame_trace(state, c2w, height, width, focal) if trace is None else trace
     trace_seconds = 0.0 if trace is not None else time.perf_counter() - t0
     low_frame = _low_frame(state, c2w, height, width, focal, parts, dscale)
+    squash = None  # (grid, its trace) where the texture is averaged on a squash grid (EditConfig.grid_texture)
     if low_frame is not None:  # the model's colour and coverage at the training scale, resampled to the frame
         lc2w, lh, lw, low_focal, grid = low_frame
         low = None if tr.coarse is None else tr.coarse.low
@@ -938,6 +975,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                 return upsample_frame(img, height, width)
             return warp_frame(img, grid, height, width, filter_pixels=float(cfg.grid_filter))
         rgb, dec_alpha = resample(low_rgb), resample(low_alpha.clamp(0, 1))
+        if grid is not None and 0.0 < grid.scales[1] <= float(cfg.grid_texture) and grid.scales[0] >= 1.0:
+            squash = grid, low
     else:
         rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,
                                      decoder_scale=dscale if "decoder" in parts else 1.0,
@@ -964,7 +1003,16 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         stats["non_finite_lookups_repaired"] = int(bad.sum())
         xc = torch.where(bad[:, None], x_hat.nan_to_num(0.0), xc)
         mode = cfg.blend
-        if cfg.antialias > 1:
+        if squash is not None:  # averaged over the grid like the colour; pixels the grid's object misses: one lookup
+            tex, m, ok = _grid_lookup(state, squash[1], squash[0], sel, height, width, texture_fn,
+                                      threshold=cfg.blend == "threshold")
+            if not bool(ok.all()):
+                looked = _lookup(state, xc[~ok], texture_fn)
+                if cfg.blend == "threshold":
+                    looked[:, 3] = (looked[:, 3] > BLEND_THRESHOLD).to(looked.dtype)
+                tex[~ok], m[~ok] = looked[:, :3].to(tex.dtype), looked[:, 3].to(m.dtype)
+            mode = "soft"
+        elif cfg.antialias > 1:
             tex, m = _filtered_lookup(state, tr, sel, xc, height, width, focal, cfg.antialias, texture_fn,
                                       threshold=cfg.blend == "threshold")
             mode = "soft"  # a threshold was applied per sub-pixel, before the filter
