@@ -359,7 +359,7 @@ def oracle_retexture(state: EditState, view: tuple, trace: Trace, texture: str, 
 
 # EditConfig fields applied after the trace (neighbours + attention), so frames that differ only in them share it
 TRACE_FREE_FIELDS = frozenset({"correspondence", "fold_radius", "fold_test", "blend", "mask_threshold", "colour",
-                               "antialias"})
+                               "antialias", "grid_texture"})
 
 
 def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple | None = None,
@@ -400,7 +400,8 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
             traces[key] = (out["trace"], out["stats"]["trace_seconds"])
         st = out["stats"]
         out["extra"] = {"seconds": seconds, "texture_rays": st["texture_rays"],
-                        "repaired": st.get("non_finite_lookups_repaired", 0), **diagnostics(out, state)}
+                        "repaired": st.get("non_finite_lookups_repaired", 0), "grid": st.get("grid"),
+                        **diagnostics(out, state)}
         if oracle is not None:
             perfect = oracle_retexture(state, view, out["trace"], *oracle, background=background)
             out["also"] = {"{}_oracle": perfect}
@@ -416,6 +417,7 @@ def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple
     res["seconds_per_frame"] = res.pop("seconds")
     res["texture_rays"] = int(sum(r["texture_rays"] for r in rows))
     res["non_finite_lookups_repaired"] = int(sum(r["repaired"] for r in rows))
+    res["grids"] = [r["grid"] for r in rows]  # per view: the StretchGrid's (along, across) scales, or None
     res["non_finite_points"] = state.non_finite_points
     return res
 

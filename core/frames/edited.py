@@ -1033,6 +1033,9 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         rgb, cover = gaussian_blur(rgb, sigma).clamp(0, 1), gaussian_blur(cover, sigma).clamp(0, 1)
     stats["seconds"] = time.perf_counter() - t0
     stats["scale"] = scale
+    grid = None if low_frame is None else low_frame[4]
+    stats["grid"] = None if grid is None else [float(v) for v in grid.scales]  # (along, across), or None
+    stats["grid_texture"] = squash is not None
     return {"rgb": rgb, "alpha": cover,
             "x_can": x_can.reshape(height, width, 3), "stats": stats, "trace": tr}
 
