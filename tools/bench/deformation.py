@@ -34,6 +34,9 @@ _D = "f-attention + blended fill + fold rule, depth from the canonical nearest, 
 # with the budget reach gated between points, the keys' stretch by thickness and the perspective reach (factor 4)
 _PERSP = {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "auto", "f_reach_perspective": 4.0}
 _P = _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, perspective reach"
+# with the perspective reach's factor at 16, the stretch grid and the squash grid (the chart networks' lookup, as the
+# paper's renderer; the default renderer looks up through the stored samples)
+_P16 = {**_PERSP, "f_reach_perspective": 16.0, "stretch_grid": 1.5, "squash_grid": 1.5}
 VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may change)
     "paper, deform-aware": _OFF,
     "f-attention, deform-aware": {**_OFF, "f_attention": True},
@@ -99,9 +102,10 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     _P + ", stretch grid, squash grid, deform-aware": {**_PERSP, "stretch_grid": 1.5, "squash_grid": 1.5},
     _P + " 16, stretch grid, squash grid, deform-aware": {**_PERSP, "f_reach_perspective": 16.0, "stretch_grid": 1.5,
                                                           "squash_grid": 1.5},
-    _P + " 16, stretch grid, squash grid, texture on it, deform-aware": {**_PERSP, "f_reach_perspective": 16.0,
-                                                                         "stretch_grid": 1.5, "squash_grid": 1.5,
-                                                                         "grid_texture": 0.25},
+    _P + " 16, stretch grid, squash grid, texture on it, deform-aware": {**_P16, "grid_texture": 0.25},
+    _P + " 16, stretch grid, squash grid, samples lookup, deform-aware": {**_P16, "lookup": "samples"},
+    _P + " 16, stretch grid, squash grid, texture on it, samples lookup, deform-aware (the default renderer)":
+        {**_P16, "grid_texture": 0.25, "lookup": "samples"},
     _P + " 16, stretch grid, squash grid, occlusion, deform-aware": {**_PERSP, "f_reach_perspective": 16.0,
                                                                      "stretch_grid": 1.5, "squash_grid": 1.5,
                                                                      "f_occlusion": True},
