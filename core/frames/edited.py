@@ -819,10 +819,12 @@ def _grid_lookup(state: EditState, low: Trace, grid: StretchGrid, sel: torch.Ten
                  texture_fn=None, threshold: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Painted colour and mask of the output rays `sel` [S] of an H x W frame traced on a squash grid: the texture
     looked up once per object ray of the grid's trace `low` and averaged back over each output pixel as the frame's
-    colour is (`warp_frame`: the grid_filter tent across the squash, then bicubic), in linear light, weighted by
-    the grid rays on the object. threshold: the threshold blend's rule per grid ray before the average (as
-    `_filtered_lookup`). Returns (rgb [S, 3], mask [S], ok [S]); ok False where no grid ray on the object reaches
-    the pixel (its values are then meaningless: look it up another way)."""
+    colour is (`warp_frame`: the grid_filter tent across the squash, then bicubic), in linear light: the mask
+    weighted by the grid rays on the object, the colour by their mask too (the soft blend m T + (1 − m) c of the
+    averaged pair is then the average of each grid ray's blend over a pixel's colour c). threshold: the threshold
+    blend's rule per grid ray before the average (as `_filtered_lookup`). Returns (rgb [S, 3], mask [S], ok [S]);
+    ok False where grid rays on the object hold less than GRID_LOOKUP_MIN_WEIGHT of the pixel's filter (its values
+    are then meaningless: look it up another way)."""
     dev, dtype = low.x.device, low.x.dtype
     lsel = torch.nonzero(low.active & (low.fg > 1e-4)).squeeze(1)
     vals = torch.zeros(grid.height * grid.width, 5, dtype=dtype, device=dev)
@@ -831,7 +833,7 @@ def _grid_lookup(state: EditState, low: Trace, grid: StretchGrid, sel: torch.Ten
         xc = torch.where(torch.isfinite(xc).all(1, keepdim=True), xc, low.x[lsel].nan_to_num(0.0))
         looked = _lookup(state, xc, texture_fn)
         m = (looked[:, 3] > BLEND_THRESHOLD).to(dtype) if threshold else looked[:, 3].to(dtype)
-        vals[lsel, :3] = srgb_to_linear(looked[:, :3].clamp(0, 1)).to(dtype) * (m[:, None] if threshold else 1.0)
+        vals[lsel, :3] = srgb_to_linear(looked[:, :3].clamp(0, 1)).to(dtype) * m[:, None]
         vals[lsel, 3] = m
         vals[lsel, 4] = 1.0
     out = warp_frame(vals.view(grid.height, grid.width, 5), grid, height, width,
@@ -839,7 +841,7 @@ def _grid_lookup(state: EditState, low: Trace, grid: StretchGrid, sel: torch.Ten
     w = out[:, 4]
     ok = w > GRID_LOOKUP_MIN_WEIGHT
     m = out[:, 3] / w.clamp_min(GRID_LOOKUP_MIN_WEIGHT)
-    lin = out[:, :3] / (out[:, 3:4] if threshold else w[:, None]).clamp_min(1e-6)
+    lin = out[:, :3] / out[:, 3:4].clamp_min(1e-6)
     return linear_to_srgb(lin.clamp(0, 1)), m.clamp(0, 1), ok
 
 
