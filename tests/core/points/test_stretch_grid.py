@@ -293,3 +293,34 @@ def test_a_squash_grid_averages_the_painted_texture_like_the_colour(card):
     for pts, blend in ((xyz * torch.tensor([1.0, 0.0, 1.0]), "soft"), (squashed, "threshold")):  # flat; the paper's
         a, _, _ = frame(pts, 0.25, blend)
         assert bool(torch.isfinite(a["rgb"]).all()) and bool(torch.isfinite(a["alpha"]).all())
+
+
+def test_the_grid_texture_weights_the_colour_by_the_mask(card, monkeypatch):
+    """_grid_lookup: a painted stripe pattern whose unpainted stripes (mask 0) hold black comes back as the
+    painted colour (white) at the stripes' share of mask, so the soft blend m T + (1 − m) c of the averages is the
+    average of each grid ray's blend, not a painted colour darkened by the unpainted texels' black."""
+    import core.frames.edited as edited
+
+    bundle, test = card
+    xyz = bundle.model.xyz.detach()
+    h, w, f = test.height, test.width, test.focal
+    c2w = look_at((0.0, 0.01, float(test.c2w[0][:3, 3].norm())), target=(0.0, 0.0, 0.0)).float()
+    painted = bundle.atlas.packed_image().clone()
+    painted[::2] = 1.0 - painted[::2]
+    st = EditState(bundle, points=xyz * torch.tensor([1.0, 0.2, 1.0]), atlas=painted,
+                   cfg=EditConfig(squash_grid=1.5, grid_texture=0.25))
+    out = render_edited(st, c2w, h, w, f)
+    grid, low = st._grid[1], out["trace"].coarse.low
+    assert grid is not None and grid.scales[1] <= 0.25
+
+    def stripes(state, x, texture_fn=None):  # painted white on every other 0.08-unit stripe, unpainted black between
+        v = (torch.sin(x[:, 1] * (2 * math.pi / 0.08)) > 0).to(x.dtype)
+        return torch.stack([v, v, v, v], 1)
+    monkeypatch.setattr(edited, "_lookup", stripes)
+    tr = out["trace"]
+    sel = torch.nonzero(tr.active & (tr.fg > 1e-4)).squeeze(1)
+    rgb, m, ok = edited._grid_lookup(st, low, grid, sel, h, w)
+    inner = ok & (m > 0.2)
+    assert int(inner.sum()) > 20 and bool(torch.isfinite(rgb).all())
+    assert float((rgb[inner] - 1.0).abs().max()) < 1e-3  # the painted colour, not the mean with the black
+    assert 0.3 < float(m[inner].mean()) < 0.7  # about half of each pixel painted
