@@ -50,7 +50,7 @@ _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "
 _AUTO = {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
          "f_depth": "nearest", "f_compression": "auto", "lookup": "samples"}
 _BUDGET = {**_AUTO, "f_radius": True, "f_radius_rule": "budget"}
-# the default renderer: the budget reach gated at 1.5 caps between points, the keys' stretch capped at the fill's gap
+# the budget reach gated at 1.5 caps between points, the keys' stretch capped at the fill's gap
 _BETWEEN_GAP = {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap"}
 # the keys' stretch by the model's thickness and the perspective reach; with the stretch grid, the squash grid, the
 # perspective reach's factor at 16, and the texture averaged on the squash grid (the default renderer)
