@@ -53,7 +53,8 @@ _BUDGET = {**_AUTO, "f_radius": True, "f_radius_rule": "budget"}
 # the budget reach gated at 1.5 caps between points, the keys' stretch capped at the fill's gap
 _BETWEEN_GAP = {**_BUDGET, "f_reach_gate": 1.5, "f_reach_between": True, "f_key_stretch": "gap"}
 # the keys' stretch by the model's thickness and the perspective reach; with the stretch grid, the squash grid, the
-# perspective reach's factor at 16, and the texture averaged on the squash grid (the default renderer)
+# perspective reach's factor at 16, and the texture averaged on the squash grid (with the occlusion rule: the default
+# renderer, `-tex-occ`)
 _PERSP = {**_BETWEEN_GAP, "f_key_stretch": "auto", "f_reach_perspective": 4.0}
 _GRID = {**_PERSP, "stretch_grid": 1.5}
 _SQUASH = {**_GRID, "squash_grid": 1.5}

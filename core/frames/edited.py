@@ -136,7 +136,7 @@ class EditConfig:
                                     "sheet, gap on a thick shell: the model's median spread against "
                                     "f_thick_spread, as f_compression auto)",
                              choices=KEY_STRETCH)
-    f_occlusion: bool = opt(False, "moved points: each ray keeps the front one of the surface layers among its "
+    f_occlusion: bool = opt(True, "moved points: each ray keeps the front one of the surface layers among its "
                                    "neighbours (layers told apart by the points' local deformation gradients: a "
                                    "joint's fold, a part swung behind another); rest frames are unchanged")
     blend: str = opt("soft", "texture-edit blend: soft (m·T' + (1−m)·render) | threshold (paper: m > 0.95)",

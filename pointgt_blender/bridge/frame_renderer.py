@@ -38,7 +38,7 @@ class ObjectInputs:
     atlas: np.ndarray | None = None
     antialias: int = 2        # painted texels per pixel side (EditConfig.antialias)
     rest_extent: float = 0.0  # bounding-box diagonal of the undeformed points in world space (pose warnings)
-    occlusion: bool = False   # EditConfig.f_occlusion: each ray keeps the front layer where a pose folds the surface
+    occlusion: bool = True    # EditConfig.f_occlusion: each ray keeps the front layer where a pose folds the surface
 
 
 class ModelCache:

@@ -31,7 +31,7 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
                ('DEFORM_GRADIENT', "Deform-gradient", "Map deformed surface points back through each neighbour's "
                                                       "local deformation (undoes stretch and rotation too)")])
     occlusion: bpy.props.BoolProperty(
-        name="Folds (occlusion)", default=False,
+        name="Folds (occlusion)", default=True,
         description="Where a pose folds the surface over itself (a joint bent far, a part swung behind another), "
                     "each pixel shows only the front layer of the surface; costs a few percent more per frame")
     antialias: bpy.props.IntProperty(name="Anti-aliasing", default=2, min=1, max=4,

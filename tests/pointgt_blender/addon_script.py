@@ -359,9 +359,9 @@ def _():
     si = importlib.import_module(PKG + ".scene.scene_inputs")
     dg = bpy.context.evaluated_depsgraph_get()
     default = si.object_inputs(obj, dg).occlusion
-    obj.pointgt.occlusion = True
-    on = si.object_inputs(obj, bpy.context.evaluated_depsgraph_get()).occlusion
-    return {"default": default, "on": on}
+    obj.pointgt.occlusion = False
+    off = si.object_inputs(obj, bpy.context.evaluated_depsgraph_get()).occlusion
+    return {"default": default, "off": off}
 
 
 R.pop("_arm", None)

@@ -161,10 +161,10 @@ def test_torch_features_work_once_torch_imports(record):
 
 
 def test_the_objects_occlusion_setting_reaches_the_frame_inputs(record):
-    """The Folds (occlusion) checkbox of an imported model is off by default and, when on, reaches the frame's
-    inputs (EditConfig.f_occlusion, tests/pointgt_blender/test_addon_frame_renderer.py)."""
+    """The Folds (occlusion) checkbox of an imported model is on by default (EditConfig.f_occlusion) and, when off,
+    reaches the frame's inputs (tests/pointgt_blender/test_addon_frame_renderer.py)."""
     r = _get(record, "occlusion_setting")
-    assert r == {"default": False, "on": True}
+    assert r == {"default": True, "off": False}
 
 
 def test_existing_site_packages_folder_is_used_and_released(record):

@@ -97,7 +97,7 @@ def test_state_cache_passes_the_prepared_paint_to_a_new_pose(monkeypatch):
 
 
 @pytest.mark.parametrize("field, values, config, default", [("antialias", (2, 1, 1), "antialias", 2),
-                                                            ("occlusion", (False, True, True), "f_occlusion", False)])
+                                                            ("occlusion", (True, False, False), "f_occlusion", True)])
 def test_prepare_passes_the_objects_setting(monkeypatch, field, values, config, default):
     """The object's Anti-aliasing and Folds (occlusion) settings reach EditConfig (antialias, f_occlusion);
     changing one rebuilds the state (a new preview)."""
