@@ -977,7 +977,8 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
                 return upsample_frame(img, height, width)
             return warp_frame(img, grid, height, width, filter_pixels=float(cfg.grid_filter))
         rgb, dec_alpha = resample(low_rgb), resample(low_alpha.clamp(0, 1))
-        if grid is not None and 0.0 < grid.scales[1] <= float(cfg.grid_texture) and grid.scales[0] >= 1.0:
+        # a squash grid (finer than the output across it; a stretch grid's pixels are at least the output's)
+        if grid is not None and grid.scales[1] < 1.0 and grid.scales[1] <= float(cfg.grid_texture):
             squash = grid, low
     else:
         rgb, dec_alpha = shade_frame(model, tr, background, features=state.features, with_alpha=True,

@@ -324,3 +324,19 @@ def test_the_grid_texture_weights_the_colour_by_the_mask(card, monkeypatch):
     assert int(inner.sum()) > 20 and bool(torch.isfinite(rgb).all())
     assert float((rgb[inner] - 1.0).abs().max()) < 1e-3  # the painted colour, not the mean with the black
     assert 0.3 < float(m[inner].mean()) < 0.7  # about half of each pixel painted
+
+
+def test_a_stretch_grid_never_takes_the_grid_texture(card):
+    """grid_texture applies to squash grids only: a stretched frame whose stretch grid is at the output's pixels
+    across the stretch (scale 1, the largest grid_texture) renders the same with grid_texture 1 as with 0."""
+    bundle, test = card
+    xyz = bundle.model.xyz.detach()
+    painted = bundle.atlas.packed_image().clone()
+    painted[::2] = 1.0 - painted[::2]
+    args = (_cam(test), 2 * test.height, 2 * test.width, 2 * test.focal)
+    pts = xyz * torch.tensor([3.0, 1.0, 0.3])  # stretched along the rows, thinner across: across at the output scale
+    outs = [render_edited(EditState(bundle, points=pts, atlas=painted, cfg=EditConfig(grid_texture=g)), *args)
+            for g in (0.0, 1.0)]
+    assert outs[1]["stats"]["grid"] is not None and outs[1]["stats"]["grid"][1] == 1.0
+    assert not outs[1]["stats"]["grid_texture"]
+    assert torch.equal(outs[0]["rgb"], outs[1]["rgb"])
