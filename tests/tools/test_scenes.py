@@ -242,3 +242,15 @@ def test_open_scene_gives_the_object_and_its_world_vertices(scene_dir, tmp_path)
     assert out["shape"] == [out["verts"], 3] and out["verts"] > 3 and out["finite"]
     assert min(out["lo"]) > -1e-4 and min(out["hi"]) > -1e-4, out  # inside the box it states
     assert out["hit"] is not None
+
+
+@pytest.mark.blender
+def test_the_rest_mesh_tree_is_callable_first_in_a_process(scene_dir):
+    """The benches' rest-mesh BVH (`pose_bound --base`, `colour_field_bound`) in a fresh process that has not
+    imported bpy: mathutils ships inside bpy, so importing it first failed (No module named 'mathutils')."""
+    code = ("import sys\nfrom tools.bench.colour_field_bound import rest_mesh_tree\n"
+            "print(type(rest_mesh_tree(sys.argv[1])).__name__)")
+    res = subprocess.run([sys.executable, "-c", code, str(scene_dir)], capture_output=True, text=True, timeout=120,
+                         cwd=str(Path(__file__).resolve().parents[2]))
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip().splitlines()[-1] == "BVHTree"

@@ -37,10 +37,11 @@ from tools.machine import machine_line
 
 
 def rest_mesh_tree(scene_dir: Path):
-    """A mathutils BVH tree of the scene's object at rest, in world space (opens its scene.blend)."""
-    from mathutils.bvhtree import BVHTree
+    """A mathutils BVH tree of the scene's object at rest, in world space (opens its scene.blend). Callable first
+    in a process: bpy (imported by tools.scenes.render) must come before mathutils, which ships inside it."""
+    from tools.scenes.render import open_scene, world_vertices  # imports bpy
 
-    from tools.scenes.render import open_scene, world_vertices
+    from mathutils.bvhtree import BVHTree
 
     _, obj = open_scene(scene_dir)
     verts = [tuple(v) for v in world_vertices(obj)]
