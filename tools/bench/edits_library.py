@@ -107,6 +107,9 @@ def main(argv=None) -> int:
     ap.add_argument("--renderers", default=None,
                     help="comma-separated eval-edits renderer variants (default: paper and the default renderer)")
     ap.add_argument("--poses", default=None, help="comma-separated poses (default: every pose of each scene)")
+    ap.add_argument("--correspondences", default="deform-aware",
+                    help="eval-edits --correspondences (the table reads deform-aware's retexture; the JSON keeps "
+                         "every correspondence's rows)")
     ap.add_argument("--views", type=int, default=4, help="test views per case (eval-edits --views)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per fit and per atlas fit")
     ap.add_argument("--fit-args", default="", help="more `pointgt fit` flags for every stage-1 fit (one string; "
@@ -138,7 +141,7 @@ def main(argv=None) -> int:
     atlas = args.atlas_args or "defaults"
     scale = f" from {SIZE * args.downscale}² images (--downscale {args.downscale})" if args.downscale > 1 else ""
     head = (f"```\n{machine_line()}\nstage 1: {' '.join(budget)}, {args.threads} thread(s){scale}; atlas: {atlas}; "
-            f"eval-edits: magnitude 1, {args.views} views, deform-aware, T = 1, soft blend\n```")
+            f"eval-edits: magnitude 1, {args.views} views, {args.correspondences}, T = 1, soft blend\n```")
     print(head, flush=True)
     per_scene, figures = {}, {}
     for name in [s for s in args.scenes.split(",") if s]:
@@ -158,9 +161,11 @@ def main(argv=None) -> int:
         out = work / f"{name}{'.' + args.tag if args.tag else ''}.edits.json"
         want = [r for r in renderers.split(",") if r]
         have = json.loads(out.read_text()) if out.exists() else None
-        if have is None or have.get("renderers") != want or (args.poses and have.get("poses") != args.poses.split(",")):
+        stale = have is None or have.get("renderers") != want or have.get("correspondences", ["deform-aware"]) != \
+            args.correspondences.split(",")
+        if stale or (args.poses and have.get("poses") != args.poses.split(",")):
             cmd = py + ["tools.cli", "eval-edits", str(model), "--scene", str(work / name), "--magnitudes", "1",
-                        "--views", str(args.views), "--temperatures", "1", "--correspondences", "deform-aware",
+                        "--views", str(args.views), "--temperatures", "1", "--correspondences", args.correspondences,
                         "--renderers", ",".join(want), "--json", str(out), *ds]
             if args.poses:
                 cmd += ["--poses", args.poses]
