@@ -45,7 +45,8 @@ _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "
           "f_occlusion": False, "f_fill_features": "nearer", "fold_test": "displacement", "f_radius_rule": "gap",
           "f_reach_gate": 0.0, "f_key_stretch": "full", "f_reach_surround": False, "f_reach_gate_own": False,
           "f_reach_between": False, "f_fill_tear": MAX_STRETCH, "f_fill_budget": 1.0, "f_reach_perspective": 0.0,
-          "stretch_grid": 0.0, "squash_grid": 0.0, "grid_texture": 0.0, "lookup": "charts"}
+          "stretch_grid": 0.0, "squash_grid": 0.0, "grid_texture": 0.0, "lookup": "charts",
+          "f_correspondence_compression": "keys"}
 # F-aware keys, blended fill, fold rule, canonical depths, compression by the model's thickness; with the budget reach
 _AUTO = {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
          "f_depth": "nearest", "f_compression": "auto", "lookup": "samples"}
@@ -117,6 +118,9 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-tex": _SQUASH_TEX,
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-tex-occ": {**_SQUASH_TEX,
                                                                                              "f_occlusion": True},
+             # the deform-gradient correspondence undoing no compression (rotation and stretch only)
+             "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-tex-occ-ckeep": {
+                 **_SQUASH_TEX, "f_occlusion": True, "f_correspondence_compression": "keep"},
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-texall": {**_SQUASH16,
                                                                                             "grid_texture": 1.0},
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp-pixels": {**_PERSP, "render_mode": "pixels"},
@@ -362,7 +366,7 @@ def oracle_retexture(state: EditState, view: tuple, trace: Trace, texture: str, 
 
 # EditConfig fields applied after the trace (neighbours + attention), so frames that differ only in them share it
 TRACE_FREE_FIELDS = frozenset({"correspondence", "fold_radius", "fold_test", "blend", "mask_threshold", "colour",
-                               "antialias", "grid_texture"})
+                               "antialias", "grid_texture", "f_correspondence_compression"})
 
 
 def score_frames(state: EditState, gt, background=(1.0, 1.0, 1.0), oracle: tuple | None = None,

@@ -65,6 +65,11 @@ class EditConfig:
                                         "auto (tangent for a thin-sheet model, undo for one whose points form a thick "
                                         "shell, where no point has a reliable normal: f_thick_spread)",
                              choices=COMPRESSION)
+    f_correspondence_compression: str = opt("keys", "what the deform-gradient correspondence undoes of a local "
+                                                    "compression: keys (as the F-aware keys, f_compression) | "
+                                                    "keep (none: rotation and stretch only) | tangent | undo | "
+                                                    "auto (as f_compression's rules)",
+                                            choices=("keys",) + COMPRESSION)
     f_thick_spread: float = opt(0.15, "f_compression auto: a model whose median canonical neighbourhood spread "
                                       "(smallest / largest) is at least this is thick: undo, else tangent",
                                 min=0.0, max=1.0)
@@ -227,7 +232,7 @@ class EditState:
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
-        self._f = self._inv_f = self._inv_f_keys = self._radius_scale = self._reach = None
+        self._f = self._inv_f = self._inv_f_keys = self._inv_f_corr = self._radius_scale = self._reach = None
         self._row_tables = {}  # name -> ([M, 3, 3] rows filled as frames need them, [M] bool: which are filled)
         self._local_scale = None  # median |det F|^(1/3), once computed
         self._grid = None  # (camera key, StretchGrid or None) of the last frame `_stretched` was asked for
@@ -428,6 +433,24 @@ class EditState:
         return self._inv_f_keys
 
     @property
+    def inv_f_correspondence(self) -> torch.Tensor | None:
+        """The inverse gradients the deform-gradient correspondence uses [M, 3, 3]: `inv_f_keys`, or by
+        f_correspondence_compression's own rule when it is not keys (auto resolved by the model's thickness, as
+        `compression`). None when nothing moved."""
+        if self.f is None:
+            return None
+        mode = self.cfg.f_correspondence_compression
+        if mode == "auto":
+            mode = "undo" if self._thick() else "tangent"
+        if mode in ("keys", self.compression):
+            return self.inv_f_keys
+        if mode == "undo":
+            return self.inv_f
+        if self._inv_f_corr is None:
+            self._inv_f_corr = self._timed(lambda: self._rule_inverse(None, mode=mode))
+        return self._inv_f_corr
+
+    @property
     def inv_f_attention(self) -> torch.Tensor | None:
         """The inverse gradients the attention keys use [M, 3, 3]: `inv_f_keys`, but with f_key_stretch gap (and
         f_fill) that of F with each point's singular values capped at the largest growth the fill left between
@@ -452,15 +475,16 @@ class EditState:
             table[todo] = self._rule_inverse(cap, todo)
         return self._rows_filled("inv_f_attention", rows, fill)
 
-    def _rule_inverse(self, cap: torch.Tensor | None, rows: torch.Tensor | None = None) -> torch.Tensor:
-        """The compression rule (`compression`) applied to F with its singular values capped at cap [M] (None:
-        none): its inverse [M, 3, 3] (`key_inverse`, compiled); given rows [P] long, of those rows only [P, 3, 3]
-        (each row is computed on its own: the same values)."""
+    def _rule_inverse(self, cap: torch.Tensor | None, rows: torch.Tensor | None = None,
+                      mode: str | None = None) -> torch.Tensor:
+        """The compression rule `mode` (default `compression`: the keys') applied to F with its singular values
+        capped at cap [M] (None: none): its inverse [M, 3, 3] (`key_inverse`, compiled); given rows [P] long, of
+        those rows only [P, 3, 3] (each row is computed on its own: the same values)."""
         f = self._f if rows is None else self._f[rows]
         if cap is not None and rows is not None:
             cap = cap[rows]
         ids = self.ids if rows is None else (rows if self.ids is None else self.ids[rows])
-        mode = self.compression
+        mode = mode or self.compression
         if mode == "keep":
             return expansion_inverse(f if cap is None else bound_above(f, cap))
         n = None if mode == "undo" else field_for(self.bundle.model, self.deformation_cfg).normals(ids)
@@ -712,7 +736,8 @@ class EditState:
         fold = cfg.fold_radius * float(self.bundle.model.spacing) if cfg.fold_radius > 0 else None
         local = fold is not None and cfg.fold_test == "local-map"
         return ray_canonical_points(trace, sel, self.points, self.p_can, mode,
-                                    inv_f=self.inv_f_keys if mode == "deform-gradient" else None, fold_radius=fold,
+                                    inv_f=self.inv_f_correspondence if mode == "deform-gradient" else None,
+                                    fold_radius=fold,
                                     fold_inv_f=self.inv_f_keys if local else None)
 
     @property

@@ -472,6 +472,44 @@ def test_auto_compression_picks_tangent_for_a_sheet_and_undo_for_a_thick_shell(t
     _forced_rest(bundle, test, EditConfig(f_compression="auto", f_thick_spread=0.0), views=[0])
 
 
+def test_the_correspondence_compression_rule_is_its_own(tiny):
+    """f_correspondence_compression: keys = the keys' inverse gradients (today's deform-gradient correspondence);
+    keep undoes rotation and stretch but never a compression (no singular value of the inverse above 1, the
+    stretch's 1/5 kept); undo = F⁻¹; auto follows the model's thickness like f_compression. Under a 5× stretch
+    with a squash across it, every rule gives finite canonical points, and keep's stay within the canonical
+    cloud's reach."""
+    bundle, _, test = tiny
+    xyz = bundle.model.xyz.detach()
+    pts = xyz * torch.tensor([5.0, 1.0, 0.05]) + 0.01 * torch.sin(5 * xyz.flip(1))
+    atlas = bake(bundle.atlas, _half_split)
+    states = {m: EditState(bundle, points=pts, atlas=atlas,
+                           cfg=EditConfig(f_fill=False, correspondence="deform-gradient",
+                                          f_correspondence_compression=m))
+              for m in ("keys", "keep", "undo", "tangent")}
+    assert states["keys"].inv_f_correspondence is states["keys"].inv_f_keys
+    assert torch.equal(states["undo"].inv_f_correspondence, states["undo"].inv_f)
+    keep = states["keep"].inv_f_correspondence
+    sv = torch.linalg.svdvals(keep)
+    assert bool(torch.isfinite(keep).all()) and float(sv.max()) <= 1.0 + 1e-4
+    assert float(sv.min()) < 0.3  # the 5x stretch is undone
+    assert float(torch.linalg.svdvals(states["undo"].inv_f).max()) > 5.0  # full F^-1 amplifies the squash
+    spread = EditState(bundle, points=pts, cfg=EditConfig(f_correspondence_compression="auto", f_thick_spread=0.0))
+    assert torch.equal(spread.inv_f_correspondence, spread.inv_f)  # thick by that threshold: undo
+    c2w = test.c2w[0].clone()
+    c2w[:3, 3] *= 2.0  # step back: the stretched card stays in the frame
+    lo, hi = xyz.min(0).values, xyz.max(0).values
+    reach = float((hi - lo).norm())
+    for m, st in states.items():
+        out = render_edited(st, c2w, test.height, test.width, test.focal)
+        x = out["x_can"][torch.isfinite(out["x_can"]).all(-1)]
+        assert x.shape[0] > 20, m
+        assert bool(torch.isfinite(out["rgb"]).all()), m
+        if m == "keep":
+            assert float(((x - lo).clamp_max(0).norm(dim=-1) + (x - hi).clamp_min(0).norm(dim=-1)).max()) < reach
+    _forced_rest(bundle, test, EditConfig(correspondence="deform-gradient", f_correspondence_compression="keep"),
+                 atlas=atlas, views=[0])
+
+
 def _assert_keys_undo_up_to(state, cap):
     """The keys' inverse gradients of a 4× stretch undo at most cap [M] (> 2 somewhere) of each point's stretch, and
     most of it where cap > 2."""
