@@ -53,8 +53,9 @@ RADIUS_SCALE_MIN = 1.05  # a stretch below this leaves the neighbour search's ra
 class EditConfig:
     """Edited rendering (correspondence and texture blending)."""
 
-    correspondence: str = opt("deform-aware", "canonical correspondence: deform-aware (paper) | naive (paper's "
-                              "ablation) | deform-gradient (undoes each neighbour's local rotation and stretch too)",
+    correspondence: str = opt("deform-gradient", "canonical correspondence: deform-gradient (undoes each "
+                                                 "neighbour's local rotation and stretch too) | deform-aware (the "
+                                                 "paper's) | naive (the paper's ablation)",
                               choices=MODES)
     f_attention: bool = opt(True, "moved points: measure the attention's key geometry in each neighbour's "
                                   "canonical frame (its inverse local deformation gradient applied to the "
@@ -65,9 +66,9 @@ class EditConfig:
                                         "auto (tangent for a thin-sheet model, undo for one whose points form a thick "
                                         "shell, where no point has a reliable normal: f_thick_spread)",
                              choices=COMPRESSION)
-    f_correspondence_compression: str = opt("keys", "what the deform-gradient correspondence undoes of a local "
-                                                    "compression: keys (as the F-aware keys, f_compression) | "
-                                                    "keep (none: rotation and stretch only) | tangent | undo | "
+    f_correspondence_compression: str = opt("keep", "what the deform-gradient correspondence undoes of a local "
+                                                    "compression: keep (none: rotation and stretch only) | keys "
+                                                    "(as the F-aware keys, f_compression) | tangent | undo | "
                                                     "auto (as f_compression's rules)",
                                             choices=("keys",) + COMPRESSION)
     f_thick_spread: float = opt(0.15, "f_compression auto: a model whose median canonical neighbourhood spread "

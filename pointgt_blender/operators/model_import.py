@@ -123,8 +123,8 @@ class POINTGT_OT_import_model(bpy.types.Operator, ImportHelper):
     neighbors: bpy.props.IntProperty(name="K", default=20, min=1, max=256,
                                      description="Neighbour points per ray (unset: the K the model was trained with)")
     correspondence: bpy.props.EnumProperty(
-        name="Correspondence", default='DEFORM_AWARE',
-        items=[('DEFORM_AWARE', "Deform-aware", ""), ('NAIVE', "Naive", ""), ('DEFORM_GRADIENT', "Deform-gradient", "")])
+        name="Correspondence", default='DEFORM_GRADIENT',
+        items=[('DEFORM_GRADIENT', "Deform-gradient", ""), ('DEFORM_AWARE', "Deform-aware", ""), ('NAIVE', "Naive", "")])
     device: bpy.props.EnumProperty(name="Device", default='CPU', items=[('CPU', "CPU", ""), ('CUDA', "CUDA", "")])
     pack_model: bpy.props.BoolProperty(name="Pack model into .blend", default=True,
                                        description="Keep a copy of the .pgt inside the .blend, so the .blend renders "

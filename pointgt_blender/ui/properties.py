@@ -24,12 +24,13 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
     neighbors: bpy.props.IntProperty(name="K", default=20, min=1, max=256,
                                      description="Neighbour points per ray (the model was trained with its own K)")
     correspondence: bpy.props.EnumProperty(
-        name="Correspondence", default='DEFORM_AWARE',
-        items=[('DEFORM_AWARE', "Deform-aware", "Map deformed surface points back through their neighbours' "
-                                                "displacements (keeps painted texture glued to the surface)"),
-               ('NAIVE', "Naive", "Attention-weighted canonical neighbours (ablation: texture drifts)"),
-               ('DEFORM_GRADIENT', "Deform-gradient", "Map deformed surface points back through each neighbour's "
-                                                      "local deformation (undoes stretch and rotation too)")])
+        name="Correspondence", default='DEFORM_GRADIENT',
+        items=[('DEFORM_GRADIENT', "Deform-gradient", "Map deformed surface points back through each neighbour's "
+                                                      "local deformation, undoing its rotation and stretch (keeps "
+                                                      "painted texture glued where the pose stretches the surface)"),
+               ('DEFORM_AWARE', "Deform-aware", "Map deformed surface points back through their neighbours' "
+                                                "displacements (the paper's: translations only)"),
+               ('NAIVE', "Naive", "Attention-weighted canonical neighbours (ablation: texture drifts)")])
     occlusion: bpy.props.BoolProperty(
         name="Folds (occlusion)", default=True,
         description="Where a pose folds the surface over itself (a joint bent far, a part swung behind another), "

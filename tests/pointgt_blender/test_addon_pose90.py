@@ -72,8 +72,8 @@ def test_paint_at_rest_lands_where_the_proxy_has_it(record):
 
 @pytest.mark.parametrize("angle", [45, 90])
 def test_paint_follows_the_pose(record, angle):
-    """The disc sits where the deformed proxy has it at 45 and at 90 degrees, with the default correspondence
-    and with deform-gradient: within 3.5 px (0.06 units), and the pose adds at most 1.5 px (0.025 units) to
+    """The disc sits where the deformed proxy has it at 45 and at 90 degrees, with deform-aware (the paper's)
+    and with the default deform-gradient: within 3.5 px (0.06 units), and the pose adds at most 1.5 px (0.025 units) to
     what the render is off at rest (measured: 1.0 px for the disc on the turned half at 90 degrees)."""
     r = _get(record, f"pose{angle}")
     for corr in ("DEFORM_AWARE", "DEFORM_GRADIENT"):

@@ -30,3 +30,9 @@ def test_a_changed_variant_is_the_named_one_with_its_fields_changed():
     assert name == f"{base}:squash_grid_finest=0.125,grid_filter=1"
     assert fields == {**VARIANTS[base], "squash_grid_finest": 0.125, "grid_filter": 1}
     EditConfig(**fields)
+
+
+def test_the_variant_named_the_default_renderer_is_editconfigs_defaults():
+    """The variant the docs time as "the default renderer" sets every EditConfig field it names to its default."""
+    name = next(v for v in VARIANTS if v.endswith("(the default renderer)"))
+    assert all(getattr(EditConfig, f) == x for f, x in VARIANTS[name].items()), name

@@ -31,6 +31,16 @@ def test_worst_pose_gap_and_count_within_3_db():
     assert "| cloth | paper | 20.00 / stretch 8.00 | 18.00 / stretch 2.00 | 1/2, 2/2 |" in text
 
 
+def test_the_table_reads_the_first_listed_correspondence():
+    rows = [_row("rest", 0.0, "retexture", "D", 20.0), _row("rest", 0.0, "retexture", "D", 20.0, corr="deform-gradient"),
+            _row("stretch", 1.0, "retexture", "D", 14.0),
+            _row("stretch", 1.0, "retexture", "D", 19.0, corr="deform-gradient")]
+    listed = {"renderers": ["D"], "rows": rows, "correspondences": ["deform-gradient", "deform-aware"]}
+    assert abs(gaps(listed)[0]["retexture"]["gap"] - 1.0) < 1e-9  # the first listed: deform-gradient
+    assert abs(gaps(listed, "deform-aware")[0]["retexture"]["gap"] - 6.0) < 1e-9
+    assert abs(gaps({"renderers": ["D"], "rows": rows})[0]["retexture"]["gap"] - 6.0) < 1e-9  # none listed
+
+
 def test_fit_args_reach_the_scene_bench_under_their_tag():
     base = fit_command(Path("W"), "suzanne", 1, [], ["--steps", "1000"])
     assert base == ["tools.bench.scenes", "--work", "W", "--scenes", "suzanne", "--no-pair", "--threads", "1",

@@ -272,22 +272,22 @@ def test_eval_edits_smoke_on_a_tiny_scene(tmp_path):
     res = json.loads((tmp_path / "e.json").read_text())
     cases = {(r["pose"], r["magnitude"]) for r in res["rows"]}
     assert cases == {("rest", 0.0), ("bend", 1.0)} and res["views"] == 1
-    # per case and renderer (by default paper and the default renderer): geometry, 2 retexture, 2 decal soft,
-    # 2 decal threshold
+    # per case and renderer (by default paper and the default renderer): geometry, and per correspondence (by
+    # default all three) a retexture, a soft and a threshold decal
     from tools.eval_edits import default_renderer
 
-    assert len(res["rows"]) == 2 * 2 * 7 and {r["renderer"] for r in res["rows"]} == {"paper", default_renderer()}
+    assert len(res["rows"]) == 2 * 2 * 10 and {r["renderer"] for r in res["rows"]} == {"paper", default_renderer()}
     for r in res["rows"]:
         for k in ("psnr", "psnr_object", "ssim", "seconds_per_frame"):
             assert math.isfinite(r[k]), (r, k)
-    assert len(res["retexture_gap"]) == 4 and all(math.isfinite(g["gap_psnr_object"]) for g in res["retexture_gap"])
+    assert len(res["retexture_gap"]) == 6 and all(math.isfinite(g["gap_psnr_object"]) for g in res["retexture_gap"])
     assert all(math.isfinite(b["psnr"]) for b in res["blank"])
     assert set(res["blend_comparison"]) == {f"{r}{c} T=1" for r in ("", f"{default_renderer()} ")
-                                            for c in ("naive", "deform-aware")}
+                                            for c in ("naive", "deform-aware", "deform-gradient")}
     assert 0.0 <= res["median_spread"] <= 1.0  # the model's thickness, which the `auto` rules resolve by
     table = (tmp_path / "e.md").read_text()
     assert "median spread" in table.splitlines()[0]
-    assert table.count("| bend | 1 | ") == 2 * (7 + 2 + 1)  # per renderer: every case, 2 retexture gaps, ablation
+    assert table.count("| bend | 1 | ") == 2 * (10 + 3 + 1)  # per renderer: every case, 3 retexture gaps, ablation
     assert (tmp_path / "scene" / "eval_views1" / "poses" / "bend_decal" / "variant.json").exists()
     gt = json.loads((tmp_path / "gt.json").read_text())  # --downscale 2: the same renders area-averaged
     assert gt["full"] == [1, 32, 32, 3] and gt["half"] == [1, 16, 16, 3]

@@ -106,7 +106,12 @@ VARIANTS = {  # name: EditConfig fields (every F switch named: the defaults may 
     _P + " 16, stretch grid, squash grid, texture on it, samples lookup, deform-aware":
         {**_P16, "grid_texture": 0.25, "lookup": "samples"},
     _P + " 16, stretch grid, squash grid, texture on it, samples lookup, occlusion, deform-aware (the default "
-         "renderer)": {**_P16, "grid_texture": 0.25, "lookup": "samples", "f_occlusion": True},
+         "renderer with the paper's correspondence)": {**_P16, "grid_texture": 0.25, "lookup": "samples",
+                                                        "f_occlusion": True},
+    _P + " 16, stretch grid, squash grid, texture on it, samples lookup, occlusion, deform-gradient undoing no "
+         "compression (the default renderer)": {**_P16, "grid_texture": 0.25, "lookup": "samples", "f_occlusion": True,
+                                               "correspondence": "deform-gradient",
+                                               "f_correspondence_compression": "keep"},
     _P + " 16, stretch grid, squash grid, occlusion, deform-aware": {**_P16, "f_occlusion": True},
     _P + ", stretch grid, occlusion, deform-aware": {**_PERSP, "stretch_grid": 1.5, "f_occlusion": True},
     _D + ", budget reach gated at 1.5 caps between points, keys' stretch by the model's thickness, occlusion, "

@@ -7,7 +7,7 @@
 Per scene, each step a separate process, exactly what a user runs, and each reused when its output exists:
 `pointgt make-scene` and the default stage-1 fit (as `python -m tools.bench.scenes --no-pair` makes them:
 DIR/NAME, DIR/NAME.default.pgt), `pointgt atlas` with its defaults (or `--atlas-args`), then `pointgt eval-edits`
-at magnitude 1 (deform-aware correspondence, temperature 1, the soft blend; DIR/NAME.edits.json). The table gives,
+at magnitude 1 (the default correspondence, temperature 1, the soft blend; DIR/NAME.edits.json). The table gives,
 per scene and renderer, the rest frame's object PSNR and, over the posed frames, the worst pose and its gap to rest
 for the geometry-only edit and for the retexture (issue #16's bar: every pose within 3 dB of rest), and the mean
 seconds per frame. The model's quality sets the rest figure: a weak fit has less to lose, so compare renderers
@@ -28,14 +28,15 @@ EDITS = ("geometry", "retexture")
 SIZE = 128  # the scenes' training size (tools.bench.scenes' default)
 
 
-def gaps(result: dict) -> list[dict]:
+def gaps(result: dict, correspondence: str | None = None) -> list[dict]:
     """Per renderer of one eval-edits result (its --json): rest object PSNR and the worst posed gap per edit.
 
-    Reads rows at magnitude 1 (rest: magnitude 0), deform-aware correspondence for the retexture (geometry has
-    none), temperature 1, soft blend. Returns [{renderer, seconds_per_frame, <edit>: {rest, worst_pose, gap,
+    Reads rows at magnitude 1 (rest: magnitude 0), `correspondence`'s for the retexture (default: the first the
+    result lists, deform-aware for a result that lists none; geometry has none), temperature 1, soft blend. Returns [{renderer, seconds_per_frame, <edit>: {rest, worst_pose, gap,
     within}}] with within = the number of poses whose gap is at most 3 dB, out of `poses`."""
+    correspondence = correspondence or result.get("correspondences", ["deform-aware"])[0]
     rows = [r for r in result["rows"] if r["blend"] == "soft" and r["temperature"] == 1.0
-            and r["correspondence"] in ("-", "deform-aware")]
+            and r["correspondence"] in ("-", correspondence)]
     out = []
     for rd in result["renderers"]:
         mine = [r for r in rows if r.get("renderer", "paper") == rd]
@@ -95,6 +96,7 @@ def scene_size(scene: Path) -> int | None:
 def main(argv=None) -> int:
     from tools.bench import add_samples, run_command, samples_flag, write_json
     from tools.bench.scenes import model_path
+    from core.frames.edited import EditConfig
     from tools.eval_edits import default_renderer
     from tools.machine import machine_line
     from tools.scenes.library import scene_names
@@ -107,8 +109,9 @@ def main(argv=None) -> int:
     ap.add_argument("--renderers", default=None,
                     help="comma-separated eval-edits renderer variants (default: paper and the default renderer)")
     ap.add_argument("--poses", default=None, help="comma-separated poses (default: every pose of each scene)")
-    ap.add_argument("--correspondences", default="deform-aware",
-                    help="eval-edits --correspondences (the table reads deform-aware's retexture; the JSON keeps "
+    ap.add_argument("--correspondences", default=None,
+                    help="eval-edits --correspondences (default: the default one, `pointgt render`'s; the table "
+                         "reads the first one's retexture; the JSON keeps "
                          "every correspondence's rows)")
     ap.add_argument("--views", type=int, default=4, help="test views per case (eval-edits --views)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per fit and per atlas fit")
@@ -134,6 +137,7 @@ def main(argv=None) -> int:
     if args.downscale > 1 and not args.tag:
         args.tag = f"ds{args.downscale}"
     renderers = args.renderers or f"paper,{default_renderer()}"
+    args.correspondences = args.correspondences or EditConfig.correspondence
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     py = [sys.executable, "-m"]

@@ -28,9 +28,9 @@ def add_arguments(p):
                    help="comma-separated renderer variants, each named with the EditConfig switches it sets beyond "
                         "the paper's renderer (what a switch does: `pointgt render --help`; default: paper and the "
                         "default renderer, what `pointgt render` does): " + renderers_help())
-    p.add_argument("--correspondences", default="naive,deform-aware",
+    p.add_argument("--correspondences", default="naive,deform-aware,deform-gradient",
                    help="comma-separated correspondences: naive | deform-aware (the paper's two) | deform-gradient "
-                        "(also undoes local rotation and stretch)")
+                        "(also undoes local rotation and stretch; the default of `pointgt render`)")
     p.add_argument("--antialias", type=int, default=2,
                    help="texture lookups per pixel side (1 = one per ray, no pixel filter)")
     p.add_argument("--retexture", default="stripes", help="global procedural texture for the retexture edit (stripes: along x; checker cells are thinner than a thin object's depth error)")

@@ -39,8 +39,9 @@ def add_arguments(p):
                    help="canonical index of each deformed point: .npy integer [M] (needed when M != model points)")
     p.add_argument("--atlas", default=None, help="painted atlas image (PNG, same size as the model's atlas)")
     p.add_argument("--correspondence", default=EditConfig.correspondence, choices=MODES,
-                   help="canonical correspondence for texture lookups of moved points: deform-aware / naive (the "
-                        "paper's) or deform-gradient (also undoes each neighbour's local rotation and stretch)")
+                   help="canonical correspondence for texture lookups of moved points: deform-gradient (undoes "
+                        "each neighbour's local rotation and stretch; the default) or deform-aware / naive (the "
+                        "paper's)")
     # the F-aware rendering and fold rule: one flag per EditConfig field, help from the field (the other fields
     # have their own flags above and below, or are not offered)
     add_to_parser(p, EditConfig, skip=("correspondence", "blend", "mask_threshold", "temperature", "colour",
