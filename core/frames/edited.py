@@ -233,7 +233,7 @@ class EditState:
         self.bundle = bundle
         self.cfg = cfg or EditConfig()
         self.deformation_cfg = deformation or DeformationConfig()
-        self._f = self._inv_f = self._inv_f_keys = self._inv_f_corr = self._radius_scale = self._reach = None
+        self._f = self._inv_f = self._inv_f_keys = self._radius_scale = self._reach = None
         self._row_tables = {}  # name -> ([M, 3, 3] rows filled as frames need them, [M] bool: which are filled)
         self._local_scale = None  # median |det F|^(1/3), once computed
         self._grid = None  # (camera key, StretchGrid or None) of the last frame `_stretched` was asked for
@@ -440,6 +440,14 @@ class EditState:
         `compression`). None when nothing moved."""
         if self.f is None:
             return None
+        return self.inv_f_correspondence_at(torch.arange(self._f.shape[0], device=self._f.device))
+
+    def inv_f_correspondence_at(self, rows: torch.Tensor) -> torch.Tensor | None:
+        """`inv_f_correspondence` where only the rows [P] long are read: [M, 3, 3], right at those rows and at any
+        computed before, zero at the others (a frame's correspondence reads only its rays' neighbours); the
+        keys' and the undo rules give their whole tables. None when nothing moved."""
+        if self.f is None:
+            return None
         mode = self.cfg.f_correspondence_compression
         if mode == "auto":
             mode = "undo" if self._thick() else "tangent"
@@ -447,9 +455,10 @@ class EditState:
             return self.inv_f_keys
         if mode == "undo":
             return self.inv_f
-        if self._inv_f_corr is None:
-            self._inv_f_corr = self._timed(lambda: self._rule_inverse(None, mode=mode))
-        return self._inv_f_corr
+
+        def fill(todo, table):
+            table[todo] = self._rule_inverse(None, todo, mode=mode)
+        return self._rows_filled("inv_f_correspondence", rows, fill)
 
     @property
     def inv_f_attention(self) -> torch.Tensor | None:
@@ -736,9 +745,11 @@ class EditState:
         mode = cfg.correspondence
         fold = cfg.fold_radius * float(self.bundle.model.spacing) if cfg.fold_radius > 0 else None
         local = fold is not None and cfg.fold_test == "local-map"
-        return ray_canonical_points(trace, sel, self.points, self.p_can, mode,
-                                    inv_f=self.inv_f_correspondence if mode == "deform-gradient" else None,
-                                    fold_radius=fold,
+        inv_f = None
+        if mode == "deform-gradient":  # the rows the rays' neighbours hold
+            held = trace.idx[sel]
+            inv_f = self.inv_f_correspondence_at(held[held >= 0].unique())
+        return ray_canonical_points(trace, sel, self.points, self.p_can, mode, inv_f=inv_f, fold_radius=fold,
                                     fold_inv_f=self.inv_f_keys if local else None)
 
     @property

@@ -506,6 +506,13 @@ def test_the_correspondence_compression_rule_is_its_own(tiny):
         assert bool(torch.isfinite(out["rgb"]).all()), m
         if m == "keep":
             assert float(((x - lo).clamp_max(0).norm(dim=-1) + (x - hi).clamp_min(0).norm(dim=-1)).max()) < reach
+    # the frame reads only its rays' neighbours' rows: the same frame as with every row computed first
+    whole = EditState(bundle, points=pts, atlas=atlas, cfg=states["keep"].cfg)
+    assert torch.equal(whole.inv_f_correspondence, keep)
+    a = render_edited(whole, c2w, test.height, test.width, test.focal)
+    b = render_edited(EditState(bundle, points=pts, atlas=atlas, cfg=states["keep"].cfg), c2w, test.height,
+                      test.width, test.focal)
+    assert torch.equal(a["rgb"], b["rgb"]) and torch.equal(a["x_can"].nan_to_num(7.0), b["x_can"].nan_to_num(7.0))
     _forced_rest(bundle, test, EditConfig(correspondence="deform-gradient", f_correspondence_compression="keep"),
                  atlas=atlas, views=[0])
 
