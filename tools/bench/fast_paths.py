@@ -127,12 +127,10 @@ def main(argv=None) -> int:
                                            lambda: decode_where_active(model, fimg, active), args.reps)))
 
     import core.frames.edited as edited_mod
-    from core.edits.correspondence import canonical_points
 
     hit = tr.active & ((1.0 - tr.bg) > 1e-4)
     sel = torch.nonzero(hit).squeeze(1)
-    xc = canonical_points(tr.fg_weights[sel], tr.idx[sel], tr.x[sel], tr.origins[sel], tr.dirs[sel],
-                          pts, state.p_can, state.cfg.correspondence)
+    xc = state.canonical_surface(tr, sel)  # the frame's own correspondence (the default's, with its inverses)
 
     def lookup(crop):
         with torch.no_grad():
