@@ -52,8 +52,8 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
     p_can − p_def lies within this distance (world units) of the most-attended neighbour's (None or inf: all);
     fold_inv_f [M, 3, 3]: the fold rule compares each neighbour's own estimate of the ray's canonical point,
     p_can + fold_inv_f (x_def − p_def), instead of its displacement (see `_fold_reject`).
-    backend: "compiled" (one numba pass per ray: the displacement fold rule and the naive or deform-aware sum, CPU
-    tensors; with fold_inv_f the fold rule stays in torch and the sum is compiled; not for deform-gradient),
+    backend: "compiled" (one numba pass per ray: the displacement fold rule and the naive, deform-aware or
+    deform-gradient sum, CPU tensors; with fold_inv_f the fold rule stays in torch and the sum is compiled),
     "torch", or "auto" (compiled where it can run). Both give the same numbers to float rounding
     (tests/core/edits/test_correspondence.py).
     """
@@ -62,15 +62,17 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
     if backend not in BACKENDS:
         raise ValueError(f"correspondence backend must be one of {BACKENDS}, got {backend!r}")
     fold = fold_radius is not None and fold_radius < float("inf") and idx.shape[1] > 0
-    can_compile = (numba is not None and mode != "deform-gradient"
-                   and all(t.device.type == "cpu" for t in (fg_weights, idx, x_hat, p_def, p_can)))
+    if mode == "deform-gradient" and inv_f is None:
+        raise ValueError("correspondence 'deform-gradient' needs the points' inverse deformation gradients inv_f")
+    gradient = inv_f if mode == "deform-gradient" else None
+    can_compile = (numba is not None and all(t.device.type == "cpu" for t in (fg_weights, idx, x_hat, p_def, p_can))
+                   and (gradient is None or gradient.device.type == "cpu"))
     if backend == "compiled" and not can_compile:
-        raise ValueError("correspondence backend 'compiled' needs numba, CPU tensors and mode naive or deform-aware; "
-                         "use 'auto' or 'torch'")
+        raise ValueError("correspondence backend 'compiled' needs numba and CPU tensors; use 'auto' or 'torch'")
     compiled = backend != "torch" and can_compile
     if compiled and not (fold and fold_inv_f is not None):
         return _canonical_compiled(fg_weights, idx, x_hat, origins, dirs, p_def, p_can, mode == "naive",
-                                   float(fold_radius) if fold else None)
+                                   float(fold_radius) if fold else None, gradient)
     w = fg_weights * (idx >= 0)
     safe = idx.clamp_min(0)
     disp = None  # the neighbours' displacements p_can − p_def [R, K, 3], once gathered
@@ -83,13 +85,11 @@ def canonical_points(fg_weights: torch.Tensor, idx: torch.Tensor, x_hat: torch.T
             disp = (p_can - p_def)[safe]
         w, x_hat = _fold_reject(w, idx, safe, x_hat, p_def, p_can, float(fold_radius), local, disp)
         if compiled:  # the sum as without the rule (rows it left whole: the same numbers)
-            return _canonical_compiled(w, idx, x_hat, origins, dirs, p_def, p_can, mode == "naive", None)
+            return _canonical_compiled(w, idx, x_hat, origins, dirs, p_def, p_can, mode == "naive", None, gradient)
     if mode == "naive":
         return (w[..., None] * p_can[safe]).sum(1)
     x_def = project_on_ray(x_hat, origins, dirs)
     if mode == "deform-gradient":
-        if inv_f is None:
-            raise ValueError("correspondence 'deform-gradient' needs the points' inverse deformation gradients inv_f")
         off = x_def[:, None, :] - p_def[safe]                                   # [R, K, 3]
         back = (inv_f[safe] @ off[..., None]).squeeze(-1)
         # rows whose weights do not sum to one keep the rest at x_def, as the deform-aware sum does
@@ -155,13 +155,14 @@ def _fold_reject(w: torch.Tensor, idx: torch.Tensor, safe: torch.Tensor, x_hat: 
     return kept, x_new
 
 
-def _canonical_loop(w_in, idx, x_hat, o, d, p_def, p_can, disp, naive, fold, radius, out):
-    """The compiled path of `canonical_points` (modes naive and deform-aware, the displacement fold rule): per ray,
+def _canonical_loop(w_in, idx, x_hat, o, d, p_def, p_can, disp, naive, fold, radius, gradient, inv_f, out):
+    """The compiled path of `canonical_points` (every mode, the displacement fold rule): per ray,
     the weights w = fg · (idx ≥ 0); with fold, the neighbours whose displacement disp = p_can − p_def lies farther
     than radius from that of the most-attended one (the first maximum) dropped, the rest scaled back to the row's
     sum and x̂ recomputed from them (rows that drop nothing, or would drop everything, are left as they are); then
-    Σ w p_can (naive) or Π_ray(x̂) + Σ w disp (deform-aware). float32 inputs, out [R, 3] float32; the torch path's
-    float32 steps (sums in neighbour order; the radius test on squared lengths)."""
+    Σ w p_can (naive), Π_ray(x̂) + Σ w disp (deform-aware) or, with gradient, Σ w (p_can + inv_f (x_def − p_def)) +
+    (1 − Σ w) x_def, x_def = Π_ray(x̂) (deform-gradient; inv_f [M, 3, 3]). float32 inputs, out [R, 3] float32; the
+    torch path's float32 steps (sums in neighbour order; the radius test on squared lengths)."""
     f32 = np.float32
     r_n, k = idx.shape
     w = np.empty(k, dtype=np.float32)
@@ -207,6 +208,24 @@ def _canonical_loop(w_in, idx, x_hat, o, d, p_def, p_can, disp, naive, fold, rad
                         w[j] = f32(0.0)
                 sw = max(sw, f32(1e-30))
                 xx, xy, xz = sx / sw, sy / sw, sz / sw
+        if gradient:
+            t = (xx - o[r, 0]) * d[r, 0] + (xy - o[r, 1]) * d[r, 1] + (xz - o[r, 2]) * d[r, 2]
+            if not t > f32(0.0):  # clamped at 0 (NaN stays NaN)
+                t = t if t != t else f32(0.0)
+            dx, dy, dz = o[r, 0] + t * d[r, 0], o[r, 1] + t * d[r, 1], o[r, 2] + t * d[r, 2]
+            ax, ay, az, sw = f32(0.0), f32(0.0), f32(0.0), f32(0.0)
+            for j in range(k):
+                q = idx[r, j]
+                if q < 0:
+                    q = 0  # its weight is 0, as the torch path's clamped index
+                ex, ey, ez = dx - p_def[q, 0], dy - p_def[q, 1], dz - p_def[q, 2]
+                ax += w[j] * (p_can[q, 0] + (inv_f[q, 0, 0] * ex + inv_f[q, 0, 1] * ey + inv_f[q, 0, 2] * ez))
+                ay += w[j] * (p_can[q, 1] + (inv_f[q, 1, 0] * ex + inv_f[q, 1, 1] * ey + inv_f[q, 1, 2] * ez))
+                az += w[j] * (p_can[q, 2] + (inv_f[q, 2, 0] * ex + inv_f[q, 2, 1] * ey + inv_f[q, 2, 2] * ez))
+                sw += w[j]
+            rest = f32(1.0) - sw
+            out[r, 0], out[r, 1], out[r, 2] = ax + rest * dx, ay + rest * dy, az + rest * dz
+            continue
         ax, ay, az = f32(0.0), f32(0.0), f32(0.0)
         for j in range(k):
             q = idx[r, j]
@@ -235,8 +254,9 @@ _compiled_canonical = None
 
 
 def _canonical_compiled(fg_weights, idx, x_hat, origins, dirs, p_def, p_can, naive: bool,
-                        radius: float | None) -> torch.Tensor:
-    """canonical_points through the compiled loop (`_canonical_loop`): x_can [R, 3] in x_hat's dtype."""
+                        radius: float | None, inv_f: torch.Tensor | None = None) -> torch.Tensor:
+    """canonical_points through the compiled loop (`_canonical_loop`): x_can [R, 3] in x_hat's dtype; inv_f
+    [M, 3, 3]: the deform-gradient sum."""
     global _compiled_canonical
     if _compiled_canonical is None:
         try:
@@ -253,5 +273,6 @@ def _canonical_compiled(fg_weights, idx, x_hat, origins, dirs, p_def, p_can, nai
         pd, pc = f32(p_def), f32(p_can)
         _compiled_canonical(f32(fg_weights), np.ascontiguousarray(idx.detach().to(torch.int64).numpy()), f32(x_hat),
                             f32(origins), f32(dirs), pd, pc, pc - pd, bool(naive), radius is not None,
-                            np.float32(0.0 if radius is None else min(radius, 1e18)), out)
+                            np.float32(0.0 if radius is None else min(radius, 1e18)), inv_f is not None,
+                            np.zeros((1, 3, 3), np.float32) if inv_f is None else f32(inv_f), out)
     return torch.from_numpy(out).to(x_hat.dtype)

@@ -254,18 +254,31 @@ def test_compiled_backend_matches_torch():
         case = list(_case(seed, r=64, k=12, m=120))
         case[0][5] = 0.0
         case[1][6] = -1
-        for mode in ("naive", "deform-aware"):
+        g = torch.Generator().manual_seed(seed)
+        inv_f = torch.eye(3) + 0.4 * torch.randn(120, 3, 3, generator=g)  # turned, stretched, mirrored maps
+        inv_f[::7] = 0.0  # degenerate ones
+        for mode in ("naive", "deform-aware", "deform-gradient"):
+            maps = inv_f if mode == "deform-gradient" else None
             for radius in (None, 0.0, 0.3, 1.0, 1e6, float("inf")):
-                ref = canonical_points(*case, mode=mode, fold_radius=radius, backend="torch")
-                got = canonical_points(*case, mode=mode, fold_radius=radius, backend="compiled")
+                ref = canonical_points(*case, mode=mode, inv_f=maps, fold_radius=radius, backend="torch")
+                got = canonical_points(*case, mode=mode, inv_f=maps, fold_radius=radius, backend="compiled")
                 assert torch.isfinite(got).all()
                 assert torch.allclose(got, ref, atol=1e-5, rtol=0), (seed, mode, radius)
-            whole = canonical_points(*case, mode=mode, fold_radius=1e6, backend="compiled")
-            assert torch.equal(whole, canonical_points(*case, mode=mode, backend="compiled"))
+            whole = canonical_points(*case, mode=mode, inv_f=maps, fold_radius=1e6, backend="compiled")
+            assert torch.equal(whole, canonical_points(*case, mode=mode, inv_f=maps, backend="compiled"))
+        eye = torch.eye(3).expand(120, 3, 3)  # F = I: deform-gradient is deform-aware
+        assert torch.allclose(canonical_points(*case, mode="deform-gradient", inv_f=eye, backend="compiled"),
+                              canonical_points(*case, mode="deform-aware", backend="compiled"), atol=1e-5, rtol=0)
     case = _two_layers()
-    for mode in ("naive", "deform-aware"):
-        ref = canonical_points(*case, mode=mode, fold_radius=1.0, backend="torch")
-        assert torch.allclose(canonical_points(*case, mode=mode, fold_radius=1.0, backend="compiled"), ref, atol=1e-5)
+    eye = torch.eye(3).expand(case[5].shape[0], 3, 3)
+    for mode in ("naive", "deform-aware", "deform-gradient"):
+        maps = eye if mode == "deform-gradient" else None
+        ref = canonical_points(*case, mode=mode, inv_f=maps, fold_radius=1.0, backend="torch")
+        got = canonical_points(*case, mode=mode, inv_f=maps, fold_radius=1.0, backend="compiled")
+        assert torch.allclose(got, ref, atol=1e-5)
+        # the local-map fold rule in torch, the sum compiled
+        ref = canonical_points(*case, mode=mode, inv_f=maps, fold_radius=1.0, fold_inv_f=eye, backend="torch")
+        got = canonical_points(*case, mode=mode, inv_f=maps, fold_radius=1.0, fold_inv_f=eye, backend="compiled")
+        assert torch.allclose(got, ref, atol=1e-5)
     with pytest.raises(ValueError):
-        canonical_points(*case, mode="deform-gradient", inv_f=torch.eye(3).expand(case[5].shape[0], 3, 3),
-                         backend="compiled")
+        canonical_points(*case, mode="deform-gradient", backend="compiled")  # no maps
