@@ -208,11 +208,13 @@ def _canonical_loop(w_in, idx, x_hat, o, d, p_def, p_can, disp, naive, fold, rad
                         w[j] = f32(0.0)
                 sw = max(sw, f32(1e-30))
                 xx, xy, xz = sx / sw, sy / sw, sz / sw
-        if gradient:
+        dx, dy, dz = f32(0.0), f32(0.0), f32(0.0)
+        if not naive:  # x_def = Π_ray(x̂)
             t = (xx - o[r, 0]) * d[r, 0] + (xy - o[r, 1]) * d[r, 1] + (xz - o[r, 2]) * d[r, 2]
             if not t > f32(0.0):  # clamped at 0 (NaN stays NaN)
                 t = t if t != t else f32(0.0)
             dx, dy, dz = o[r, 0] + t * d[r, 0], o[r, 1] + t * d[r, 1], o[r, 2] + t * d[r, 2]
+        if gradient:
             ax, ay, az, sw = f32(0.0), f32(0.0), f32(0.0), f32(0.0)
             for j in range(k):
                 q = idx[r, j]
@@ -241,13 +243,8 @@ def _canonical_loop(w_in, idx, x_hat, o, d, p_def, p_can, disp, naive, fold, rad
                 az += w[j] * disp[q, 2]
         if naive:
             out[r, 0], out[r, 1], out[r, 2] = ax, ay, az
-            continue
-        t = (xx - o[r, 0]) * d[r, 0] + (xy - o[r, 1]) * d[r, 1] + (xz - o[r, 2]) * d[r, 2]
-        if not t > f32(0.0):  # clamped at 0 (NaN stays NaN)
-            t = t if t != t else f32(0.0)
-        out[r, 0] = o[r, 0] + t * d[r, 0] + ax
-        out[r, 1] = o[r, 1] + t * d[r, 1] + ay
-        out[r, 2] = o[r, 2] + t * d[r, 2] + az
+        else:
+            out[r, 0], out[r, 1], out[r, 2] = dx + ax, dy + ay, dz + az
 
 
 _compiled_canonical = None

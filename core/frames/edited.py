@@ -449,8 +449,8 @@ class EditState:
         if self.f is None:
             return None
         mode = self.cfg.f_correspondence_compression
-        if mode == "auto":
-            mode = "undo" if self._thick() else "tangent"
+        if mode != "keys":
+            mode = self._compression_rule(mode)
         if mode in ("keys", self.compression):
             return self.inv_f_keys
         if mode == "undo":
@@ -518,7 +518,11 @@ class EditState:
     def compression(self) -> str:
         """The compression rule the keys use: f_compression, with auto resolved by the model's thickness
         (`DeformationField.median_spread` against f_thick_spread: undo for a thick shell, tangent for a sheet)."""
-        mode = self.cfg.f_compression
+        return self._compression_rule(self.cfg.f_compression)
+
+    def _compression_rule(self, mode: str) -> str:
+        """A compression rule (COMPRESSION) with auto resolved by the model's thickness: undo for a thick shell,
+        tangent for a sheet."""
         if mode != "auto":
             return mode
         return "undo" if self._thick() else "tangent"
@@ -746,11 +750,8 @@ class EditState:
         fold = cfg.fold_radius * float(self.bundle.model.spacing) if cfg.fold_radius > 0 else None
         local = fold is not None and cfg.fold_test == "local-map"
         inv_f = None
-        if mode == "deform-gradient":  # the rows the rays' neighbours hold (a mask: cheaper than sorting them)
-            held = trace.idx[sel]
-            mark = torch.zeros(self.p_can.shape[0], dtype=torch.bool, device=held.device)
-            mark[held[held >= 0]] = True
-            inv_f = self.inv_f_correspondence_at(torch.nonzero(mark).squeeze(1))
+        if mode == "deform-gradient":  # only the rows the rays' neighbours hold
+            inv_f = self.inv_f_correspondence_at(held_rows(trace.idx[sel], self.p_can.shape[0]))
         return ray_canonical_points(trace, sel, self.points, self.p_can, mode, inv_f=inv_f, fold_radius=fold,
                                     fold_inv_f=self.inv_f_keys if local else None)
 
