@@ -160,9 +160,10 @@ def _canonical_loop(w_in, idx, x_hat, o, d, p_def, p_can, disp, naive, fold, rad
     the weights w = fg · (idx ≥ 0); with fold, the neighbours whose displacement disp = p_can − p_def lies farther
     than radius from that of the most-attended one (the first maximum) dropped, the rest scaled back to the row's
     sum and x̂ recomputed from them (rows that drop nothing, or would drop everything, are left as they are); then
-    Σ w p_can (naive), Π_ray(x̂) + Σ w disp (deform-aware) or, with gradient, Σ w (p_can + inv_f (x_def − p_def)) +
-    (1 − Σ w) x_def, x_def = Π_ray(x̂) (deform-gradient; inv_f [M, 3, 3]). float32 inputs, out [R, 3] float32; the
-    torch path's float32 steps (sums in neighbour order; the radius test on squared lengths)."""
+    Σ w p_can (naive), Π_ray(x̂) + Σ w disp (deform-aware) or, with gradient,
+    Σ w (p_can + inv_f (x_def − p_def)) + (1 − Σ w) x_def, x_def = Π_ray(x̂) (deform-gradient; inv_f [M, 3, 3]).
+    float32 inputs, out [R, 3] float32; the torch path's float32 steps (sums in neighbour order; the radius test on
+    squared lengths)."""
     f32 = np.float32
     r_n, k = idx.shape
     w = np.empty(k, dtype=np.float32)

@@ -60,11 +60,12 @@ class EditConfig:
     f_attention: bool = opt(True, "moved points: measure the attention's key geometry in each neighbour's "
                                   "canonical frame (its inverse local deformation gradient applied to the "
                                   "ray-to-point offset; docs/editing.md has the ablation); rest frames are unchanged")
-    f_compression: str = opt("auto", "what the F-aware keys (f_attention) and the deform-gradient correspondence "
-                                        "undo of a local compression: tangent (along the canonical neighbourhood's "
-                                        "surface, not across it) | keep (none: stretch only) | undo (all, full F⁻¹) | "
-                                        "auto (tangent for a thin-sheet model, undo for one whose points form a thick "
-                                        "shell, where no point has a reliable normal: f_thick_spread)",
+    f_compression: str = opt("auto", "what the F-aware keys (f_attention; and the deform-gradient correspondence "
+                                        "with f_correspondence_compression keys) undo of a local compression: "
+                                        "tangent (along the canonical neighbourhood's surface, not across it) | keep "
+                                        "(none: stretch only) | undo (all, full F⁻¹) | auto (tangent for a "
+                                        "thin-sheet model, undo for one whose points form a thick shell, where no "
+                                        "point has a reliable normal: f_thick_spread)",
                              choices=COMPRESSION)
     f_correspondence_compression: str = opt("keep", "what the deform-gradient correspondence undoes of a local "
                                                     "compression: keep (none: rotation and stretch only) | keys "

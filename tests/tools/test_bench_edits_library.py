@@ -32,8 +32,8 @@ def test_worst_pose_gap_and_count_within_3_db():
 
 
 def test_the_table_reads_the_first_listed_correspondence():
-    rows = [_row("rest", 0.0, "retexture", "D", 20.0), _row("rest", 0.0, "retexture", "D", 20.0, corr="deform-gradient"),
-            _row("stretch", 1.0, "retexture", "D", 14.0),
+    rows = [_row("rest", 0.0, "retexture", "D", 20.0), _row("stretch", 1.0, "retexture", "D", 14.0),
+            _row("rest", 0.0, "retexture", "D", 20.0, corr="deform-gradient"),
             _row("stretch", 1.0, "retexture", "D", 19.0, corr="deform-gradient")]
     listed = {"renderers": ["D"], "rows": rows, "correspondences": ["deform-gradient", "deform-aware"]}
     assert abs(gaps(listed)[0]["retexture"]["gap"] - 1.0) < 1e-9  # the first listed: deform-gradient

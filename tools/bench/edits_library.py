@@ -32,8 +32,9 @@ def gaps(result: dict, correspondence: str | None = None) -> list[dict]:
     """Per renderer of one eval-edits result (its --json): rest object PSNR and the worst posed gap per edit.
 
     Reads rows at magnitude 1 (rest: magnitude 0), `correspondence`'s for the retexture (default: the first the
-    result lists, deform-aware for a result that lists none; geometry has none), temperature 1, soft blend. Returns [{renderer, seconds_per_frame, <edit>: {rest, worst_pose, gap,
-    within}}] with within = the number of poses whose gap is at most 3 dB, out of `poses`."""
+    result lists, deform-aware for a result that lists none; geometry has none), temperature 1, soft blend.
+    Returns [{renderer, seconds_per_frame, <edit>: {rest, worst_pose, gap, within}}] with within = the number of
+    poses whose gap is at most 3 dB, out of `poses`."""
     correspondence = correspondence or result.get("correspondences", ["deform-aware"])[0]
     rows = [r for r in result["rows"] if r["blend"] == "soft" and r["temperature"] == 1.0
             and r["correspondence"] in ("-", correspondence)]
@@ -94,9 +95,9 @@ def scene_size(scene: Path) -> int | None:
 
 
 def main(argv=None) -> int:
+    from core.frames.edited import EditConfig
     from tools.bench import add_samples, run_command, samples_flag, write_json
     from tools.bench.scenes import model_path
-    from core.frames.edited import EditConfig
     from tools.eval_edits import default_renderer
     from tools.machine import machine_line
     from tools.scenes.library import scene_names
@@ -111,8 +112,7 @@ def main(argv=None) -> int:
     ap.add_argument("--poses", default=None, help="comma-separated poses (default: every pose of each scene)")
     ap.add_argument("--correspondences", default=None,
                     help="eval-edits --correspondences (default: the default one, `pointgt render`'s; the table "
-                         "reads the first one's retexture; the JSON keeps "
-                         "every correspondence's rows)")
+                         "reads the first one's retexture; the JSON keeps every correspondence's rows)")
     ap.add_argument("--views", type=int, default=4, help="test views per case (eval-edits --views)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per fit and per atlas fit")
     ap.add_argument("--fit-args", default="", help="more `pointgt fit` flags for every stage-1 fit (one string; "
