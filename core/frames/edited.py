@@ -236,6 +236,7 @@ class EditState:
         self.deformation_cfg = deformation or DeformationConfig()
         self._f = self._inv_f = self._inv_f_keys = self._radius_scale = self._reach = None
         self._row_tables = {}  # name -> ([M, 3, 3] rows filled as frames need them, [M] bool: which are filled)
+        self._f_source = None  # f_fill: per row of F the given row it copies ([M] long; None: no row was added)
         self._local_scale = None  # median |det F|^(1/3), once computed
         self._grid = None  # (camera key, StretchGrid or None) of the last frame `_stretched` was asked for
         self._centre = None  # the points' centre, once computed
@@ -360,6 +361,7 @@ class EditState:
         self.points = torch.cat([self.points, new.to(self.points.dtype)])
         self.ids = torch.cat([ids, ids[src]])
         self._f = torch.cat([f, f[src]])
+        self._f_source = torch.cat([torch.arange(m, device=src.device), src])
         self._gap = torch.cat([gap, torch.maximum(gap[src], gap[partner])])
         self._sparse = torch.cat([sparse, torch.maximum(sparse[src], sparse[partner])])
         self.filled_points = int(new.shape[0])
@@ -403,20 +405,40 @@ class EditState:
             return None
         if self._inv_f is not None:
             return self._inv_f
-        return self._rows_filled("inv_f", rows, lambda todo, table: inverse_at(self._f, todo, table))
+        return self._rows_filled("inv_f", rows, lambda todo, table: inverse_at(self._f, todo, table), of_f=True)
 
-    def _rows_filled(self, name: str, rows: torch.Tensor, fill) -> torch.Tensor:
+    def _rows_filled(self, name: str, rows: torch.Tensor, fill, of_f: bool = False) -> torch.Tensor:
         """The [M, 3, 3] table `name` of this state with the rows [P] long filled: fill(todo [Q] long, table) writes
-        the rows not filled before (timed as deformation work); the other rows stay 0 until a frame reads them."""
+        the rows not filled before (timed as deformation work); the other rows stay 0 until a frame reads them.
+        of_f: each row is a function of that row of F alone, so a row f_fill added (a copy of its source's F)
+        copies its source's row instead of being computed again (the same numbers)."""
         if name not in self._row_tables:
             self._row_tables[name] = (torch.zeros_like(self._f),
                                       torch.zeros(self._f.shape[0], dtype=torch.bool, device=self._f.device))
         table, done = self._row_tables[name]
         todo = rows[~done[rows]]
-        if todo.numel():
+        if not todo.numel():
+            return table
+        if of_f and self._f_source is not None:
+            self._timed(lambda: self._fill_by_source(todo, table, done, fill))
+        else:
             self._timed(lambda: fill(todo, table))
-            done[todo] = True
+        done[todo] = True
         return table
+
+    def _fill_by_source(self, todo: torch.Tensor, table: torch.Tensor, done: torch.Tensor, fill) -> None:
+        """`_rows_filled`'s of_f case: fill the sources of the rows todo [Q] that are not filled yet (each once),
+        then copy them into the added rows among todo."""
+        source = self._f_source[todo]
+        need = torch.zeros_like(done)
+        need[source] = True
+        base = torch.nonzero(need & ~done).squeeze(1)
+        if base.numel():
+            fill(base, table)
+            done[base] = True
+        added = todo[source != todo]
+        if added.numel():
+            table[added] = table[self._f_source[added]]
 
     @property
     def inv_f_keys(self) -> torch.Tensor | None:
@@ -459,7 +481,7 @@ class EditState:
 
         def fill(todo, table):
             table[todo] = self._rule_inverse(None, todo, mode=mode)
-        return self._rows_filled("inv_f_correspondence", rows, fill)
+        return self._rows_filled("inv_f_correspondence", rows, fill, of_f=True)
 
     @property
     def inv_f_attention(self) -> torch.Tensor | None:

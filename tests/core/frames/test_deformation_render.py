@@ -1,5 +1,7 @@
 """Rendering with local deformation gradients: rest frames unchanged, the canonical-frame attention undoes a
 uniform scale, the deform-gradient correspondence works through render_edited."""
+import dataclasses
+
 import pytest
 import torch
 
@@ -516,6 +518,34 @@ def test_the_correspondence_compression_rule_is_its_own(tiny):
     _forced_rest(bundle, test, EditConfig(correspondence="deform-gradient", f_correspondence_compression="keep"),
                  atlas=atlas, views=[0])
 
+
+
+def test_added_points_copy_their_sources_inverses(tiny):
+    """The tables that depend on F alone (the deform-gradient correspondence's inverse gradients, F⁻¹ of the
+    occlusion rule) are computed once per given point: a point f_fill added copies its source's row (its F is
+    that row's copy), with the same numbers as computing every row on its own."""
+    bundle, _, test = tiny
+    pts = bundle.model.xyz.detach() * torch.tensor([4.0, 1.0, 1.0])
+    cfg = EditConfig(correspondence="deform-gradient", f_fill_budget=1.0)
+    for mode in ("keep", "tangent"):
+        c = dataclasses.replace(cfg, f_correspondence_compression=mode)
+        st, own = EditState(bundle, points=pts, cfg=c), EditState(bundle, points=pts, cfg=c)
+        own._f_source = None  # every row computed on its own
+        m = st.points.shape[0] - st.filled_points
+        assert st.filled_points > 0 and torch.equal(st._f_source[:m], torch.arange(m))
+        computed = []
+        rule = st._rule_inverse
+        st._rule_inverse = lambda cap, rows=None, mode=None: (computed.append(rows.numel()),
+                                                              rule(cap, rows, mode=mode))[1]
+        rows = torch.arange(st.points.shape[0])
+        assert torch.equal(st.inv_f_correspondence_at(rows), own.inv_f_correspondence_at(rows))
+        assert sum(computed) <= m  # the added rows were copied
+        added = rows[m:]  # the added rows asked for first: their sources are filled with them
+        assert torch.equal(st.inv_f_at(added)[added], own.inv_f_at(added)[added])
+        assert torch.equal(st.inv_f_at(rows), own.inv_f_at(rows))
+        a = render_edited(st, test.c2w[0], test.height, test.width, test.focal)
+        b = render_edited(own, test.c2w[0], test.height, test.width, test.focal)
+        assert torch.equal(a["x_can"].nan_to_num(7.0), b["x_can"].nan_to_num(7.0))
 
 def _assert_keys_undo_up_to(state, cap):
     """The keys' inverse gradients of a 4× stretch undo at most cap [M] (> 2 somewhere) of each point's stretch, and
