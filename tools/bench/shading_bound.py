@@ -1,0 +1,189 @@
+"""How much of a lit scene's posed loss is shading that should follow the pose.
+
+A model's colours carry the rest pose's shading: a part the pose turns keeps the light it had, where Blender's frame
+shades it by its new normal. This tool estimates a shading function of the surface normal from the model itself and
+re-shades the default renderer's geometry-only posed frames with it, then scores both against the Cycles ground
+truth (object PSNR, eval-edits' cameras). It measures; the renderer does not do this.
+
+The estimate (no light is known): every second training view is rendered at rest; each canonical point takes the
+mean linear colour of the training pixels whose surface point it is nearest, and its neighbourhood's normal (the
+least-spread direction) turned towards the side it was seen from. Over canonical neighbour pairs of one chromaticity
+(every channel's log colour minus their mean within `--chroma`: the same paint, so a brightness change is shading),
+the log luminance difference is fitted robustly (Huber, iteratively reweighted) by the difference of log S(n) =
+b · Y(n), Y the real spherical harmonics of orders 1 and 2 (8 terms; the constant cancels). Pairs across a paint
+edge of another chromaticity do not enter; a texture of one chromaticity in several brightnesses (dark lines on
+white) is an outlier the robust fit mostly ignores.
+
+Re-shading a posed frame: per object ray its most-attended neighbour's local deformation gradient F and canonical
+normal n; the posed normal F⁻ᵀ n turned towards the camera, the rest normal Fᵀ of that, and the object colour (in
+linear light, with the render's coverage) times S(posed) / S(rest), within [0.2, 5]. Rest frames are not changed.
+
+    python -m tools.bench.shading_bound MODEL.pgt --scene SCENE [--poses bend,twist,...] [--views 4] [--chroma 0.1]
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+HUBER = 1.345  # the Huber threshold in robust standard deviations
+RATIO_RANGE = (0.2, 5.0)  # the re-shading factor's bounds
+
+
+def sh_basis(n):
+    """Real spherical harmonics of orders 1 and 2 (unnormalised) of unit vectors n [M, 3] -> [M, 8]."""
+    import torch
+
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
+    return torch.stack([x, y, z, x * y, y * z, x * z, x * x - y * y, 3 * z * z - 1], 1)
+
+
+def fit_shading(colour, normals, pairs, chroma: float = 0.1, iterations: int = 10):
+    """The log-shading coefficients b [8] (log S(n) = b · sh_basis(n)) from per-point linear colours [N, 3] (> 0
+    where seen), oriented unit normals [N, 3] and neighbour pairs [P, 2] (module doc). Returns (b, pairs used)."""
+    import torch
+
+    lc = torch.log(colour.double().clamp_min(1e-3))
+    lum = lc.mean(1)
+    chrom = lc - lum[:, None]
+    i, j = pairs[:, 0], pairs[:, 1]
+    same = (chrom[i] - chrom[j]).abs().max(1).values < chroma
+    i, j = i[same], j[same]
+    n = normals.double()
+    nj = torch.where(((n[i] * n[j]).sum(1, keepdim=True) < 0), -n[j], n[j])  # the neighbour's normal, same side
+    if i.numel() < 16:
+        return torch.zeros(8, dtype=torch.float64), int(i.numel())
+    dl = lum[i] - lum[j]
+    dy = sh_basis(n[i]) - sh_basis(nj)
+    w = torch.ones_like(dl)
+    b = torch.zeros(8, dtype=torch.float64)
+    for _ in range(iterations):
+        sw = w.sqrt()
+        b = torch.linalg.lstsq(dy * sw[:, None], dl * sw).solution
+        r = dl - dy @ b
+        scale = 1.4826 * r.abs().median().clamp_min(1e-6)
+        w = torch.where(r.abs() <= HUBER * scale, torch.ones_like(r), HUBER * scale / r.abs())
+    return b, int(i.numel())
+
+
+def reshade_factor(f, normals, dirs, b):
+    """S(posed) / S(rest) [M] for rays with the local gradient f [M, 3, 3] and canonical normal [M, 3] of their
+    nearest neighbour, ray directions dirs [M, 3] (module doc); 1 where F is singular."""
+    import torch
+
+    fd, n = f.double(), normals.double()
+    posed, info = torch.linalg.solve_ex(fd.transpose(1, 2), n[..., None])
+    posed = torch.nn.functional.normalize(posed.squeeze(-1), dim=-1)
+    posed = torch.where(((posed * dirs.double()).sum(1, keepdim=True) > 0), -posed, posed)  # facing the camera
+    rest = torch.nn.functional.normalize((fd.transpose(1, 2) @ posed[..., None]).squeeze(-1), dim=-1)
+    ratio = torch.exp(sh_basis(posed) @ b - sh_basis(rest) @ b).clamp(*RATIO_RANGE)
+    ok = (info == 0) & torch.isfinite(ratio)
+    return torch.where(ok, ratio, torch.ones_like(ratio))
+
+
+def run(model_path, scene_dir, poses=("bend", "twist", "squash", "stretch", "arm"), views: int = 4,
+        chroma: float = 0.1, every: int = 2, log=print) -> dict:
+    """The figures (module doc) as a JSON-able dict."""
+    import torch
+    from scipy.spatial import cKDTree
+
+    from core.bundle import load_bundle
+    from core.edits.deformation import field_for
+    from core.frames.edited import EditConfig, EditState, render_edited
+    from core.images.colour import linear_to_srgb, srgb_to_linear
+    from core.images.dataset import load_split
+    from tools.bench.pose_bound import object_psnr
+    from tools.eval_edits import deform_points, ground_truth, view_subset_dir
+    from tools.machine import machine_info
+
+    scene_dir = Path(scene_dir)
+    bundle = load_bundle(model_path)
+    xyz = bundle.model.xyz.detach()
+    fld = field_for(bundle.model)
+    normals = fld.normals().double()
+    tree = cKDTree(xyz.numpy())
+    n_pts = xyz.shape[0]
+    csum = torch.zeros(n_pts, 3, dtype=torch.float64)
+    dsum = torch.zeros(n_pts, 3, dtype=torch.float64)
+    cnt = torch.zeros(n_pts, dtype=torch.float64)
+    train = load_split(scene_dir, "train")
+    for i in range(0, len(train), max(1, int(every))):
+        tr = render_edited(EditState(bundle), train.c2w[i], train.height, train.width, train.focal)["trace"]
+        x = tr.x.reshape(-1, 3)
+        ok = tr.active & (tr.fg > 0.5) & torch.isfinite(x).all(1) & (train.alphas[i].reshape(-1) > 0.99)
+        if not bool(ok.any()):
+            continue
+        j = torch.from_numpy(tree.query(x[ok].numpy())[1])
+        csum.index_add_(0, j, srgb_to_linear(train.images[i].reshape(-1, 3)[ok]).double())
+        dsum.index_add_(0, j, -tr.dirs.reshape(-1, 3)[ok].double())
+        cnt.index_add_(0, j, torch.ones(j.shape[0], dtype=torch.float64))
+    seen = cnt > 0
+    colour = csum / cnt.clamp_min(1)[:, None]
+    oriented = torch.where(((normals * dsum).sum(1, keepdim=True) < 0), -normals, normals)
+    nbr = fld.nbr
+    ii = torch.arange(n_pts)[:, None].expand_as(nbr)
+    ok = (nbr >= 0) & seen[:, None] & seen[nbr.clamp_min(0)]
+    b, used = fit_shading(colour, oriented, torch.stack([ii[ok], nbr[ok]], 1), chroma)
+    log_s = sh_basis(oriented[seen]) @ b
+    spread = float(log_s.quantile(0.95) - log_s.quantile(0.05)) if log_s.numel() else 0.0
+    result = {"model": str(model_path), "scene": scene_dir.name, "views": views, "chroma": chroma,
+              "pairs": used, "log_shading_range": spread, "coefficients": [float(v) for v in b],
+              "machine": machine_info(), "poses": {}}
+    log(f"  shading fit: {used} pairs of one chromaticity, log S range (5-95 %) {spread:.3f}")
+    for pose in poses:
+        gt = ground_truth(view_subset_dir(scene_dir, views), pose, 1.0, None, log=log)
+        pts = torch.from_numpy(deform_points(xyz.numpy(), scene_dir, pose, 1.0)).float()
+        plain, shaded = [], []
+        for i in range(gt.c2w.shape[0]):
+            st = EditState(bundle, points=pts, cfg=EditConfig())
+            out = render_edited(st, gt.c2w[i], gt.height, gt.width, gt.focal)
+            tr = out["trace"]
+            rgb = out["rgb"].reshape(-1, 3).double()
+            cover = out["alpha"].reshape(-1).double().clamp(1e-4, 1.0)
+            sel = torch.nonzero(tr.active & (tr.fg > 1e-4)).squeeze(1)
+            if sel.numel():
+                j = tr.idx[sel].gather(1, tr.weights[sel].argmax(1, keepdim=True)).squeeze(1).clamp_min(0)
+                cid = j if st.ids is None else st.ids[j]
+                ratio = reshade_factor(st.f[j], normals[cid], tr.dirs.reshape(-1, 3)[sel], b)
+                f = cover[sel][:, None]
+                c = ((rgb[sel] - (1 - f)) / f).clamp(0, 1)
+                rgb[sel] = f * linear_to_srgb((srgb_to_linear(c) * ratio[:, None]).clamp(0, 1)) + (1 - f)
+            plain.append(object_psnr(out["rgb"], out["alpha"], gt.images[i], gt.alphas[i]))
+            shaded.append(object_psnr(rgb.reshape(out["rgb"].shape).float(), out["alpha"], gt.images[i],
+                                      gt.alphas[i]))
+        row = {"render": sum(plain) / len(plain), "re-shaded": sum(shaded) / len(shaded)}
+        result["poses"][pose] = row
+        log(f"  {pose}: render {row['render']:.2f}, re-shaded {row['re-shaded']:.2f}")
+    return result
+
+
+def markdown(result: dict) -> str:
+    lines = [f"Scene `{result['scene']}`, {result['views']} views; shading fit: {result['pairs']} pairs, log S range "
+             f"{result['log_shading_range']:.3f}; object PSNR dB", "", "| pose | render | re-shaded | change |",
+             "|---|---|---|---|"]
+    for pose, row in result["poses"].items():
+        lines.append(f"| {pose} | {row['render']:.2f} | {row['re-shaded']:.2f} | "
+                     f"{row['re-shaded'] - row['render']:+.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    from tools.bench import parse, parser, write_json
+
+    ap = parser(__doc__)
+    ap.add_argument("model", help="model file (.pgt)")
+    ap.add_argument("--scene", required=True, help="the scene folder the model was trained on (make-scene)")
+    ap.add_argument("--poses", default="bend,twist,squash,stretch,arm", help="comma-separated rig poses")
+    ap.add_argument("--views", type=int, default=4, help="test cameras (evenly spaced, as eval-edits)")
+    ap.add_argument("--chroma", type=float, default=0.1, help="pairs of one chromaticity: every channel's log "
+                    "colour minus their mean within this")
+    ap.add_argument("--every", type=int, default=2, help="every how many-th training view is rendered for the fit")
+    args = parse(ap, argv)
+    if not args.chroma > 0:
+        raise SystemExit(f"--chroma: expected a positive number, got {args.chroma}")
+    res = run(args.model, args.scene, [p for p in args.poses.split(",") if p], args.views, args.chroma, args.every)
+    print(markdown(res))
+    write_json(args.json, res)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
