@@ -121,13 +121,6 @@ RENDERERS = {"paper": _PAPER, "f-attention": {**_PAPER, "f_attention": True},
              # the deform-gradient correspondence undoing no compression (rotation and stretch only)
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-tex-occ-ckeep": {
                  **_SQUASH_TEX, "f_occlusion": True, "f_correspondence_compression": "keep"},
-             # ... undoing a compression down to half / a quarter
-             "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-tex-occ-ckeep50": {
-                 **_SQUASH_TEX, "f_occlusion": True, "f_correspondence_compression": "keep",
-                 "f_correspondence_floor": 0.5},
-             "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-tex-occ-ckeep25": {
-                 **_SQUASH_TEX, "f_occlusion": True, "f_correspondence_compression": "keep",
-                 "f_correspondence_floor": 0.25},
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp16-grid-squash-texall": {**_SQUASH16,
                                                                                             "grid_texture": 1.0},
              "f-fill-fold-blend-depth-auto-budget-between-auto-persp-pixels": {**_PERSP, "render_mode": "pixels"},

@@ -845,9 +845,9 @@ def inverse_at(f: torch.Tensor, rows: torch.Tensor, out: torch.Tensor) -> None:
     out[rows] = inverse(f[rows])
 
 
-def _expansion_inverse_loop(f, floor, out):
+def _expansion_inverse_loop(f, out):
     """The compiled path of expansion_inverse: f [M, 3, 3] float64 -> out [M, 3, 3]. Per row: FᵀF = V diag(σ²) Vᵀ
-    by cyclic Jacobi rotations, then V diag(1/(σ max(σ, floor))) Vᵀ Fᵀ."""
+    by cyclic Jacobi rotations, then V diag(1/(σ max(σ, 1))) Vᵀ Fᵀ."""
     a = np.empty((3, 3))
     v = np.empty((3, 3))
     h = np.empty(3)
@@ -859,7 +859,7 @@ def _expansion_inverse_loop(f, floor, out):
         _jacobi(a, v, 1e-30)
         for i in range(3):
             sv = max(math.sqrt(max(a[i, i], 0.0)), 1e-6)
-            h[i] = 1.0 / (sv * max(sv, floor))
+            h[i] = 1.0 / (sv * max(sv, 1.0))
         for i in range(3):
             for j in range(3):  # (V diag(h) Vᵀ)[i, j], then times Fᵀ
                 a[i, j] = v[i, 0] * h[0] * v[j, 0] + v[i, 1] * h[1] * v[j, 1] + v[i, 2] * h[2] * v[j, 2]
@@ -878,35 +878,31 @@ def _compiled():
     return _compiled_loop
 
 
-def expansion_inverse(f: torch.Tensor, floor: float = 1.0) -> torch.Tensor:
-    """Inverse [M, 3, 3] of F [M, 3, 3] with its singular values raised to at least `floor` (in (0, 1]; 1: undoes
-    the stretch of a neighbourhood and its rotation / mirror, leaves its compression; below 1: undoes a compression
-    down to that factor). F = U Σ Vᵀ -> V max(Σ, floor)⁻¹ Uᵀ. Compiled (numba) on CPU tensors, else torch."""
-    floor = float(floor)
-    if not 0.0 < floor <= 1.0:
-        raise ValueError(f"expansion_inverse: floor must lie in (0, 1], got {floor}")
+def expansion_inverse(f: torch.Tensor) -> torch.Tensor:
+    """Inverse [M, 3, 3] of F [M, 3, 3] with its singular values raised to at least 1: undoes the stretch of a
+    neighbourhood (and its rotation / mirror), leaves its compression. F = U Σ Vᵀ -> V max(Σ, 1)⁻¹ Uᵀ.
+    Compiled (numba) on CPU tensors, else torch."""
     loop = _compiled() if f.device.type == "cpu" else None
     if loop is not None and f.shape[0]:
         fd = np.ascontiguousarray(torch.nan_to_num(f.detach(), 0.0, 0.0, 0.0).double().numpy())
         out = np.empty_like(fd)
-        loop(fd, floor, out)
+        loop(fd, out)
         return torch.from_numpy(out).to(f.dtype)
-    return _expansion_inverse_torch(f, floor)
+    return _expansion_inverse_torch(f)
 
 
-def _expansion_inverse_torch(f: torch.Tensor, floor: float = 1.0) -> torch.Tensor:
+def _expansion_inverse_torch(f: torch.Tensor) -> torch.Tensor:
     """expansion_inverse in torch (any device; the reference the compiled path is tested against)."""
     fd = f.double()
     out, info = torch.linalg.inv_ex(fd)
-    # no singular value below floor (1 - 1e-3): F⁻¹ as it is (within 0.1 % of undoing no compression); SVD for the
-    # others
-    need = ~_min_sv_at_least(fd, floor * (1.0 - 1e-3)) | (info != 0) | ~torch.isfinite(out).all(-1).all(-1)
+    # no singular value below 1 - 1e-3: F⁻¹ as it is (within 0.1 % of undoing no compression); SVD for the others
+    need = ~_min_sv_at_least(fd, 1.0 - 1e-3) | (info != 0) | ~torch.isfinite(out).all(-1).all(-1)
     if bool(need.any()):
-        # with FᵀF = V diag(σ²) Vᵀ (eigh: cheaper than an SVD), V max(Σ, c)⁻¹ Uᵀ = V diag(1/(σ max(σ, c))) Vᵀ Fᵀ
+        # with FᵀF = V diag(σ²) Vᵀ (eigh: cheaper than an SVD), V max(Σ, 1)⁻¹ Uᵀ = V diag(1/(σ max(σ, 1))) Vᵀ Fᵀ
         fn = fd[need]
         lam, v = torch.linalg.eigh(fn.transpose(1, 2) @ fn)
         sv = lam.clamp_min(0.0).sqrt().clamp_min(1e-6)
-        out[need] = v @ torch.diag_embed(1.0 / (sv * sv.clamp_min(floor))) @ v.transpose(1, 2) @ fn.transpose(1, 2)
+        out[need] = v @ torch.diag_embed(1.0 / (sv * sv.clamp_min(1.0))) @ v.transpose(1, 2) @ fn.transpose(1, 2)
     return out.to(f.dtype)
 
 

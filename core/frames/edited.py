@@ -72,11 +72,6 @@ class EditConfig:
                                                     "(as the F-aware keys, f_compression) | tangent | undo | "
                                                     "auto (as f_compression's rules)",
                                             choices=("keys",) + COMPRESSION)
-    f_correspondence_floor: float = opt(1.0, "f_correspondence_compression keep: the local map's singular values "
-                                             "are raised to at least this before it is inverted (1: no compression "
-                                             "undone; 0.5: a compression undone down to half; the smaller, the "
-                                             "more a squash magnifies the ray's depth error across it)",
-                                        min=1e-3, max=1.0)
     f_thick_spread: float = opt(0.15, "f_compression auto: a model whose median canonical neighbourhood spread "
                                       "(smallest / largest) is at least this is thick: undo, else tangent",
                                 min=0.0, max=1.0)
@@ -479,14 +474,13 @@ class EditState:
         mode = self.cfg.f_correspondence_compression
         if mode != "keys":
             mode = self._compression_rule(mode)
-        floor = float(self.cfg.f_correspondence_floor)
-        if mode == "keys" or (mode == self.compression and (mode != "keep" or floor == 1.0)):
+        if mode in ("keys", self.compression):
             return self.inv_f_keys
         if mode == "undo":
             return self.inv_f
 
         def fill(todo, table):
-            table[todo] = self._rule_inverse(None, todo, mode=mode, floor=floor)
+            table[todo] = self._rule_inverse(None, todo, mode=mode)
         return self._rows_filled("inv_f_correspondence", rows, fill, of_f=True)
 
     @property
@@ -515,18 +509,17 @@ class EditState:
         return self._rows_filled("inv_f_attention", rows, fill)
 
     def _rule_inverse(self, cap: torch.Tensor | None, rows: torch.Tensor | None = None,
-                      mode: str | None = None, floor: float = 1.0) -> torch.Tensor:
+                      mode: str | None = None) -> torch.Tensor:
         """The compression rule `mode` (default `compression`: the keys') applied to F with its singular values
         capped at cap [M] (None: none): its inverse [M, 3, 3] (`key_inverse`, compiled); given rows [P] long, of
-        those rows only [P, 3, 3] (each row is computed on its own: the same values). floor: keep's floor of the
-        singular values (`expansion_inverse`)."""
+        those rows only [P, 3, 3] (each row is computed on its own: the same values)."""
         f = self._f if rows is None else self._f[rows]
         if cap is not None and rows is not None:
             cap = cap[rows]
         ids = self.ids if rows is None else (rows if self.ids is None else self.ids[rows])
         mode = mode or self.compression
         if mode == "keep":
-            return expansion_inverse(f if cap is None else bound_above(f, cap), floor=floor)
+            return expansion_inverse(f if cap is None else bound_above(f, cap))
         n = None if mode == "undo" else field_for(self.bundle.model, self.deformation_cfg).normals(ids)
         return key_inverse(f, cap, n)
 
