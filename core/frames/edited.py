@@ -436,9 +436,9 @@ class EditState:
         if base.numel():
             fill(base, table)
             done[base] = True
-        added = todo[source != todo]
-        if added.numel():
-            table[added] = table[self._f_source[added]]
+        copy = source != todo
+        if bool(copy.any()):
+            table[todo[copy]] = table[source[copy]]
 
     @property
     def inv_f_keys(self) -> torch.Tensor | None:

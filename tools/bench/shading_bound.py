@@ -105,8 +105,9 @@ def run(model_path, scene_dir, poses=("bend", "twist", "squash", "stretch", "arm
     dsum = torch.zeros(n_pts, 3, dtype=torch.float64)
     cnt = torch.zeros(n_pts, dtype=torch.float64)
     train = load_split(scene_dir, "train")
+    rest = EditState(bundle)
     for i in range(0, len(train), max(1, int(every))):
-        tr = render_edited(EditState(bundle), train.c2w[i], train.height, train.width, train.focal)["trace"]
+        tr = render_edited(rest, train.c2w[i], train.height, train.width, train.focal)["trace"]
         x = tr.x.reshape(-1, 3)
         ok = tr.active & (tr.fg > 0.5) & torch.isfinite(x).all(1) & (train.alphas[i].reshape(-1) > 0.99)
         if not bool(ok.any()):
@@ -132,8 +133,8 @@ def run(model_path, scene_dir, poses=("bend", "twist", "squash", "stretch", "arm
         gt = ground_truth(view_subset_dir(scene_dir, views), pose, 1.0, None, log=log)
         pts = torch.from_numpy(deform_points(xyz.numpy(), scene_dir, pose, 1.0)).float()
         plain, shaded = [], []
+        st = EditState(bundle, points=pts, cfg=EditConfig())  # one pose: F, the fill and their tables once
         for i in range(gt.c2w.shape[0]):
-            st = EditState(bundle, points=pts, cfg=EditConfig())
             out = render_edited(st, gt.c2w[i], gt.height, gt.width, gt.focal)
             tr = out["trace"]
             rgb = out["rgb"].reshape(-1, 3).double()

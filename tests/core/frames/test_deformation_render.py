@@ -519,7 +519,6 @@ def test_the_correspondence_compression_rule_is_its_own(tiny):
                  atlas=atlas, views=[0])
 
 
-
 def test_added_points_copy_their_sources_inverses(tiny):
     """The tables that depend on F alone (the deform-gradient correspondence's inverse gradients, F⁻¹ of the
     occlusion rule) are computed once per given point: a point f_fill added copies its source's row (its F is
