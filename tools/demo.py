@@ -252,10 +252,13 @@ def render_animation(bundle, scene_dir: Path, out: Path, frames: int, pose: str,
     images, secs = [], []
     cam = test.c2w[0]
     print(f"  warm-up (compiling the frame loops once): {warm_up(bundle):.2f} s", flush=True)
+    state = None
     for f in range(frames):
         m = f / max(frames - 1, 1)
         pts = deform_points(canonical, scene_dir, pose, m) if m > 0 else None
-        state = EditState(bundle, points=None if pts is None else torch.from_numpy(pts), atlas=painted)
+        # the atlas is painted once: each pose takes the previous frame's prepared paint, as the add-on does
+        state = EditState(bundle, points=None if pts is None else torch.from_numpy(pts), atlas=painted,
+                          paint_from=state)
         r = render_edited(state, cam, test.height, test.width, test.focal)
         secs.append(r["stats"]["seconds"])
         rgb = r["rgb"].cpu().numpy()
