@@ -67,6 +67,19 @@ DEFORMS = {
     "collapse_to_point": lambda p: torch.zeros_like(p) + torch.tensor([0.1, -0.2, 0.05]),
     "float16_input": lambda p: p.half(),
     "denormal_offsets": lambda p: p * 1e-39 + torch.tensor([0.0, 0.0, 1e-40]),
+    "mirror": lambda p: p * torch.tensor([-1.0, 1.0, 1.0]),  # every neighbourhood inverted
+    "torn_by_jitter": lambda p: p + 0.5 * torch.randn(p.shape, generator=torch.Generator().manual_seed(0)),
+    "stretch_5x_with_nan": lambda p: _nonfinite(p * torch.tensor([5.0, 1.0, 1.0])),
+}
+
+# (ids from the model's point count n, the deformation of the points they pick)
+ID_CASES = {
+    "duplicated_then_stretched": (lambda n: torch.cat([torch.arange(n), torch.arange(n)]),
+                                  lambda p: p * torch.tensor([5.0, 1.0, 1.0])),
+    "half_removed_then_folded": (lambda n: torch.arange(0, n, 2), _fold),
+    "reversed_then_squashed": (lambda n: torch.arange(n - 1, -1, -1), lambda p: p * torch.tensor([1.0, 1.0, 1e-6])),
+    "one_point_many_times": (lambda n: torch.zeros(64, dtype=torch.long),
+                             lambda p: p + torch.linspace(0, 1, 64)[:, None]),
 }
 
 
@@ -82,6 +95,36 @@ def test_extreme_deformations_render_finite_frames(tiny, name):
         assert out["stats"]["non_finite_points"] == state.non_finite_points > 0
     if name in ("all_nan", "all_far_away_1e30"):
         assert float(out["alpha"].max()) == 0.0  # nothing left to draw: a clean background frame
+
+
+@pytest.mark.parametrize("name", list(ID_CASES))
+def test_extreme_deformations_of_added_or_removed_points_render_finite_frames(tiny, name):
+    """Points removed, duplicated or reordered (ids), then deformed hard: F, the fill and the correspondence work
+    on the points' canonical ids; every frame finite."""
+    bundle, test, painted = tiny
+    make_ids, deform = ID_CASES[name]
+    ids = make_ids(bundle.model.num_points)
+    state = EditState(bundle, points=deform(bundle.model.xyz.detach()[ids]), ids=ids, atlas=painted)
+    for i in range(len(test)):
+        check_frame(render_edited(state, test.c2w[i], test.height, test.width, test.focal), test.height, test.width)
+
+
+def test_mirrored_points_through_a_mirrored_camera_give_the_frame_flipped(tiny):
+    """Sensible, not only finite, where every neighbourhood is inverted: the points mirrored in x and seen through
+    the camera mirrored the same way (its image flipped left-right) render the frame of the points barely moved,
+    flipped (geometry only: F-aware keys, fill, fold and occlusion rules all run on the mirrored points)."""
+    from core.images.metrics import psnr
+
+    bundle, test, _ = tiny
+    xyz = bundle.model.xyz.detach()
+    flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
+    for i in range(len(test)):
+        ref = render_edited(EditState(bundle, points=xyz + 1e-6), test.c2w[i], test.height, test.width, test.focal)
+        out = render_edited(EditState(bundle, points=xyz * torch.tensor([-1.0, 1.0, 1.0])), flip @ test.c2w[i] @ flip,
+                            test.height, test.width, test.focal)
+        check_frame(out, test.height, test.width)
+        assert float(psnr(out["rgb"].flip(1), ref["rgb"])) > 35.0
+        assert float(psnr(out["alpha"].flip(1), ref["alpha"])) > 35.0
 
 
 def test_camera_looking_away_renders_background(tiny):
