@@ -6,7 +6,9 @@ Run: `python -m tools.bench.deformation MODEL.pgt --scene DIR [--pose stretch] [
 The model's points are posed by the scene's rig (as `pointgt eval-edits` does) and a global retexture is baked
 into the atlas; every frame then builds a fresh EditState, as an animation does when the points move each frame,
 so the F fit (canonical neighbourhoods cached per model, one O(N·k) least-squares fit per frame) is charged to
-every frame. Variants are interleaved per camera and repeat (the machine's load drifts alike for all), one torch
+every frame. So is the painted atlas's preparation (unpacking it, a few ms a frame for every renderer, and about
+1 ms more for the stored samples' reads of the samples lookup), which the add-on and the demo's animation do once
+(EditState's paint_from). Variants are interleaved per camera and repeat (the machine's load drifts alike for all), one torch
 thread; the table gives the median wall and CPU (process) seconds per frame and the CPU ratio to the paper's.
 `--profile`: a second table splits each variant's CPU milliseconds per frame (mean) into stages, by wrapping their
 functions (tools.bench.render's timed_parts): the F fit (neighbour gathering and least squares), the fill, the
