@@ -25,6 +25,7 @@ from core.edits.correspondence import MODES, ray_canonical_points
 from core.edits.deformation import (MAX_STRETCH, DeformationConfig, bound_above, det3, expansion_inverse, field_for,
                                      inverse, inverse_at, key_inverse, stretch)
 from core.edits.occlusion import REDO_MIN_HIDDEN, front_anchors, front_layer, unoccluded
+from core.edits.shading import RESHADE_MIN_RANGE, atlas_shading, reshade_factor
 from core.edits.texture_edit import BLEND_THRESHOLD, BLENDS, blend, check_atlas_image, edit_mask
 from core.images.colour import linear_to_srgb, srgb_to_linear
 from core.images.filter import filter_down, subpixel_points
@@ -190,6 +191,11 @@ class EditConfig:
                                     "per grid ray and averaged back over each output pixel with the colour "
                                     "(grid_filter, in linear light) instead of antialias x antialias lookups per "
                                     "pixel; 0 = off", min=0.0, max=1.0)
+    reshade: str = opt("off", "moved points of a lit model: re-shade each object ray by S(posed normal) / S(rest "
+                              "normal), S a shading of the normal fitted to the atlas's colours "
+                              "(core/edits/shading.py; docs/editing.md 'Lit scenes'): off | auto (where the fitted "
+                              "shading's log range reaches RESHADE_MIN_RANGE, the lit models measured) | on",
+                       choices=("off", "auto", "on"))
     render_mode: str = opt("auto", "frames finer than the training pixels (core/points/resolution.py): pixels | "
                                    "filtered | footprint | decoder | interior | their '+' pairs | upsampled; "
                                    "auto = the model's (upsampled for a single-scale fit; for a multi-scale fit "
@@ -1092,6 +1098,7 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
         rgb[sel] = f * blend(c, tex, m, mode) + (1 - f) * bgc
         x_can[sel] = xc
         stats["texture_rays"] = int(sel.numel())
+    stats["reshaded_rays"] = _reshade(state, tr, rgb, cover, hit, background)
     rgb = torch.nan_to_num(rgb, nan=1.0).clamp(0, 1).reshape(height, width, 3)
     cover = cover.clamp(0, 1).reshape(height, width)
     if "filtered" in parts and scale > 1.0:  # no point discs beyond the training resolution
@@ -1104,6 +1111,30 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
     stats["grid_texture"] = squash is not None
     return {"rgb": rgb, "alpha": cover,
             "x_can": x_can.reshape(height, width, 3), "stats": stats, "trace": tr}
+
+
+def _reshade(state: EditState, tr: Trace, rgb: torch.Tensor, cover: torch.Tensor, hit: torch.Tensor,
+             background) -> int:
+    """EditConfig.reshade: multiply the object colour of the rays hit [R] (rgb [R, 3] over `background` with
+    coverage cover [R], changed in place) by S(posed normal) / S(rest normal) in linear light, each ray by its
+    most-attended neighbour's F and canonical normal (core/edits/shading.py). Returns the rays re-shaded (0: the
+    points did not move, the setting is off, or auto found no shading)."""
+    mode = state.cfg.reshade
+    if mode == "off" or not state.moved or not bool(hit.any()):
+        return 0
+    shading = atlas_shading(state.bundle)
+    if shading is None or (mode == "auto" and shading.log_range < RESHADE_MIN_RANGE):
+        return 0
+    sel = torch.nonzero(hit).squeeze(1)
+    near = tr.idx[sel].gather(1, tr.weights[sel].argmax(1, keepdim=True)).squeeze(1).clamp_min(0)
+    cid = near if state.ids is None else state.ids[near]
+    normals = field_for(state.bundle.model).normals().to(rgb.device)
+    ratio = reshade_factor(state.f[near], normals[cid], tr.dirs.reshape(-1, 3)[sel], shading.b).to(rgb.dtype)
+    bgc = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
+    f = cover[sel].clamp(1e-4, 1.0)[:, None]
+    c = ((rgb[sel] - (1 - f) * bgc) / f).clamp(0, 1)
+    rgb[sel] = f * linear_to_srgb((srgb_to_linear(c) * ratio[:, None]).clamp(0, 1)) + (1 - f) * bgc
+    return int(sel.numel())
 
 
 def warm_up(bundle, cfg: EditConfig | None = None, size: int = 16) -> float:

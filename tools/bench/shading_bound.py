@@ -3,7 +3,8 @@
 A model's colours carry the rest pose's shading: a part the pose turns keeps the light it had, where Blender's frame
 shades it by its new normal. This tool estimates a shading function of the surface normal from the model itself and
 re-shades the default renderer's geometry-only posed frames with it, then scores both against the Cycles ground
-truth (object PSNR, eval-edits' cameras). It measures; the renderer does not do this.
+truth (object PSNR, eval-edits' cameras); and scores the renderer's own re-shading (EditConfig reshade), which is
+off by default.
 
 The estimate (no light is known): every second training view is rendered at rest; each canonical point takes the
 mean linear colour of the training pixels whose surface point it is nearest, and its neighbourhood's normal (the
@@ -17,6 +18,8 @@ white) is an outlier the robust fit mostly ignores.
 Re-shading a posed frame: per object ray its most-attended neighbour's local deformation gradient F and canonical
 normal n; the posed normal F⁻ᵀ n turned towards the camera, the rest normal Fᵀ of that, and the object colour (in
 linear light, with the render's coverage) times S(posed) / S(rest), within [0.2, 5]. Rest frames are not changed.
+The last columns are the renderer's own re-shading (`EditConfig(reshade="on")`), whose shading is fitted to the
+model's atlas instead of the training images (core/edits/shading.py).
 
     python -m tools.bench.shading_bound MODEL.pgt --scene SCENE [--poses bend,twist,...] [--views 4] [--chroma 0.1]
 """
@@ -24,59 +27,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-HUBER = 1.345  # the Huber threshold in robust standard deviations
-RATIO_RANGE = (0.2, 5.0)  # the re-shading factor's bounds
-
-
-def sh_basis(n):
-    """Real spherical harmonics of orders 1 and 2 (unnormalised) of unit vectors n [M, 3] -> [M, 8]."""
-    import torch
-
-    x, y, z = n[:, 0], n[:, 1], n[:, 2]
-    return torch.stack([x, y, z, x * y, y * z, x * z, x * x - y * y, 3 * z * z - 1], 1)
-
-
-def fit_shading(colour, normals, pairs, chroma: float = 0.1, iterations: int = 10):
-    """The log-shading coefficients b [8] (log S(n) = b · sh_basis(n)) from per-point linear colours [N, 3] (> 0
-    where seen), oriented unit normals [N, 3] and neighbour pairs [P, 2] (module doc). Returns (b, pairs used)."""
-    import torch
-
-    lc = torch.log(colour.double().clamp_min(1e-3))
-    lum = lc.mean(1)
-    chrom = lc - lum[:, None]
-    i, j = pairs[:, 0], pairs[:, 1]
-    same = (chrom[i] - chrom[j]).abs().max(1).values < chroma
-    i, j = i[same], j[same]
-    n = normals.double()
-    nj = torch.where(((n[i] * n[j]).sum(1, keepdim=True) < 0), -n[j], n[j])  # the neighbour's normal, same side
-    if i.numel() < 16:
-        return torch.zeros(8, dtype=torch.float64), int(i.numel())
-    dl = lum[i] - lum[j]
-    dy = sh_basis(n[i]) - sh_basis(nj)
-    w = torch.ones_like(dl)
-    b = torch.zeros(8, dtype=torch.float64)
-    for _ in range(iterations):
-        sw = w.sqrt()
-        b = torch.linalg.lstsq(dy * sw[:, None], dl * sw).solution
-        r = dl - dy @ b
-        scale = 1.4826 * r.abs().median().clamp_min(1e-6)
-        w = torch.where(r.abs() <= HUBER * scale, torch.ones_like(r), HUBER * scale / r.abs())
-    return b, int(i.numel())
-
-
-def reshade_factor(f, normals, dirs, b):
-    """S(posed) / S(rest) [M] for rays with the local gradient f [M, 3, 3] and canonical normal [M, 3] of their
-    nearest neighbour, ray directions dirs [M, 3] (module doc); 1 where F is singular."""
-    import torch
-
-    fd, n = f.double(), normals.double()
-    posed, info = torch.linalg.solve_ex(fd.transpose(1, 2), n[..., None])
-    posed = torch.nn.functional.normalize(posed.squeeze(-1), dim=-1)
-    posed = torch.where(((posed * dirs.double()).sum(1, keepdim=True) > 0), -posed, posed)  # facing the camera
-    rest = torch.nn.functional.normalize((fd.transpose(1, 2) @ posed[..., None]).squeeze(-1), dim=-1)
-    ratio = torch.exp(sh_basis(posed) @ b - sh_basis(rest) @ b).clamp(*RATIO_RANGE)
-    ok = (info == 0) & torch.isfinite(ratio)
-    return torch.where(ok, ratio, torch.ones_like(ratio))
+from core.edits.shading import atlas_shading, fit_shading, reshade_factor, sh_basis
 
 
 def run(model_path, scene_dir, poses=("bend", "twist", "squash", "stretch", "arm"), views: int = 4,
@@ -125,16 +76,23 @@ def run(model_path, scene_dir, poses=("bend", "twist", "squash", "stretch", "arm
     b, used = fit_shading(colour, oriented, torch.stack([ii[ok], nbr[ok]], 1), chroma)
     log_s = sh_basis(oriented[seen]) @ b
     spread = float(log_s.quantile(0.95) - log_s.quantile(0.05)) if log_s.numel() else 0.0
+    own = atlas_shading(bundle)
     result = {"model": str(model_path), "scene": scene_dir.name, "views": views, "chroma": chroma,
               "pairs": used, "log_shading_range": spread, "coefficients": [float(v) for v in b],
+              "atlas_log_shading_range": None if own is None else own.log_range,
               "machine": machine_info(), "poses": {}}
-    log(f"  shading fit: {used} pairs of one chromaticity, log S range (5-95 %) {spread:.3f}")
+    log(f"  shading fit: {used} pairs of one chromaticity, log S range (5-95 %) {spread:.3f}; the renderer's own "
+        f"(from the atlas): {'none' if own is None else f'{own.log_range:.3f}'}")
     for pose in poses:
         gt = ground_truth(view_subset_dir(scene_dir, views), pose, 1.0, None, log=log)
         pts = torch.from_numpy(deform_points(xyz.numpy(), scene_dir, pose, 1.0)).float()
-        plain, shaded = [], []
+        plain, shaded, renderer = [], [], []
         st = EditState(bundle, points=pts, cfg=EditConfig())  # one pose: F, the fill and their tables once
+        on = EditState(bundle, points=pts, cfg=EditConfig(reshade="on")) if own is not None else None
         for i in range(gt.c2w.shape[0]):
+            if on is not None:  # the renderer's own re-shading (EditConfig reshade, its shading fitted to the atlas)
+                r = render_edited(on, gt.c2w[i], gt.height, gt.width, gt.focal)
+                renderer.append(object_psnr(r["rgb"], r["alpha"], gt.images[i], gt.alphas[i]))
             out = render_edited(st, gt.c2w[i], gt.height, gt.width, gt.focal)
             tr = out["trace"]
             rgb = out["rgb"].reshape(-1, 3).double()
@@ -150,19 +108,26 @@ def run(model_path, scene_dir, poses=("bend", "twist", "squash", "stretch", "arm
             plain.append(object_psnr(out["rgb"], out["alpha"], gt.images[i], gt.alphas[i]))
             shaded.append(object_psnr(rgb.reshape(out["rgb"].shape).float(), out["alpha"], gt.images[i],
                                       gt.alphas[i]))
-        row = {"render": sum(plain) / len(plain), "re-shaded": sum(shaded) / len(shaded)}
+        row = {"render": sum(plain) / len(plain), "re-shaded": sum(shaded) / len(shaded),
+               "renderer re-shaded": sum(renderer) / len(renderer) if renderer else None}
         result["poses"][pose] = row
-        log(f"  {pose}: render {row['render']:.2f}, re-shaded {row['re-shaded']:.2f}")
+        log(f"  {pose}: render {row['render']:.2f}, re-shaded {row['re-shaded']:.2f}, by the renderer "
+            f"{row['renderer re-shaded'] if renderer else float('nan'):.2f}")
     return result
 
 
 def markdown(result: dict) -> str:
+    own = result.get("atlas_log_shading_range")
     lines = [f"Scene `{result['scene']}`, {result['views']} views; shading fit: {result['pairs']} pairs, log S range "
-             f"{result['log_shading_range']:.3f}; object PSNR dB", "", "| pose | render | re-shaded | change |",
-             "|---|---|---|---|"]
+             f"{result['log_shading_range']:.3f}; the renderer's own fit (from the atlas): "
+             f"{'none' if own is None else f'{own:.3f}'}; object PSNR dB", "",
+             "| pose | render | re-shaded | change | re-shaded by the renderer (reshade on) | change |",
+             "|---|---|---|---|---|---|"]
     for pose, row in result["poses"].items():
+        mine = row.get("renderer re-shaded")
+        tail = "– | –" if mine is None else f"{mine:.2f} | {mine - row['render']:+.2f}"
         lines.append(f"| {pose} | {row['render']:.2f} | {row['re-shaded']:.2f} | "
-                     f"{row['re-shaded'] - row['render']:+.2f} |")
+                     f"{row['re-shaded'] - row['render']:+.2f} | {tail} |")
     return "\n".join(lines)
 
 
