@@ -39,6 +39,7 @@ class ObjectInputs:
     antialias: int = 2        # painted texels per pixel side (EditConfig.antialias)
     rest_extent: float = 0.0  # bounding-box diagonal of the undeformed points in world space (pose warnings)
     occlusion: bool = True    # EditConfig.f_occlusion: each ray keeps the front layer where a pose folds the surface
+    reshade: str = "OFF"      # EditConfig.reshade: 'OFF' | 'AUTO' | 'ON'
 
 
 class ModelCache:
@@ -126,7 +127,7 @@ def prepare(inputs: ObjectInputs, models: ModelCache = MODELS, states: StateCach
     if inputs.atlas is not None and bundle.atlas is None:
         inputs = dataclasses.replace(inputs, atlas=None)  # a points-only model: nothing to paint yet
     cfg = EditConfig(correspondence=CORRESPONDENCE[inputs.correspondence], antialias=int(inputs.antialias),
-                     f_occlusion=bool(inputs.occlusion))
+                     f_occlusion=bool(inputs.occlusion), reshade=str(inputs.reshade).lower())
     state, _ = states.get(inputs, bundle, cfg)
     return state
 

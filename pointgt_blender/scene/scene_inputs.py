@@ -67,7 +67,7 @@ def object_inputs(obj, depsgraph):
     return ObjectInputs(name=obj.name, model_path=model_file(obj), device=s.device.lower(), k=int(s.neighbors),
                         correspondence=s.correspondence, point_count=int(s.point_count), positions=positions,
                         ids=ids, atlas=atlas, antialias=int(s.antialias), rest_extent=rest_extent(obj),
-                        occlusion=bool(s.occlusion))
+                        occlusion=bool(s.occlusion), reshade=str(s.reshade))
 
 
 def rest_extent(obj) -> float:

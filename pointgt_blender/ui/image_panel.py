@@ -162,6 +162,7 @@ class POINTGT_PT_image(SidebarPanel, bpy.types.Panel):
         col.prop(s, "preview_resolution")
         col.prop(s, "correspondence")
         col.prop(s, "occlusion")
+        col.prop(s, "reshade")
         col.prop(s, "antialias")
         col.prop(scene.pointgt, "live_preview")
         col.prop(scene.pointgt, "auto_transfer")

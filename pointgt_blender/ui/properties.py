@@ -35,6 +35,15 @@ class PointGTObjectSettings(bpy.types.PropertyGroup):
         name="Folds (occlusion)", default=True,
         description="Where a pose folds the surface over itself (a joint bent far, a part swung behind another), "
                     "each pixel shows only the front layer of the surface; costs a few percent more per frame")
+    reshade: bpy.props.EnumProperty(
+        name="Re-shade", default='OFF',
+        items=[('OFF', "Off", "Posed parts keep the light they had at rest (emission or flat-lit captures)"),
+               ('AUTO', "Auto", "Re-shade posed parts only when the model's atlas shows shading that follows the "
+                                "surface's direction (a lit capture)"),
+               ('ON', "On", "Re-shade posed parts by the shading fitted to the model's atlas: a part the pose "
+                            "turns takes the light of its new direction")],
+        description="A lit model's colours carry the light of its rest pose; re-shading makes a turned part "
+                    "follow the light (off by default)")
     antialias: bpy.props.IntProperty(name="Anti-aliasing", default=2, min=1, max=4,
                                      description="Painted texels per pixel side, filtered like Cycles' pixel filter "
                                                  "(1 = one lookup per pixel: faster preview, jagged strokes)")

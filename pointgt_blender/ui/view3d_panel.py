@@ -39,6 +39,7 @@ class POINTGT_PT_main(SidebarPanel, bpy.types.Panel):
         col.prop(s, "neighbors")
         col.prop(s, "correspondence")
         col.prop(s, "occlusion")
+        col.prop(s, "reshade")
         col.prop(s, "antialias")
         row = col.row(align=True)
         row.prop(s, "device")

@@ -96,11 +96,13 @@ def test_state_cache_passes_the_prepared_paint_to_a_new_pose(monkeypatch):
     assert made == [None, s1, None, None]
 
 
-@pytest.mark.parametrize("field, values, config, default", [("antialias", (2, 1, 1), "antialias", 2),
-                                                            ("occlusion", (True, False, False), "f_occlusion", True)])
-def test_prepare_passes_the_objects_setting(monkeypatch, field, values, config, default):
-    """The object's Anti-aliasing and Folds (occlusion) settings reach EditConfig (antialias, f_occlusion);
-    changing one rebuilds the state (a new preview)."""
+@pytest.mark.parametrize("field, values, config, default, configured", [
+    ("antialias", (2, 1, 1), "antialias", 2, (2, 1)),
+    ("occlusion", (True, False, False), "f_occlusion", True, (True, False)),
+    ("reshade", ("OFF", "AUTO", "AUTO"), "reshade", "OFF", ("off", "auto"))])
+def test_prepare_passes_the_objects_setting(monkeypatch, field, values, config, default, configured):
+    """The object's Anti-aliasing, Folds (occlusion) and Re-shade settings reach EditConfig (antialias, f_occlusion,
+    reshade); changing one rebuilds the state (a new preview)."""
     import pointgt_blender.bridge.frame_renderer as fr
 
     bundle = type("B", (), {"model": type("M", (), {"num_points": 4, "cfg": type("C", (), {"k": 8})()})(),
@@ -115,7 +117,7 @@ def test_prepare_passes_the_objects_setting(monkeypatch, field, values, config, 
         inputs = _inputs(pos)
         setattr(inputs, field, v)
         fr.prepare(inputs, models, states)
-    assert [getattr(c, config) for c in made] == list(values[:2])  # the third call changed nothing
+    assert [getattr(c, config) for c in made] == list(configured)  # the third call changed nothing
 
 
 def test_model_cache_reloads_changed_files_and_names_missing_ones(tmp_path, monkeypatch):
