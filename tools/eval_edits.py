@@ -46,7 +46,7 @@ _PAPER = {"f_attention": False, "f_radius": False, "f_compression": "tangent", "
           "f_reach_gate": 0.0, "f_key_stretch": "full", "f_reach_surround": False, "f_reach_gate_own": False,
           "f_reach_between": False, "f_fill_tear": MAX_STRETCH, "f_fill_budget": 1.0, "f_reach_perspective": 0.0,
           "stretch_grid": 0.0, "squash_grid": 0.0, "grid_texture": 0.0, "lookup": "charts",
-          "f_correspondence_compression": "keys"}
+          "f_correspondence_compression": "keys", "reshade": "off"}
 # F-aware keys, blended fill, fold rule, canonical depths, compression by the model's thickness; with the budget reach
 _AUTO = {**_PAPER, "f_attention": True, "f_fill": True, "fold_radius": 2.0, "f_fill_features": "blend",
          "f_depth": "nearest", "f_compression": "auto", "lookup": "samples"}
