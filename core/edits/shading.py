@@ -104,10 +104,10 @@ def atlas_shading(bundle) -> Shading | None:
     colour = srgb_to_linear(lk.read(atlas.chart_textures.detach().clamp(0, 1).cpu()).clamp(0, 1)).double()
     xyz = bundle.model.xyz.detach().cpu().double()
     samples = lk.samples.double()
-    tree = cKDTree(xyz.numpy())
-    nearest = torch.from_numpy(np.asarray(tree.query(samples.numpy())[1])).long()
-    _, around = tree.query(samples.numpy(), k=min(ORIENT_POINTS, xyz.shape[0]))
-    outward = samples - xyz[torch.from_numpy(np.asarray(around)).long().reshape(len(samples), -1)].mean(1)
+    _, around = cKDTree(xyz.numpy()).query(samples.numpy(), k=min(ORIENT_POINTS, xyz.shape[0]))
+    around = torch.from_numpy(np.asarray(around)).long().reshape(len(samples), -1)  # nearest first
+    nearest = around[:, 0]
+    outward = samples - xyz[around].mean(1)
     n_pts = xyz.shape[0]
     count = torch.zeros(n_pts, dtype=torch.float64).index_add_(0, nearest, torch.ones(len(nearest),
                                                                                       dtype=torch.float64))

@@ -1115,10 +1115,9 @@ def render_edited(state: EditState, c2w: torch.Tensor, height: int, width: int, 
 
 def _reshade(state: EditState, tr: Trace, rgb: torch.Tensor, cover: torch.Tensor, hit: torch.Tensor,
              background) -> int:
-    """EditConfig.reshade: multiply the object colour of the rays hit [R] (rgb [R, 3] over `background` with
-    coverage cover [R], changed in place) by S(posed normal) / S(rest normal) in linear light, each ray by its
-    most-attended neighbour's F and canonical normal (core/edits/shading.py). Returns the rays re-shaded (0: the
-    points did not move, the setting is off, or auto found no shading)."""
+    """EditConfig.reshade: `reshade_rays` on the rays hit [R] with the shading fitted to the model's atlas
+    (core/edits/shading.py `atlas_shading`). Returns the rays re-shaded (0: the points did not move, the setting is
+    off, or auto found no shading)."""
     mode = state.cfg.reshade
     if mode == "off" or not state.moved or not bool(hit.any()):
         return 0
@@ -1126,15 +1125,24 @@ def _reshade(state: EditState, tr: Trace, rgb: torch.Tensor, cover: torch.Tensor
     if shading is None or (mode == "auto" and shading.log_range < RESHADE_MIN_RANGE):
         return 0
     sel = torch.nonzero(hit).squeeze(1)
+    reshade_rays(state, tr, rgb, cover, sel, shading.b, background)
+    return int(sel.numel())
+
+
+def reshade_rays(state: EditState, tr: Trace, rgb: torch.Tensor, cover: torch.Tensor, sel: torch.Tensor,
+                 b: torch.Tensor, background=(1.0, 1.0, 1.0)) -> None:
+    """Multiply the object colour of the rays sel [S] long of a frame traced from `state`'s moved points (rgb [R, 3]
+    over `background` with coverage cover [R], changed in place; any float dtype) by S(posed normal) / S(rest
+    normal) in linear light, S = exp(b · sh_basis(n)) with b [8], each ray by its most-attended neighbour's F and
+    canonical normal (core/edits/shading.py `reshade_factor`)."""
     near = tr.idx[sel].gather(1, tr.weights[sel].argmax(1, keepdim=True)).squeeze(1).clamp_min(0)
     cid = near if state.ids is None else state.ids[near]
-    normals = field_for(state.bundle.model).normals().to(rgb.device)
-    ratio = reshade_factor(state.f[near], normals[cid], tr.dirs.reshape(-1, 3)[sel], shading.b).to(rgb.dtype)
+    normals = field_for(state.bundle.model, state.deformation_cfg).normals().to(rgb.device)
+    ratio = reshade_factor(state.f[near], normals[cid], tr.dirs.reshape(-1, 3)[sel], b).to(rgb.dtype)
     bgc = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
     f = cover[sel].clamp(1e-4, 1.0)[:, None]
     c = ((rgb[sel] - (1 - f) * bgc) / f).clamp(0, 1)
     rgb[sel] = f * linear_to_srgb((srgb_to_linear(c) * ratio[:, None]).clamp(0, 1)) + (1 - f) * bgc
-    return int(sel.numel())
 
 
 def warm_up(bundle, cfg: EditConfig | None = None, size: int = 16) -> float:

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from core.edits.shading import atlas_shading, fit_shading, reshade_factor, sh_basis
+from core.edits.shading import atlas_shading, fit_shading, sh_basis
 
 
 def run(model_path, scene_dir, poses=("bend", "twist", "squash", "stretch", "arm"), views: int = 4,
@@ -38,8 +38,8 @@ def run(model_path, scene_dir, poses=("bend", "twist", "squash", "stretch", "arm
 
     from core.bundle import load_bundle
     from core.edits.deformation import field_for
-    from core.frames.edited import EditConfig, EditState, render_edited
-    from core.images.colour import linear_to_srgb, srgb_to_linear
+    from core.frames.edited import EditConfig, EditState, render_edited, reshade_rays
+    from core.images.colour import srgb_to_linear
     from core.images.dataset import load_split
     from tools.bench.pose_bound import object_psnr
     from tools.eval_edits import deform_points, ground_truth, view_subset_dir
@@ -96,15 +96,9 @@ def run(model_path, scene_dir, poses=("bend", "twist", "squash", "stretch", "arm
             out = render_edited(st, gt.c2w[i], gt.height, gt.width, gt.focal)
             tr = out["trace"]
             rgb = out["rgb"].reshape(-1, 3).double()
-            cover = out["alpha"].reshape(-1).double().clamp(1e-4, 1.0)
             sel = torch.nonzero(tr.active & (tr.fg > 1e-4)).squeeze(1)
-            if sel.numel():
-                j = tr.idx[sel].gather(1, tr.weights[sel].argmax(1, keepdim=True)).squeeze(1).clamp_min(0)
-                cid = j if st.ids is None else st.ids[j]
-                ratio = reshade_factor(st.f[j], normals[cid], tr.dirs.reshape(-1, 3)[sel], b)
-                f = cover[sel][:, None]
-                c = ((rgb[sel] - (1 - f)) / f).clamp(0, 1)
-                rgb[sel] = f * linear_to_srgb((srgb_to_linear(c) * ratio[:, None]).clamp(0, 1)) + (1 - f)
+            if sel.numel():  # as the renderer's own re-shading, with the shading fitted to the training images
+                reshade_rays(st, tr, rgb, out["alpha"].reshape(-1).double(), sel, b)
             plain.append(object_psnr(out["rgb"], out["alpha"], gt.images[i], gt.alphas[i]))
             shaded.append(object_psnr(rgb.reshape(out["rgb"].shape).float(), out["alpha"], gt.images[i],
                                       gt.alphas[i]))
